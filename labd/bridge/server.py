@@ -1,0 +1,213 @@
+"""The WebSocket server around bridge sessions: thin glue, all I/O.
+
+Each connection gets a ``Session`` on the graph its path names (``/`` the first
+graph, ``/robots/NAME`` the graph called NAME), a reader that feeds it frames, and a
+writer that drains its outbox. The server adds what only I/O can do: TLS, keepalive
+pings, the frame size limit, the connection limit, and the authorizer's HTTP call.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import http
+import itertools
+import logging
+import ssl
+from collections.abc import Coroutine, Mapping
+from typing import Any
+from urllib.parse import parse_qs, urlsplit
+
+from websockets.asyncio.server import Server, ServerConnection, serve
+from websockets.exceptions import ConnectionClosed
+from websockets.http11 import Request, Response
+
+from labd.bridge.auth import AuthError, Authorizer
+from labd.bridge.ops import CAPABILITIES
+from labd.bridge.session import Session
+from labd.config import BridgeConfig
+from labd.graph.graph import Graph
+
+log = logging.getLogger("labd.bridge.server")
+YIELD_EVERY = 64  # frames a reader handles before letting other clients run
+
+
+class BridgeServer:
+    """Serves rosbridge v2 on one port for one or more graphs."""
+
+    def __init__(
+        self,
+        graphs: Mapping[str, Graph],
+        config: BridgeConfig,
+        authorizer: Authorizer | None = None,
+    ) -> None:
+        if not graphs:
+            raise ValueError("a bridge needs at least one graph")
+        self.graphs = dict(graphs)
+        self.config = config
+        self.authorizer = authorizer
+        self.connections: set[_Connection] = set()
+        self._ids = itertools.count(1)
+        self._server: Server | None = None
+
+    @property
+    def port(self) -> int:
+        assert self._server is not None, "the server is not started"
+        return int(self._server.sockets[0].getsockname()[1])
+
+    def url(self, graph: str | None = None) -> str:
+        scheme = "wss" if self.config.tls_cert else "ws"
+        path = f"/robots/{graph}" if graph else ""
+        return f"{scheme}://{self.config.host}:{self.port}{path}"
+
+    async def start(self) -> None:
+        context = None
+        if self.config.tls_cert is not None:
+            context = ssl.SSLContext(ssl.PROTOCOL_TLS_SERVER)
+            context.load_cert_chain(self.config.tls_cert, self.config.tls_key)
+        self._server = await serve(
+            self._handle,
+            self.config.host,
+            self.config.port,
+            process_request=self._admit,
+            max_size=self.config.max_frame_size,
+            ping_interval=self.config.ping_interval,
+            ping_timeout=self.config.ping_timeout,
+            compression=None,  # deflate costs more CPU than it saves on loopback and LAN
+            ssl=context,
+        )
+        log.info("bridge listening on %s (graphs: %s)", self.url(), ", ".join(self.graphs))
+
+    async def close(self) -> None:
+        if self._server is not None:
+            self._server.close()
+            await self._server.wait_closed()
+            self._server = None
+
+    def _graph_for(self, path: str) -> Graph | None:
+        route = urlsplit(path).path.rstrip("/")
+        if route == "":
+            return next(iter(self.graphs.values()))
+        prefix = "/robots/"
+        if route.startswith(prefix):
+            return self.graphs.get(route[len(prefix) :])
+        return None
+
+    def _admit(self, connection: ServerConnection, request: Request) -> Response | None:
+        if self._graph_for(request.path) is None:
+            names = ", ".join(f"/robots/{n}" for n in self.graphs)
+            return connection.respond(
+                http.HTTPStatus.NOT_FOUND,
+                f"no robot at {urlsplit(request.path).path}; try / or {names}\n",
+            )
+        if len(self.connections) >= self.config.max_connections:
+            return connection.respond(
+                http.HTTPStatus.SERVICE_UNAVAILABLE,
+                "the bridge has all the connections it allows; retry later\n",
+            )
+        return None
+
+    async def _handle(self, ws: ServerConnection) -> None:
+        graph = self._graph_for(ws.request.path if ws.request else "/")
+        assert graph is not None
+        query = parse_qs(urlsplit(ws.request.path if ws.request else "").query)
+        key = query.get("key", [None])[0]
+        conn = _Connection(ws, self.authorizer)
+        session = Session(
+            graph,
+            self.config,
+            asyncio.get_running_loop(),
+            conn,
+            client_id=next(self._ids),
+            capabilities=CAPABILITIES,
+            auth_required=self.authorizer is not None,
+            url_key=key,
+        )
+        conn.session = session
+        self.connections.add(conn)
+        log.info(
+            "client %d connected from %s to %s", session.client_id, ws.remote_address, graph.name
+        )
+        writer = asyncio.create_task(conn.write_loop())
+        try:
+            await conn.read_loop()
+        finally:
+            self.connections.discard(conn)
+            session.close()
+            writer.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await writer
+            await conn.finish()
+            log.info("client %d left (%s)", session.client_id, ws.close_code)
+
+
+class _Connection:
+    """The ``Transport`` of one session: its socket, writer wake-up and auth calls."""
+
+    def __init__(self, ws: ServerConnection, authorizer: Authorizer | None) -> None:
+        self.ws = ws
+        self.authorizer = authorizer
+        self.session: Session | None = None
+        self._ready = asyncio.Event()
+        self._tasks: set[asyncio.Task[None]] = set()
+
+    # Transport
+    def wake(self) -> None:
+        self._ready.set()
+
+    def close(self, code: int, reason: str) -> None:
+        self._spawn(self.ws.close(code, reason))
+
+    def authorize(self, key: str) -> None:
+        self._spawn(self._authorize(key))
+
+    async def _authorize(self, key: str) -> None:
+        assert self.session is not None and self.authorizer is not None
+        try:
+            seconds = await self.authorizer.authorize(key)
+        except AuthError as err:
+            self.session.refuse(err.reason)
+            return
+        self.session.grant(seconds)
+
+    def _spawn(self, coro: Coroutine[Any, Any, None]) -> None:
+        task = asyncio.ensure_future(coro)
+        self._tasks.add(task)
+        task.add_done_callback(self._tasks.discard)
+
+    # Loops
+    async def read_loop(self) -> None:
+        session = self.session
+        assert session is not None
+        recv = self.ws.recv
+        count = 0
+        with contextlib.suppress(ConnectionClosed):
+            while True:
+                session.receive(await recv(decode=False))
+                count += 1
+                if count % YIELD_EVERY == 0:
+                    await asyncio.sleep(0)
+
+    async def write_loop(self) -> None:
+        session = self.session
+        assert session is not None
+        ready = self._ready
+        send = self.ws.send
+        with contextlib.suppress(ConnectionClosed):
+            while True:
+                frames = session.next_frames()
+                if frames is None:
+                    ready.clear()
+                    frames = session.next_frames()
+                    if frames is None:
+                        await ready.wait()
+                        continue
+                for frame in frames:
+                    await send(frame.data, text=frame.text)
+
+    async def finish(self) -> None:
+        for task in list(self._tasks):
+            task.cancel()
+        for task in list(self._tasks):
+            with contextlib.suppress(asyncio.CancelledError, ConnectionClosed):
+                await task

@@ -1,0 +1,325 @@
+"""One client's bridge session: the protocol core, without I/O.
+
+A ``Session`` takes the frames a client sends (``receive``) and produces the frames
+to send back (``next_frames``), talking to the robot graph in between. It does no
+I/O: the server around it moves bytes, and the session asks it for the three things
+it cannot do itself through a ``Transport``: wake the writer, close the connection,
+and check a key with the authorizer. Time comes from ``Timers``. Tests drive it with
+strings.
+
+Every op goes through one dispatcher, which applies the rules that hold for all ops:
+authorization first, protected names never cross, errors become a status frame (to a
+client that asked for status with ``set_level``), a log line, and a line on
+``/rosout``.
+"""
+
+from __future__ import annotations
+
+import enum
+import itertools
+import logging
+from collections.abc import Callable
+from typing import Any, Protocol
+
+from labd.bridge import frames
+from labd.bridge.frames import Auth, CallService, Id, Op
+from labd.bridge.outbox import Outbox
+from labd.bridge.render import OutFrame, finish, json_frame
+from labd.clock import TimerHandle, Timers
+from labd.config import BridgeConfig
+from labd.errors import FrameError, LabError, NameError_
+from labd.graph.codec import dumps
+from labd.graph.graph import Graph
+from labd.graph.names import is_protected, resolve
+
+LEVELS = {"none": 0, "error": 1, "warning": 2, "info": 3}
+ROSOUT_LEVELS = {"error": 40, "warning": 30, "info": 20}
+POLICY_VIOLATION = 1008
+
+
+class Transport(Protocol):
+    """What the session needs from the connection it runs on."""
+
+    def wake(self) -> None:
+        """Frames are waiting in ``next_frames``."""
+
+    def close(self, code: int, reason: str) -> None:
+        """Close the connection with this WebSocket close code and reason."""
+
+    def authorize(self, key: str) -> None:
+        """Check ``key``; answer later with ``Session.grant`` or ``Session.refuse``."""
+
+
+class AuthState(enum.Enum):
+    OPEN = "open"  # no authorization needed, or granted
+    AWAITING = "awaiting"  # the first frame must be an auth frame
+    AUTHORIZING = "authorizing"  # the authorizer is being asked
+    CLOSED = "closed"
+
+
+class Capability:
+    """A family of ops: handles them and releases what it holds when the client leaves."""
+
+    ops: tuple[type[Op], ...] = ()
+
+    def __init__(self, session: Session) -> None:
+        self.session = session
+
+    def handle(self, op: Op) -> None:
+        raise NotImplementedError
+
+    def close(self) -> None:
+        """The client has left: release everything."""
+
+
+class Session:
+    """The protocol state of one connected client."""
+
+    def __init__(
+        self,
+        graph: Graph,
+        config: BridgeConfig,
+        timers: Timers,
+        transport: Transport,
+        *,
+        client_id: int,
+        capabilities: list[Callable[[Session], Capability]],
+        auth_required: bool = False,
+        url_key: str | None = None,
+    ) -> None:
+        self.graph = graph
+        self.config = config
+        self.timers = timers
+        self.transport = transport
+        self.client_id = client_id
+        self.log = logging.LoggerAdapter(
+            logging.getLogger("labd.bridge.session"), {"client": client_id}
+        )
+        self.node = graph.create_node(f"/bridge/client_{client_id}")
+        self.outbox = Outbox(config.max_queue_bytes, transport.wake)
+        self.status_level: int | None = None  # None until the client sends set_level
+        self.closed = False
+        self._fragment_ids = itertools.count(1)
+        self._tokens = float(config.log_burst)
+        self._tokens_at = timers.time()
+        self._suppressed = 0
+        self.capabilities = [make(self) for make in capabilities]
+        self._handlers: dict[type[Op], Capability] = {
+            op: cap for cap in self.capabilities for op in cap.ops
+        }
+        self._held: list[str | bytes] = []  # frames received while authorizing
+        self._auth_timer: TimerHandle | None = None
+        self._expiry: TimerHandle | None = None
+        self.auth = AuthState.OPEN
+        if auth_required:
+            self.auth = AuthState.AWAITING
+            self._auth_timer = timers.call_later(config.auth_timeout, self._auth_timed_out)
+            if url_key is not None:
+                self._start_authorizing(url_key)
+
+    # -- input --------------------------------------------------------------------------
+
+    def receive(self, data: str | bytes) -> None:
+        """Handle one frame from the client."""
+        if self.closed:
+            return
+        if self.auth is not AuthState.OPEN:
+            self._receive_unauthorized(data)
+            return
+        if len(data) > self.config.max_message_size:
+            self.report(
+                "error",
+                f"a frame of {len(data)} bytes is over the limit of "
+                f"{self.config.max_message_size}; it was dropped",
+            )
+            return
+        try:
+            op = frames.parse(data)
+        except FrameError as err:
+            self.report("error", str(err), frames.peek_id(data))
+            return
+        self.dispatch(op)
+
+    def dispatch(self, op: Op) -> None:
+        handler = self._handlers.get(type(op))
+        name = op.__struct_config__.tag
+        op_id: Id = getattr(op, "id", None)
+        if handler is None:
+            self.report("warning", f"{name} is not available here", op_id)
+            return
+        protected = self._protected_name(op)
+        if protected is not None:
+            self._refuse_protected(op, protected, op_id)
+            return
+        try:
+            handler.handle(op)
+        except LabError as err:
+            self.report("error", f"{name}: {err}", op_id)
+        except Exception:
+            # A bug in the lab, not in the client's frame: keep the traceback, tell the
+            # client something went wrong on our side, and keep the connection.
+            self.log.exception("internal error handling %s", name)
+            self.report("error", f"{name}: internal error in the lab (logged)", op_id)
+
+    def _protected_name(self, op: Op) -> str | None:
+        prefixes = self.config.protected_prefixes
+        if not prefixes:
+            return None
+        name = (
+            getattr(op, "topic", None)
+            or getattr(op, "service", None)
+            or getattr(op, "action", None)
+        )
+        if not isinstance(name, str):
+            return None
+        try:
+            absolute = resolve(name)
+        except NameError_:
+            return None  # malformed; the handler says so
+        return name if is_protected(absolute, prefixes) else None
+
+    def _refuse_protected(self, op: Op, name: str, op_id: Id) -> None:
+        if isinstance(op, CallService):
+            # The rosjs rule: a call on a protected service answers an empty object.
+            reply: dict[str, Any] = {
+                "op": "service_response",
+                "service": name,
+                "values": {},
+                "result": True,
+            }
+            if op_id is not None:
+                reply["id"] = op_id
+            self.send(reply)
+        self.report("error", f"{op.__struct_config__.tag}: {name} is protected", op_id)
+
+    # -- output ------------------------------------------------------------------------
+
+    def next_frames(self) -> list[OutFrame] | None:
+        """The next frames to send, in order, or None when nothing waits."""
+        return self.outbox.pop()
+
+    def send(
+        self, frame: dict[str, Any], compression: str = "none", fragment_size: int | None = None
+    ) -> None:
+        """Queue a control frame (a reply or status); never dropped."""
+        if self.closed:
+            return
+        if compression == "none" and fragment_size is None:
+            self.outbox.push_frame(json_frame(frame))
+        else:
+            for part in finish(dumps(frame), compression, fragment_size, self.fragment_id()):
+                self.outbox.push_frame(part)
+        if self.outbox.overflowed:
+            self.close_connection(POLICY_VIOLATION, "the client does not read its replies")
+
+    def fragment_id(self) -> str:
+        return f"fragment:{self.client_id}:{next(self._fragment_ids)}"
+
+    def report(self, level: str, text: str, op_id: Id = None) -> None:
+        """Log, publish on /rosout, and send a status if the client asked for this level."""
+        if self.status_level is not None and LEVELS[level] <= self.status_level:
+            status: dict[str, Any] = {"op": "status", "level": level, "msg": text}
+            if op_id is not None:
+                status["id"] = op_id
+            self.send(status)
+        if not self._take_log_token():
+            return
+        log_level = {"error": logging.WARNING, "warning": logging.INFO}.get(level, logging.DEBUG)
+        self.log.log(log_level, "client %d: %s", self.client_id, text)
+        self.graph.rosout(ROSOUT_LEVELS[level], self.node.name.lstrip("/").replace("/", "."), text)
+
+    def _take_log_token(self) -> bool:
+        now = self.timers.time()
+        self._tokens = min(
+            float(self.config.log_burst),
+            self._tokens + (now - self._tokens_at) * self.config.log_rate,
+        )
+        self._tokens_at = now
+        if self._tokens < 1.0:
+            self._suppressed += 1
+            return False
+        self._tokens -= 1.0
+        if self._suppressed:
+            count, self._suppressed = self._suppressed, 0
+            self.log.warning("client %d: %d more log lines suppressed", self.client_id, count)
+        return True
+
+    # -- authorization -------------------------------------------------------------------
+
+    def _receive_unauthorized(self, data: str | bytes) -> None:
+        if self.auth is AuthState.AUTHORIZING:
+            self._held.append(data)
+            if len(self._held) > 1000:
+                self.close_connection(POLICY_VIOLATION, "too many frames before authorization")
+            return
+        if self.auth is not AuthState.AWAITING:
+            return
+        try:
+            op = frames.parse(data)
+        except FrameError:
+            op = None
+        key = (op.key or op.mac) if isinstance(op, Auth) else None
+        if not key:
+            self.close_connection(
+                POLICY_VIOLATION, 'the first frame must be {"op": "auth", "key": ...}'
+            )
+            return
+        self._start_authorizing(key)
+
+    def _start_authorizing(self, key: str) -> None:
+        self.auth = AuthState.AUTHORIZING
+        self.transport.authorize(key)
+
+    def grant(self, seconds: float) -> None:
+        """The authorizer accepted the key for ``seconds``."""
+        if self.auth is not AuthState.AUTHORIZING:
+            return
+        if seconds <= 0:
+            self.refuse("the key has no time left")
+            return
+        self.auth = AuthState.OPEN
+        if self._auth_timer is not None:
+            self._auth_timer.cancel()
+            self._auth_timer = None
+        self._expiry = self.timers.call_later(seconds, self._expired)
+        self.log.info("client %d authorized for %.0f s", self.client_id, seconds)
+        held, self._held = self._held, []
+        for data in held:
+            self.receive(data)
+
+    def refuse(self, reason: str) -> None:
+        if self.auth is AuthState.CLOSED or self.closed:
+            return
+        self.close_connection(POLICY_VIOLATION, f"authorization refused: {reason}")
+
+    def _auth_timed_out(self) -> None:
+        self._auth_timer = None
+        if self.auth is not AuthState.OPEN:
+            self.close_connection(POLICY_VIOLATION, "no authorization in time")
+
+    def _expired(self) -> None:
+        self._expiry = None
+        self.close_connection(POLICY_VIOLATION, "the authorization has expired")
+
+    # -- lifecycle ---------------------------------------------------------------------
+
+    def close_connection(self, code: int, reason: str) -> None:
+        """Ask the transport to close; the session is released when it has."""
+        if self.auth is not AuthState.OPEN:
+            self.auth = AuthState.CLOSED
+        self.log.info("client %d: closing (%d %s)", self.client_id, code, reason)
+        self.transport.close(code, reason)
+
+    def close(self) -> None:
+        """The connection is gone: release every subscription, publisher, service, goal."""
+        if self.closed:
+            return
+        self.closed = True
+        self.auth = AuthState.CLOSED
+        for timer in (self._auth_timer, self._expiry):
+            if timer is not None:
+                timer.cancel()
+        for cap in self.capabilities:
+            cap.close()
+        self.node.destroy()
+        self._held.clear()

@@ -1,0 +1,133 @@
+"""The ``labd`` command.
+
+    labd serve [--host H] [--bridge-port P] [--data DIR] [--protected-prefix P ...]
+               [--authorizer URL] [--tls-cert F --tls-key F] [--max-connections N]
+
+The other commands of DESIGN.md (submit, trials, show, rerun, export, run, worker)
+arrive with the scheduler and the archive.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import contextlib
+import logging
+import signal
+import sys
+from collections.abc import Sequence
+from pathlib import Path
+
+from labd import __version__
+from labd.bridge.auth import HttpAuthorizer
+from labd.bridge.rosapi import Rosapi
+from labd.bridge.server import BridgeServer
+from labd.config import BridgeConfig, LabConfig
+from labd.graph.graph import Graph
+from labd.graph.types import TypeRegistry
+
+log = logging.getLogger("labd")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="labd", description="The remote robot lab daemon.")
+    parser.add_argument("--version", action="version", version=f"labd {__version__}")
+    parser.add_argument(
+        "--log-level", default="INFO", choices=["DEBUG", "INFO", "WARNING", "ERROR"]
+    )
+    commands = parser.add_subparsers(dest="command", required=True)
+
+    serve = commands.add_parser("serve", help="run the lab: the rosbridge server and its robots")
+    defaults = BridgeConfig()
+    serve.add_argument("--host", default=defaults.host, help="address to listen on")
+    serve.add_argument(
+        "--bridge-port",
+        type=int,
+        default=defaults.port,
+        help="rosbridge WebSocket port (0: any free port)",
+    )
+    serve.add_argument("--data", type=Path, default=LabConfig().data, help="where data is kept")
+    serve.add_argument(
+        "--protected-prefix",
+        action="append",
+        dest="protected",
+        help="names under this prefix never cross the bridge (repeatable; default /protected)",
+    )
+    serve.add_argument(
+        "--authorizer",
+        metavar="URL",
+        help='require keys, checked at URL?key=KEY (answers {"seconds": N})',
+    )
+    serve.add_argument("--tls-cert", type=Path, help="certificate (PEM) to serve wss://")
+    serve.add_argument("--tls-key", type=Path, help="private key (PEM) of --tls-cert")
+    serve.add_argument("--max-connections", type=int, default=defaults.max_connections)
+    return parser
+
+
+def bridge_config(args: argparse.Namespace) -> BridgeConfig:
+    if (args.tls_cert is None) != (args.tls_key is None):
+        raise SystemExit("labd serve: --tls-cert and --tls-key go together")
+    protected = tuple(args.protected) if args.protected else BridgeConfig().protected_prefixes
+    return BridgeConfig(
+        host=args.host,
+        port=args.bridge_port,
+        protected_prefixes=protected,
+        authorizer_url=args.authorizer,
+        tls_cert=args.tls_cert,
+        tls_key=args.tls_key,
+        max_connections=args.max_connections,
+    )
+
+
+async def serve(config: LabConfig, ready: asyncio.Event | None = None) -> None:
+    """Run the lab until cancelled or signalled."""
+    types = TypeRegistry.default()
+    graphs = {"playground": Graph(types, name="playground")}
+    apis = [Rosapi(g, config.bridge.protected_prefixes) for g in graphs.values()]
+    authorizer = (
+        HttpAuthorizer(config.bridge.authorizer_url) if config.bridge.authorizer_url else None
+    )
+    server = BridgeServer(graphs, config.bridge, authorizer)
+    await server.start()
+    print(f"labd {__version__}: rosbridge v2 on {server.url()}", flush=True)
+    for name in graphs:
+        print(f"  graph {name}: {server.url(name)}", flush=True)
+    print(
+        "  the simulated robots are not built yet: this graph is a playground where\n"
+        "  rosbridge clients reach each other and /rosapi.",
+        flush=True,
+    )
+    stop = asyncio.Event()
+    loop = asyncio.get_running_loop()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        with contextlib.suppress(NotImplementedError, RuntimeError):
+            loop.add_signal_handler(sig, stop.set)
+    if ready is not None:
+        ready.set()
+    try:
+        await stop.wait()
+    finally:
+        await server.close()
+        for api in apis:
+            api.close()
+        if authorizer is not None:
+            await authorizer.aclose()
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    logging.basicConfig(
+        level=args.log_level,
+        stream=sys.stderr,
+        format="%(asctime)s %(levelname)s %(name)s: %(message)s",
+    )
+    if args.command == "serve":
+        config = LabConfig(data=args.data, bridge=bridge_config(args))
+        with contextlib.suppress(KeyboardInterrupt):
+            asyncio.run(serve(config))
+        return 0
+    return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,49 @@
+"""The lab's configuration: one object, built at start-up and passed down."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+MiB = 1024 * 1024
+
+
+@dataclass(frozen=True)
+class BridgeConfig:
+    """How the rosbridge server listens and what it allows each client."""
+
+    host: str = "127.0.0.1"
+    port: int = 9090
+    # Names under these prefixes never cross the bridge (the rosjs paper's rule).
+    protected_prefixes: tuple[str, ...] = ("/protected",)
+    # Key authorization: an HTTP(S) URL answering {"seconds": N} for ?key=...
+    authorizer_url: str | None = None
+    auth_timeout: float = 10.0  # seconds a client has to authorize
+    tls_cert: Path | None = None
+    tls_key: Path | None = None
+    # Frames above max_message_size are refused with a status; the connection stays.
+    # Frames above max_frame_size close the connection (1009), protecting memory.
+    max_message_size: int = 16 * MiB
+    max_frame_size: int = 64 * MiB
+    max_connections: int = 200
+    max_queue_bytes: int = 32 * MiB  # per client, topic messages waiting to be sent
+    default_queue_length: int = 100  # per subscription, when the client gives none
+    ping_interval: float | None = 20.0
+    ping_timeout: float | None = 20.0
+    service_timeout: float = 5.0  # call_service without a timeout field
+    max_subscriptions: int = 1000  # per client, counting subscription ids
+    max_publishers: int = 1000
+    max_services: int = 200  # services and actions a client provides
+    max_pending: int = 1000  # calls and goals a client waits on
+    max_fragmented: int = 16  # messages a client may be sending in fragments at once
+    fragment_timeout: float = 30.0
+    log_rate: float = 20.0  # log lines per second per client before suppression
+    log_burst: int = 50
+
+
+@dataclass(frozen=True)
+class LabConfig:
+    """Everything ``labd serve`` needs."""
+
+    data: Path = Path("lab-data")
+    bridge: BridgeConfig = field(default_factory=BridgeConfig)

@@ -1,0 +1,137 @@
+"""Exceptions of the lab daemon.
+
+Every error that a person can act on is one of these; each carries its fields and
+formats itself, so a handler turns it into a protocol reply without string surgery.
+
+    LabError
+    ├── GraphError                 the robot graph refused something
+    │   ├── UnknownTypeError       no such message, service or action type
+    │   ├── MessageError           a message does not fit its type (names the field)
+    │   ├── NameError_             a topic, service or action name is malformed
+    │   ├── TypeMismatchError      a name is already used with another type
+    │   ├── NotFoundError          no such topic, service or action
+    │   └── ConflictError          the name is already provided by someone else
+    └── BridgeError                the bridge refused a frame from a client
+        ├── FrameError             a frame is not a well-formed rosbridge operation
+        ├── ProtectedError         the name is protected and never crosses the bridge
+        └── LimitError             a per-client limit would be exceeded
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+
+class LabError(Exception):
+    """Base class of the lab daemon's expected errors."""
+
+
+class GraphError(LabError):
+    """The robot graph refused an operation."""
+
+
+class UnknownTypeError(GraphError):
+    """A type name does not resolve to a known interface."""
+
+    def __init__(self, kind: str, name: str) -> None:
+        self.kind = kind
+        self.name = name
+        super().__init__(f"unknown {kind} type {name!r}")
+
+
+class MessageError(GraphError):
+    """A message value does not fit its type.
+
+    ``path`` is the chain of field names (and list indices) from the root of the
+    message to the offending value; handlers prefix it with where the message sat
+    in the frame, so the client reads ``publish.msg.linear.x must be a number``.
+    """
+
+    def __init__(self, reason: str, path: Sequence[str | int] = ()) -> None:
+        self.reason = reason
+        self.path: list[str | int] = list(path)
+        super().__init__(reason)
+
+    def prefixed(self, *segments: str | int) -> MessageError:
+        """Return the same error with ``segments`` put in front of its path."""
+        return MessageError(self.reason, [*segments, *self.path])
+
+    @property
+    def where(self) -> str:
+        out = ""
+        for seg in self.path:
+            out += f"[{seg}]" if isinstance(seg, int) else (f".{seg}" if out else seg)
+        return out
+
+    def __str__(self) -> str:
+        return f"{self.where} {self.reason}" if self.path else self.reason
+
+
+class NameError_(GraphError):
+    """A graph name is malformed."""
+
+    def __init__(self, name: str, reason: str) -> None:
+        self.name = name
+        self.reason = reason
+        super().__init__(f"invalid name {name!r}: {reason}")
+
+
+class TypeMismatchError(GraphError):
+    """A name is already in use with another type."""
+
+    def __init__(self, kind: str, name: str, have: str, want: str) -> None:
+        self.kind = kind
+        self.name = name
+        self.have = have
+        self.want = want
+        super().__init__(f"{kind} {name} has type {have}, not {want}")
+
+
+class NotFoundError(GraphError):
+    """No topic, service or action of that name exists."""
+
+    def __init__(self, kind: str, name: str, hint: str = "") -> None:
+        self.kind = kind
+        self.name = name
+        self.hint = hint
+        super().__init__(f"no {kind} {name}" + (f": {hint}" if hint else ""))
+
+
+class ConflictError(GraphError):
+    """A service or action name is already provided by another node."""
+
+    def __init__(self, kind: str, name: str, owner: str) -> None:
+        self.kind = kind
+        self.name = name
+        self.owner = owner
+        super().__init__(f"{kind} {name} is already provided by {owner}")
+
+
+class BridgeError(LabError):
+    """The bridge refused a frame."""
+
+
+class FrameError(BridgeError):
+    """A frame is not a well-formed rosbridge operation."""
+
+    def __init__(self, reason: str, op: str | None = None) -> None:
+        self.reason = reason
+        self.op = op
+        super().__init__(reason)
+
+
+class ProtectedError(BridgeError):
+    """The name is protected: it never crosses the bridge."""
+
+    def __init__(self, name: str) -> None:
+        self.name = name
+        super().__init__(f"{name} is protected")
+
+
+class LimitError(BridgeError):
+    """A per-client limit would be exceeded."""
+
+    def __init__(self, what: str, limit: int) -> None:
+        self.what = what
+        self.limit = limit
+        super().__init__(f"too many {what} (the limit is {limit})")

@@ -1,0 +1,337 @@
+"""The robot graph: nodes, topics, services and actions shared by everything in a lab.
+
+A ``Graph`` is one robot's world of names, like a ROS 2 domain: the simulated robot,
+the rosapi node, the recorder and every bridge client are ``Node``\\ s in it. Nodes
+publish and subscribe to topics, provide and call services, serve and send action
+goals. Delivery is synchronous and in-process: ``publish`` returns after every
+subscriber's callback has run, so the order of events is the order of calls, which is
+what makes lockstep trials reproducible.
+
+A graph is not thread-safe; it lives on one event loop.
+"""
+
+from __future__ import annotations
+
+import itertools
+import logging
+import time
+from collections.abc import Callable, Iterator, Mapping
+from typing import Any
+
+from labd.errors import ConflictError, NameError_, NotFoundError, TypeMismatchError
+from labd.graph.actions import (
+    Action,
+    ActionHandler,
+    ClientGoal,
+    FeedbackCallback,
+    GoalResultCallback,
+)
+from labd.graph.codec import Codec, codec_for
+from labd.graph.message import Message
+from labd.graph.names import resolve
+from labd.graph.services import Service, ServiceCall, ServiceHandler, ServiceResultCallback
+from labd.graph.types import TypeRegistry
+
+Clock = Callable[[], int]  # graph time in nanoseconds
+MessageCallback = Callable[[Message], None]
+Tap = Callable[["Topic", Message], None]
+
+
+def wall_clock() -> int:
+    """Graph time for live robots: the wall clock (ROS time, like a real robot)."""
+    return time.time_ns()
+
+
+class Graph:
+    """One robot's graph of names."""
+
+    def __init__(
+        self, types: TypeRegistry, *, name: str = "lab", clock: Clock = wall_clock
+    ) -> None:
+        self.types = types
+        self.name = name
+        self.clock = clock
+        self.topics: dict[str, Topic] = {}
+        self.services: dict[str, Service] = {}
+        self.actions: dict[str, Action] = {}
+        self.nodes: dict[str, Node] = {}
+        self.params: dict[str, str] = {}
+        self.taps: list[Tap] = []
+        self.log = logging.getLogger(f"labd.graph.{name}")
+        self._node_ids = itertools.count(1)
+        self._rosout: Publisher | None = None
+
+    # -- time and messages ------------------------------------------------------------
+
+    def now(self) -> tuple[int, int]:
+        ns = self.clock()
+        return ns // 1_000_000_000, ns % 1_000_000_000
+
+    def codec(self, type_name: str) -> Codec:
+        return codec_for(self.types, type_name)
+
+    def message(self, type_name: str, value: Mapping[str, Any] | Message) -> Message:
+        """Validate ``value`` (JSON-like) as a ``type_name`` message."""
+        codec = self.codec(type_name)
+        if isinstance(value, Message):
+            if value.codec is not codec:
+                raise TypeMismatchError("message", "value", value.type_name, codec.type.name)
+            return value
+        return Message(codec, codec.normalize(value, self.now), self.clock())
+
+    def rosout(self, level: int, logger: str, text: str) -> None:
+        """Publish a log line on /rosout (rcl_interfaces/msg/Log), as ROS nodes do."""
+        if self._rosout is None:
+            self._rosout = self.create_node("/labd").advertise("/rosout", "rcl_interfaces/msg/Log")
+        sec, nanosec = self.now()
+        self._rosout.publish(
+            {"stamp": {"sec": sec, "nanosec": nanosec}, "level": level, "name": logger, "msg": text}
+        )
+
+    # -- nodes --------------------------------------------------------------------------
+
+    def create_node(self, name: str) -> Node:
+        """A new node; a taken name gets a numeric suffix (``/bridge/client_2``)."""
+        base = resolve(name)
+        unique = base
+        while unique in self.nodes:
+            unique = f"{base}_{next(self._node_ids)}"
+        node = Node(self, unique)
+        self.nodes[unique] = node
+        return node
+
+    # -- topics -------------------------------------------------------------------------
+
+    def topic(self, name: str, type_name: str | None) -> Topic:
+        """The topic ``name``, created with ``type_name`` if it does not exist yet."""
+        absolute = resolve(name)
+        topic = self.topics.get(absolute)
+        if topic is None:
+            if type_name is None:
+                raise NotFoundError("topic", absolute, "no one publishes it yet, so give its type")
+            topic = Topic(self, absolute, self.codec(type_name))
+            self.topics[absolute] = topic
+        elif type_name is not None:
+            want = self.codec(type_name).type.name
+            if want != topic.type_name:
+                raise TypeMismatchError("topic", absolute, topic.type_name, want)
+        return topic
+
+    def _forget_topic_if_unused(self, topic: Topic) -> None:
+        if not topic.publishers and not topic.subscriptions and topic.latched is None:
+            self.topics.pop(topic.name, None)
+
+    # -- introspection (rosapi) -----------------------------------------------------------
+
+    def publishers_of(self, topic: str) -> list[str]:
+        t = self.topics.get(topic)
+        return sorted({p.node.name for p in t.publishers}) if t else []
+
+    def subscribers_of(self, topic: str) -> list[str]:
+        t = self.topics.get(topic)
+        return sorted({s.node.name for s in t.subscriptions if not s.hidden}) if t else []
+
+    def iter_nodes(self) -> Iterator[Node]:
+        return iter(sorted(self.nodes.values(), key=lambda n: n.name))
+
+
+class Topic:
+    """A named stream of messages of one type."""
+
+    def __init__(self, graph: Graph, name: str, codec: Codec) -> None:
+        self.graph = graph
+        self.name = name
+        self.codec = codec
+        self.publishers: list[Publisher] = []
+        self.subscriptions: list[Subscription] = []
+        self.latched: Message | None = None
+
+    @property
+    def type_name(self) -> str:
+        return self.codec.type.name
+
+    def deliver(self, message: Message, latch: bool) -> None:
+        if latch:
+            self.latched = message
+        for tap in self.graph.taps:
+            tap(self, message)
+        for sub in tuple(self.subscriptions):
+            if not sub.closed:
+                sub.callback(message)
+
+
+class Publisher:
+    """A node's right to publish on a topic."""
+
+    def __init__(self, node: Node, topic: Topic, latch: bool) -> None:
+        self.node = node
+        self.topic = topic
+        self.latch = latch
+        self.closed = False
+
+    def publish(self, value: Mapping[str, Any] | Message, *, latch: bool | None = None) -> Message:
+        """Validate and deliver one message; returns it as delivered."""
+        if self.closed:
+            raise NotFoundError("publisher", self.topic.name, "it was closed")
+        message = self.node.graph.message(self.topic.type_name, value)
+        self.topic.deliver(message, self.latch if latch is None else latch)
+        return message
+
+    def close(self) -> None:
+        if self.closed:
+            return
+        self.closed = True
+        self.topic.publishers.remove(self)
+        self.node.publishers.remove(self)
+        self.node.graph._forget_topic_if_unused(self.topic)
+
+
+class Subscription:
+    """A callback on every message of a topic."""
+
+    def __init__(self, node: Node, topic: Topic, callback: MessageCallback, hidden: bool) -> None:
+        self.node = node
+        self.topic = topic
+        self.callback = callback
+        self.hidden = hidden  # the recorder and the like do not show up in rosapi
+        self.closed = False
+
+    def close(self) -> None:
+        if self.closed:
+            return
+        self.closed = True
+        self.topic.subscriptions.remove(self)
+        self.node.subscriptions.remove(self)
+        self.node.graph._forget_topic_if_unused(self.topic)
+
+
+class Node:
+    """A participant in the graph; destroying it releases all it holds."""
+
+    def __init__(self, graph: Graph, name: str) -> None:
+        self.graph = graph
+        self.name = name
+        self.publishers: list[Publisher] = []
+        self.subscriptions: list[Subscription] = []
+        self.services: list[Service] = []
+        self.actions: list[Action] = []
+        self.calls: list[ServiceCall] = []  # calls this node made that are not answered
+        self.goals: list[ClientGoal] = []  # goals this node sent that are not finished
+        self.destroyed = False
+
+    def advertise(self, topic: str, type_name: str | None, *, latch: bool = False) -> Publisher:
+        t = self.graph.topic(topic, type_name)
+        pub = Publisher(self, t, latch)
+        t.publishers.append(pub)
+        self.publishers.append(pub)
+        return pub
+
+    def subscribe(
+        self,
+        topic: str,
+        type_name: str | None,
+        callback: MessageCallback,
+        *,
+        hidden: bool = False,
+        latched: bool = True,
+    ) -> Subscription:
+        """Subscribe; the topic's latched message, if any, is delivered at once."""
+        t = self.graph.topic(topic, type_name)
+        sub = Subscription(self, t, callback, hidden)
+        t.subscriptions.append(sub)
+        self.subscriptions.append(sub)
+        if latched and t.latched is not None:
+            callback(t.latched)
+        return sub
+
+    def provide_service(self, name: str, type_name: str, handler: ServiceHandler) -> Service:
+        absolute = resolve(name)
+        stype = self.graph.types.service(type_name)
+        existing = self.graph.services.get(absolute)
+        if existing is not None:
+            if existing.node is not self:
+                raise ConflictError("service", absolute, existing.node.name)
+            existing.close()
+        service = Service(self, absolute, stype, handler)
+        self.graph.services[absolute] = service
+        self.services.append(service)
+        return service
+
+    def call_service(
+        self,
+        name: str,
+        request: Mapping[str, Any] | list[Any] | None,
+        on_result: ServiceResultCallback,
+    ) -> ServiceCall:
+        """Call a service; ``on_result`` runs exactly once, maybe before this returns."""
+        absolute = resolve(name)
+        service = self.graph.services.get(absolute)
+        if service is None:
+            raise NotFoundError("service", absolute)
+        return service.call(self, request, on_result)
+
+    def provide_action(self, name: str, type_name: str, handler: ActionHandler) -> Action:
+        absolute = resolve(name)
+        atype = self.graph.types.action(type_name)
+        existing = self.graph.actions.get(absolute)
+        if existing is not None:
+            if existing.node is not self:
+                raise ConflictError("action", absolute, existing.node.name)
+            existing.close()
+        action = Action(self, absolute, atype, handler)
+        self.graph.actions[absolute] = action
+        self.actions.append(action)
+        return action
+
+    def send_goal(
+        self,
+        name: str,
+        goal: Mapping[str, Any] | list[Any] | None,
+        on_result: GoalResultCallback,
+        on_feedback: FeedbackCallback | None = None,
+        *,
+        type_name: str | None = None,
+    ) -> ClientGoal:
+        absolute = resolve(name)
+        action = self.graph.actions.get(absolute)
+        if action is None:
+            raise NotFoundError("action", absolute)
+        if type_name is not None:
+            want = self.graph.types.action(type_name).name
+            if want != action.type.name:
+                raise TypeMismatchError("action", absolute, action.type.name, want)
+        return action.send_goal(self, goal, on_result, on_feedback)
+
+    def destroy(self) -> None:
+        """Release every publisher, subscription, service, action and pending call."""
+        if self.destroyed:
+            return
+        self.destroyed = True
+        for call in tuple(self.calls):
+            call.abandon()
+        for goal in tuple(self.goals):
+            goal.abandon()
+        for service in tuple(self.services):
+            service.close()
+        for action in tuple(self.actions):
+            action.close()
+        for pub in tuple(self.publishers):
+            pub.close()
+        for sub in tuple(self.subscriptions):
+            sub.close()
+        self.graph.nodes.pop(self.name, None)
+
+    def __repr__(self) -> str:
+        return f"Node({self.name})"
+
+
+__all__ = [
+    "Clock",
+    "Graph",
+    "NameError_",
+    "Node",
+    "Publisher",
+    "Subscription",
+    "Topic",
+    "wall_clock",
+]

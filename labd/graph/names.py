@@ -1,0 +1,41 @@
+"""Graph names: resolution of relative names, validation, protected prefixes.
+
+The lab's graphs have a single namespace, the root, so ``chatter`` and ``/chatter``
+name the same topic. A name is a ``/``-separated list of tokens of letters, digits
+and underscores, each not starting with a digit (the ROS 2 rules).
+"""
+
+from __future__ import annotations
+
+import re
+from collections.abc import Iterable
+
+from labd.errors import NameError_
+
+_TOKEN = re.compile(r"[A-Za-z_][A-Za-z0-9_]*")
+MAX_NAME = 255
+
+
+def resolve(name: object) -> str:
+    """The absolute form of a topic, service or action name; NameError_ if malformed."""
+    if not isinstance(name, str):
+        raise NameError_(repr(name), "a name must be a string")
+    if not name or name == "/":
+        raise NameError_(name, "a name must not be empty")
+    if len(name) > MAX_NAME:
+        raise NameError_(name[:40] + "...", f"a name must be at most {MAX_NAME} characters")
+    absolute = name if name.startswith("/") else "/" + name
+    for token in absolute[1:].split("/"):
+        if not _TOKEN.fullmatch(token):
+            raise NameError_(name, "tokens are letters, digits and '_', not starting with a digit")
+    return absolute
+
+
+def is_protected(name: str, prefixes: Iterable[str]) -> bool:
+    """True if the absolute ``name`` lies under one of the protected prefixes.
+
+    ``/protected`` covers ``/protected`` and ``/protected/arm``, and also
+    ``/protected_arm``: the rosjs paper protects by prefix, and a prefix that also
+    matches the longer names is the safe reading.
+    """
+    return any(name.startswith(p) for p in prefixes)
