@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import argparse
 import asyncio
-import contextlib
 import logging
 import signal
 import sys
@@ -19,12 +18,8 @@ from collections.abc import Sequence
 from pathlib import Path
 
 from labd import __version__
-from labd.bridge.auth import HttpAuthorizer
-from labd.bridge.rosapi import Rosapi
-from labd.bridge.server import BridgeServer
 from labd.config import BridgeConfig, LabConfig
-from labd.graph.graph import Graph
-from labd.graph.types import TypeRegistry
+from labd.lab import Lab
 
 log = logging.getLogger("labd")
 
@@ -79,39 +74,27 @@ def bridge_config(args: argparse.Namespace) -> BridgeConfig:
     )
 
 
-async def serve(config: LabConfig, ready: asyncio.Event | None = None) -> None:
-    """Run the lab until cancelled or signalled."""
-    types = TypeRegistry.default()
-    graphs = {"playground": Graph(types, name="playground")}
-    apis = [Rosapi(g, config.bridge.protected_prefixes) for g in graphs.values()]
-    authorizer = (
-        HttpAuthorizer(config.bridge.authorizer_url) if config.bridge.authorizer_url else None
-    )
-    server = BridgeServer(graphs, config.bridge, authorizer)
-    await server.start()
-    print(f"labd {__version__}: rosbridge v2 on {server.url()}", flush=True)
-    for name in graphs:
-        print(f"  graph {name}: {server.url(name)}", flush=True)
+async def serve(config: LabConfig) -> None:
+    """Run the lab until SIGINT or SIGTERM."""
+    lab = Lab(config)
+    await lab.start()
+    bridge = lab.bridge
+    print(f"labd {__version__}: rosbridge v2 on {bridge.url()}", flush=True)
+    for name in lab.graphs:
+        print(f"  graph {name}: {bridge.url(name)}", flush=True)
     print(
-        "  the simulated robots are not built yet: this graph is a playground where\n"
-        "  rosbridge clients reach each other and /rosapi.",
+        "  The simulated robots are not built yet: the playground graph is where rosbridge\n"
+        "  clients reach each other and /rosapi.",
         flush=True,
     )
     stop = asyncio.Event()
     loop = asyncio.get_running_loop()
     for sig in (signal.SIGINT, signal.SIGTERM):
-        with contextlib.suppress(NotImplementedError, RuntimeError):
-            loop.add_signal_handler(sig, stop.set)
-    if ready is not None:
-        ready.set()
+        loop.add_signal_handler(sig, stop.set)
     try:
         await stop.wait()
     finally:
-        await server.close()
-        for api in apis:
-            api.close()
-        if authorizer is not None:
-            await authorizer.aclose()
+        await lab.close()
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -123,8 +106,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     )
     if args.command == "serve":
         config = LabConfig(data=args.data, bridge=bridge_config(args))
-        with contextlib.suppress(KeyboardInterrupt):
-            asyncio.run(serve(config))
+        asyncio.run(serve(config))
         return 0
     return 2
 

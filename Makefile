@@ -1,0 +1,44 @@
+# The lab's two entry points: `make demo` runs it, `make test` checks it.
+# Both set up what is missing first (a virtualenv in .venv, the Node test clients).
+
+VENV    ?= .venv
+PYTHON  ?= python3
+PY      := $(VENV)/bin/python
+STAMP   := $(VENV)/.installed-$(shell cksum < pyproject.toml | cut -d' ' -f1)
+JS      := tests/js
+JSSTAMP := $(JS)/node_modules/.installed
+
+.PHONY: setup demo test lint unit bench clean
+
+setup: $(STAMP) $(JSSTAMP)
+
+$(STAMP): pyproject.toml
+	$(PYTHON) -m venv $(VENV)
+	$(PY) -m pip install -q --upgrade pip
+	$(PY) -m pip install -q -e '.[dev]'
+	rm -f $(VENV)/.installed-*
+	touch $@
+
+$(JSSTAMP): $(JS)/package.json $(JS)/package-lock.json
+	cd $(JS) && npm ci --no-audit --no-fund --loglevel=error
+	touch $@
+
+demo: $(STAMP)
+	$(VENV)/bin/labd serve
+
+lint: $(STAMP)
+	$(VENV)/bin/ruff check .
+	$(VENV)/bin/ruff format --check .
+	$(VENV)/bin/mypy
+
+unit: $(STAMP)
+	$(PY) -m pytest -m "not integration"
+
+test: lint $(JSSTAMP)
+	$(PY) -m pytest
+
+bench: $(STAMP)
+	$(PY) bench/bridge.py
+
+clean:
+	rm -rf $(VENV) $(JS)/node_modules .mypy_cache .ruff_cache .pytest_cache

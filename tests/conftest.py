@@ -1,0 +1,152 @@
+"""Shared fixtures: the type registry, graphs, sessions, and a real bridge server."""
+
+from __future__ import annotations
+
+import asyncio
+import threading
+from collections.abc import Callable, Iterator
+from concurrent.futures import Future
+from typing import Any, TypeVar
+
+import orjson
+import pytest
+
+from labd.bridge.ops import CAPABILITIES
+from labd.bridge.rosapi import Rosapi
+from labd.bridge.session import Session
+from labd.config import BridgeConfig, LabConfig
+from labd.graph.graph import Graph
+from labd.graph.types import TypeRegistry
+from labd.lab import Lab
+from tests.fakes import ManualTimers, RecordingTransport
+
+T = TypeVar("T")
+
+
+@pytest.fixture(scope="session")
+def registry() -> TypeRegistry:
+    return TypeRegistry.default()
+
+
+@pytest.fixture
+def timers() -> ManualTimers:
+    return ManualTimers()
+
+
+@pytest.fixture
+def graph(registry: TypeRegistry, timers: ManualTimers) -> Graph:
+    """A graph whose time is the manual clock (so stamps are predictable)."""
+    g = Graph(registry, name="test", clock=lambda: int(timers.now * 1e9))
+    Rosapi(g, ("/protected",))
+    return g
+
+
+class Client:
+    """A session driven with strings, as a test sees one client."""
+
+    def __init__(self, session: Session, transport: RecordingTransport) -> None:
+        self.session = session
+        self.transport = transport
+
+    def send(self, frame: dict[str, Any] | str | bytes) -> None:
+        self.session.receive(frame if isinstance(frame, str | bytes) else orjson.dumps(frame))
+
+    def frames(self) -> list[Any]:
+        from tests.fakes import drain
+
+        return drain(self.session)
+
+
+@pytest.fixture
+def connect(graph: Graph, timers: ManualTimers) -> Iterator[Callable[..., Client]]:
+    """Make clients of ``graph``: ``connect(config=None, auth_required=False, url_key=None)``."""
+    made: list[Session] = []
+    ids = iter(range(1, 10_000))
+
+    def make(config: BridgeConfig | None = None, **kwargs: Any) -> Client:
+        transport = RecordingTransport()
+        session = Session(graph, config or BridgeConfig(), timers, transport,
+                          client_id=next(ids), capabilities=CAPABILITIES, **kwargs)
+        made.append(session)
+        return Client(session, transport)
+
+    yield make
+    for session in made:
+        session.close()
+
+
+class ServerThread:
+    """A real ``Lab`` (bridge on 127.0.0.1, port 0) on its own event loop thread."""
+
+    def __init__(self, config: LabConfig, **lab_kwargs: Any) -> None:
+        self.loop = asyncio.new_event_loop()
+        self.lab: Lab | None = None
+        self._config = config
+        self._kwargs = lab_kwargs
+        self._thread = threading.Thread(target=self.loop.run_forever, daemon=True)
+
+    def start(self) -> ServerThread:
+        self._thread.start()
+
+        async def boot() -> Lab:
+            lab = Lab(self._config, **self._kwargs)
+            await lab.start()
+            return lab
+
+        self.lab = self.run(boot())
+        return self
+
+    def run(self, coro: Any, timeout: float = 30) -> Any:
+        return asyncio.run_coroutine_threadsafe(coro, self.loop).result(timeout)
+
+    def call(self, fn: Callable[[], T], timeout: float = 30) -> T:
+        """Run ``fn`` on the server's loop (where the graph lives) and return its result."""
+        done: Future[T] = Future()
+
+        def target() -> None:
+            try:
+                done.set_result(fn())
+            except BaseException as err:  # handed to the test thread
+                done.set_exception(err)
+
+        self.loop.call_soon_threadsafe(target)
+        return done.result(timeout)
+
+    @property
+    def port(self) -> int:
+        assert self.lab is not None
+        return self.lab.bridge.port
+
+    @property
+    def url(self) -> str:
+        assert self.lab is not None
+        return self.lab.bridge.url()
+
+    def stop(self) -> None:
+        if self.lab is not None:
+            self.run(self.lab.close())
+        self.loop.call_soon_threadsafe(self.loop.stop)
+        self._thread.join(10)
+        self.loop.close()
+
+
+@pytest.fixture
+def make_server(tmp_path: Any) -> Iterator[Callable[..., ServerThread]]:
+    """Start real servers: ``make_server(bridge=BridgeConfig(...), authorizer=...)``."""
+    started: list[ServerThread] = []
+
+    def make(bridge: BridgeConfig | None = None, **lab_kwargs: Any) -> ServerThread:
+        config = LabConfig(data=tmp_path / "lab-data", bridge=bridge or BridgeConfig(port=0))
+        server = ServerThread(config, **lab_kwargs).start()
+        started.append(server)
+        return server
+
+    yield make
+    for server in started:
+        server.stop()
+
+
+@pytest.fixture
+def server(make_server: Callable[..., ServerThread]) -> ServerThread:
+    """One real lab with default settings on a free port."""
+    return make_server()

@@ -1,0 +1,79 @@
+"""Fakes for unit tests of logic: a manual clock and a recording transport."""
+
+from __future__ import annotations
+
+import heapq
+import itertools
+from collections.abc import Callable
+from typing import Any
+
+import cbor2
+import orjson
+
+
+class ManualTimers:
+    """A monotonic clock that moves only when the test says so."""
+
+    def __init__(self) -> None:
+        self.now = 0.0
+        self._heap: list[tuple[float, int, _Handle]] = []
+        self._seq = itertools.count()
+
+    def time(self) -> float:
+        return self.now
+
+    def call_later(self, delay: float, callback: Callable[..., Any], *args: Any) -> _Handle:
+        handle = _Handle(callback, args)
+        heapq.heappush(self._heap, (self.now + delay, next(self._seq), handle))
+        return handle
+
+    def advance(self, seconds: float) -> None:
+        """Move time forward, running every timer that falls due, in order."""
+        target = self.now + seconds
+        while self._heap and self._heap[0][0] <= target:
+            when, _, handle = heapq.heappop(self._heap)
+            self.now = when
+            if not handle.cancelled:
+                handle.callback(*handle.args)
+        self.now = target
+
+    @property
+    def pending(self) -> int:
+        return sum(1 for _, _, h in self._heap if not h.cancelled)
+
+
+class _Handle:
+    def __init__(self, callback: Callable[..., Any], args: tuple[Any, ...]) -> None:
+        self.callback = callback
+        self.args = args
+        self.cancelled = False
+
+    def cancel(self) -> None:
+        self.cancelled = True
+
+
+class RecordingTransport:
+    """Collects what a session asks of its connection."""
+
+    def __init__(self) -> None:
+        self.wakes = 0
+        self.closed: tuple[int, str] | None = None
+        self.keys: list[str] = []
+
+    def wake(self) -> None:
+        self.wakes += 1
+
+    def close(self, code: int, reason: str) -> None:
+        self.closed = (code, reason)
+
+    def authorize(self, key: str) -> None:
+        self.keys.append(key)
+
+
+def drain(session: Any) -> list[Any]:
+    """Every frame the session has queued, decoded (JSON text or CBOR binary)."""
+    out = []
+    while (frames := session.next_frames()) is not None:
+        for frame in frames:
+            out.append(orjson.loads(frame.data) if frame.text else cbor2.loads(frame.data))
+    return out
