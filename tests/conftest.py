@@ -65,8 +65,15 @@ def connect(graph: Graph, timers: ManualTimers) -> Iterator[Callable[..., Client
 
     def make(config: BridgeConfig | None = None, **kwargs: Any) -> Client:
         transport = RecordingTransport()
-        session = Session(graph, config or BridgeConfig(), timers, transport,
-                          client_id=next(ids), capabilities=CAPABILITIES, **kwargs)
+        session = Session(
+            graph,
+            config or BridgeConfig(),
+            timers,
+            transport,
+            client_id=next(ids),
+            capabilities=CAPABILITIES,
+            **kwargs,
+        )
         made.append(session)
         return Client(session, transport)
 

@@ -216,15 +216,22 @@ class Session:
         return f"fragment:{self.client_id}:{next(self._fragment_ids)}"
 
     def report(self, level: str, text: str, op_id: Id = None) -> None:
-        """Log, publish on /rosout, and send a status if the client asked for this level."""
+        """Send a status if the client asked for this level; log warnings and errors.
+
+        Warnings and errors also go out on /rosout. Logging is rate-limited per client,
+        so a client that floods bad frames cannot flood the log.
+        """
         if self.status_level is not None and LEVELS[level] <= self.status_level:
             status: dict[str, Any] = {"op": "status", "level": level, "msg": text}
             if op_id is not None:
                 status["id"] = op_id
             self.send(status)
+        if level == "info":
+            self.log.debug("client %d: %s", self.client_id, text)
+            return
         if not self._take_log_token():
             return
-        log_level = {"error": logging.WARNING, "warning": logging.INFO}.get(level, logging.DEBUG)
+        log_level = logging.WARNING if level == "error" else logging.INFO
         self.log.log(log_level, "client %d: %s", self.client_id, text)
         self.graph.rosout(ROSOUT_LEVELS[level], self.node.name.lstrip("/").replace("/", "."), text)
 
