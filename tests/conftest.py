@@ -18,7 +18,7 @@ from labd.config import BridgeConfig, LabConfig
 from labd.graph.graph import Graph
 from labd.graph.types import TypeRegistry
 from labd.lab import Lab
-from tests.fakes import ManualTimers, RecordingTransport
+from tests.fakes import ManualTimers, RecordingTransport, drain
 
 T = TypeVar("T")
 
@@ -52,8 +52,6 @@ class Client:
         self.session.receive(frame if isinstance(frame, str | bytes) else orjson.dumps(frame))
 
     def frames(self) -> list[Any]:
-        from tests.fakes import drain
-
         return drain(self.session)
 
 

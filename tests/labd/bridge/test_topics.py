@@ -4,6 +4,10 @@ from __future__ import annotations
 
 import base64
 
+import cbor2
+import numpy as np
+import orjson
+
 from labd.bridge.render import png_decode
 from labd.config import BridgeConfig
 
@@ -104,7 +108,6 @@ def test_png_compression_round_trips(connect):
     pub.send({"op": "publish", "topic": "/chatter", "msg": {"data": "hello png"}})
     (frame,) = sub.frames()
     assert frame["op"] == "png"
-    import orjson
 
     assert orjson.loads(png_decode(frame["data"])) == {
         "op": "publish",
@@ -167,8 +170,6 @@ def test_throttle_with_queue_releases_one_per_interval(connect, timers):
 
 def test_cbor_compression_sends_binary_with_typed_arrays(connect):
     """compression=cbor sends a binary CBOR frame; float arrays arrive as typed arrays."""
-    import numpy as np
-
     sub, pub = connect(), connect()
     sub.send(
         {
@@ -182,8 +183,6 @@ def test_cbor_compression_sends_binary_with_typed_arrays(connect):
     pub.send({"op": "publish", "topic": "/js", "msg": {"name": ["a"], "position": [1.5]}})
     frames = sub.session.next_frames()
     assert frames is not None and not frames[0].text
-    import cbor2
-
     decoded = cbor2.loads(frames[0].data)
     assert decoded["op"] == "publish" and decoded["msg"]["name"] == ["a"]
     position = decoded["msg"]["position"]
@@ -235,8 +234,6 @@ def test_publish_auto_advertises_on_a_known_topic(connect, graph):
 
 def test_slow_client_does_not_slow_a_healthy_one(connect):
     """Messages dropped for a client that reads nothing are still all delivered to a reader."""
-    from labd.config import BridgeConfig
-
     stalled = connect(BridgeConfig(max_queue_bytes=10_000))
     healthy, pub = connect(), connect()
     for client in (stalled, healthy):
