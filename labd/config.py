@@ -30,6 +30,7 @@ class BridgeConfig:
     default_queue_length: int = 100  # per subscription, when the client gives none
     ping_interval: float | None = 20.0
     ping_timeout: float | None = 20.0
+    close_timeout: float = 5.0  # how long a closing peer may take before it is cut off
     service_timeout: float = 5.0  # call_service without a timeout field
     max_subscriptions: int = 1000  # per client, counting subscription ids
     max_publishers: int = 1000

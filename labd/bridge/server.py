@@ -73,6 +73,7 @@ class BridgeServer:
             max_size=self.config.max_frame_size,
             ping_interval=self.config.ping_interval,
             ping_timeout=self.config.ping_timeout,
+            close_timeout=self.config.close_timeout,
             compression=None,  # deflate costs more CPU than it saves on loopback and LAN
             ssl=context,
         )
