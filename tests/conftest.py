@@ -117,6 +117,19 @@ class ServerThread:
         self.loop.call_soon_threadsafe(target)
         return done.result(timeout)
 
+    def wait_until(self, predicate: Callable[[], bool], timeout: float = 10) -> None:
+        """Block until ``predicate`` (checked on the server's loop) holds, or fail."""
+        done = threading.Event()
+
+        def poll() -> None:
+            if predicate():
+                done.set()
+            else:
+                self.loop.call_later(0.005, poll)
+
+        self.loop.call_soon_threadsafe(poll)
+        assert done.wait(timeout), f"condition not met within {timeout} s"
+
     @property
     def port(self) -> int:
         assert self.lab is not None

@@ -54,22 +54,9 @@ class Inbox:
 
 
 def wait_subscribed(server, topic: str, count: int = 1) -> None:
-    """Block until the graph shows ``count`` subscriptions on ``topic`` (no sleeping)."""
-
-    def check() -> bool:
-        t = server.lab.graphs["playground"].topics.get(topic)
-        return t is not None and len(t.subscriptions) >= count
-
-    event = threading.Event()
-
-    def poll() -> None:
-        if check():
-            event.set()
-        else:
-            server.loop.call_later(0.01, poll)
-
-    server.loop.call_soon_threadsafe(poll)
-    assert event.wait(WAIT), f"no subscription on {topic}"
+    """Block until the graph shows ``count`` subscriptions on ``topic``."""
+    topics = server.lab.graphs["playground"].topics
+    server.wait_until(lambda: topic in topics and len(topics[topic].subscriptions) >= count)
 
 
 def test_two_clients_publish_and_subscribe(ros, server):
@@ -187,13 +174,4 @@ def test_client_leaving_is_cleaned_up(ros, server):
     graph = server.lab.graphs["playground"]
     assert server.call(lambda: "/gone_srv" in graph.services)
     client.close()
-    gone = threading.Event()
-
-    def poll() -> None:
-        if "/gone" not in graph.topics and "/gone_srv" not in graph.services:
-            gone.set()
-        else:
-            server.loop.call_later(0.01, poll)
-
-    server.loop.call_soon_threadsafe(poll)
-    assert gone.wait(WAIT)
+    server.wait_until(lambda: "/gone" not in graph.topics and "/gone_srv" not in graph.services)

@@ -9,6 +9,7 @@ import ssl
 import threading
 import time
 from collections.abc import Iterator
+from typing import ClassVar
 from urllib.parse import parse_qs, urlsplit
 
 import orjson
@@ -31,11 +32,25 @@ def call(ws: ClientConnection, service: str, call_id: str = "c") -> dict:
             return frame
 
 
+def raw_client(port: int, rcvbuf: int | None = None) -> socket.socket:
+    """A WebSocket client that completes the handshake and then does nothing by itself."""
+    sock = socket.socket()
+    if rcvbuf is not None:
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, rcvbuf)
+    sock.connect(("127.0.0.1", port))
+    sock.sendall(
+        b"GET / HTTP/1.1\r\nHost: x\r\nUpgrade: websocket\r\nConnection: Upgrade\r\n"
+        b"Sec-WebSocket-Key: dGhlIHNhbXBsZSBub25jZQ==\r\nSec-WebSocket-Version: 13\r\n\r\n"
+    )
+    assert b" 101 " in sock.recv(4096)
+    return sock
+
+
 # -- a real HTTP authorizer ----------------------------------------------------------------
 
 
 class _Authorizer(http.server.BaseHTTPRequestHandler):
-    answers = {
+    answers: ClassVar[dict[str, tuple[int, bytes]]] = {
         "good": (200, b'{"seconds": 30}'),
         "short": (200, b'{"seconds": 0.5}'),
         "jsonp": (200, b'authorize({"seconds": 30});'),
@@ -187,20 +202,10 @@ def test_oversized_frames(make_server):
 
 def test_keepalive_drops_a_silent_peer(make_server):
     """A peer that stops answering pings is disconnected and its subscriptions released."""
-    server = make_server(
-        BridgeConfig(port=0, ping_interval=0.2, ping_timeout=0.2, close_timeout=0.5)
-    )
-    sock = socket.create_connection(("127.0.0.1", server.port))
-    sock.sendall(
-        b"GET / HTTP/1.1\r\nHost: x\r\nUpgrade: websocket\r\nConnection: Upgrade\r\n"
-        b"Sec-WebSocket-Key: dGhlIHNhbXBsZSBub25jZQ==\r\nSec-WebSocket-Version: 13\r\n\r\n"
-    )
-    assert b"101" in sock.recv(4096)
-    # Never read again, never answer a ping.
-    deadline = time.monotonic() + WAIT
-    while server.call(lambda: len(server.lab.bridge.connections)) and time.monotonic() < deadline:
-        time.sleep(0.05)
-    assert server.call(lambda: len(server.lab.bridge.connections)) == 0
+    config = BridgeConfig(port=0, ping_interval=0.2, ping_timeout=0.2, close_timeout=0.5)
+    server = make_server(config)
+    sock = raw_client(server.port)  # never reads again, never answers a ping
+    server.wait_until(lambda: not server.lab.bridge.connections)
     sock.close()
 
 
@@ -208,37 +213,19 @@ def test_stalled_reader_does_not_hold_back_others(make_server):
     """A subscriber that never reads keeps bounded memory and the others keep getting messages."""
     server = make_server(BridgeConfig(port=0, max_queue_bytes=200_000))
     frame = orjson.dumps({"op": "subscribe", "topic": "/blob", "type": "std_msgs/String"})
-    stalled = socket.create_connection(("127.0.0.1", server.port))
-    stalled.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
-    stalled.sendall(
-        b"GET / HTTP/1.1\r\nHost: x\r\nUpgrade: websocket\r\nConnection: Upgrade\r\n"
-        b"Sec-WebSocket-Key: dGhlIHNhbXBsZSBub25jZQ==\r\nSec-WebSocket-Version: 13\r\n\r\n"
-    )
-    assert b"101" in stalled.recv(4096)
+    stalled = raw_client(server.port, rcvbuf=4096)
     mask = b"\x00\x00\x00\x00"
     stalled.sendall(bytes([0x81, 0x80 | 126]) + len(frame).to_bytes(2, "big") + mask + frame)
     with connect(server.url) as healthy, connect(server.url) as talker:
         healthy.send(frame.decode())
-        deadline = time.monotonic() + WAIT
-        graph = server.lab.graphs["playground"]
-        while (
-            time.monotonic() < deadline
-            and server.call(
-                lambda: len(graph.topics["/blob"].subscriptions) if "/blob" in graph.topics else 0
-            )
-            < 2
-        ):
-            time.sleep(0.01)
-        talker.send(
-            orjson.dumps({"op": "advertise", "topic": "/blob", "type": "std_msgs/String"}).decode()
-        )
+        topics = server.lab.graphs["playground"].topics
+        server.wait_until(lambda: "/blob" in topics and len(topics["/blob"].subscriptions) == 2)
+        advertise = {"op": "advertise", "topic": "/blob", "type": "std_msgs/String"}
+        talker.send(orjson.dumps(advertise).decode())
         payload = "y" * 50_000
         for i in range(200):
-            talker.send(
-                orjson.dumps(
-                    {"op": "publish", "topic": "/blob", "msg": {"data": f"{i}{payload}"}}
-                ).decode()
-            )
+            publish = {"op": "publish", "topic": "/blob", "msg": {"data": f"{i}{payload}"}}
+            talker.send(orjson.dumps(publish).decode())
             got = orjson.loads(healthy.recv(timeout=WAIT))
             assert got["msg"]["data"].startswith(str(i))
         pending = server.call(
