@@ -205,10 +205,10 @@ def _kind(value: Any) -> str:
     }.get(type(value), type(value).__name__)
 
 
-def _scalar_normalizer(base: str, string_bound: int) -> Callable[[Any], Any]:
+def _scalar_normalizer(base: str, string_bound: int) -> Normalizer:
     if base in FLOATS:
 
-        def norm_float(v: Any) -> float:
+        def norm_float(v: Any, now: Now) -> float:
             t = type(v)
             if t is float:
                 return v  # type: ignore[no-any-return]
@@ -220,7 +220,7 @@ def _scalar_normalizer(base: str, string_bound: int) -> Callable[[Any], Any]:
     if base in INTEGER_RANGES:
         low, high = INTEGER_RANGES[base]
 
-        def norm_int(v: Any) -> int:
+        def norm_int(v: Any, now: Now) -> int:
             t = type(v)
             if t is float and v.is_integer():
                 v = int(v)
@@ -233,7 +233,7 @@ def _scalar_normalizer(base: str, string_bound: int) -> Callable[[Any], Any]:
         return norm_int
     if base == "bool":
 
-        def norm_bool(v: Any) -> bool:
+        def norm_bool(v: Any, now: Now) -> bool:
             if type(v) is bool:
                 return v
             raise MessageError(f"must be a boolean, got {_kind(v)}")
@@ -241,7 +241,7 @@ def _scalar_normalizer(base: str, string_bound: int) -> Callable[[Any], Any]:
         return norm_bool
     if base == "string":
 
-        def norm_str(v: Any) -> str:
+        def norm_str(v: Any, now: Now) -> str:
             if type(v) is not str:
                 raise MessageError(f"must be a string, got {_kind(v)}")
             if string_bound and len(v) > string_bound:
@@ -285,10 +285,9 @@ def _field_normalizer(registry: TypeRegistry, field: Field) -> Normalizer:
     if field.is_binary:
         return _normalize_binary(field)
     if field.base is not None:
-        scalar = _scalar_normalizer(field.base, field.string_bound)
+        inner = _scalar_normalizer(field.base, field.string_bound)
         if field.kind is Kind.SCALAR:
-            return lambda v, now: scalar(v)
-        inner: Normalizer = lambda v, now: scalar(v)  # noqa: E731
+            return inner
     else:
         nested = codec_for(registry, field.message or "")
         if field.kind is Kind.SCALAR:

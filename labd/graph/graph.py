@@ -173,8 +173,13 @@ class Publisher:
         """Validate and deliver one message; returns it as delivered."""
         if self.closed:
             raise NotFoundError("publisher", self.topic.name, "it was closed")
-        message = self.node.graph.message(self.topic.type_name, value)
-        self.topic.deliver(message, self.latch if latch is None else latch)
+        topic = self.topic
+        if isinstance(value, Message):
+            message = self.node.graph.message(topic.type_name, value)
+        else:
+            graph = self.node.graph
+            message = Message(topic.codec, topic.codec.normalize(value, graph.now), graph.clock())
+        topic.deliver(message, self.latch if latch is None else latch)
         return message
 
     def close(self) -> None:

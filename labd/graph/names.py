@@ -7,6 +7,7 @@ and underscores, each not starting with a digit (the ROS 2 rules).
 
 from __future__ import annotations
 
+import functools
 import re
 from collections.abc import Iterable
 
@@ -20,6 +21,11 @@ def resolve(name: object) -> str:
     """The absolute form of a topic, service or action name; NameError_ if malformed."""
     if not isinstance(name, str):
         raise NameError_(repr(name), "a name must be a string")
+    return _resolve(name)
+
+
+@functools.lru_cache(maxsize=4096)
+def _resolve(name: str) -> str:
     if not name or name == "/":
         raise NameError_(name, "a name must not be empty")
     if len(name) > MAX_NAME:
