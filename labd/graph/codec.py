@@ -39,6 +39,7 @@ Now = Callable[[], tuple[int, int]]
 Normalizer = Callable[[Any, Now], Any]
 Converter = Callable[[Any], Any]
 
+NAN = float("nan")
 TIME_TYPES = frozenset({"builtin_interfaces/msg/Time", "builtin_interfaces/msg/Duration"})
 HEADER = "std_msgs/msg/Header"
 # rosbags (like ROS 2's IDL) gives empty messages this member; JSON never shows it.
@@ -214,6 +215,8 @@ def _scalar_normalizer(base: str, string_bound: int) -> Normalizer:
                 return v  # type: ignore[no-any-return]
             if t is int:
                 return float(v)
+            if v is None:
+                return NAN  # what NaN and infinities become in JSON, accepted back
             raise MessageError(f"must be a number ({base}), got {_kind(v)}")
 
         return norm_float

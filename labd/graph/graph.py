@@ -118,7 +118,7 @@ class Graph:
         return topic
 
     def _forget_topic_if_unused(self, topic: Topic) -> None:
-        if not topic.publishers and not topic.subscriptions and topic.latched is None:
+        if not topic.publishers and not topic.subscriptions:
             self.topics.pop(topic.name, None)
 
     # -- introspection (rosapi) -----------------------------------------------------------
@@ -188,6 +188,10 @@ class Publisher:
         self.closed = True
         self.topic.publishers.remove(self)
         self.node.publishers.remove(self)
+        if not self.topic.publishers:
+            # As with ROS 2's transient-local durability, the latched message lives
+            # with its publishers.
+            self.topic.latched = None
         self.node.graph._forget_topic_if_unused(self.topic)
 
 

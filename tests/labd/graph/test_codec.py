@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import base64
+import math
 
 import numpy as np
 import orjson
@@ -65,9 +66,18 @@ def test_wrong_types_name_the_field(registry):
     assert error(registry, twist, {"linear": [1, 2, 3]}).startswith("linear must be an object")
     assert error(registry, twist, {"spin": 1}) == "spin is not a field of geometry_msgs/msg/Twist"
     path = "geometry_msgs/msg/PoseArray"
-    assert error(registry, path, {"poses": [{}, {"position": {"x": None}}]}) == (
-        "poses[1].position.x must be a number (float64), got null"
+    assert error(registry, path, {"poses": [{}, {"position": {"x": [1]}}]}) == (
+        "poses[1].position.x must be a number (float64), got an array"
     )
+
+
+def test_nan_and_infinity_travel_as_null(registry):
+    """Non-finite floats leave as null (JSON has no NaN), and null comes back in as NaN."""
+    scan = normalize(registry, "sensor_msgs/msg/LaserScan", {"ranges": [1.0, None]})
+    assert math.isnan(scan["ranges"][1])
+    rendered = orjson.loads(dumps({"ranges": [float("inf"), float("nan"), 2.0]}))
+    assert rendered == {"ranges": [None, None, 2.0]}
+    assert "must be an integer" in error(registry, "std_msgs/msg/Int32", {"data": None})
 
 
 def test_integer_ranges_are_enforced(registry):
