@@ -253,14 +253,18 @@ class Node:
             callback(t.latched)
         return sub
 
+    def _claim(self, registry: Mapping[str, Service | Action], kind: str, name: str) -> None:
+        """Make ``name`` free for this node: refuse if another node provides it."""
+        existing = registry.get(name)
+        if existing is not None:
+            if existing.node is not self:
+                raise ConflictError(kind, name, existing.node.name)
+            existing.close()
+
     def provide_service(self, name: str, type_name: str, handler: ServiceHandler) -> Service:
         absolute = resolve(name)
         stype = self.graph.types.service(type_name)
-        existing = self.graph.services.get(absolute)
-        if existing is not None:
-            if existing.node is not self:
-                raise ConflictError("service", absolute, existing.node.name)
-            existing.close()
+        self._claim(self.graph.services, "service", absolute)
         service = Service(self, absolute, stype, handler)
         self.graph.services[absolute] = service
         self.services.append(service)
@@ -282,11 +286,7 @@ class Node:
     def provide_action(self, name: str, type_name: str, handler: ActionHandler) -> Action:
         absolute = resolve(name)
         atype = self.graph.types.action(type_name)
-        existing = self.graph.actions.get(absolute)
-        if existing is not None:
-            if existing.node is not self:
-                raise ConflictError("action", absolute, existing.node.name)
-            existing.close()
+        self._claim(self.graph.actions, "action", absolute)
         action = Action(self, absolute, atype, handler)
         self.graph.actions[absolute] = action
         self.actions.append(action)
