@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import ctypes
 import logging
 import signal
 import sys
@@ -97,6 +98,21 @@ async def serve(config: LabConfig) -> None:
         await lab.close()
 
 
+def return_freed_memory() -> None:
+    """Have glibc give large freed buffers back to the system at once.
+
+    Camera frames are allocations of about a megabyte; with glibc's default, the
+    arena keeps them after they are freed and the server's footprint only grows
+    (measured in bench/bridge.py: 270 MB instead of 120 MB). Elsewhere this does nothing.
+    """
+    try:
+        libc = ctypes.CDLL("libc.so.6")
+    except OSError:
+        return
+    m_mmap_threshold = -3
+    libc.mallopt(m_mmap_threshold, 128 * 1024)
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     logging.basicConfig(
@@ -105,6 +121,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         format="%(asctime)s %(levelname)s %(name)s: %(message)s",
     )
     if args.command == "serve":
+        return_freed_memory()
         config = LabConfig(data=args.data, bridge=bridge_config(args))
         asyncio.run(serve(config))
         return 0

@@ -92,6 +92,7 @@ class Codec:
     def __init__(self, registry: TypeRegistry, mtype: MessageType) -> None:
         self.type = mtype
         self.type_store = registry.typestore
+        self.has_binary = False  # any uint8[] inside, at any depth (for memory estimates)
         # Filled in by ``codec_for`` once every nested codec exists (types may nest deeply).
         self.normalize: Normalizer
         self.default: Callable[[], dict[str, Any]]
@@ -116,6 +117,10 @@ def codec_for(registry: TypeRegistry, name: str) -> Codec:
 def _compile(registry: TypeRegistry, codec: Codec) -> None:
     mtype = codec.type
     fields = [f for f in mtype.fields if f.name != PLACEHOLDER]
+    codec.has_binary = any(
+        f.is_binary or (f.message is not None and codec_for(registry, f.message).has_binary)
+        for f in fields
+    )
     has_placeholder = len(fields) != len(mtype.fields)
     cls = registry.typestore.types[mtype.name]
 
@@ -162,6 +167,16 @@ def _compile(registry: TypeRegistry, codec: Codec) -> None:
     def default() -> dict[str, Any]:
         return {name: make() for name, make in defaults}
 
+    codec.normalize = normalize
+    codec.default = default
+    _compile_conversions(registry, codec, fields, has_placeholder)
+
+
+def _compile_conversions(
+    registry: TypeRegistry, codec: Codec, fields: list[Field], has_placeholder: bool
+) -> None:
+    """The converters to and from rosbags classes, and to CBOR values."""
+    cls = registry.typestore.types[codec.type.name]
     to_rb = [(f.name, _field_to_rosbags(registry, f)) for f in fields]
 
     def to_rosbags(value: dict[str, Any]) -> Any:
@@ -183,8 +198,6 @@ def _compile(registry: TypeRegistry, codec: Codec) -> None:
         def to_cbor(value: dict[str, Any]) -> dict[str, Any]:
             return {name: conv(value[name]) for name, conv in to_cb}
 
-    codec.normalize = normalize
-    codec.default = default
     codec.to_rosbags = to_rosbags
     codec.from_rosbags = from_rosbags
     codec.to_cbor = to_cbor
