@@ -17,6 +17,7 @@ import msgspec
 import orjson
 
 from labd.errors import FrameError
+from labd.graph.codec import describe
 
 Id = str | int | None
 
@@ -227,12 +228,12 @@ def _explain(text: str | bytes, message: str) -> FrameError:
     except orjson.JSONDecodeError as err:
         return FrameError(f"the frame is not JSON ({err.msg} at character {err.pos})")
     if not isinstance(value, dict):
-        return FrameError(f"a frame must be a JSON object, got {_describe(value)}")
+        return FrameError(f"a frame must be a JSON object, got {describe(value)}")
     op = value.get("op")
     if op is None:
         return FrameError("the frame has no 'op' field")
     if not isinstance(op, str):
-        return FrameError(f"'op' must be a string, got {_describe(op)}")
+        return FrameError(f"'op' must be a string, got {describe(op)}")
     if op not in OP_NAMES:
         return FrameError(f"unknown op {op!r}; the ops are {', '.join(OP_NAMES)}", op)
     if m := _EXPECTED.match(message):
@@ -253,14 +254,3 @@ def _words(name: str) -> str:
         parts.remove("int")
     words = sorted(_WORDS.get(p, p) for p in parts)
     return " or ".join(words[::-1] if words[-1].startswith("a string") else words)
-
-
-def _describe(value: Any) -> str:
-    return {
-        bool: "a boolean",
-        int: "an integer",
-        float: "a number",
-        str: "a string",
-        list: "an array",
-        type(None): "null",
-    }.get(type(value), type(value).__name__)

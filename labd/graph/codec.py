@@ -141,7 +141,7 @@ def _compile(registry: TypeRegistry, codec: Codec) -> None:
 
     def normalize(value: Any, now: Now) -> dict[str, Any]:
         if type(value) is not dict:
-            raise MessageError(f"must be an object ({type_name}), got {_kind(value)}")
+            raise MessageError(f"must be an object ({type_name}), got {describe(value)}")
         out: dict[str, Any] = {}
         seen = 0
         for name, norm, default in normalizers:
@@ -206,7 +206,8 @@ def _compile_conversions(
 # -- normalizing JSON -----------------------------------------------------------------
 
 
-def _kind(value: Any) -> str:
+def describe(value: Any) -> str:
+    """A JSON value's kind in words, for error messages: 'a string', 'null', ..."""
     if value is None:
         return "null"
     return {
@@ -230,7 +231,7 @@ def _scalar_normalizer(base: str, string_bound: int) -> Normalizer:
                 return float(v)
             if v is None:
                 return NAN  # what NaN and infinities become in JSON, accepted back
-            raise MessageError(f"must be a number ({base}), got {_kind(v)}")
+            raise MessageError(f"must be a number ({base}), got {describe(v)}")
 
         return norm_float
     if base in INTEGER_RANGES:
@@ -241,7 +242,7 @@ def _scalar_normalizer(base: str, string_bound: int) -> Normalizer:
             if t is float and v.is_integer():
                 v = int(v)
             elif t is not int:
-                raise MessageError(f"must be an integer ({base}), got {_kind(v)}")
+                raise MessageError(f"must be an integer ({base}), got {describe(v)}")
             if not low <= v <= high:
                 raise MessageError(f"must be between {low} and {high} ({base}), got {v}")
             return v  # type: ignore[no-any-return]
@@ -252,14 +253,14 @@ def _scalar_normalizer(base: str, string_bound: int) -> Normalizer:
         def norm_bool(v: Any, now: Now) -> bool:
             if type(v) is bool:
                 return v
-            raise MessageError(f"must be a boolean, got {_kind(v)}")
+            raise MessageError(f"must be a boolean, got {describe(v)}")
 
         return norm_bool
     if base == "string":
 
         def norm_str(v: Any, now: Now) -> str:
             if type(v) is not str:
-                raise MessageError(f"must be a string, got {_kind(v)}")
+                raise MessageError(f"must be a string, got {describe(v)}")
             if string_bound and len(v) > string_bound:
                 raise MessageError(f"must be at most {string_bound} characters long")
             return v
@@ -287,7 +288,7 @@ def _normalize_binary(field: Field) -> Normalizer:
             except (TypeError, ValueError):
                 raise MessageError("must be base64 text or an array of integers 0..255") from None
         else:
-            raise MessageError(f"must be base64 text or an array of bytes, got {_kind(v)}")
+            raise MessageError(f"must be base64 text or an array of bytes, got {describe(v)}")
         if fixed and len(data) != fixed:
             raise MessageError(f"must hold exactly {fixed} bytes, got {len(data)}")
         if bound and len(data) > bound:
@@ -317,7 +318,7 @@ def _field_normalizer(registry: TypeRegistry, field: Field) -> Normalizer:
             if isinstance(v, np.ndarray):
                 v = v.tolist()
             else:
-                raise MessageError(f"must be an array, got {_kind(v)}")
+                raise MessageError(f"must be an array, got {describe(v)}")
         if fixed and len(v) != fixed:
             raise MessageError(f"must hold exactly {fixed} items, got {len(v)}")
         if bound and len(v) > bound:
@@ -341,7 +342,7 @@ def _normalize_time(type_name: str) -> Normalizer:
             sec_now, nanosec_now = now()
             return {"sec": sec_now, "nanosec": nanosec_now}
         if type(v) is not dict:
-            raise MessageError(f"must be an object with sec and nanosec, got {_kind(v)}")
+            raise MessageError(f"must be an object with sec and nanosec, got {describe(v)}")
         sec: Any = v.get("sec", v.get("secs", 0))
         nanosec: Any = v.get("nanosec", v.get("nsecs", 0))
         extra = set(v) - {"sec", "secs", "nanosec", "nsecs"}
@@ -359,7 +360,7 @@ def _time_part(key: str, value: Any, low: int, high: int) -> int:
     if type(value) is float and value.is_integer():
         value = int(value)
     if type(value) is not int:
-        raise MessageError(f"must be an integer, got {_kind(value)}", [key])
+        raise MessageError(f"must be an integer, got {describe(value)}", [key])
     if not low <= value <= high:
         raise MessageError(f"must be between {low} and {high}, got {value}", [key])
     return value
