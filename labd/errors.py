@@ -11,10 +11,14 @@ formats itself, so a handler turns it into a protocol reply without string surge
     │   ├── TypeMismatchError      a name is already used with another type
     │   ├── NotFoundError          no such topic, service or action
     │   └── ConflictError          the name is already provided by someone else
-    └── BridgeError                the bridge refused a frame from a client
-        ├── FrameError             a frame is not a well-formed rosbridge operation
-        ├── ProtectedError         the name is protected and never crosses the bridge
-        └── LimitError             a per-client limit would be exceeded
+    ├── BridgeError                the bridge refused a frame from a client
+    │   ├── FrameError             a frame is not a well-formed rosbridge operation
+    │   ├── ProtectedError         the name is protected and never crosses the bridge
+    │   └── LimitError             a per-client limit would be exceeded
+    └── SimError                   a simulated robot or task refused something
+        ├── UnknownTaskError       no task of that name
+        ├── ParamError             a task parameter is unknown, of the wrong kind, out of range
+        └── EpisodeOverError       the episode has ended; no more steps
 """
 
 from __future__ import annotations
@@ -135,3 +139,34 @@ class LimitError(BridgeError):
         self.what = what
         self.limit = limit
         super().__init__(f"too many {what} (the limit is {limit})")
+
+
+class SimError(LabError):
+    """A simulated robot or task refused something."""
+
+
+class UnknownTaskError(SimError):
+    def __init__(self, name: str, known: Sequence[str]) -> None:
+        self.name = name
+        self.known = list(known)
+        super().__init__(f"no task {name!r}; the tasks are {', '.join(self.known)}")
+
+
+class ParamError(SimError):
+    """A task parameter is not acceptable; ``valid`` lists the task's parameters."""
+
+    def __init__(self, name: str, reason: str, valid: Sequence[str] = ()) -> None:
+        self.name = name
+        self.reason = reason
+        self.valid = list(valid)
+        text = f"parameter {name} {reason}"
+        if self.valid:
+            text += "; the parameters are:\n  " + "\n  ".join(self.valid)
+        super().__init__(text)
+
+
+class EpisodeOverError(SimError):
+    def __init__(self, status: str, reason: str) -> None:
+        self.status = status
+        self.reason = reason
+        super().__init__(f"the episode has ended ({status}: {reason})")

@@ -1,0 +1,131 @@
+"""What every lab task is: a dm_control task that also speaks ROS topics.
+
+A ``LabTask`` is an ordinary ``dm_control.suite.base.Task`` (``initialize_episode``,
+``before_step``, ``get_observation``, ``get_reward``, ``get_termination``), so the
+dm_control step loop runs it and an RL agent can use it in-process. On top of that it
+declares the ROS side, which the robot node (``labd.sim.robot``) binds to a graph:
+
+- ``commands``: topics the controller publishes (``/cmd_vel`` ...). ``command``
+  receives each validated message; the task keeps what it needs (clipping values out
+  of range and counting them, refusing NaN and infinity) and turns it into the
+  dm_control action with ``action`` once per control tick.
+- ``observations``: topics the lab publishes after each tick, built by ``observe``
+  from the physics. Stamps are simulation time, so the same inputs give the same
+  bytes.
+- ``outcome``: whether the episode has ended, how, and why; ``metrics`` for the
+  record (``success``, ``reward``, ...).
+
+A task is built for one episode: the model itself may depend on the seed (the maze
+does), so a new episode is a new task and a new physics (``labd.sim.simulation``).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass
+from typing import Any, ClassVar
+
+import numpy as np
+from dm_control.suite import base
+
+from labd.errors import MessageError
+from labd.sim.params import Params, Value
+
+Stamp = dict[str, int]
+# Episode statuses, as the trial record names them.
+RUNNING, SUCCEEDED, FAILED, TRUNCATED = "running", "succeeded", "failed", "truncated"
+
+
+@dataclass(frozen=True)
+class CommandTopic:
+    """A topic the controller publishes and the task obeys."""
+
+    name: str
+    type: str
+    doc: str
+
+
+@dataclass(frozen=True)
+class ObservationTopic:
+    """A topic the lab publishes from the physics.
+
+    ``period``: published every ``period`` control ticks (1: every tick).
+    ``on_demand``: costly (a camera image); built only while someone subscribes.
+    ``latched``: the last message is kept for subscribers that come later.
+    """
+
+    name: str
+    type: str
+    doc: str
+    period: int = 1
+    on_demand: bool = False
+    latched: bool = True
+
+
+@dataclass(frozen=True)
+class Outcome:
+    """How an episode ended."""
+
+    status: str  # SUCCEEDED, FAILED or TRUNCATED
+    reason: str  # a sentence a person can act on
+
+
+class LabTask(base.Task):  # type: ignore[misc]
+    """A dm_control task with a ROS face. Subclasses fill in the class attributes."""
+
+    name: ClassVar[str]
+    version: ClassVar[str]  # bump when behaviour changes; it goes into the manifest
+    params: ClassVar[Params]
+    commands: ClassVar[tuple[CommandTopic, ...]]
+    observations: ClassVar[tuple[ObservationTopic, ...]]
+
+    def __init__(self, params: Mapping[str, Value], random: np.random.RandomState) -> None:
+        super().__init__(random=random)
+        self.values = dict(params)
+        self.clipped: dict[str, int] = {}  # commands clipped to their limits, per topic
+        self.model_xml = ""  # the MJCF the factory compiled, for the trial record
+
+    # -- the ROS side ------------------------------------------------------------------
+
+    def command(self, topic: str, data: dict[str, Any]) -> None:
+        """Take a validated message on one of ``commands`` (MessageError if refused)."""
+        raise NotImplementedError
+
+    def action(self, physics: Any) -> np.ndarray:
+        """The dm_control action for the coming tick, from the commands kept so far."""
+        raise NotImplementedError
+
+    def observe(self, physics: Any, topic: str, stamp: Stamp) -> dict[str, Any] | None:
+        """The message for ``topic`` now, or None to publish nothing this tick."""
+        raise NotImplementedError
+
+    def outcome(self, physics: Any) -> Outcome | None:
+        """None while the episode runs; how it ended otherwise (time limits excepted)."""
+        raise NotImplementedError
+
+    def metrics(self, physics: Any) -> dict[str, bool | int | float]:
+        """Figures for the record; at least ``success`` and ``reward``."""
+        raise NotImplementedError
+
+    # -- helpers for subclasses ----------------------------------------------------------
+
+    def clip(self, topic: str, value: float, low: float, high: float) -> float:
+        """``value`` within ``[low, high]``; clipping is counted against ``topic``."""
+        if value < low or value > high:
+            self.clipped[topic] = self.clipped.get(topic, 0) + 1
+            return min(max(value, low), high)
+        return value
+
+
+def finite(value: float, *path: str | int) -> float:
+    """``value`` if it is a finite number; MessageError naming the field otherwise."""
+    if not math.isfinite(value):
+        raise MessageError("must be a finite number, got " + str(value), list(path))
+    return value
+
+
+def stamp_of(physics: Any) -> Stamp:
+    """The simulation time as a ROS time (exact nanoseconds, no float drift)."""
+    ns = round(float(physics.data.time) * 1e9)
+    return {"sec": ns // 1_000_000_000, "nanosec": ns % 1_000_000_000}

@@ -1,0 +1,80 @@
+"""Cameras: headless rendering, JPEG, camera_info, and projecting points to pixels.
+
+Rendering goes through dm_control's ``physics.render`` on the backend that
+``MUJOCO_GL`` names (``egl`` on a headless machine: Mesa's CPU rasteriser). The JPEG
+encoder is libjpeg-turbo (``simplejpeg``), whose output is a function of the pixels,
+so identical renders give identical bytes.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import simplejpeg
+
+from labd.sim.base import Stamp
+
+
+@dataclass(frozen=True)
+class Camera:
+    """A camera of the model, seen as a ROS camera."""
+
+    name: str  # the MJCF camera's name
+    frame_id: str  # its optical frame in /tf (z forward, x right, y down)
+    width: int = 320
+    height: int = 240
+    quality: int = 85
+
+    def focal(self, physics: Any) -> float:
+        fovy = math.radians(float(physics.named.model.cam_fovy[self.name]))
+        return 0.5 * self.height / math.tan(0.5 * fovy)
+
+    def center(self) -> tuple[float, float]:
+        return (self.width - 1) / 2.0, (self.height - 1) / 2.0
+
+    def render(self, physics: Any) -> np.ndarray:
+        pixels: np.ndarray = physics.render(self.height, self.width, camera_id=self.name)
+        return pixels
+
+    def image(self, physics: Any, stamp: Stamp) -> dict[str, Any]:
+        """sensor_msgs/msg/CompressedImage (JPEG) of what the camera sees now."""
+        pixels = np.ascontiguousarray(self.render(physics))
+        data = simplejpeg.encode_jpeg(pixels, quality=self.quality, colorspace="RGB")
+        return {
+            "header": {"stamp": stamp, "frame_id": self.frame_id},
+            "format": "jpeg",
+            "data": data,
+        }
+
+    def info(self, physics: Any, stamp: Stamp) -> dict[str, Any]:
+        """sensor_msgs/msg/CameraInfo: a pinhole camera without distortion."""
+        f = self.focal(physics)
+        cx, cy = self.center()
+        return {
+            "header": {"stamp": stamp, "frame_id": self.frame_id},
+            "height": self.height,
+            "width": self.width,
+            "distortion_model": "plumb_bob",
+            "d": [0.0] * 5,
+            "k": [f, 0.0, cx, 0.0, f, cy, 0.0, 0.0, 1.0],
+            "r": [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0],
+            "p": [f, 0.0, cx, 0.0, 0.0, f, cy, 0.0, 0.0, 0.0, 1.0, 0.0],
+        }
+
+    def to_optical(self, physics: Any, points: np.ndarray) -> np.ndarray:
+        """World points (N x 3) in the optical frame: x right, y down, z forward."""
+        pos = physics.named.data.cam_xpos[self.name]
+        rot = physics.named.data.cam_xmat[self.name].reshape(3, 3)
+        local = (np.asarray(points, dtype=float) - pos) @ rot  # MuJoCo: x right, y up, -z ahead
+        optical: np.ndarray = local * np.array([1.0, -1.0, -1.0])
+        return optical
+
+    def project(self, physics: Any, optical: np.ndarray) -> np.ndarray:
+        """Pixel coordinates (N x 2, column and row) of optical-frame points with z > 0."""
+        f = self.focal(physics)
+        cx, cy = self.center()
+        z = optical[:, 2:3]
+        return np.hstack([f * optical[:, 0:1] / z + cx, f * optical[:, 1:2] / z + cy])

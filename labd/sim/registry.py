@@ -1,0 +1,54 @@
+"""The registry of tasks, as dm_control's suite keeps one: a name to a factory.
+
+Each task module defines ``TASK``, a ``TaskSpec``; ``get`` and ``names`` find them.
+"""
+
+from __future__ import annotations
+
+import importlib
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass
+from typing import Any
+
+from labd.errors import UnknownTaskError
+from labd.sim.params import Params, Value
+
+# name -> the module that defines it; imported only when the task is used.
+MODULES: Mapping[str, str] = {
+    "icreate-maze": "labd.sim.icreate.maze",
+    "pr2-table": "labd.sim.pr2.table",
+}
+
+
+@dataclass(frozen=True)
+class TaskSpec:
+    """A registered task.
+
+    ``build(values, seed)`` returns a ``dm_control.rl.control.Environment`` whose task
+    is a ``LabTask``, for one episode; ``values`` are already validated.
+    ``time_limit`` overrides the task's own (``float('inf')`` for live robots).
+    """
+
+    name: str
+    version: str
+    doc: str
+    params: Params
+    build: Callable[..., Any]
+
+
+def names() -> list[str]:
+    return list(MODULES)
+
+
+def get(name: str) -> TaskSpec:
+    module = MODULES.get(name)
+    if module is None:
+        raise UnknownTaskError(name, names())
+    spec = importlib.import_module(module).TASK
+    assert isinstance(spec, TaskSpec)
+    return spec
+
+
+def validate(name: str, given: Mapping[str, Any]) -> dict[str, Value]:
+    """The full parameter values of task ``name`` (ParamError if any is unacceptable)."""
+    return get(name).params.validate(given)

@@ -1,0 +1,120 @@
+"""One episode of a task: the dm_control environment, its tick count and its outcome.
+
+The step loop is dm_control's own (``control.Environment.step``); this class adds what
+the lab needs around it: the action comes from the commands the task has received,
+a diverging physics ends the episode as failed instead of raising, and the outcome
+says why the episode ended.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import logging
+from collections.abc import Mapping
+from typing import Any
+
+import mujoco
+from dm_control.rl import control
+
+from labd.errors import EpisodeOverError
+from labd.sim import registry
+from labd.sim.base import FAILED, RUNNING, SUCCEEDED, TRUNCATED, LabTask
+from labd.sim.params import Value
+
+log = logging.getLogger("labd.sim")
+
+
+class Simulation:
+    """One episode of a registered task, built from its parameters and seed."""
+
+    def __init__(
+        self,
+        task: str,
+        params: Mapping[str, Any] | None = None,
+        seed: int = 0,
+        *,
+        time_limit: float | None = None,
+    ) -> None:
+        self.spec = registry.get(task)
+        self.values: dict[str, Value] = self.spec.params.validate(params or {})
+        self.seed = seed
+        kwargs = {} if time_limit is None else {"time_limit": time_limit}
+        self.env: control.Environment = self.spec.build(self.values, seed, **kwargs)
+        task_obj = self.env.task
+        assert isinstance(task_obj, LabTask)
+        self.task: LabTask = task_obj
+        self.tick = 0
+        self.status = RUNNING
+        self.reason = ""
+        self.reward = 0.0  # of the last tick
+        self.total_reward = 0.0
+        self.env.reset()
+
+    @property
+    def physics(self) -> Any:
+        return self.env.physics
+
+    @property
+    def control_timestep(self) -> float:
+        return float(self.env.control_timestep())
+
+    @property
+    def time_ns(self) -> int:
+        return round(float(self.physics.data.time) * 1e9)
+
+    @property
+    def running(self) -> bool:
+        return self.status == RUNNING
+
+    def step(self) -> None:
+        """Advance one control tick with the action the commands so far call for."""
+        if not self.running:
+            raise EpisodeOverError(self.status, self.reason)
+        action = self.task.action(self.physics)
+        try:
+            timestep = self.env.step(action)
+        except control.PhysicsError as err:
+            self.tick += 1
+            self._end(FAILED, f"the physics diverged at tick {self.tick}: {err}")
+            return
+        self.tick += 1
+        self.reward = float(timestep.reward or 0.0)
+        self.total_reward += self.reward
+        if timestep.last():
+            outcome = self.task.outcome(self.physics)
+            if outcome is not None:
+                self._end(outcome.status, outcome.reason)
+            else:
+                limit = self.tick * self.control_timestep
+                self._end(TRUNCATED, f"the time limit of {limit:g} s was reached")
+
+    def _end(self, status: str, reason: str) -> None:
+        self.status = status
+        self.reason = reason
+        log.info(
+            "%s seed %d: %s at tick %d: %s", self.spec.name, self.seed, status, self.tick, reason
+        )
+
+    def metrics(self) -> dict[str, bool | int | float]:
+        """The task's figures, with the episode's own (ticks, time, total reward)."""
+        figures = dict(self.task.metrics(self.physics))
+        figures.setdefault("success", self.status == SUCCEEDED)
+        figures["ticks"] = self.tick
+        figures["time"] = self.time_ns / 1e9
+        figures["total_reward"] = self.total_reward
+        return figures
+
+    def model_digest(self) -> str:
+        """sha256 of the compiled model (MJB), which names the physics exactly."""
+        model = self.physics.model.ptr
+        buffer = bytearray(mujoco.mj_sizeModel(model))
+        mujoco.mj_saveModel(model, None, buffer)
+        return hashlib.sha256(buffer).hexdigest()
+
+    def model_xml(self) -> str:
+        """The model as MJCF, for the record (what was compiled, not the generator)."""
+        return self.task.model_xml
+
+    def __repr__(self) -> str:
+        state = self.status if self.reason == "" else f"{self.status}: {self.reason}"
+        return f"Simulation({self.spec.name}, seed={self.seed}, tick={self.tick}, {state})"
