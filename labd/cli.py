@@ -2,6 +2,7 @@
 
     labd serve [--host H] [--bridge-port P] [--data DIR] [--protected-prefix P ...]
                [--authorizer URL] [--tls-cert F --tls-key F] [--max-connections N]
+               [--robot NAME=TASK ... | --no-robots]
 
 The other commands of DESIGN.md (submit, trials, show, rerun, export, run, worker)
 arrive with the scheduler and the archive.
@@ -19,8 +20,9 @@ from collections.abc import Sequence
 from pathlib import Path
 
 from labd import __version__
-from labd.config import BridgeConfig, LabConfig
+from labd.config import DEFAULT_ROBOTS, BridgeConfig, LabConfig, RobotConfig
 from labd.lab import Lab
+from labd.sim import registry
 
 log = logging.getLogger("labd")
 
@@ -57,7 +59,34 @@ def build_parser() -> argparse.ArgumentParser:
     serve.add_argument("--tls-cert", type=Path, help="certificate (PEM) to serve wss://")
     serve.add_argument("--tls-key", type=Path, help="private key (PEM) of --tls-cert")
     serve.add_argument("--max-connections", type=int, default=defaults.max_connections)
+    serve.add_argument(
+        "--robot",
+        action="append",
+        metavar="NAME=TASK",
+        dest="robots",
+        help="host a live robot running TASK at /robots/NAME (repeatable; "
+        "default icreate-1=icreate-maze and pr2-1=pr2-table)",
+    )
+    serve.add_argument("--no-robots", action="store_true", help="host no robot")
     return parser
+
+
+def robot_configs(args: argparse.Namespace) -> tuple[RobotConfig, ...]:
+    if args.no_robots:
+        return ()
+    if not args.robots:
+        return DEFAULT_ROBOTS
+    robots = []
+    for item in args.robots:
+        name, sep, task = item.partition("=")
+        if not sep or not name or not task:
+            raise SystemExit(f"labd serve: --robot takes NAME=TASK, got {item!r}")
+        if task not in registry.names():
+            raise SystemExit(
+                f"labd serve: no task {task!r}; the tasks are {', '.join(registry.names())}"
+            )
+        robots.append(RobotConfig(name, task))
+    return tuple(robots)
 
 
 def bridge_config(args: argparse.Namespace) -> BridgeConfig:
@@ -81,13 +110,12 @@ async def serve(config: LabConfig) -> None:
     await lab.start()
     bridge = lab.bridge
     print(f"labd {__version__}: rosbridge v2 on {bridge.url()}", flush=True)
-    for name in lab.graphs:
-        print(f"  graph {name}: {bridge.url(name)}", flush=True)
-    print(
-        "  The simulated robots are not built yet: the playground graph is where rosbridge\n"
-        "  clients reach each other and /rosapi.",
-        flush=True,
-    )
+    for name, robot in lab.robots.items():
+        mode = "live" if robot.live else "lockstep"
+        print(f"  robot {name} ({robot.sim.spec.name}, {mode}): {bridge.url(name)}", flush=True)
+    if config.playground:
+        print(f"  playground (no robot; clients meet here): {bridge.url('playground')}", flush=True)
+    print(f"  {bridge.url()} serves the first of these.", flush=True)
     stop = asyncio.Event()
     loop = asyncio.get_running_loop()
     for sig in (signal.SIGINT, signal.SIGTERM):
@@ -122,7 +150,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     )
     if args.command == "serve":
         return_freed_memory()
-        config = LabConfig(data=args.data, bridge=bridge_config(args))
+        config = LabConfig(data=args.data, bridge=bridge_config(args), robots=robot_configs(args))
         asyncio.run(serve(config))
         return 0
     return 2

@@ -43,8 +43,25 @@ class BridgeConfig:
 
 
 @dataclass(frozen=True)
+class RobotConfig:
+    """A live robot that ``labd serve`` hosts at ``/robots/NAME``."""
+
+    name: str  # e.g. icreate-1
+    task: str  # a registered task, e.g. icreate-maze
+    params: tuple[tuple[str, str], ...] = ()  # task parameters, as NAME=VALUE pairs
+    seed: int = 0
+    live: bool = True  # wall clock; False: lockstep, stepped by /lab/step
+
+
+DEFAULT_ROBOTS = (RobotConfig("icreate-1", "icreate-maze"), RobotConfig("pr2-1", "pr2-table"))
+
+
+@dataclass(frozen=True)
 class LabConfig:
     """Everything ``labd serve`` needs."""
 
     data: Path = Path("lab-data")
     bridge: BridgeConfig = field(default_factory=BridgeConfig)
+    robots: tuple[RobotConfig, ...] = DEFAULT_ROBOTS
+    # A graph without a robot, where clients reach each other and /rosapi.
+    playground: bool = True

@@ -6,6 +6,8 @@ HTTP API join here as they land.
 
 from __future__ import annotations
 
+import asyncio
+import contextlib
 import logging
 
 from labd.bridge.auth import Authorizer, HttpAuthorizer
@@ -14,6 +16,7 @@ from labd.bridge.server import BridgeServer
 from labd.config import LabConfig
 from labd.graph.graph import Graph
 from labd.graph.types import TypeRegistry
+from labd.sim.robot import LiveRunner, Robot
 
 log = logging.getLogger("labd.lab")
 
@@ -30,18 +33,39 @@ class Lab:
     ) -> None:
         self.config = config
         self.types = types or TypeRegistry.default()
-        self.graphs: dict[str, Graph] = {"playground": Graph(self.types, name="playground")}
+        self.graphs: dict[str, Graph] = {}
+        self.robots: dict[str, Robot] = {}
+        for robot in config.robots:
+            graph = self.graphs[robot.name] = Graph(self.types, name=robot.name)
+            node = "/" + robot.name.replace("-", "_")
+            self.robots[robot.name] = Robot(
+                graph, robot.task, dict(robot.params), robot.seed, live=robot.live, node_name=node
+            )
+        if config.playground:
+            self.graphs["playground"] = Graph(self.types, name="playground")
         self.rosapi = [Rosapi(g, config.bridge.protected_prefixes) for g in self.graphs.values()]
+        self._runners: list[asyncio.Task[None]] = []
         self._own_authorizer: HttpAuthorizer | None = None
         if authorizer is None and config.bridge.authorizer_url:
             authorizer = self._own_authorizer = HttpAuthorizer(config.bridge.authorizer_url)
         self.bridge = BridgeServer(self.graphs, config.bridge, authorizer)
 
     async def start(self) -> None:
+        for name, robot in self.robots.items():
+            if robot.live:
+                task = asyncio.create_task(LiveRunner(robot).run(), name=f"live {name}")
+                self._runners.append(task)
         await self.bridge.start()
 
     async def close(self) -> None:
+        for task in self._runners:
+            task.cancel()
+        for task in self._runners:
+            with contextlib.suppress(asyncio.CancelledError):
+                await task
         await self.bridge.close()
+        for robot in self.robots.values():
+            robot.close()
         for api in self.rosapi:
             api.close()
         if self._own_authorizer is not None:

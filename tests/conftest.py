@@ -150,11 +150,19 @@ class ServerThread:
 
 @pytest.fixture
 def make_server(tmp_path: Any) -> Iterator[Callable[..., ServerThread]]:
-    """Start real servers: ``make_server(bridge=BridgeConfig(...), authorizer=...)``."""
+    """Start real servers: ``make_server(bridge=BridgeConfig(...), robots=(...), authorizer=...)``.
+
+    Without ``robots``, the lab hosts only its playground graph (fast to start).
+    """
     started: list[ServerThread] = []
 
     def make(bridge: BridgeConfig | None = None, **lab_kwargs: Any) -> ServerThread:
-        config = LabConfig(data=tmp_path / "lab-data", bridge=bridge or BridgeConfig(port=0))
+        lab_kwargs.setdefault("robots", ())
+        config = LabConfig(
+            data=tmp_path / "lab-data",
+            bridge=bridge or BridgeConfig(port=0),
+            robots=lab_kwargs.pop("robots"),
+        )
         server = ServerThread(config, **lab_kwargs).start()
         started.append(server)
         return server

@@ -151,12 +151,17 @@ class Topic:
         return self.codec.type.name
 
     def deliver(self, message: Message, latch: bool) -> None:
+        """Hand a message to everyone: gatekeepers first, who may still refuse it."""
+        subs = tuple(self.subscriptions)
+        for sub in subs:
+            if sub.gatekeeper and not sub.closed:
+                sub.callback(message)
         if latch:
             self.latched = message
         for tap in self.graph.taps:
             tap(self, message)
-        for sub in tuple(self.subscriptions):
-            if not sub.closed:
+        for sub in subs:
+            if not sub.gatekeeper and not sub.closed:
                 sub.callback(message)
 
 
@@ -198,11 +203,16 @@ class Publisher:
 class Subscription:
     """A callback on every message of a topic."""
 
-    def __init__(self, node: Node, topic: Topic, callback: MessageCallback, hidden: bool) -> None:
+    def __init__(
+        self, node: Node, topic: Topic, callback: MessageCallback, hidden: bool, gatekeeper: bool
+    ) -> None:
         self.node = node
         self.topic = topic
         self.callback = callback
         self.hidden = hidden  # the recorder and the like do not show up in rosapi
+        # A gatekeeper sees each message before anyone else and may refuse it by
+        # raising (a robot refusing a NaN command): then no one receives it.
+        self.gatekeeper = gatekeeper
         self.closed = False
 
     def close(self) -> None:
@@ -243,10 +253,11 @@ class Node:
         *,
         hidden: bool = False,
         latched: bool = True,
+        gatekeeper: bool = False,
     ) -> Subscription:
         """Subscribe; the topic's latched message, if any, is delivered at once."""
         t = self.graph.topic(topic, type_name)
-        sub = Subscription(self, t, callback, hidden)
+        sub = Subscription(self, t, callback, hidden, gatekeeper)
         t.subscriptions.append(sub)
         self.subscriptions.append(sub)
         if latched and t.latched is not None:

@@ -14,6 +14,7 @@ from collections.abc import Mapping
 from typing import Any
 
 import mujoco
+import numpy as np
 from dm_control.rl import control
 
 from labd.errors import EpisodeOverError
@@ -29,13 +30,13 @@ class Simulation:
 
     def __init__(
         self,
-        task: str,
+        task: str | registry.TaskSpec,
         params: Mapping[str, Any] | None = None,
         seed: int = 0,
         *,
         time_limit: float | None = None,
     ) -> None:
-        self.spec = registry.get(task)
+        self.spec = task if isinstance(task, registry.TaskSpec) else registry.get(task)
         self.values: dict[str, Value] = self.spec.params.validate(params or {})
         self.seed = seed
         kwargs = {} if time_limit is None else {"time_limit": time_limit}
@@ -107,9 +108,9 @@ class Simulation:
     def model_digest(self) -> str:
         """sha256 of the compiled model (MJB), which names the physics exactly."""
         model = self.physics.model.ptr
-        buffer = bytearray(mujoco.mj_sizeModel(model))
+        buffer = np.zeros(mujoco.mj_sizeModel(model), dtype=np.uint8)
         mujoco.mj_saveModel(model, None, buffer)
-        return hashlib.sha256(buffer).hexdigest()
+        return hashlib.sha256(buffer.tobytes()).hexdigest()
 
     def model_xml(self) -> str:
         """The model as MJCF, for the record (what was compiled, not the generator)."""

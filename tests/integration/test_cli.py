@@ -17,7 +17,17 @@ pytestmark = pytest.mark.integration
 def test_serve_starts_answers_and_stops_on_sigterm(tmp_path):
     """labd serve prints its URL, answers rosapi there, and exits cleanly on SIGTERM."""
     with subprocess.Popen(
-        [sys.executable, "-m", "labd", "serve", "--bridge-port", "0", "--data", str(tmp_path)],
+        [
+            sys.executable,
+            "-m",
+            "labd",
+            "serve",
+            "--bridge-port",
+            "0",
+            "--data",
+            str(tmp_path),
+            "--no-robots",
+        ],
         stdout=subprocess.PIPE,
         stderr=subprocess.DEVNULL,
         text=True,

@@ -1,0 +1,214 @@
+"""A simulated robot in a graph: a Simulation bound to topics and services.
+
+The robot node subscribes to the task's command topics and publishes its
+observation topics, with ``/clock`` (simulation time) and ``/lab/episode``. The
+graph's clock is the simulation's, so every stamp, every ``rosapi/get_time`` and
+every recorded log time is simulation time.
+
+Two ways to run:
+
+- **lockstep** (batch trials): the controller publishes its commands, then calls
+  ``/lab/step`` (``std_srvs/srv/Trigger``). Commands reach the task as they are
+  published, in order, so the step applies everything received before the call; it
+  advances one control tick, publishes that tick's observations, and only then
+  answers. Nothing depends on the wall clock, so the same inputs give the same data.
+- **live** (teleoperation): ``LiveRunner`` steps on the wall clock while someone is
+  connected. A ``geometry_msgs/Twist`` command that is not repeated within half a
+  second is replaced by zero, as a real base's watchdog stops it. When an episode
+  ends the robot shows it for a few seconds and starts the next one (next seed);
+  ``/lab/reset`` starts a new one at once.
+
+Commands are checked before anyone receives them (a gatekeeper subscription): a NaN
+is refused with an error to the client that sent it, and never recorded.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import math
+import time
+from collections.abc import Callable, Mapping
+from typing import Any
+
+from labd.errors import EpisodeOverError
+from labd.graph.graph import Graph, Publisher
+from labd.graph.message import Message
+from labd.graph.services import ServiceCall
+from labd.sim.base import RUNNING, SUCCEEDED, stamp_of
+from labd.sim.params import Value
+from labd.sim.registry import TaskSpec
+from labd.sim.simulation import Simulation
+
+TWIST = "geometry_msgs/msg/Twist"
+WATCHDOG = 0.5  # seconds a live Twist command holds
+SHOW_END = 3.0  # seconds a live robot shows an ended episode before the next
+
+log = logging.getLogger("labd.sim.robot")
+
+
+class Robot:
+    """One simulated robot, bound to ``graph``."""
+
+    def __init__(
+        self,
+        graph: Graph,
+        task: str | TaskSpec,
+        params: Mapping[str, Any] | None = None,
+        seed: int = 0,
+        *,
+        live: bool = False,
+        node_name: str = "/robot",
+        wall_clock: Callable[[], float] = time.monotonic,
+    ) -> None:
+        self.graph = graph
+        self.wall_clock = wall_clock  # live watchdogs only; trials never read it
+        self.task = task
+        self.params = dict(params or {})
+        self.live = live
+        self.sim = self._simulation(seed)
+        graph.clock = lambda: self.sim.time_ns
+        self.node = graph.create_node(node_name)
+        self.publishers: dict[str, Publisher] = {}
+        self.command_times: dict[str, float] = {}  # wall time of each live Twist command
+        for command in self.sim.task.commands:
+            self.node.subscribe(
+                command.name, command.type, self._commander(command.name), gatekeeper=True
+            )
+        for obs in self.sim.task.observations:
+            self.publishers[obs.name] = self.node.advertise(obs.name, obs.type, latch=obs.latched)
+        self._clock = self.node.advertise("/clock", "rosgraph_msgs/msg/Clock")
+        self._episode = self.node.advertise("/lab/episode", "lab_msgs/msg/Episode", latch=True)
+        if live:
+            self.node.provide_service("/lab/reset", "std_srvs/srv/Trigger", self._reset_service)
+        else:
+            self.node.provide_service("/lab/step", "std_srvs/srv/Trigger", self._step_service)
+        self.publish()
+
+    @property
+    def values(self) -> dict[str, Value]:
+        return self.sim.values
+
+    def _simulation(self, seed: int) -> Simulation:
+        return Simulation(self.task, self.params, seed, time_limit=math.inf if self.live else None)
+
+    # -- commands ----------------------------------------------------------------------
+
+    def _commander(self, topic: str) -> Any:
+        def take(message: Message) -> None:
+            self.sim.task.command(topic, message.data)
+            if self.live and message.type_name == TWIST:
+                self.command_times[topic] = self.wall_clock()
+
+        return take
+
+    def expire_commands(self, now: float) -> None:
+        """Live mode: stop a Twist that has not been repeated for WATCHDOG seconds."""
+        for topic, at in list(self.command_times.items()):
+            if now - at > WATCHDOG:
+                del self.command_times[topic]
+                self.sim.task.command(topic, self.graph.codec(TWIST).default())
+
+    # -- ticks -------------------------------------------------------------------------
+
+    def step(self) -> None:
+        """Advance one control tick and publish what it produced (EpisodeOverError if over)."""
+        self.sim.step()
+        self.publish()
+
+    def publish(self) -> None:
+        """Publish this tick's observations, /clock and /lab/episode."""
+        sim = self.sim
+        physics = sim.physics
+        stamp = stamp_of(physics)
+        for obs in sim.task.observations:
+            if sim.tick % obs.period:
+                continue
+            publisher = self.publishers[obs.name]
+            if obs.on_demand and not (publisher.topic.subscriptions or self.graph.taps):
+                continue
+            data = sim.task.observe(physics, obs.name, stamp)
+            if data is not None:
+                publisher.publish(data)
+        self._clock.publish({"clock": stamp})
+        self._episode.publish(
+            {
+                "header": {"stamp": stamp, "frame_id": ""},
+                "task": sim.spec.name,
+                "seed": sim.seed,
+                "tick": sim.tick,
+                "status": sim.status,
+                "reason": sim.reason,
+                "reward": sim.reward,
+                "total_reward": sim.total_reward,
+                "success": sim.status == SUCCEEDED,
+            }
+        )
+
+    def describe(self) -> str:
+        sim = self.sim
+        text = f"tick {sim.tick} at {sim.time_ns / 1e9:.3f} s: {sim.status}"
+        return text + (f": {sim.reason}" if sim.reason else "")
+
+    def _step_service(self, call: ServiceCall) -> None:
+        try:
+            self.step()
+        except EpisodeOverError as err:
+            call.reply({"success": False, "message": str(err)})
+            return
+        call.reply({"success": True, "message": self.describe()})
+
+    # -- episodes ----------------------------------------------------------------------
+
+    def reset(self, seed: int | None = None) -> None:
+        """Start a new episode (the next seed unless one is given) and publish it."""
+        self.sim = self._simulation(self.sim.seed + 1 if seed is None else seed)
+        self.command_times.clear()
+        self.publish()
+
+    def _reset_service(self, call: ServiceCall) -> None:
+        self.reset()
+        call.reply({"success": True, "message": f"new episode, seed {self.sim.seed}"})
+
+    def engaged(self) -> bool:
+        """Someone is listening or commanding (live robots idle otherwise)."""
+        if any(p.topic.subscriptions for p in self.publishers.values()):
+            return True
+        return any(len(s.topic.publishers) for s in self.node.subscriptions)
+
+    def close(self) -> None:
+        self.node.destroy()
+
+
+class LiveRunner:
+    """Steps a live robot on the wall clock, at its control rate, while engaged."""
+
+    def __init__(self, robot: Robot) -> None:
+        self.robot = robot
+        self.ticks = 0
+        self._ended_at: float | None = None
+
+    async def run(self) -> None:
+        loop = asyncio.get_running_loop()
+        robot = self.robot
+        deadline = loop.time()
+        while True:
+            period = robot.sim.control_timestep
+            if not robot.engaged():
+                await asyncio.sleep(0.1)
+                deadline = loop.time()
+                continue
+            now = loop.time()
+            robot.expire_commands(robot.wall_clock())
+            if robot.sim.status == RUNNING:
+                robot.step()
+                self.ticks += 1
+            elif self._ended_at is None:
+                self._ended_at = now
+            elif now - self._ended_at >= SHOW_END:
+                self._ended_at = None
+                robot.reset()
+            deadline += period
+            if deadline < now - 5 * period:  # far behind (a slow render): do not rush to catch up
+                deadline = now
+            await asyncio.sleep(max(0.0, deadline - loop.time()))

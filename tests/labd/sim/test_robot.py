@@ -1,0 +1,168 @@
+"""The robot node: lockstep stepping through the graph, commands, episodes, live mode."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+
+from labd.errors import MessageError
+from labd.graph.graph import Graph
+from labd.sim.robot import WATCHDOG, Robot
+from tests.labd.sim.pointmass import TASK
+
+
+@pytest.fixture
+def world(registry):
+    graph = Graph(registry, name="robot-test")
+    robot = Robot(graph, TASK, {"time_limit": 2.0}, seed=3)
+    client = graph.create_node("/controller")
+    return graph, robot, client
+
+
+def record(client, topic):
+    got = []
+    client.subscribe(topic, None, lambda m: got.append(m.data))
+    return got
+
+
+def step(client):
+    answers = []
+    client.call_service("/lab/step", None, answers.append)
+    (answer,) = answers
+    assert answer.ok
+    return answer.response.data
+
+
+def test_lockstep_applies_commands_then_publishes_then_answers(world):
+    """A command sent before /lab/step moves the puck in that step, seen before the answer."""
+    graph, robot, client = world
+    events = []
+    client.subscribe("/pose", None, lambda m: events.append(("pose", m.data["point"]["x"])))
+    events.clear()  # the latched initial pose
+    cmd = client.advertise("/cmd_vel", "geometry_msgs/msg/Twist")
+    cmd.publish({"linear": {"x": 0.5}})
+    client.call_service("/lab/step", None, lambda r: events.append(("answer", r.response.data)))
+    (pose, answer) = events
+    assert pose[0] == "pose" and 0.0 < pose[1] < 0.06
+    assert answer[1]["success"] is True and answer[1]["message"].startswith("tick 1 at 0.100 s")
+
+
+def test_graph_time_is_simulation_time(world):
+    """Stamps, /clock and the graph's clock follow the simulation, tick by tick."""
+    graph, robot, client = world
+    clocks = record(client, "/clock")
+    for _ in range(3):
+        step(client)
+    assert clocks[-1] == {"clock": {"sec": 0, "nanosec": 300_000_000}}
+    assert graph.now() == (0, 300_000_000)
+
+
+def test_periodic_and_on_demand_topics(world):
+    """A period-5 topic appears every fifth tick; an on-demand one only while subscribed."""
+    graph, robot, client = world
+    slow = record(client, "/slow")
+    for _ in range(10):
+        step(client)
+    assert len(slow) == 1 + 2  # the latched initial one, then ticks 5 and 10
+    assert robot.sim.task.renders == 0
+    images = record(client, "/camera/image/compressed")
+    step(client)
+    assert len(images) == 1 and robot.sim.task.renders == 1
+
+
+def test_nan_command_is_refused_before_anyone_sees_it(world):
+    """A NaN velocity is an error naming the field, and no subscriber receives it."""
+    graph, robot, client = world
+    seen = record(client, "/cmd_vel")
+    cmd = client.advertise("/cmd_vel", "geometry_msgs/msg/Twist")
+    with pytest.raises(MessageError, match=r"linear\.x must be a finite number"):
+        cmd.publish({"linear": {"x": None}})  # JSON null is NaN
+    assert seen == []
+
+
+def test_clipping_is_counted(world):
+    """Commands beyond the limits are clipped and counted in the metrics."""
+    graph, robot, client = world
+    cmd = client.advertise("/cmd_vel", "geometry_msgs/msg/Twist")
+    cmd.publish({"linear": {"x": 7.0}})
+    assert robot.sim.task.velocity[0] == 1.0
+    assert robot.sim.metrics()["clipped_commands"] == 1
+
+
+def test_episode_ends_and_further_steps_are_refused(world):
+    """Reaching the goal ends the episode on /lab/episode; later steps answer success false."""
+    graph, robot, client = world
+    episodes = record(client, "/lab/episode")
+    client.advertise("/cmd_vel", "geometry_msgs/msg/Twist").publish({"linear": {"x": 1.0}})
+    for _ in range(30):
+        answer = step(client)
+        if "succeeded" in answer["message"]:
+            break
+    assert episodes[-1]["status"] == "succeeded" and episodes[-1]["success"] is True
+    assert episodes[-1]["reason"] == "reached the goal"
+    answers = []
+    client.call_service("/lab/step", None, answers.append)
+    assert answers[0].response.data["success"] is False
+    assert "the episode has ended (succeeded" in answers[0].response.data["message"]
+
+
+def test_time_limit_truncates(world):
+    """Without reaching the goal, the episode is truncated at its time limit."""
+    graph, robot, client = world
+    for _ in range(20):
+        answer = step(client)
+    assert "truncated: the time limit of 2 s was reached" in answer["message"]
+    assert robot.sim.status == "truncated"
+
+
+def test_divergence_fails_the_episode_not_the_lab(world):
+    """A diverging physics ends the episode as failed with the reason; the lab answers on."""
+    graph, robot, client = world
+    client.advertise("/explode", "std_msgs/msg/Bool").publish({"data": True})
+    answer = step(client)
+    assert "failed: the physics diverged at tick 1" in answer["message"]
+    assert robot.sim.status == "failed"
+
+
+def test_determinism_within_a_process(registry):
+    """Two robots given the same seed and commands publish identical bytes."""
+    streams = []
+    for _ in range(2):
+        graph = Graph(registry, name="det")
+        Robot(graph, TASK, {}, seed=11)
+        client = graph.create_node("/c")
+        got = []
+        client.subscribe("/pose", None, lambda m, got=got: got.append(m.cdr()))
+        cmd = client.advertise("/cmd_vel", "geometry_msgs/msg/Twist")
+        for i in range(12):
+            cmd.publish({"linear": {"x": math.sin(i) / 2, "y": 0.1}})
+            step(client)
+        streams.append(got)
+    assert streams[0] == streams[1] and len(streams[0]) == 13
+
+
+def test_live_watchdog_stops_a_silent_twist(registry):
+    """Live: a Twist not repeated within the watchdog time is replaced by zero."""
+    now = [100.0]
+    graph = Graph(registry, name="live")
+    robot = Robot(graph, TASK, {}, live=True, wall_clock=lambda: now[0])
+    client = graph.create_node("/teleop")
+    client.advertise("/cmd_vel", "geometry_msgs/msg/Twist").publish({"linear": {"x": 0.5}})
+    robot.expire_commands(now[0] + WATCHDOG / 2)
+    assert robot.sim.task.velocity[0] == 0.5
+    robot.expire_commands(now[0] + WATCHDOG * 2)
+    assert robot.sim.task.velocity[0] == 0.0
+    assert "/lab/reset" in graph.services and "/lab/step" not in graph.services
+
+
+def test_reset_starts_the_next_seed(registry):
+    """/lab/reset on a live robot starts a new episode with the next seed."""
+    graph = Graph(registry, name="live")
+    robot = Robot(graph, TASK, {}, seed=4, live=True)
+    client = graph.create_node("/teleop")
+    robot.step()
+    answers = []
+    client.call_service("/lab/reset", None, answers.append)
+    assert answers[0].response.data["message"] == "new episode, seed 5"
+    assert robot.sim.tick == 0 and robot.sim.seed == 5
