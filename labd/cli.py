@@ -21,8 +21,10 @@ from pathlib import Path
 
 from labd import __version__
 from labd.config import DEFAULT_ROBOTS, BridgeConfig, LabConfig, RobotConfig
+from labd.errors import LabError
 from labd.lab import Lab
 from labd.sim import registry
+from labd.sim.params import parse_assignments
 
 log = logging.getLogger("labd")
 
@@ -68,24 +70,45 @@ def build_parser() -> argparse.ArgumentParser:
         "default icreate-1=icreate-maze and pr2-1=pr2-table)",
     )
     serve.add_argument("--no-robots", action="store_true", help="host no robot")
+    serve.add_argument(
+        "--lockstep",
+        action="store_true",
+        help="robots step only when /lab/step is called (as in trials)",
+    )
+    serve.add_argument("--seed", type=int, default=0, help="the robots' first episode seed")
+    serve.add_argument(
+        "--param",
+        action="append",
+        default=[],
+        metavar="NAME=VALUE",
+        help="a task parameter for every robot (repeatable)",
+    )
+    serve.add_argument("--no-playground", action="store_true", help="host no playground graph")
     return parser
 
 
 def robot_configs(args: argparse.Namespace) -> tuple[RobotConfig, ...]:
     if args.no_robots:
         return ()
-    if not args.robots:
-        return DEFAULT_ROBOTS
+    pairs = [(r.name, r.task) for r in DEFAULT_ROBOTS]
+    if args.robots:
+        pairs = []
+        for item in args.robots:
+            name, sep, task = item.partition("=")
+            if not sep or not name or not task:
+                raise SystemExit(f"labd serve: --robot takes NAME=TASK, got {item!r}")
+            pairs.append((name, task))
+    try:
+        params = tuple(parse_assignments(args.param).items())
+    except LabError as err:
+        raise SystemExit(f"labd serve: --param {err}") from None
     robots = []
-    for item in args.robots:
-        name, sep, task = item.partition("=")
-        if not sep or not name or not task:
-            raise SystemExit(f"labd serve: --robot takes NAME=TASK, got {item!r}")
-        if task not in registry.names():
-            raise SystemExit(
-                f"labd serve: no task {task!r}; the tasks are {', '.join(registry.names())}"
-            )
-        robots.append(RobotConfig(name, task))
+    for name, task in pairs:
+        try:
+            registry.validate(task, dict(params))
+        except LabError as err:
+            raise SystemExit(f"labd serve: robot {name}: {err}") from None
+        robots.append(RobotConfig(name, task, params, args.seed, live=not args.lockstep))
     return tuple(robots)
 
 
@@ -150,7 +173,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     )
     if args.command == "serve":
         return_freed_memory()
-        config = LabConfig(data=args.data, bridge=bridge_config(args), robots=robot_configs(args))
+        config = LabConfig(
+            data=args.data,
+            bridge=bridge_config(args),
+            robots=robot_configs(args),
+            playground=not args.no_playground,
+        )
         asyncio.run(serve(config))
         return 0
     return 2

@@ -145,6 +145,9 @@ class Topic:
         self.publishers: list[Publisher] = []
         self.subscriptions: list[Subscription] = []
         self.latched: Message | None = None
+        # Called before a new subscriber joins, so a publisher that skips messages no
+        # one hears (a robot's idle topics) can bring the latched one up to date.
+        self.refresh: Callable[[], None] | None = None
 
     @property
     def type_name(self) -> str:
@@ -257,6 +260,8 @@ class Node:
     ) -> Subscription:
         """Subscribe; the topic's latched message, if any, is delivered at once."""
         t = self.graph.topic(topic, type_name)
+        if t.refresh is not None:
+            t.refresh()
         sub = Subscription(self, t, callback, hidden, gatekeeper)
         t.subscriptions.append(sub)
         self.subscriptions.append(sub)

@@ -50,7 +50,8 @@ class CommandTopic:
 class ObservationTopic:
     """A topic the lab publishes from the physics.
 
-    ``period``: published every ``period`` control ticks (1: every tick).
+    ``period``: published every ``period`` control ticks (1: every tick; 0: once, when
+    the episode begins, for what does not change: /tf_static, a goal).
     ``on_demand``: costly (a camera image); built only while someone subscribes.
     ``latched``: the last message is kept for subscribers that come later.
     """
@@ -72,7 +73,12 @@ class Outcome:
 
 
 class LabTask(base.Task):  # type: ignore[misc]
-    """A dm_control task with a ROS face. Subclasses fill in the class attributes."""
+    """A dm_control task with a ROS face. Subclasses fill in the class attributes.
+
+    Note that dm_control's ``Task.initialize_episode`` calls ``after_step``; a task
+    that counts events in ``after_step`` should not call it from its own
+    ``initialize_episode``.
+    """
 
     name: ClassVar[str]
     version: ClassVar[str]  # bump when behaviour changes; it goes into the manifest
@@ -85,6 +91,7 @@ class LabTask(base.Task):  # type: ignore[misc]
         self.values = dict(params)
         self.clipped: dict[str, int] = {}  # commands clipped to their limits, per topic
         self.model_xml = ""  # the MJCF the factory compiled, for the trial record
+        self.model_assets: dict[str, bytes] = {}  # files the MJCF names (textures)
 
     # -- the ROS side ------------------------------------------------------------------
 

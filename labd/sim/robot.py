@@ -35,7 +35,7 @@ from labd.errors import EpisodeOverError
 from labd.graph.graph import Graph, Publisher
 from labd.graph.message import Message
 from labd.graph.services import ServiceCall
-from labd.sim.base import RUNNING, SUCCEEDED, stamp_of
+from labd.sim.base import RUNNING, SUCCEEDED, Stamp, stamp_of
 from labd.sim.params import Value
 from labd.sim.registry import TaskSpec
 from labd.sim.simulation import Simulation
@@ -75,8 +75,11 @@ class Robot:
             self.node.subscribe(
                 command.name, command.type, self._commander(command.name), gatekeeper=True
             )
+        self._stale: set[str] = set()  # topics skipped because no one listened
         for obs in self.sim.task.observations:
-            self.publishers[obs.name] = self.node.advertise(obs.name, obs.type, latch=obs.latched)
+            publisher = self.node.advertise(obs.name, obs.type, latch=obs.latched)
+            publisher.topic.refresh = self._refresher(obs.name)
+            self.publishers[obs.name] = publisher
         self._clock = self.node.advertise("/clock", "rosgraph_msgs/msg/Clock")
         self._episode = self.node.advertise("/lab/episode", "lab_msgs/msg/Episode", latch=True)
         if live:
@@ -117,19 +120,24 @@ class Robot:
         self.publish()
 
     def publish(self) -> None:
-        """Publish this tick's observations, /clock and /lab/episode."""
+        """Publish this tick's observations, /clock and /lab/episode.
+
+        A topic that no one hears (no subscriber, no recorder) is not built; it is
+        marked stale and built when someone subscribes, so subscribers still get the
+        current state at once. A topic with period 0 is published when an episode
+        begins, and then kept (latched).
+        """
         sim = self.sim
-        physics = sim.physics
-        stamp = stamp_of(physics)
+        stamp = stamp_of(sim.physics)
+        self._stale.clear()
         for obs in sim.task.observations:
-            if sim.tick % obs.period:
+            due = sim.tick == 0 if obs.period == 0 else sim.tick % obs.period == 0
+            if not due:
                 continue
-            publisher = self.publishers[obs.name]
-            if obs.on_demand and not (publisher.topic.subscriptions or self.graph.taps):
-                continue
-            data = sim.task.observe(physics, obs.name, stamp)
-            if data is not None:
-                publisher.publish(data)
+            if self.publishers[obs.name].topic.subscriptions or self.graph.taps:
+                self._publish_one(obs.name, stamp)
+            else:
+                self._stale.add(obs.name)
         self._clock.publish({"clock": stamp})
         self._episode.publish(
             {
@@ -144,6 +152,19 @@ class Robot:
                 "success": sim.status == SUCCEEDED,
             }
         )
+
+    def _publish_one(self, topic: str, stamp: Stamp) -> None:
+        data = self.sim.task.observe(self.sim.physics, topic, stamp)
+        if data is not None:
+            self.publishers[topic].publish(data)
+
+    def _refresher(self, topic: str) -> Callable[[], None]:
+        def refresh() -> None:
+            if topic in self._stale:
+                self._stale.discard(topic)
+                self._publish_one(topic, stamp_of(self.sim.physics))
+
+        return refresh
 
     def describe(self) -> str:
         sim = self.sim

@@ -17,7 +17,7 @@ import mujoco
 import numpy as np
 from dm_control.rl import control
 
-from labd.errors import EpisodeOverError
+from labd.errors import EpisodeOverError, ParamError
 from labd.sim import registry
 from labd.sim.base import FAILED, RUNNING, SUCCEEDED, TRUNCATED, LabTask
 from labd.sim.params import Value
@@ -38,6 +38,8 @@ class Simulation:
     ) -> None:
         self.spec = task if isinstance(task, registry.TaskSpec) else registry.get(task)
         self.values: dict[str, Value] = self.spec.params.validate(params or {})
+        if not 0 <= seed < 2**63:
+            raise ParamError("seed", f"must be between 0 and 2**63 - 1, got {seed}")
         self.seed = seed
         kwargs = {} if time_limit is None else {"time_limit": time_limit}
         self.env: control.Environment = self.spec.build(self.values, seed, **kwargs)

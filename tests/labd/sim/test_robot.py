@@ -67,8 +67,9 @@ def test_periodic_and_on_demand_topics(world):
     assert len(slow) == 1 + 2  # the latched initial one, then ticks 5 and 10
     assert robot.sim.task.renders == 0
     images = record(client, "/camera/image/compressed")
+    assert len(images) == 1 and robot.sim.task.renders == 1  # rendered for the newcomer
     step(client)
-    assert len(images) == 1 and robot.sim.task.renders == 1
+    assert len(images) == 2 and robot.sim.task.renders == 2
 
 
 def test_nan_command_is_refused_before_anyone_sees_it(world):
@@ -166,3 +167,12 @@ def test_reset_starts_the_next_seed(registry):
     client.call_service("/lab/reset", None, answers.append)
     assert answers[0].response.data["message"] == "new episode, seed 5"
     assert robot.sim.tick == 0 and robot.sim.seed == 5
+
+
+def test_unheard_topics_are_built_when_someone_subscribes(world):
+    """A topic no one heard is skipped, and a new subscriber still gets the current state."""
+    graph, robot, client = world
+    for _ in range(4):
+        step(client)
+    poses = record(client, "/pose")
+    assert len(poses) == 1 and poses[0]["header"]["stamp"] == {"sec": 0, "nanosec": 400_000_000}
