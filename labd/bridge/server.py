@@ -24,12 +24,15 @@ from websockets.http11 import Request, Response
 
 from labd.bridge.auth import AuthError, Authorizer
 from labd.bridge.ops import CAPABILITIES
+from labd.bridge.render import OutFrame
 from labd.bridge.session import Session
 from labd.config import BridgeConfig
 from labd.graph.graph import Graph
 
 log = logging.getLogger("labd.bridge.server")
 YIELD_EVERY = 64  # frames a reader handles before letting other clients run
+BATCH_FRAMES = 64  # frames the writer joins into one socket write, at most
+BATCH_BYTES = 256 * 1024  # ... and bytes
 
 
 class BridgeServer:
@@ -193,18 +196,59 @@ class _Connection:
         session = self.session
         assert session is not None
         ready = self._ready
-        send = self.ws.send
+        ws = self.ws
         with contextlib.suppress(ConnectionClosed):
             while True:
-                frames = session.next_frames()
-                if frames is None:
+                batch = self._collect(session)
+                if not batch:
                     ready.clear()
-                    frames = session.next_frames()
-                    if frames is None:
+                    batch = self._collect(session)
+                    if not batch:
                         await ready.wait()
                         continue
-                for frame in frames:
-                    await send(frame.data, text=frame.text)
+                if len(batch) == 1:
+                    await ws.send(batch[0].data, text=batch[0].text)
+                else:
+                    await self._send_batch(batch)
+
+    @staticmethod
+    def _collect(session: Session) -> list[OutFrame]:
+        batch: list[OutFrame] = []
+        size = 0
+        while len(batch) < BATCH_FRAMES and size < BATCH_BYTES:
+            frames = session.next_frames()
+            if frames is None:
+                break
+            batch += frames
+            size += sum(len(frame) for frame in frames)
+        return batch
+
+    async def _send_batch(self, batch: list[OutFrame]) -> None:
+        """Several frames in one socket write.
+
+        On loopback every write wakes the reader; a lockstep tick's observations and
+        its answer arriving in one write cost the client one wake-up instead of one
+        each (measured: 3 writes a tick took half the bridge's time per tick).
+        Frames go through websockets' own protocol object inside its
+        ``send_context``, which is how websockets lets user code write frames.
+        """
+        ws = self.ws
+        async with ws.send_context():
+            protocol = ws.protocol
+            for frame in batch:
+                if frame.text:
+                    protocol.send_text(frame.data)
+                else:
+                    protocol.send_binary(frame.data)
+            chunks = protocol.data_to_send()
+            if all(chunks):
+                ws.transport.write(b"".join(chunks))
+            else:  # an end-of-stream marker: the connection is closing
+                for chunk in chunks:
+                    if chunk:
+                        ws.transport.write(chunk)
+                    elif ws.transport.can_write_eof():
+                        ws.transport.write_eof()
 
     async def finish(self) -> None:
         for task in list(self._tasks):

@@ -312,6 +312,7 @@ def _field_normalizer(registry: TypeRegistry, field: Field) -> Normalizer:
         inner = nested.normalize
     fixed = field.length if field.kind is Kind.ARRAY else 0
     bound = field.length if field.kind is Kind.SEQUENCE else 0
+    fast = _fast_numbers(field.base)
 
     def norm_array(v: Any, now: Now) -> list[Any]:
         if type(v) is not list:
@@ -323,6 +324,10 @@ def _field_normalizer(registry: TypeRegistry, field: Field) -> Normalizer:
             raise MessageError(f"must hold exactly {fixed} items, got {len(v)}")
         if bound and len(v) > bound:
             raise MessageError(f"must hold at most {bound} items, got {len(v)}")
+        if fast is not None:
+            done = fast(v)
+            if done is not None:
+                return done
         out = []
         for i, item in enumerate(v):
             try:
@@ -332,6 +337,35 @@ def _field_normalizer(registry: TypeRegistry, field: Field) -> Normalizer:
         return out
 
     return norm_array
+
+
+def _fast_numbers(base: str | None) -> Callable[[list[Any]], list[Any] | None] | None:
+    """A check of a whole list of numbers done in C (map, set, min, max), or None.
+
+    It answers None when the list needs the item-by-item path (which also names the
+    bad item).
+    """
+    if base in FLOATS:
+
+        def floats(v: list[Any]) -> list[Any] | None:
+            kinds = set(map(type, v))
+            if kinds <= {float}:
+                return list(v)  # a copy: normal form never shares the caller's list
+            if kinds <= {float, int}:
+                return list(map(float, v))
+            return None
+
+        return floats
+    if base in INTEGER_RANGES:
+        low, high = INTEGER_RANGES[base]
+
+        def ints(v: list[Any]) -> list[Any] | None:
+            if set(map(type, v)) <= {int} and (not v or (low <= min(v) and max(v) <= high)):
+                return list(v)
+            return None
+
+        return ints
+    return None
 
 
 def _normalize_time(type_name: str) -> Normalizer:

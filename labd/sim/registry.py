@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import importlib
 from collections.abc import Callable, Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 from labd.errors import UnknownTaskError
@@ -27,6 +27,8 @@ class TaskSpec:
     ``build(values, seed)`` returns a ``dm_control.rl.control.Environment`` whose task
     is a ``LabTask``, for one episode; ``values`` are already validated.
     ``time_limit`` overrides the task's own (``float('inf')`` for live robots).
+    ``live_params`` are defaults for live robots (a faster control rate for a smooth
+    camera, say); what a robot's configuration sets still wins.
     """
 
     name: str
@@ -34,6 +36,7 @@ class TaskSpec:
     doc: str
     params: Params
     build: Callable[..., Any]
+    live_params: Mapping[str, Value] = field(default_factory=dict)
 
 
 def names() -> list[str]:

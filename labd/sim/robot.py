@@ -35,6 +35,7 @@ from labd.errors import EpisodeOverError
 from labd.graph.graph import Graph, Publisher
 from labd.graph.message import Message
 from labd.graph.services import ServiceCall
+from labd.sim import registry
 from labd.sim.base import RUNNING, SUCCEEDED, Stamp, stamp_of
 from labd.sim.params import Value
 from labd.sim.registry import TaskSpec
@@ -64,8 +65,9 @@ class Robot:
         self.graph = graph
         self.wall_clock = wall_clock  # live watchdogs only; trials never read it
         self.task = task
-        self.params = dict(params or {})
         self.live = live
+        spec = task if isinstance(task, TaskSpec) else registry.get(task)
+        self.params = {**(spec.live_params if live else {}), **(params or {})}
         self.sim = self._simulation(seed)
         graph.clock = lambda: self.sim.time_ns
         self.node = graph.create_node(node_name)
@@ -77,11 +79,9 @@ class Robot:
             )
         self._stale: set[str] = set()  # topics skipped because no one listened
         for obs in self.sim.task.observations:
-            publisher = self.node.advertise(obs.name, obs.type, latch=obs.latched)
-            publisher.topic.refresh = self._refresher(obs.name)
-            self.publishers[obs.name] = publisher
-        self._clock = self.node.advertise("/clock", "rosgraph_msgs/msg/Clock")
-        self._episode = self.node.advertise("/lab/episode", "lab_msgs/msg/Episode", latch=True)
+            self._advertise(obs.name, obs.type, obs.latched)
+        self._advertise("/clock", "rosgraph_msgs/msg/Clock", latched=False)
+        self._advertise("/lab/episode", "lab_msgs/msg/Episode", latched=True)
         if live:
             self.node.provide_service("/lab/reset", "std_srvs/srv/Trigger", self._reset_service)
         else:
@@ -119,6 +119,11 @@ class Robot:
         self.sim.step()
         self.publish()
 
+    def _advertise(self, topic: str, type_name: str, latched: bool) -> None:
+        publisher = self.node.advertise(topic, type_name, latch=latched)
+        publisher.topic.refresh = self._refresher(topic)
+        self.publishers[topic] = publisher
+
     def publish(self) -> None:
         """Publish this tick's observations, /clock and /lab/episode.
 
@@ -130,17 +135,23 @@ class Robot:
         sim = self.sim
         stamp = stamp_of(sim.physics)
         self._stale.clear()
-        for obs in sim.task.observations:
-            due = sim.tick == 0 if obs.period == 0 else sim.tick % obs.period == 0
-            if not due:
-                continue
-            if self.publishers[obs.name].topic.subscriptions or self.graph.taps:
-                self._publish_one(obs.name, stamp)
+        due = [
+            o.name
+            for o in sim.task.observations
+            if (sim.tick == 0 if o.period == 0 else sim.tick % o.period == 0)
+        ]
+        for topic in (*due, "/clock", "/lab/episode"):
+            if self.publishers[topic].topic.subscriptions or self.graph.taps:
+                self._publish_one(topic, stamp)
             else:
-                self._stale.add(obs.name)
-        self._clock.publish({"clock": stamp})
-        self._episode.publish(
-            {
+                self._stale.add(topic)
+
+    def _publish_one(self, topic: str, stamp: Stamp) -> None:
+        sim = self.sim
+        if topic == "/clock":
+            data: dict[str, Any] | None = {"clock": stamp}
+        elif topic == "/lab/episode":
+            data = {
                 "header": {"stamp": stamp, "frame_id": ""},
                 "task": sim.spec.name,
                 "seed": sim.seed,
@@ -151,10 +162,8 @@ class Robot:
                 "total_reward": sim.total_reward,
                 "success": sim.status == SUCCEEDED,
             }
-        )
-
-    def _publish_one(self, topic: str, stamp: Stamp) -> None:
-        data = self.sim.task.observe(self.sim.physics, topic, stamp)
+        else:
+            data = sim.task.observe(sim.physics, topic, stamp)
         if data is not None:
             self.publishers[topic].publish(data)
 

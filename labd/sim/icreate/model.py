@@ -26,7 +26,7 @@ import numpy as np
 from labd.sim.icreate.layout import CELL, DIRECTIONS, WALL_HEIGHT, Layout
 from labd.sim.icreate.tags import Tag, tag_xml
 
-TIMESTEP = 0.005  # seconds per physics step
+TIMESTEP = 0.002  # seconds per physics step
 # A plane facing down instead of a skybox: a fifth of the cost of a camera image less,
 # and invisible from above, so an overview camera still sees into the maze.
 SKY_HEIGHT = 2.0
