@@ -192,7 +192,9 @@ class Robot:
 
     def reset(self, seed: int | None = None) -> None:
         """Start a new episode (the next seed unless one is given) and publish it."""
+        old = self.sim
         self.sim = self._simulation(self.sim.seed + 1 if seed is None else seed)
+        old.close()
         self.command_times.clear()
         self.publish()
 
@@ -208,6 +210,7 @@ class Robot:
 
     def close(self) -> None:
         self.node.destroy()
+        self.sim.close()
 
 
 class LiveRunner:

@@ -118,6 +118,14 @@ class Simulation:
         """The model as MJCF, for the record (what was compiled, not the generator)."""
         return self.task.model_xml
 
+    def close(self) -> None:
+        """Free the physics and its rendering contexts, on the thread that made them.
+
+        EGL contexts left to the garbage collector may be destroyed on another thread,
+        which fails; a simulation that rendered should be closed where it rendered.
+        """
+        self.physics.free()
+
     def __repr__(self) -> str:
         state = self.status if self.reason == "" else f"{self.status}: {self.reason}"
         return f"Simulation({self.spec.name}, seed={self.seed}, tick={self.tick}, {state})"
