@@ -38,6 +38,7 @@ test: lint $(JSSTAMP)
 	$(PY) -m pytest
 
 bench: $(STAMP)
+	$(PY) bench/sim.py
 	$(PY) bench/bridge.py
 
 clean:
