@@ -27,6 +27,7 @@ from dataclasses import dataclass
 from typing import Any, ClassVar
 
 import numpy as np
+from dm_control.rl import control
 from dm_control.suite import base
 
 from labd.errors import MessageError
@@ -123,6 +124,27 @@ class LabTask(base.Task):  # type: ignore[misc]
             self.clipped[topic] = self.clipped.get(topic, 0) + 1
             return min(max(value, low), high)
         return value
+
+
+def environment(
+    physics: Any,
+    task: LabTask,
+    *,
+    xml: str,
+    assets: Mapping[str, bytes] | None = None,
+    time_limit: float | None = None,
+) -> control.Environment:
+    """The dm_control environment of one episode, keeping the model for the record.
+
+    Every task has the parameters ``time_limit`` (seconds) and ``control_rate`` (Hz);
+    ``time_limit`` given here overrides the parameter (live robots have none).
+    """
+    task.model_xml = xml
+    task.model_assets = dict(assets or {})
+    limit = float(task.values["time_limit"]) if time_limit is None else time_limit
+    return control.Environment(
+        physics, task, time_limit=limit, control_timestep=1.0 / int(task.values["control_rate"])
+    )
 
 
 def finite(value: float, *path: str | int) -> float:

@@ -23,7 +23,15 @@ from dm_control import mujoco
 from dm_control.rl import control
 from dm_env import specs
 
-from labd.sim.base import SUCCEEDED, CommandTopic, LabTask, ObservationTopic, Outcome, finite
+from labd.sim.base import (
+    SUCCEEDED,
+    CommandTopic,
+    LabTask,
+    ObservationTopic,
+    Outcome,
+    environment,
+    finite,
+)
 from labd.sim.camera import Camera
 from labd.sim.icreate import model
 from labd.sim.icreate.layout import CELL, DIRECTIONS, Layout
@@ -445,12 +453,7 @@ def make(
     )
     physics = Physics.from_xml_string(xml, assets=assets)
     task = IcreateMaze(values, np.random.RandomState(int(rng.integers(2**31))), layout, tags)
-    task.model_xml = xml
-    task.model_assets = dict(assets)
-    limit = float(values["time_limit"]) if time_limit is None else time_limit
-    return control.Environment(
-        physics, task, time_limit=limit, control_timestep=1.0 / int(values["control_rate"])
-    )
+    return environment(physics, task, xml=xml, assets=assets, time_limit=time_limit)
 
 
 TASK = TaskSpec(

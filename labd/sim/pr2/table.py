@@ -33,6 +33,7 @@ from labd.sim.base import (
     ObservationTopic,
     Outcome,
     Stamp,
+    environment,
     finite,
 )
 from labd.sim.camera import Camera
@@ -520,11 +521,7 @@ def make(
     )
     physics = Physics.from_xml_string(xml)
     task = TableTask(values, random, plan)
-    task.model_xml = xml
-    limit = float(values["time_limit"]) if time_limit is None else time_limit
-    return control.Environment(
-        physics, task, time_limit=limit, control_timestep=1.0 / int(values["control_rate"])
-    )
+    return environment(physics, task, xml=xml, time_limit=time_limit)
 
 
 TASK = TaskSpec(
