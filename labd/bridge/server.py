@@ -15,10 +15,11 @@ import itertools
 import logging
 import ssl
 from collections.abc import Coroutine, Mapping
+from pathlib import Path
 from typing import Any
 from urllib.parse import parse_qs, urlsplit
 
-from websockets.asyncio.server import Server, ServerConnection, serve
+from websockets.asyncio.server import Server, ServerConnection, serve, unix_serve
 from websockets.exceptions import ConnectionClosed
 from websockets.http11 import Request, Response
 
@@ -52,6 +53,7 @@ class BridgeServer:
         self.connections: set[_Connection] = set()
         self._ids = itertools.count(1)
         self._server: Server | None = None
+        self.unix_path: Path | None = None
 
     @property
     def port(self) -> int:
@@ -63,22 +65,27 @@ class BridgeServer:
         path = f"/robots/{graph}" if graph else ""
         return f"{scheme}://{self.config.host}:{self.port}{path}"
 
-    async def start(self) -> None:
+    async def start(self, unix_path: Path | None = None) -> None:
+        """Listen on the configured host and port, or on a unix socket (a trial's bridge)."""
         context = None
-        if self.config.tls_cert is not None:
+        if self.config.tls_cert is not None and unix_path is None:
             context = ssl.SSLContext(ssl.PROTOCOL_TLS_SERVER)
             context.load_cert_chain(self.config.tls_cert, self.config.tls_key)
+        options: dict[str, Any] = {
+            "process_request": self._admit,
+            "max_size": self.config.max_frame_size,
+            "ping_interval": self.config.ping_interval,
+            "ping_timeout": self.config.ping_timeout,
+            "close_timeout": self.config.close_timeout,
+            "compression": None,  # deflate costs more CPU than it saves on loopback and LAN
+        }
+        if unix_path is not None:
+            self._server = await unix_serve(self._handle, str(unix_path), **options)
+            self.unix_path = unix_path
+            log.info("bridge listening on %s (graphs: %s)", unix_path, ", ".join(self.graphs))
+            return
         self._server = await serve(
-            self._handle,
-            self.config.host,
-            self.config.port,
-            process_request=self._admit,
-            max_size=self.config.max_frame_size,
-            ping_interval=self.config.ping_interval,
-            ping_timeout=self.config.ping_timeout,
-            close_timeout=self.config.close_timeout,
-            compression=None,  # deflate costs more CPU than it saves on loopback and LAN
-            ssl=context,
+            self._handle, self.config.host, self.config.port, ssl=context, **options
         )
         log.info("bridge listening on %s (graphs: %s)", self.url(), ", ".join(self.graphs))
 

@@ -61,11 +61,14 @@ class Robot:
         live: bool = False,
         node_name: str = "/robot",
         wall_clock: Callable[[], float] = time.monotonic,
+        time_limit: float | None = None,
     ) -> None:
         self.graph = graph
         self.wall_clock = wall_clock  # live watchdogs only; trials never read it
         self.task = task
         self.live = live
+        self.time_limit = time_limit  # overrides the task's; live robots have none otherwise
+        self.on_tick: Callable[[], None] | None = None  # called after every step
         spec = task if isinstance(task, TaskSpec) else registry.get(task)
         self.params = {**(spec.live_params if live else {}), **(params or {})}
         self.sim = self._simulation(seed)
@@ -93,7 +96,10 @@ class Robot:
         return self.sim.values
 
     def _simulation(self, seed: int) -> Simulation:
-        return Simulation(self.task, self.params, seed, time_limit=math.inf if self.live else None)
+        limit = self.time_limit
+        if limit is None and self.live:
+            limit = math.inf
+        return Simulation(self.task, self.params, seed, time_limit=limit)
 
     # -- commands ----------------------------------------------------------------------
 
@@ -118,6 +124,8 @@ class Robot:
         """Advance one control tick and publish what it produced (EpisodeOverError if over)."""
         self.sim.step()
         self.publish()
+        if self.on_tick is not None:
+            self.on_tick()
 
     def _advertise(self, topic: str, type_name: str, latched: bool) -> None:
         publisher = self.node.advertise(topic, type_name, latch=latched)
@@ -129,19 +137,21 @@ class Robot:
 
         A topic that no one hears (no subscriber, no recorder) is not built; it is
         marked stale and built when someone subscribes, so subscribers still get the
-        current state at once. A topic with period 0 is published when an episode
-        begins, and then kept (latched).
+        current state at once. A recorder hears every topic but the on-demand ones
+        (cameras): those are built, and recorded, only while someone subscribes. A
+        topic with period 0 is published when an episode begins, and then kept.
         """
         sim = self.sim
         stamp = stamp_of(sim.physics)
         self._stale.clear()
         due = [
-            o.name
+            (o.name, o.on_demand)
             for o in sim.task.observations
             if (sim.tick == 0 if o.period == 0 else sim.tick % o.period == 0)
         ]
-        for topic in (*due, "/clock", "/lab/episode"):
-            if self.publishers[topic].topic.subscriptions or self.graph.taps:
+        recording = bool(self.graph.taps)
+        for topic, on_demand in (*due, ("/clock", False), ("/lab/episode", False)):
+            if self.publishers[topic].topic.subscriptions or (recording and not on_demand):
                 self._publish_one(topic, stamp)
             else:
                 self._stale.add(topic)

@@ -47,6 +47,7 @@ class Simulation:
         assert isinstance(task_obj, LabTask)
         self.task: LabTask = task_obj
         self.tick = 0
+        self.diverged = False  # the physics blew up (a failure of the lab's model, not the task)
         self.status = RUNNING
         self.reason = ""
         self.reward = 0.0  # of the last tick
@@ -78,6 +79,7 @@ class Simulation:
             timestep = self.env.step(action)
         except control.PhysicsError as err:
             self.tick += 1
+            self.diverged = True
             self._end(FAILED, f"the physics diverged at tick {self.tick}: {err}")
             return
         self.tick += 1

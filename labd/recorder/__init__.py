@@ -1,0 +1,47 @@
+"""The trial recorder: every message of a robot's graph in one MCAP file, as a rosbag2 bag.
+
+A ``Recorder`` (``record``) taps a ``Graph`` and writes each message delivered on any
+topic, in delivery order, to ``FOLDER/trial.mcap`` in MCAP's ROS 2 profile, so that
+``ros2 bag``, rosbags and Foxglove open it; ``finish`` adds the manifest and the
+attachments, completes the file and writes ``FOLDER/metadata.yaml`` (``bag``), which
+makes the folder a rosbag2 bag. The data digest over the observation and action stream
+decides whether a rerun reproduced a trial; ``first_difference`` says where two records
+part (``digest``).
+
+    FOLDER/
+    ├── trial.mcap       schemas (ros2msg), channels (cdr), messages at simulation time,
+    │                    zstd chunks; metadata "manifest" and "rosbag2"; attachments
+    └── metadata.yaml    rosbag2 bag metadata, format 9, storage mcap
+
+The modules import nothing from the rest of the lab but the graph, and the graph nothing
+from them.
+"""
+
+from __future__ import annotations
+
+from labd.recorder.bag import BAG_METADATA, MCAP_NAME, write_bag_metadata
+from labd.recorder.digest import Difference, Entry, data_digest, first_difference
+from labd.recorder.record import (
+    MANIFEST,
+    MANIFEST_KEY,
+    Recorder,
+    RecordSummary,
+    canonical_json,
+    read_manifest,
+)
+
+__all__ = [
+    "BAG_METADATA",
+    "MANIFEST",
+    "MANIFEST_KEY",
+    "MCAP_NAME",
+    "Difference",
+    "Entry",
+    "RecordSummary",
+    "Recorder",
+    "canonical_json",
+    "data_digest",
+    "first_difference",
+    "read_manifest",
+    "write_bag_metadata",
+]

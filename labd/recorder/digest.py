@@ -1,0 +1,178 @@
+"""The data digest of a record, and where two records part.
+
+The data digest decides whether a rerun reproduced a trial. It is sha256 over
+``DIGEST_TAG`` followed, for each message on a digest topic (the task's observation and
+command topics, ``/clock`` and ``/lab/episode``) in recording order, by::
+
+    u32le(len(topic)) || topic (UTF-8) || u64le(log_time) || u64le(len(cdr)) || cdr
+
+Each variable-length field comes after its length, so two different streams never frame
+to the same bytes; the tag names this framing should it ever change. Log times are
+simulation times and the data are CDR bytes, so a rerun of the same commit, task,
+parameters and seed gives the same digest, bit for bit.
+
+``data_digest`` recomputes it from a file; ``first_difference`` walks two records side by
+side and returns the first message that differs, with the control tick it belongs to, so
+a rerun can report "diverged at tick k on topic t".
+"""
+
+from __future__ import annotations
+
+import hashlib
+import itertools
+import struct
+from collections.abc import Collection, Generator, Iterator
+from dataclasses import dataclass
+from pathlib import Path
+
+from mcap.reader import NonSeekingReader
+from mcap.records import Schema
+from mcap.well_known import MessageEncoding
+from mcap_ros2.decoder import DecoderFactory
+
+from labd.recorder.bag import mcap_path
+
+DIGEST_TAG = b"labd data digest 1\n"
+EPISODE = "/lab/episode"  # lab_msgs/msg/Episode, with the tick, published after each one
+
+_TOPIC = struct.Struct("<I")  # topic name length
+_FRAME = struct.Struct("<QQ")  # log time, data length
+
+Message = tuple[str, int, bytes, Schema | None]  # topic, log time, data, schema
+
+
+def topic_frame(topic: str) -> bytes:
+    """The framed topic name, which starts each message's bytes in the digest."""
+    name = topic.encode()
+    return _TOPIC.pack(len(name)) + name
+
+
+def time_frame(log_time: int, size: int) -> bytes:
+    """The framed log time and data length, which follow the topic name."""
+    return _FRAME.pack(log_time, size)
+
+
+def read(path: str | Path, topics: Collection[str]) -> Generator[Message, None, None]:
+    """Messages on ``topics`` in the order they were written (which needs no summary)."""
+    with mcap_path(path).open("rb") as stream:
+        reader = NonSeekingReader(stream)
+        for schema, channel, message in reader.iter_messages(topics, log_time_order=False):
+            yield channel.topic, message.log_time, message.data, schema
+
+
+def data_digest(path: str | Path, digest_topics: Collection[str]) -> str:
+    """The data digest of a record (its folder or MCAP file), as its Recorder computed it."""
+    digest = hashlib.sha256(DIGEST_TAG)
+    prefixes: dict[str, bytes] = {}
+    for topic, time, data, _ in read(path, frozenset(digest_topics)):
+        prefix = prefixes.get(topic)
+        if prefix is None:
+            prefix = prefixes[topic] = topic_frame(topic)
+        digest.update(prefix + time_frame(time, len(data)))
+        digest.update(data)
+    return digest.hexdigest()
+
+
+@dataclass(frozen=True)
+class Entry:
+    """One message of a digest stream."""
+
+    topic: str
+    log_time: int
+    data: bytes
+
+
+@dataclass(frozen=True)
+class Difference:
+    """Where two records first part.
+
+    ``index`` counts the messages of the digest stream from 0. ``topic`` and
+    ``log_time`` are those of record ``a``'s message there (``b``'s when ``a`` ended
+    first). ``tick`` is the control tick whose ``/lab/episode`` was logged at that time
+    (for a command: the tick after which it was sent, so it acts in the next step); None
+    when the record has no such message. ``a`` and ``b`` are what each record holds
+    there, None for a record that had already ended.
+    """
+
+    index: int
+    topic: str
+    log_time: int
+    tick: int | None
+    a: Entry | None
+    b: Entry | None
+
+    @property
+    def what(self) -> str:
+        """How the two messages differ, in a few words."""
+        if self.a is None or self.b is None:
+            return f"record {'a' if self.a is None else 'b'} ended before it"
+        if self.a.topic != self.b.topic:
+            return f"record b has {self.b.topic} there"
+        if self.a.log_time != self.b.log_time:
+            return f"record b logged it at {self.b.log_time / 1e9:.9f} s"
+        return "the messages differ"
+
+    def __str__(self) -> str:
+        at = f"tick {self.tick}" if self.tick is not None else f"{self.log_time / 1e9:.9f} s"
+        return f"diverged at {at} on {self.topic} (message {self.index}): {self.what}"
+
+
+class _Stream:
+    """A record's digest stream in recording order, keeping track of its episode ticks."""
+
+    def __init__(self, path: str | Path, topics: frozenset[str]) -> None:
+        self._messages = read(path, topics | {EPISODE})
+        self._topics = topics
+        self._episode: Message | None = None  # the latest /lab/episode read
+
+    def __iter__(self) -> Iterator[Entry]:
+        for message in self._messages:
+            topic, time, data, _ = message
+            if topic == EPISODE:
+                self._episode = message
+            if topic in self._topics:
+                yield Entry(topic, time, data)
+
+    def tick_at(self, time: int) -> int | None:
+        """The tick of the episode message logged at ``time``, reading on if need be.
+
+        A tick's observations come before its ``/lab/episode``, which may lie ahead.
+        """
+        while self._episode is None or self._episode[1] < time:
+            message = next(self._messages, None)
+            if message is None:
+                break
+            if message[0] == EPISODE:
+                self._episode = message
+        if self._episode is None or self._episode[1] != time:
+            return None
+        _, _, data, schema = self._episode
+        decoder = DecoderFactory().decoder_for(MessageEncoding.CDR, schema)
+        return None if decoder is None else int(decoder(data).tick)
+
+    def close(self) -> None:
+        self._messages.close()
+
+
+def first_difference(
+    a: str | Path, b: str | Path, digest_topics: Collection[str]
+) -> Difference | None:
+    """The first message where the digest streams of two records differ; None if identical.
+
+    Records (folders or MCAP files) are compared in recording order, the order the digest
+    covers, which within an episode is the order of log times.
+    """
+    topics = frozenset(digest_topics)
+    streams = _Stream(a, topics), _Stream(b, topics)
+    try:
+        for index, (x, y) in enumerate(itertools.zip_longest(*streams)):
+            if x == y:
+                continue
+            where, stream = (x, streams[0]) if x is not None else (y, streams[1])
+            assert where is not None
+            tick = stream.tick_at(where.log_time)
+            return Difference(index, where.topic, where.log_time, tick, x, y)
+        return None
+    finally:
+        for stream in streams:
+            stream.close()

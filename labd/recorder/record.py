@@ -1,0 +1,280 @@
+"""Recording a graph: every message of every topic into one MCAP file (ROS 2 profile).
+
+The ``Recorder`` is a graph tap, so it sees each message delivered on any topic, in
+delivery order, and writes it at once:
+
+- one schema per message type (``ros2msg``: the full definition text with its
+  dependencies, as rosbag2 writes it) and one channel per topic (``cdr``, with the QoS
+  and type hash rosbag2 puts in its metadata), registered at their first message;
+- each message is its CDR bytes (``Message.cdr()``, encoded once and shared with whoever
+  else needs them); log time = publish time = the message's graph stamp, which in trials
+  is simulation time; sequence numbers count per channel;
+- zstd-compressed chunks of about a megabyte, with MCAP's indexes and statistics;
+- the manifest as a metadata record named ``manifest`` holding one key, ``json``: the
+  manifest's canonical JSON (sorted keys, no spaces), whose sha256 is the manifest digest.
+  Metadata values must be strings and a manifest nests (parameters), so one JSON text
+  keeps it whole, where a flattening would have to be undone by every reader;
+- the attachments given to ``finish`` (model, ``lab.toml``, controller logs ...), logged
+  at the last message's time;
+- the bag information as the ``rosbag2`` metadata record, as rosbag2's MCAP storage does.
+
+It runs on every control tick in the lab's event loop, so the per-message work is a
+dictionary look-up, the library's ``add_message`` and, for digest topics, two hash
+updates; compression happens once a chunk is full.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import logging
+from collections.abc import Collection, Mapping
+from dataclasses import dataclass
+from pathlib import Path
+from types import TracebackType
+from typing import Any, Self
+
+from mcap.reader import make_reader
+from mcap.well_known import MessageEncoding, Profile, SchemaEncoding
+from mcap.writer import CompressionType, Writer
+
+from labd.graph.graph import Graph, Topic
+from labd.graph.message import Message
+from labd.recorder import bag
+from labd.recorder.digest import DIGEST_TAG, time_frame, topic_frame
+
+MANIFEST = "manifest"  # the metadata record holding the manifest ...
+MANIFEST_KEY = "json"  # ... as canonical JSON under this key
+CHUNK_SIZE = 1 << 20  # bytes: minutes of state, or seconds of camera frames, per chunk
+_SEQUENCE = 0xFFFF_FFFF  # MCAP sequence numbers are uint32
+
+
+def canonical_json(value: Mapping[str, Any]) -> str:
+    """The JSON text whose sha256 names a manifest: sorted keys, no spaces, UTF-8 kept."""
+    return json.dumps(value, sort_keys=True, separators=(",", ":"), ensure_ascii=False)
+
+
+def read_manifest(path: str | Path) -> dict[str, Any] | None:
+    """The manifest stored in a record (its folder or MCAP file); None if it has none."""
+    with bag.mcap_path(path).open("rb") as stream:
+        for record in make_reader(stream).iter_metadata():
+            if record.name == MANIFEST:
+                value: dict[str, Any] = json.loads(record.metadata[MANIFEST_KEY])
+                return value
+    return None
+
+
+@dataclass(frozen=True)
+class RecordSummary:
+    """What a finished record holds.
+
+    ``start_time`` and ``end_time`` are the first and last log times, in nanoseconds
+    (simulation time in trials); None when nothing was recorded.
+    """
+
+    path: Path  # the MCAP file
+    counts: Mapping[str, int]  # messages per topic
+    data_digest: str  # sha256, hex (see labd.recorder.digest)
+    start_time: int | None
+    end_time: int | None
+    size: int  # bytes of the MCAP file
+
+    @property
+    def folder(self) -> Path:
+        return self.path.parent
+
+    @property
+    def message_count(self) -> int:
+        return sum(self.counts.values())
+
+
+class _Channel:
+    """A topic as recorded: its MCAP channel, its count, and what the bag says of it."""
+
+    __slots__ = ("count", "id", "latched", "prefix", "topic", "type_hash", "type_name")
+
+    def __init__(
+        self, id_: int, topic: str, *, type_name: str, type_hash: str, latched: bool, digest: bool
+    ) -> None:
+        self.id = id_
+        self.topic = topic
+        self.type_name = type_name
+        self.type_hash = type_hash
+        self.latched = latched
+        self.count = 0
+        self.prefix = topic_frame(topic) if digest else None  # None: not in the digest
+
+
+class Recorder:
+    """Records every message of ``graph`` into ``folder/trial.mcap`` until ``finish``.
+
+    ``digest_topics`` are the topics the data digest covers. The folder is created if
+    need be; a record already in it is never overwritten (``FileExistsError``). Call
+    ``finish`` in a ``finally``, or use the recorder as a context manager, so the file is
+    complete even when the controller crashed.
+    """
+
+    def __init__(
+        self,
+        graph: Graph,
+        folder: str | Path,
+        *,
+        digest_topics: Collection[str],
+        manifest: Mapping[str, Any] | None = None,
+        chunk_size: int = CHUNK_SIZE,
+    ) -> None:
+        self.graph = graph
+        self.folder = Path(folder)
+        self.path = self.folder / bag.MCAP_NAME
+        self.digest_topics = frozenset(digest_topics)
+        self.log = logging.getLogger(f"labd.recorder.{graph.name}")
+        manifest_text = None if manifest is None else canonical_json(manifest)  # fail early
+        self.folder.mkdir(parents=True, exist_ok=True)
+        self._file = self.path.open("xb")
+        self._writer = Writer(self._file, chunk_size=chunk_size, compression=CompressionType.ZSTD)
+        self._writer.start(profile=Profile.ROS2)
+        self._schemas: dict[str, int] = {}
+        self._channels: dict[Topic, _Channel] = {}
+        self._by_key: dict[tuple[str, str], _Channel] = {}  # a topic made anew keeps its channel
+        self._digest = hashlib.sha256(DIGEST_TAG)
+        self._start = 1 << 64
+        self._end = -1
+        self._has_manifest = False
+        self._summary: RecordSummary | None = None
+        if manifest_text is not None:
+            self._write_manifest(manifest_text)
+        graph.taps.append(self._tap)
+
+    # -- recording ---------------------------------------------------------------------
+
+    def _tap(self, topic: Topic, message: Message) -> None:
+        channel = self._channels.get(topic)
+        if channel is None:
+            channel = self._channel(topic)
+        data = message.cdr()
+        time = message.stamp_ns
+        self._writer.add_message(channel.id, time, data, time, channel.count & _SEQUENCE)
+        channel.count += 1
+        if channel.prefix is not None:
+            self._digest.update(channel.prefix + time_frame(time, len(data)))
+            self._digest.update(data)
+        self._end = max(self._end, time)
+        self._start = min(self._start, time)
+
+    def _channel(self, topic: Topic) -> _Channel:
+        key = (topic.name, topic.type_name)
+        channel = self._by_key.get(key)
+        if channel is None:
+            types = self.graph.types
+            type_name = topic.type_name
+            schema = self._schemas.get(type_name)
+            if schema is None:
+                text = types.definition_text(type_name).encode()
+                schema = self._writer.register_schema(type_name, SchemaEncoding.ROS2, text)
+                self._schemas[type_name] = schema
+            latched = any(p.latch for p in topic.publishers)
+            type_hash = types.typestore.hash_rihs01(type_name)
+            channel_id = self._writer.register_channel(
+                topic.name, MessageEncoding.CDR, schema, bag.channel_metadata(type_hash, latched)
+            )
+            channel = _Channel(
+                channel_id,
+                topic.name,
+                type_name=type_name,
+                type_hash=type_hash,
+                latched=latched,
+                digest=topic.name in self.digest_topics,
+            )
+            self._by_key[key] = channel
+        self._channels[topic] = channel
+        return channel
+
+    def _write_manifest(self, text: str) -> None:
+        self._writer.add_metadata(MANIFEST, {MANIFEST_KEY: text})
+        self._has_manifest = True
+
+    @property
+    def data_digest(self) -> str:
+        """The digest of what has been recorded so far."""
+        return self._digest.hexdigest()
+
+    @property
+    def counts(self) -> dict[str, int]:
+        """Messages recorded so far, per topic."""
+        counts: dict[str, int] = {}
+        for channel in self._by_key.values():
+            counts[channel.topic] = counts.get(channel.topic, 0) + channel.count
+        return counts
+
+    # -- finishing ---------------------------------------------------------------------
+
+    def finish(
+        self,
+        attachments: Mapping[str, tuple[str, bytes]] | None = None,
+        *,
+        manifest: Mapping[str, Any] | None = None,
+    ) -> RecordSummary:
+        """Stop recording, add the manifest and attachments, complete the file and the bag.
+
+        ``attachments`` maps names to ``(media_type, data)``. ``manifest`` is for a
+        recorder made without one; a second manifest is a ValueError, raised once the
+        file is complete all the same. Calling again returns the same summary.
+        """
+        if self._summary is not None:
+            return self._summary
+        if self._tap in self.graph.taps:
+            self.graph.taps.remove(self._tap)
+        try:
+            if manifest is not None:
+                if self._has_manifest:
+                    raise ValueError("the record already has its manifest")
+                self._write_manifest(canonical_json(manifest))
+            for name, (media_type, data) in (attachments or {}).items():
+                # create_time 0 is MCAP's "unknown": records hold no wall-clock time.
+                self._writer.add_attachment(0, max(self._end, 0), name, media_type, data)
+        finally:
+            self._summary = self._complete()
+        return self._summary
+
+    def _complete(self) -> RecordSummary:
+        """Write the bag record and the summary section, close the file, write the bag."""
+        topics = [
+            bag.BagTopic(c.topic, c.type_name, c.type_hash, c.latched, c.count)
+            for c in self._by_key.values()
+        ]
+        info = bag.to_yaml(bag.bag_info(topics, self._start, self._end))  # YAML is slow: once
+        try:
+            self._writer.add_metadata(bag.BAG_RECORD, {bag.BAG_RECORD_KEY: info})
+            self._writer.finish()  # type: ignore[no-untyped-call]
+        finally:
+            self._file.close()
+        bag.write_bag_yaml(self.folder, info)
+        counts = self.counts
+        summary = RecordSummary(
+            path=self.path,
+            counts=counts,
+            data_digest=self.data_digest,
+            start_time=self._start if counts else None,
+            end_time=self._end if counts else None,
+            size=self.path.stat().st_size,
+        )
+        self.log.info(
+            "recorded %d messages on %d topics, %d bytes, in %s; data digest %s",
+            summary.message_count,
+            len(counts),
+            summary.size,
+            self.path,
+            summary.data_digest,
+        )
+        return summary
+
+    def __enter__(self) -> Self:
+        return self
+
+    def __exit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        traceback: TracebackType | None,
+    ) -> None:
+        self.finish()
