@@ -1,0 +1,77 @@
+"""The manifest of a trial: everything that decides what happened, and its digest.
+
+The digest of the manifest names the experiment: the same repository and commit,
+task and version, parameters, seed, controller runtime and model give the same
+digest, and a rerun of a manifest is expected to give the same data.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import platform
+from collections.abc import Mapping
+from importlib import metadata
+from typing import Any
+
+from scheduler.controller import ControllerConfig
+from scheduler.source import Source
+
+SCHEMA = "labd.trial/1"
+
+
+def build(
+    *,
+    source: Source,
+    controller: ControllerConfig,
+    task: str,
+    task_version: str,
+    parameters: Mapping[str, Any],
+    seed: int,
+    runtime: str,
+    requirements_sha256: str | None,
+    model_sha256: str,
+) -> dict[str, Any]:
+    return {
+        "schema": SCHEMA,
+        "repository": source.repository,
+        "commit": source.commit,
+        "tree": source.tree,
+        "git_tree": source.git_tree,
+        "subdir": source.subdir,
+        "dirty": source.dirty,
+        "task": {"name": task, "version": task_version},
+        "parameters": dict(sorted(parameters.items())),
+        "seed": seed,
+        "controller": {
+            "command": list(controller.command),
+            "realtime": controller.realtime,
+            "requirements": controller.requirements,
+            "requirements_sha256": requirements_sha256,
+        },
+        "runtime": runtime,
+        "versions": versions(),
+        "model_sha256": model_sha256,
+    }
+
+
+def versions() -> dict[str, str]:
+    return {
+        "labd": _version("labd"),
+        "mujoco": _version("mujoco"),
+        "dm_control": _version("dm-control"),
+        "python": platform.python_version(),
+    }
+
+
+def digest(manifest: Mapping[str, Any]) -> str:
+    """sha256 of the manifest's canonical JSON (sorted keys, no spaces)."""
+    text = json.dumps(manifest, sort_keys=True, separators=(",", ":"), ensure_ascii=False)
+    return hashlib.sha256(text.encode()).hexdigest()
+
+
+def _version(package: str) -> str:
+    try:
+        return metadata.version(package)
+    except metadata.PackageNotFoundError:
+        return "unknown"
