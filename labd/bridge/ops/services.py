@@ -98,13 +98,11 @@ class Services(Capability):
             pending = session.node.call_service(op.service, op.args, on_result)
         except MessageError as err:
             self.waiting -= 1
-            answer(False, f"call_service: {err.prefixed('args')}")
-            session.report("error", f"call_service {op.service}: {err.prefixed('args')}", op.id)
+            answer(False, f"call_service: {err.prefixed('args')}")  # the answer says why
             return
         except GraphError as err:
             self.waiting -= 1
-            answer(False, str(err))
-            session.report("error", f"call_service: {err}", op.id)
+            answer(False, str(err))  # the answer says why; no status to repeat it
             return
         if pending.done:
             return

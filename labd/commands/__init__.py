@@ -1,0 +1,1 @@
+"""The subcommands of ``labd``, one module each (``serve`` lives in ``labd.cli``)."""

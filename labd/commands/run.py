@@ -1,0 +1,127 @@
+"""``labd run``: the local pre-flight. One trial, no server.
+
+    labd run PATH|URL [--ref REF] [--task TASK] [--seed N] [--param NAME=VALUE ...]
+             [--sandbox docker|bwrap] [--out DIR] [--data DIR] [--json]
+
+It runs the same trial a lab would (the same sandbox, the same recording), prints the
+outcome, the manifest digest and the data digest, and exits 0 when the trial ran to its
+end, 1 when it failed.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import importlib.util
+import json
+import secrets
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import sandbox
+from labd.errors import LabError
+from labd.graph.types import TypeRegistry
+from labd.sim.params import parse_assignments
+from sandbox.api import Limits, SandboxError
+from scheduler.runner import RunOptions, TrialResult, TrialSpec, run_trial
+
+
+def add_parser(commands: Any) -> None:
+    run = commands.add_parser("run", help="run a controller repository as one trial, locally")
+    run.add_argument("source", metavar="PATH|URL", help="the controller's folder or git URL")
+    run.add_argument("--ref", help="branch, tag or commit (default: the folder as it is / HEAD)")
+    run.add_argument("--task", help="the task (default: the one lab.toml names)")
+    run.add_argument("--seed", type=int, default=0, help="the episode's seed (default 0)")
+    run.add_argument(
+        "--param",
+        action="append",
+        default=[],
+        metavar="NAME=VALUE",
+        help="a task parameter (repeatable)",
+    )
+    run.add_argument(
+        "--sandbox",
+        choices=["docker", "bwrap"],
+        help="isolation backend (default: docker if an engine answers, else bwrap)",
+    )
+    run.add_argument("--out", type=Path, help="the trial's folder (default: DATA/runs/...)")
+    run.add_argument(
+        "--data",
+        type=Path,
+        default=Path("lab-data"),
+        help="where runs and caches are kept (default ./lab-data)",
+    )
+    run.add_argument(
+        "--wall",
+        type=float,
+        default=Limits().wall,
+        help="seconds the controller may run (default %(default)g)",
+    )
+    run.add_argument("--json", action="store_true", help="print one JSON object")
+
+
+def main(args: argparse.Namespace) -> int:
+    try:
+        params = parse_assignments(args.param)
+        backend = sandbox.backend(
+            args.sandbox, args.data / "cache", extra_packages=[client_library()]
+        )
+    except (LabError, SandboxError) as err:
+        print(f"labd run: {err}", file=sys.stderr)
+        return 2
+    out = (
+        args.out or args.data / "runs" / f"{time.strftime('%Y%m%d-%H%M%S')}-{secrets.token_hex(3)}"
+    )
+    spec = TrialSpec(
+        source=args.source, ref=args.ref, task=args.task, params=params, seed=args.seed
+    )
+    options = RunOptions(limits=Limits(wall=args.wall))
+    result = asyncio.run(
+        run_trial(
+            spec,
+            backend=backend,
+            out=out,
+            cache=args.data / "cache",
+            types=TypeRegistry.default(),
+            options=options,
+        )
+    )
+    if args.json:
+        print(json.dumps(result.to_json(), indent=2))
+    else:
+        report(result, spec)
+    return 0 if result.status == "succeeded" else 1
+
+
+def client_library() -> Path:
+    """The folder of the ``controllers`` package, shipped into the controller runtime."""
+    found = importlib.util.find_spec("controllers")
+    if found is None or not found.submodule_search_locations:
+        raise SandboxError("the lab's client library (the controllers package) is missing")
+    return Path(next(iter(found.submodule_search_locations)))
+
+
+def report(result: TrialResult, spec: TrialSpec) -> None:
+    print(f"trial {result.status}: {result.reason}")
+    if result.manifest:
+        task = result.manifest["task"]["name"]
+        print(
+            f"  task {task}, seed {spec.seed}, sandbox {result.backend}, "
+            f"{result.wall_seconds:.1f} s"
+        )
+    if result.metrics:
+        shown = ", ".join(f"{k}={_fmt(v)}" for k, v in result.metrics.items())
+        print(f"  metrics: {shown}")
+    if result.manifest_digest:
+        print(f"  manifest sha256:{result.manifest_digest}")
+    if result.data_digest:
+        print(f"  data     sha256:{result.data_digest}")
+    if result.mcap:
+        print(f"  record   {result.mcap}")
+    print(f"  folder   {result.folder}")
+
+
+def _fmt(value: Any) -> str:
+    return f"{value:.4g}" if isinstance(value, float) else str(value)
