@@ -4,8 +4,11 @@
                [--authorizer URL] [--tls-cert F --tls-key F] [--max-connections N]
                [--robot NAME=TASK ... | --no-robots]
 
-The other commands of DESIGN.md (submit, trials, show, rerun, export, run, worker)
-arrive with the scheduler and the archive.
+    labd run PATH|URL [--task TASK] [--seed N] [--param NAME=VALUE] [--sandbox docker|bwrap]
+             [--out DIR] [--json]              (labd.commands.run)
+
+The other commands of DESIGN.md (submit, trials, show, rerun, export, worker) arrive
+with the archive.
 """
 
 from __future__ import annotations
@@ -20,6 +23,7 @@ from collections.abc import Sequence
 from pathlib import Path
 
 from labd import __version__
+from labd.commands import run
 from labd.config import DEFAULT_ROBOTS, BridgeConfig, LabConfig, RobotConfig
 from labd.errors import LabError
 from labd.lab import Lab
@@ -84,6 +88,7 @@ def build_parser() -> argparse.ArgumentParser:
         help="a task parameter for every robot (repeatable)",
     )
     serve.add_argument("--no-playground", action="store_true", help="host no playground graph")
+    run.add_parser(commands)
     return parser
 
 
@@ -171,6 +176,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         stream=sys.stderr,
         format="%(asctime)s %(levelname)s %(name)s: %(message)s",
     )
+    if args.command == "run":
+        return run.main(args)
     if args.command == "serve":
         return_freed_memory()
         config = LabConfig(

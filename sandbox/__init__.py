@@ -1,4 +1,74 @@
 """Isolation backends behind one interface: Docker and bubblewrap.
 
-Empty until the trial runner lands (see DESIGN.md). Imports no other package of the lab.
+``backend()`` builds (or reuses) the controller runtime and returns the backend to run
+jobs with: Docker wherever an engine answers, else bubblewrap, or the one named. The
+interface is in ``api.py``; the runtime both backends share in ``runtime.py``; the first
+process of every job in ``launcher.py``. Imports no other package of the lab.
 """
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Sequence
+from pathlib import Path
+
+from .api import (
+    BRIDGE_PORT,
+    Backend,
+    BackendUnavailable,
+    Exit,
+    InstallError,
+    Job,
+    Limits,
+    MiB,
+    Running,
+    RuntimeBuildError,
+    SandboxError,
+)
+from .bwrap import BwrapBackend
+from .docker import DockerBackend
+from .runtime import Runtime, build_runtime
+
+BACKENDS = ("docker", "bwrap")
+
+
+def backend(name: str | None, cache: Path, extra_packages: Sequence[Path] = ()) -> Backend:
+    """The backend called ``name`` (None: Docker if an engine answers, else bwrap).
+
+    Builds the controller runtime into ``cache`` first if it is not there (a minute or
+    so, once per set of inputs), and imports it into Docker if needed: call it at start-up,
+    not from a running event loop. ``extra_packages`` are folders copied into the
+    runtime's site-packages (the lab's controller client library).
+    """
+    if name is not None and name not in BACKENDS:
+        raise BackendUnavailable(name, f"no such backend; choose one of {', '.join(BACKENDS)}")
+    runtime = build_runtime(cache, extra_packages)
+    if name in (None, "docker"):
+        try:
+            return DockerBackend(runtime)
+        except BackendUnavailable as err:
+            if name == "docker":
+                raise
+            logging.getLogger(__name__).info("%s; using bubblewrap", err)
+    return BwrapBackend(runtime, Path(cache).resolve() / "bwrap")
+
+
+__all__ = [
+    "BACKENDS",
+    "BRIDGE_PORT",
+    "Backend",
+    "BackendUnavailable",
+    "BwrapBackend",
+    "DockerBackend",
+    "Exit",
+    "InstallError",
+    "Job",
+    "Limits",
+    "MiB",
+    "Running",
+    "Runtime",
+    "RuntimeBuildError",
+    "SandboxError",
+    "backend",
+    "build_runtime",
+]

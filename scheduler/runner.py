@@ -31,14 +31,13 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from labd.recorder import Recorder
-
 from labd.bridge.rosapi import Rosapi
 from labd.bridge.server import BridgeServer
 from labd.config import BridgeConfig
 from labd.errors import LabError
 from labd.graph.graph import Graph
 from labd.graph.types import TypeRegistry
+from labd.recorder import Recorder
 from labd.sim import registry
 from labd.sim.robot import LiveRunner, Robot
 from sandbox.api import Backend, Exit, InstallError, Job, Limits, Running, SandboxError
@@ -122,6 +121,7 @@ async def run_trial(
     loop = asyncio.get_running_loop()
     started = loop.time()
     work = Path(tempfile.mkdtemp(prefix="labd-trial-"))
+    work.chmod(0o755)  # the sandbox's unprivileged user reads the code below it
     out.mkdir(parents=True, exist_ok=True)
     try:
         code = work / "code"
