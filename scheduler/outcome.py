@@ -23,7 +23,8 @@ def judge(exit_: Exit, sim: Simulation, *, ended: bool, limits: Limits) -> Outco
 
     The episode's end wins over how the controller went: a controller stopped after
     the episode ended has done its part. A physics divergence is a failure of the
-    trial (the lab's model broke), not of the robot's task.
+    trial (the lab's model broke), not of the robot's task. A controller that exits
+    with 0 having never stepped ran nothing: that is a failure too.
     """
     at = f"at tick {sim.tick}"
     if sim.diverged:
@@ -43,6 +44,10 @@ def judge(exit_: Exit, sim: Simulation, *, ended: bool, limits: Limits) -> Outco
         )
     if exit_.cpu_exceeded:
         return Outcome(FAILED, f"CPU time limit of {limits.cpu_seconds} s reached {at}")
+    if exit_.code == 0 and sim.tick == 0:
+        return Outcome(
+            FAILED, "the controller exited with 0 before its first /lab/step: nothing ran"
+        )
     if exit_.code == 0:
         return Outcome(SUCCEEDED, f"the controller exited with 0 {at}")
     if exit_.code is None:

@@ -1,0 +1,1 @@
+raise ValueError("the controller has a bug")

@@ -1,0 +1,3 @@
+import socket
+
+print(socket.getaddrinfo("pypi.org", 443))

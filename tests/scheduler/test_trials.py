@@ -1,0 +1,218 @@
+"""Trials for real: labd run's runner with both sandboxes, the example controllers, attacks.
+
+Every attack ends as a failed trial with the reason, and the next trial is unaffected.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import os
+import shutil
+import socket
+import threading
+from pathlib import Path
+
+import pytest
+from mcap.reader import make_reader
+from mcap_ros2.decoder import DecoderFactory
+from rosbags.highlevel import AnyReader
+
+import sandbox
+from labd.commands.run import client_library
+from labd.graph.types import TypeRegistry
+from sandbox.api import Limits, MiB
+from scheduler.runner import RunOptions, TrialSpec, run_trial
+
+pytestmark = pytest.mark.integration
+ROOT = Path(__file__).resolve().parents[2]
+EXAMPLES = ROOT / "controllers" / "examples"
+ATTACKS = Path(__file__).resolve().parent / "attacks"
+BACKENDS = ["bwrap", "docker"]
+
+
+@pytest.fixture(scope="session")
+def cache(request) -> Path:
+    """pytest's cache folder, so later sessions reuse the runtime (bwrap needs o+x on it)."""
+    folder = request.config.cache.mkdir("labd-trials")
+    for path in (folder, *folder.parents):
+        if not path.stat().st_mode & 0o001:
+            pytest.fail(f"{path} must be searchable by others for the sandbox's user")
+    folder.chmod(0o755)
+    return folder
+
+
+def make_backend(name, cache):
+    try:
+        return sandbox.backend(name, cache, extra_packages=[client_library()])
+    except sandbox.BackendUnavailable as err:
+        if os.environ.get("CI"):
+            pytest.fail(str(err))
+        pytest.skip(str(err))
+
+
+@pytest.fixture(scope="session", params=BACKENDS)
+def backend(request, cache):
+    return make_backend(request.param, cache)
+
+
+@pytest.fixture(scope="session")
+def types():
+    return TypeRegistry.default()
+
+
+def run(backend, cache, types, tmp_path, source, **kwargs):
+    options = kwargs.pop("options", RunOptions())
+    spec = TrialSpec(source=str(source), **kwargs)
+    out = tmp_path / f"run-{len(list(tmp_path.glob('run-*')))}"
+    return asyncio.run(
+        run_trial(spec, backend=backend, out=out, cache=cache, types=types, options=options)
+    )
+
+
+@pytest.mark.parametrize("example", ["icreate-maze", "pr2-pick-place"])
+def test_examples_succeed_and_reproduce(backend, cache, types, tmp_path, example):
+    """Each example controller succeeds at its task, and a second run gives the same data."""
+    first = run(backend, cache, types, tmp_path, EXAMPLES / example, seed=1)
+    assert first.status == "succeeded", first.reason
+    assert first.metrics["success"] is True
+    second = run(backend, cache, types, tmp_path, EXAMPLES / example, seed=1)
+    assert (second.data_digest, second.manifest_digest) == (
+        first.data_digest,
+        first.manifest_digest,
+    )
+    other_seed = run(backend, cache, types, tmp_path, EXAMPLES / example, seed=2)
+    assert other_seed.data_digest != first.data_digest
+
+
+def test_both_backends_give_the_same_data(cache, types, tmp_path):
+    """The same trial under bubblewrap and under Docker records the same data digest."""
+    digests = set()
+    for name in BACKENDS:
+        backend = make_backend(name, cache)
+        result = run(backend, cache, types, tmp_path, EXAMPLES / "icreate-maze", seed=4)
+        assert result.status == "succeeded", result.reason
+        digests.add(result.data_digest)
+    assert len(digests) == 1
+
+
+def test_the_record_opens_with_rosbags_and_the_mcap_decoder(backend, cache, types, tmp_path):
+    """The MCAP holds every topic of the trial and opens with rosbags and with mcap_ros2."""
+    result = run(backend, cache, types, tmp_path, EXAMPLES / "icreate-maze", seed=1)
+    with result.mcap.open("rb") as stream:
+        reader = make_reader(stream, decoder_factories=[DecoderFactory()])
+        topics = {channel.topic for _, channel, _, _ in reader.iter_decoded_messages()}
+        stream.seek(0)
+        attachments = {a.name for a in make_reader(stream).iter_attachments()}
+    assert {
+        "/odom",
+        "/bumper",
+        "/cmd_vel",
+        "/ar_tags",
+        "/clock",
+        "/lab/episode",
+        "/tf",
+        "/goal",
+    } <= topics
+    assert {
+        "manifest.json",
+        "outcome.json",
+        "lab.toml",
+        "model.xml",
+        "controller.stdout.log",
+        "controller.stderr.log",
+    } <= attachments
+    with AnyReader([result.folder]) as bag:
+        connections = [c for c in bag.connections if c.topic == "/odom"]
+        odometry = [bag.deserialize(raw, c.msgtype) for c, _, raw in bag.messages(connections)]
+    assert len(odometry) == result.metrics["ticks"] + 1
+    manifest = json.loads((result.folder / "manifest.json").read_text())
+    assert manifest["task"]["name"] == "icreate-maze" and manifest["runtime"]
+
+
+def attack(name, tmp_path, target=None):
+    folder = tmp_path / name
+    shutil.copytree(ATTACKS / name, folder)
+    if target is not None:
+        (folder / "target.json").write_text(json.dumps(target))
+    folder.chmod(0o755)
+    return folder
+
+
+@pytest.fixture
+def host_listener():
+    """A TCP server on the host, on loopback and on the host's own address."""
+    servers = []
+    for host in ("127.0.0.1", socket.gethostbyname(socket.gethostname())):
+        server = socket.create_server((host, 0))
+        threading.Thread(target=lambda s=server: s.accept(), daemon=True).start()
+        servers.append(server)
+    yield [s.getsockname() for s in servers]
+    for server in servers:
+        server.close()
+
+
+LIMITS = Limits(memory=256 * MiB, processes=32, output=2 * MiB, wall=60.0)
+
+
+@pytest.mark.parametrize(
+    ("name", "reasons"),
+    [
+        ("no-lab-toml", ["has no lab.toml"]),
+        ("broken-lab-toml", ["not valid TOML"]),
+        ("exits-at-once", ["controller exited with 2 at tick 0"]),
+        ("exits-zero-at-once", ["exited with 0 before its first /lab/step"]),
+        ("raises", ["exited with 1 at tick 0: ValueError: the controller has a bug"]),
+        ("hangs", ["stalled at tick 0: no /lab/step for 3 s"]),
+        ("prints-gigabytes", ["printed more than 2 MiB"]),
+        (
+            "forks-without-end",
+            ["stalled", "time limit", "exited with", "killed by", "out of memory"],
+        ),
+        ("allocates-without-end", ["out of memory", "MemoryError"]),
+        ("resolves-a-name", ["gaierror"]),
+        ("writes-outside", ["Read-only file system", "Permission denied"]),
+    ],
+)
+def test_attacks_fail_with_a_reason(backend, cache, types, tmp_path, name, reasons):
+    """Each misbehaving controller ends as a failed trial saying why."""
+    limits = Limits(
+        memory=256 * MiB,
+        processes=32,
+        output=2 * MiB,
+        wall=20.0 if name == "forks-without-end" else 60.0,
+    )
+    options = RunOptions(limits=limits, first_step=3.0, stall=3.0)
+    result = run(backend, cache, types, tmp_path, attack(name, tmp_path), options=options)
+    assert result.status == "failed"
+    assert any(reason in result.reason for reason in reasons), result.reason
+
+
+def test_no_connection_leaves_the_sandbox(backend, cache, types, tmp_path, host_listener):
+    """TCP to the host's loopback or its own address fails inside the sandbox."""
+    folder = attack("opens-tcp", tmp_path, target=host_listener)
+    result = run(backend, cache, types, tmp_path, folder)
+    assert result.status == "failed"
+    assert "refused" in result.reason or "unreachable" in result.reason, result.reason
+
+
+def test_the_labs_files_cannot_be_read(backend, cache, types, tmp_path):
+    """A file of the lab's on the host does not exist inside the sandbox."""
+    secret = tmp_path / "secret" / "lab-token.txt"
+    secret.parent.mkdir()
+    secret.write_text("the lab's secret\n")
+    folder = attack("reads-lab-files", tmp_path, target=[str(secret), str(ROOT / "pyproject.toml")])
+    result = run(backend, cache, types, tmp_path, folder)
+    assert result.status == "failed" and "FileNotFoundError" in result.reason, result.reason
+    assert "secret" not in (result.folder / "controller.stdout.log").read_text()
+
+
+def test_the_lab_carries_on_after_attacks(backend, cache, types, tmp_path):
+    """After a controller that forks without end, the next trial runs and succeeds."""
+    options = RunOptions(limits=Limits(processes=32, wall=10.0), first_step=3.0, stall=3.0)
+    bad = run(
+        backend, cache, types, tmp_path, attack("forks-without-end", tmp_path), options=options
+    )
+    assert bad.status == "failed"
+    good = run(backend, cache, types, tmp_path, EXAMPLES / "icreate-maze", seed=1)
+    assert good.status == "succeeded", good.reason
