@@ -39,6 +39,7 @@ test: lint $(JSSTAMP)
 
 bench: $(STAMP)
 	$(PY) bench/sim.py
+	$(PY) bench/trial.py
 	$(PY) bench/bridge.py
 
 clean:

@@ -81,6 +81,8 @@ class TrialResult:
     backend: str = ""
     exit_code: int | None = None
     wall_seconds: float = 0.0
+    start_seconds: float | None = None  # from starting the sandbox to the first /lab/step
+    run_seconds: float | None = None  # from the first /lab/step to the end
 
     @property
     def mcap(self) -> Path | None:
@@ -99,6 +101,8 @@ class TrialResult:
             "backend": self.backend,
             "exit_code": self.exit_code,
             "wall_seconds": round(self.wall_seconds, 3),
+            "start_seconds": self.start_seconds,
+            "run_seconds": self.run_seconds,
             "manifest": self.manifest,
         }
 
@@ -210,7 +214,14 @@ class _Trial:
         )
         self.rosapi = Rosapi(self.graph, BridgeConfig().protected_prefixes)
         self.ticked = asyncio.Event()
-        self.robot.on_tick = self.ticked.set
+        self.robot.on_tick = self._tick
+        self.launched: float | None = None  # loop time the sandbox was started
+        self.first_step: float | None = None
+
+    def _tick(self) -> None:
+        if self.first_step is None:
+            self.first_step = asyncio.get_running_loop().time()
+        self.ticked.set()
 
     def digest_topics(self) -> set[str]:
         task = self.robot.sim.task
@@ -250,6 +261,7 @@ class _Trial:
             self.robot.publish()  # tick 0, now that the recorder listens
             if self.config.realtime:
                 live = asyncio.create_task(LiveRunner(self.robot).run())
+            self.launched = asyncio.get_running_loop().time()
             running = await self.backend.start(self._job(socket_dir / "bridge.sock", python_paths))
             exit_, outcome = await self._watch(running)
         except asyncio.CancelledError:
@@ -274,6 +286,10 @@ class _Trial:
                 backend=self.backend.name,
                 exit_code=exit_.code if exit_ else None,
             )
+            now = asyncio.get_running_loop().time()
+            if self.launched is not None and self.first_step is not None:
+                result.start_seconds = round(self.first_step - self.launched, 4)
+                result.run_seconds = round(now - self.first_step, 4)
             summary = recorder.finish(attachments=self._attachments(manifest, exit_, result))
             result.data_digest = summary.data_digest
             self.robot.close()
