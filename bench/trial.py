@@ -184,7 +184,7 @@ def main() -> None:
     base = results["backends"]["unsandboxed"]
     ticks = [r["ticks"] for r in base["runs"]]
     results["physics_ms_per_tick"] = physics_alone(seeds, ticks)
-    for name, figures in results["backends"].items():
+    for figures in results["backends"].values():
         figures["tick_ratio"] = figures["per_tick_ms_median"] / base["per_tick_ms_median"]
         figures["same_data"] = [r["digest"] for r in figures["runs"]] == [
             r["digest"] for r in base["runs"]
