@@ -1,0 +1,46 @@
+"""Exceptions of the archive.
+
+ArchiveError                 the archive could not do what was asked
+├── BlobError                a blob of the content-addressed store
+│   ├── BlobNotFound         no blob has that digest
+│   └── BlobCorrupt          a blob's bytes no longer match its digest
+├── RecordNotFound           no trial, commit or user by that name
+└── ExportError              a record could not be exported (format, content)
+"""
+
+from __future__ import annotations
+
+
+class ArchiveError(Exception):
+    """The archive could not do what was asked; the message says what and why."""
+
+
+class BlobError(ArchiveError):
+    def __init__(self, digest: str, reason: str) -> None:
+        self.digest = digest
+        self.reason = reason
+        super().__init__(f"blob {digest}: {reason}")
+
+
+class BlobNotFound(BlobError):
+    def __init__(self, digest: str) -> None:
+        super().__init__(digest, "not in the store")
+
+
+class BlobCorrupt(BlobError):
+    def __init__(self, digest: str, actual: str) -> None:
+        self.actual = actual
+        super().__init__(digest, f"its bytes hash to {actual}; the copy in the store is damaged")
+
+
+class RecordNotFound(ArchiveError):
+    def __init__(self, kind: str, name: str) -> None:
+        self.kind = kind
+        self.name = name
+        super().__init__(f"no {kind} {name!r}")
+
+
+class ExportError(ArchiveError):
+    def __init__(self, reason: str) -> None:
+        self.reason = reason
+        super().__init__(f"export: {reason}")
