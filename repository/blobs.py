@@ -1,0 +1,215 @@
+"""The content-addressed blob store: bytes named by their sha256, in a folder or a bucket.
+
+A blob's name is its digest, ``"sha256:<64 hex digits>"``; it lives at
+``ROOT/sha256/<first 2 hex>/<hex>``, where ROOT is a local folder (a path or a
+``file://`` URL) or an object store prefix reached through fsspec (``s3://bucket/prefix``,
+with s3fs options such as ``{"endpoint_url": ..., "key": ..., "secret": ...}``).
+
+- Writing streams the bytes once, hashing them on the way, to a temporary name under
+  ``ROOT/tmp/``, and only then moves them to their final name, so a crash never leaves
+  part of a blob under a name that promises all of it. A blob that already exists is
+  not written again: blobs are immutable. Local blobs are made read-only (0o444); on a
+  local disk the move is a hard link, which never replaces an existing blob even when two
+  writers race. An object store has no link: there, two writers of the same bytes at
+  the same moment may both copy them into place, which leaves the same bytes.
+- Reading checks the bytes against their name as they stream by (``iter_chunks``); a
+  mismatch raises ``BlobCorrupt`` once the last chunk has been read, so a consumer that
+  writes somewhere must be ready to throw it away (``copy_to`` does).
+- A digest is checked before it names anything, so a malformed one is a ``BlobError``,
+  never a path outside the store.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import hashlib
+import io
+import logging
+import os
+import re
+import uuid
+from collections.abc import Iterator, Mapping
+from pathlib import Path
+from typing import Any, BinaryIO
+
+import fsspec  # type: ignore[import-untyped]
+from fsspec.implementations.local import LocalFileSystem  # type: ignore[import-untyped]
+
+from repository.errors import BlobCorrupt, BlobError, BlobNotFound
+
+ALGORITHM = "sha256"
+CHUNK_SIZE = 1 << 20  # bytes read or written at a time
+READ_ONLY = 0o444
+TMP = "tmp"  # under the root: blobs being written
+_DIGEST = re.compile(r"sha256:([0-9a-f]{64})")
+
+log = logging.getLogger("repository.blobs")
+
+
+def parse_digest(digest: object) -> str:
+    """The hex part of a digest ``"sha256:<64 lowercase hex digits>"``; BlobError if not one."""
+    if not isinstance(digest, str):
+        raise BlobError(repr(digest), "a digest must be a string 'sha256:<64 hex digits>'")
+    match = _DIGEST.fullmatch(digest)
+    if match is None:
+        shown = digest if len(digest) <= 80 else digest[:77] + "..."
+        raise BlobError(repr(shown), "not a digest: expected 'sha256:' and 64 lowercase hex digits")
+    return match.group(1)
+
+
+def digest_of(data: bytes) -> str:
+    """The digest that names ``data`` in a store."""
+    return f"{ALGORITHM}:{hashlib.sha256(data).hexdigest()}"
+
+
+class BlobStore:
+    """Blobs under ``url``: a local folder, ``file://...`` or ``s3://bucket/prefix``.
+
+    ``storage_options`` go to the fsspec filesystem (s3fs: ``endpoint_url``, ``key``,
+    ``secret``, ...). Nothing is created until the first blob is written.
+    """
+
+    def __init__(self, url: str, storage_options: Mapping[str, Any] | None = None) -> None:
+        self.url = url
+        fs, root = fsspec.core.url_to_fs(url, **dict(storage_options or {}))
+        self._fs: Any = fs
+        self._root: str = root.rstrip("/")
+        self.local = isinstance(fs, LocalFileSystem)
+
+    def __repr__(self) -> str:
+        return f"BlobStore({self.url!r})"
+
+    def path(self, digest: str) -> str:
+        """Where the blob named ``digest`` lives, in the store's filesystem."""
+        hex_ = parse_digest(digest)
+        return f"{self._root}/{ALGORITHM}/{hex_[:2]}/{hex_}"
+
+    # -- writing -------------------------------------------------------------------------
+
+    def put_file(self, path: str | Path) -> str:
+        """Store the bytes of a local file; returns their digest."""
+        with Path(path).open("rb") as stream:
+            return self.put_stream(stream)
+
+    def put_bytes(self, data: bytes) -> str:
+        """Store ``data``; returns its digest."""
+        return self.put_stream(io.BytesIO(data))
+
+    def put_stream(self, stream: BinaryIO) -> str:
+        """Store what ``stream`` yields until its end; returns the digest.
+
+        If reading fails, the error propagates and nothing is stored.
+        """
+        tmp = f"{self._root}/{TMP}/{uuid.uuid4().hex}"
+        self._fs.makedirs(f"{self._root}/{TMP}", exist_ok=True)
+        hasher = hashlib.sha256()
+        size = 0
+        try:
+            with self._fs.open(tmp, "wb") as out:
+                while chunk := stream.read(CHUNK_SIZE):
+                    hasher.update(chunk)
+                    out.write(chunk)
+                    size += len(chunk)
+            digest = f"{ALGORITHM}:{hasher.hexdigest()}"
+            final = self.path(digest)
+            if self.local:
+                created = self._settle_local(tmp, final)
+            else:
+                created = self._settle_remote(tmp, final)
+        finally:
+            self._discard(tmp)
+        if created:
+            log.debug("%s: stored %s, %d bytes", self, digest, size)
+        return digest
+
+    def _settle_local(self, tmp: str, final: str) -> bool:
+        """Link ``tmp`` to its final name unless a blob is there; whether it was new."""
+        os.chmod(tmp, READ_ONLY)
+        os.makedirs(os.path.dirname(final), exist_ok=True)
+        try:
+            os.link(tmp, final)  # fails, atomically, if the blob exists
+        except FileExistsError:
+            return False
+        except OSError:  # a filesystem without hard links: move it, if still absent
+            if os.path.exists(final):
+                return False
+            os.replace(tmp, final)
+        return True
+
+    def _settle_remote(self, tmp: str, final: str) -> bool:
+        if self._fs.exists(final):
+            return False
+        self._fs.mv(tmp, final)  # an object store copies it whole into place
+        return True
+
+    def _discard(self, tmp: str) -> None:
+        with contextlib.suppress(FileNotFoundError):
+            self._fs.rm_file(tmp)
+
+    # -- reading -------------------------------------------------------------------------
+
+    def exists(self, digest: str) -> bool:
+        """Whether the store holds a blob named ``digest`` (its bytes are not checked)."""
+        return bool(self._fs.exists(self.path(digest)))
+
+    def size(self, digest: str) -> int:
+        """The blob's length in bytes (BlobNotFound if absent)."""
+        try:
+            return int(self._fs.size(self.path(digest)))
+        except FileNotFoundError:
+            raise BlobNotFound(digest) from None
+
+    def iter_chunks(self, digest: str, chunk_size: int = CHUNK_SIZE) -> Iterator[bytes]:
+        """The blob's bytes, ``chunk_size`` at a time, checked against ``digest``.
+
+        A malformed digest is refused at once; BlobNotFound comes with the first chunk
+        asked for, and BlobCorrupt after the last one, when the bytes did not hash to
+        their name.
+        """
+        if chunk_size <= 0:
+            raise ValueError(f"chunk_size must be positive, got {chunk_size}")
+        return self._chunks(digest, self.path(digest), chunk_size)
+
+    def _chunks(self, digest: str, path: str, chunk_size: int) -> Iterator[bytes]:
+        hasher = hashlib.sha256()
+        try:
+            stream = self._fs.open(path, "rb")
+        except FileNotFoundError:
+            raise BlobNotFound(digest) from None
+        with stream:
+            while chunk := stream.read(chunk_size):
+                hasher.update(chunk)
+                yield chunk
+        actual = f"{ALGORITHM}:{hasher.hexdigest()}"
+        if actual != digest:
+            log.error("%s: blob %s is damaged: its bytes hash to %s", self, digest, actual)
+            raise BlobCorrupt(digest, actual)
+
+    def read_bytes(self, digest: str) -> bytes:
+        """The whole blob, checked (BlobNotFound, BlobCorrupt)."""
+        return b"".join(self.iter_chunks(digest))
+
+    def verify(self, digest: str) -> None:
+        """Read the whole blob and check it (BlobNotFound, BlobCorrupt)."""
+        for _ in self.iter_chunks(digest):
+            pass
+
+    def copy_to(self, digest: str, dest: str | Path) -> Path:
+        """Copy the blob to the local file ``dest``, which appears only once checked.
+
+        The bytes go to a temporary file beside ``dest`` and are renamed to it after the
+        last chunk matched the digest; on any error the temporary file is removed and
+        ``dest`` is left as it was. Returns ``dest``.
+        """
+        dest = Path(dest)
+        chunks = self.iter_chunks(digest)
+        dest.parent.mkdir(parents=True, exist_ok=True)
+        tmp = dest.with_name(f".{dest.name}.{uuid.uuid4().hex}.tmp")
+        try:
+            with tmp.open("xb") as out:
+                for chunk in chunks:
+                    out.write(chunk)
+            tmp.replace(dest)
+        finally:
+            tmp.unlink(missing_ok=True)
+        return dest
