@@ -24,7 +24,7 @@ $(JSSTAMP): $(JS)/package.json $(JS)/package-lock.json
 	touch $@
 
 demo: $(STAMP)
-	$(VENV)/bin/labd serve
+	$(VENV)/bin/labd demo
 
 lint: $(STAMP)
 	$(VENV)/bin/ruff check .

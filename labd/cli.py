@@ -7,8 +7,13 @@
     labd run PATH|URL [--task TASK] [--seed N] [--param NAME=VALUE] [--sandbox docker|bwrap]
              [--out DIR] [--json]              (labd.commands.run)
 
-The other commands of DESIGN.md (submit, trials, show, rerun, export, worker) arrive
-with the archive.
+    labd submit | trials | show | download | rerun | cancel | export ...
+                                               (labd.commands.remote: the HTTP API)
+    labd users add NAME                        (labd.commands.users)
+    labd demo                                  (labd.commands.demo: what make demo runs)
+
+``labd serve`` runs the bridge and its robots, the HTTP API (port 8080), the archive
+(``--data``: SQLite and a folder by default) and its workers (``--workers``).
 """
 
 from __future__ import annotations
@@ -23,12 +28,16 @@ from collections.abc import Sequence
 from pathlib import Path
 
 from labd import __version__
-from labd.commands import run
+from labd.commands import demo, remote, run, users
 from labd.config import DEFAULT_ROBOTS, BridgeConfig, LabConfig, RobotConfig
 from labd.errors import LabError
 from labd.lab import Lab
 from labd.sim import registry
+from labd.service import ServiceConfig
 from labd.sim.params import parse_assignments
+from scheduler.fetch import FetchPolicy
+from scheduler.queue import QueueConfig
+from scheduler.runner import RunOptions
 
 log = logging.getLogger("labd")
 
@@ -88,7 +97,48 @@ def build_parser() -> argparse.ArgumentParser:
         help="a task parameter for every robot (repeatable)",
     )
     serve.add_argument("--no-playground", action="store_true", help="host no playground graph")
+    service = serve.add_argument_group("the archive, the queue and its workers")
+    service.add_argument("--http-port", type=int, default=8080, help="HTTP API port (0: any)")
+    service.add_argument("--database", help="SQLAlchemy URL (default sqlite in --data)")
+    service.add_argument(
+        "--blobs", help="blob store: a folder or an fsspec URL such as s3://bucket/prefix"
+    )
+    service.add_argument(
+        "--workers", type=int, default=1, help="trials run at once (default 1; 0: none)"
+    )
+    service.add_argument("--sandbox", choices=["docker", "bwrap"], help="default: docker if up")
+    service.add_argument(
+        "--lease", type=float, default=30.0, help="seconds before a silent worker's trial requeues"
+    )
+    service.add_argument(
+        "--allow-scheme",
+        action="append",
+        dest="schemes",
+        metavar="SCHEME",
+        help="repository URL schemes accepted (repeatable; default https ssh git file; "
+        "file means local paths)",
+    )
+    service.add_argument(
+        "--max-repo-mb", type=int, default=512, help="largest repository fetched, in MiB"
+    )
+    service.add_argument(
+        "--fetch-timeout", type=float, default=300.0, help="seconds a fetch may take"
+    )
+    service.add_argument(
+        "--submodule-allow",
+        action="append",
+        default=[],
+        metavar="URL_PREFIX",
+        help="submodules whose URL starts with this may be followed (repeatable)",
+    )
+    service.add_argument(
+        "--cache", type=Path, help="git mirrors and controller runtimes (default DATA/cache)"
+    )
+    service.add_argument("--no-service", action="store_true", help="no HTTP API, no workers")
     run.add_parser(commands)
+    remote.add_parsers(commands)
+    users.add_parser(commands)
+    demo.add_parser(commands)
     return parser
 
 
@@ -115,6 +165,30 @@ def robot_configs(args: argparse.Namespace) -> tuple[RobotConfig, ...]:
             raise SystemExit(f"labd serve: robot {name}: {err}") from None
         robots.append(RobotConfig(name, task, params, args.seed, live=not args.lockstep))
     return tuple(robots)
+
+
+def service_config(args: argparse.Namespace) -> ServiceConfig | None:
+    if args.no_service:
+        return None
+    defaults = FetchPolicy()
+    fetch = FetchPolicy(
+        schemes=frozenset(args.schemes) if args.schemes else defaults.schemes,
+        max_bytes=args.max_repo_mb * 1024 * 1024,
+        timeout=args.fetch_timeout,
+        submodules=tuple(args.submodule_allow),
+    )
+    return ServiceConfig(
+        data=args.data,
+        database=args.database,
+        blobs=args.blobs,
+        cache=args.cache,
+        workers=args.workers,
+        sandbox=args.sandbox,
+        queue=QueueConfig(lease=args.lease),
+        heartbeat=max(0.5, args.lease / 3),
+        fetch=fetch,
+        run=RunOptions(fetch=fetch),
+    )
 
 
 def bridge_config(args: argparse.Namespace) -> BridgeConfig:
@@ -144,6 +218,10 @@ async def serve(config: LabConfig) -> None:
     if config.playground:
         print(f"  playground (no robot; clients meet here): {bridge.url('playground')}", flush=True)
     print(f"  {bridge.url()} serves the first of these.", flush=True)
+    if lab.http is not None and lab.service is not None:
+        print(f"HTTP API on {lab.http.url()}/api (OpenAPI: {lab.http.url()}/openapi.json)")
+        print(f"  archive: {lab.service.config.database_url}, blobs {lab.service.store.url}")
+        print(f"  workers: {len(lab.service.workers)}", flush=True)
     stop = asyncio.Event()
     loop = asyncio.get_running_loop()
     for sig in (signal.SIGINT, signal.SIGTERM):
@@ -178,6 +256,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     )
     if args.command == "run":
         return run.main(args)
+    if args.command in remote.COMMANDS:
+        return remote.main(args)
+    if args.command == "users":
+        return users.main(args)
+    if args.command == "demo":
+        return demo.main(args)
     if args.command == "serve":
         return_freed_memory()
         config = LabConfig(
@@ -185,6 +269,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             bridge=bridge_config(args),
             robots=robot_configs(args),
             playground=not args.no_playground,
+            http_port=args.http_port,
+            service=service_config(args),
         )
         asyncio.run(serve(config))
         return 0

@@ -4,6 +4,10 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from labd.service import ServiceConfig
 
 MiB = 1024 * 1024
 
@@ -65,3 +69,6 @@ class LabConfig:
     robots: tuple[RobotConfig, ...] = DEFAULT_ROBOTS
     # A graph without a robot, where clients reach each other and /rosapi.
     playground: bool = True
+    http_port: int = 8080  # the HTTP API
+    # The archive, the queue and its workers; None: only the bridge and its robots.
+    service: ServiceConfig | None = None

@@ -176,3 +176,35 @@ def make_server(tmp_path: Any) -> Iterator[Callable[..., ServerThread]]:
 def server(make_server: Callable[..., ServerThread]) -> ServerThread:
     """One real lab with default settings on a free port."""
     return make_server()
+
+
+@pytest.fixture(params=["sqlite", "postgresql"])
+def database_url(request: pytest.FixtureRequest, tmp_path: Any) -> Iterator[str]:
+    """An empty archive database: SQLite in tmp_path, or a fresh PostgreSQL database.
+
+    The PostgreSQL server is the one ``.ci/postgres`` starts (``LABD_TEST_POSTGRES_URL``);
+    without it these tests skip, except in CI where they fail.
+    """
+    if request.param == "sqlite":
+        yield f"sqlite:///{tmp_path / 'index.sqlite'}"
+        return
+    import os
+    import secrets
+
+    import sqlalchemy as sa
+
+    admin_url = os.environ.get("LABD_TEST_POSTGRES_URL")
+    if not admin_url:
+        if os.environ.get("CI"):
+            pytest.fail("LABD_TEST_POSTGRES_URL is not set: .ci/postgres starts a server")
+        pytest.skip("no PostgreSQL server (run .ci/postgres and set LABD_TEST_POSTGRES_URL)")
+    name = f"labd_test_{secrets.token_hex(6)}"
+    admin = sa.create_engine(admin_url, isolation_level="AUTOCOMMIT")
+    with admin.connect() as db:
+        db.execute(sa.text(f'CREATE DATABASE "{name}"'))
+    try:
+        yield admin_url.rsplit("/", 1)[0] + "/" + name
+    finally:
+        with admin.connect() as db:
+            db.execute(sa.text(f'DROP DATABASE IF EXISTS "{name}" WITH (FORCE)'))
+        admin.dispose()

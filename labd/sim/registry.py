@@ -8,10 +8,13 @@ from __future__ import annotations
 import importlib
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from labd.errors import UnknownTaskError
 from labd.sim.params import Params, Value
+
+if TYPE_CHECKING:
+    from labd.sim.base import LabTask
 
 # name -> the module that defines it; imported only when the task is used.
 MODULES: Mapping[str, str] = {
@@ -37,6 +40,15 @@ class TaskSpec:
     params: Params
     build: Callable[..., Any]
     live_params: Mapping[str, Value] = field(default_factory=dict)
+    # The LabTask class: its command and observation topics, without building an episode.
+    task_class: type[LabTask] | None = None
+
+    def topics(self) -> tuple[list[str], list[str]]:
+        """The task's observation topics and its command (action) topics."""
+        if self.task_class is None:
+            return [], []
+        observations = [o.name for o in self.task_class.observations]
+        return observations, [c.name for c in self.task_class.commands]
 
 
 def names() -> list[str]:

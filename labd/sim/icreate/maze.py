@@ -463,5 +463,6 @@ TASK = TaskSpec(
     f"({CELL:g} m cells) with fiducial tags on its walls.",
     params=PARAMS,
     build=make,
+    task_class=IcreateMaze,
     live_params={"control_rate": 20},  # teleoperation: a 20 Hz camera and smoother driving
 )

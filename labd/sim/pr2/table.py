@@ -534,4 +534,5 @@ TASK = TaskSpec(
     ),
     params=PARAMS,
     build=make,
+    task_class=TableTask,
 )

@@ -1,0 +1,191 @@
+"""``labd demo``: the lab, end to end, on this machine (what ``make demo`` runs).
+
+1. The example controllers (``controllers/examples/*``) are made into git repositories
+   under ``DATA/demo/``, as a user's would be.
+2. A user ``demo`` is made; its token is kept in ``DATA/demo/token`` for later runs.
+3. ``labd serve`` starts (the bridge, the robots, the HTTP API, one worker).
+4. Each example is submitted by its repository's path and branch, like any other
+   repository, and the demo waits for the trials to end and prints their outcomes.
+5. It prints where to look and what to try, and keeps the lab running until Ctrl-C.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import secrets
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+from labd.commands.remote import Client, CommandError
+from labd.commands.run import client_library
+from labd.service import ServiceConfig
+from repository.errors import RecordNotFound
+from repository.index import Index
+
+EXAMPLES = {"icreate-maze": "icreate-maze", "pr2-pick-place": "pr2-table"}
+
+
+def add_parser(commands: Any) -> None:
+    demo = commands.add_parser("demo", help="serve the lab, submit the examples, show results")
+    demo.add_argument("--data", type=Path, default=Path("lab-data"))
+    demo.add_argument("--http-port", type=int, default=8080)
+    demo.add_argument("--bridge-port", type=int, default=9090)
+    demo.add_argument("--sandbox", choices=["docker", "bwrap"])
+    demo.add_argument("--exit", action="store_true", help="stop the lab when the trials end")
+
+
+def main(args: argparse.Namespace) -> int:
+    folder = (args.data / "demo").resolve()
+    folder.mkdir(parents=True, exist_ok=True)
+    repos = {name: make_repository(name, folder / name) for name in EXAMPLES}
+    token = demo_token(args.data, folder)
+    server = f"http://127.0.0.1:{args.http_port}"
+    command = [
+        sys.executable,
+        "-m",
+        "labd",
+        "serve",
+        "--data",
+        str(args.data),
+        "--http-port",
+        str(args.http_port),
+        "--bridge-port",
+        str(args.bridge_port),
+    ]
+    if args.sandbox:
+        command += ["--sandbox", args.sandbox]
+    print("starting:", " ".join(command), flush=True)
+    lab = subprocess.Popen(command)
+    client = Client(server, token)
+    try:
+        wait_for(client, lab)
+        submitted = []
+        for name, repo in repos.items():
+            row = client.request(
+                "POST",
+                "/api/trials",
+                json={"repository": str(repo), "ref": "main", "task": EXAMPLES[name]},
+            )
+            print(f"submitted {name}: trial {row['id']} at {row['commit'][:12]}", flush=True)
+            submitted.append(row["id"])
+        print("waiting for the trials (the first run builds the controller runtime)...")
+        done = client.wait(submitted)
+        print()
+        for row in done:
+            metrics = row["metrics"] or {}
+            print(f"trial {row['id']} ({row['task']}): {row['status']}: {row['reason']}")
+            print(f"  success={metrics.get('success')} reward={metrics.get('reward')}")
+            if row["mcap"]:
+                print(f"  record {row['mcap']['url']}")
+        first = done[0]
+        print(
+            f"""
+Where to look:
+  {server}/docs                      the API, to try in a browser
+  {server}/api/trials                the archive
+  {server}/api/commits/{first["commit"][:12]}   a commit, its trials and reruns
+
+Try (in another terminal, in this folder):
+  export LABD_TOKEN=$(cat {folder / "token"})
+  .venv/bin/labd trials
+  .venv/bin/labd show {first["id"]}
+  .venv/bin/labd download {first["id"]} -o trial.mcap
+  .venv/bin/labd rerun {first["commit"][:12]} --wait
+  .venv/bin/labd export {first["id"]} --format lerobot
+  .venv/bin/labd submit {repos["icreate-maze"]} --ref main --task icreate-maze --seed 3 --wait
+
+The lab keeps running; Ctrl-C stops it.""",
+            flush=True,
+        )
+        if args.exit:
+            return 0 if all(r["status"] == "succeeded" for r in done) else 1
+        return lab.wait()
+    except CommandError as err:
+        print(f"labd demo: {err}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        return 0
+    finally:
+        client.close()
+        if lab.poll() is None:
+            lab.send_signal(signal.SIGINT)
+            try:
+                lab.wait(30)
+            except subprocess.TimeoutExpired:
+                lab.kill()
+
+
+def make_repository(name: str, path: Path) -> Path:
+    """The example ``name`` as a git repository at ``path``, committed on ``main``."""
+    source = client_library() / "examples" / name
+    if not (path / ".git").is_dir():
+        path.mkdir(parents=True, exist_ok=True)
+        _git(path, "init", "-q", "-b", "main")
+    for item in source.iterdir():
+        if item.name == "__pycache__":
+            continue
+        target = path / item.name
+        if item.is_dir():
+            shutil.copytree(item, target, dirs_exist_ok=True)
+        else:
+            shutil.copy2(item, target)
+    _git(path, "add", "-A")
+    if _git(path, "status", "--porcelain"):
+        _git(path, "commit", "-q", "-m", f"the {name} example controller")
+    return path
+
+
+def demo_token(data: Path, folder: Path) -> str:
+    """The demo user's token: the saved one if the archive still knows it, or a new one."""
+    saved = folder / "token"
+    data.mkdir(parents=True, exist_ok=True)
+    index = Index.open(ServiceConfig(data=data).database_url)
+    try:
+        if saved.exists() and index.user_by_token(saved.read_text().strip()):
+            return saved.read_text().strip()
+        name = "demo"
+        while True:
+            try:
+                index.user(name)
+            except RecordNotFound:
+                break
+            name = f"demo-{secrets.token_hex(2)}"
+        token = index.add_user(name, max_running=2, max_daily=10_000)
+    finally:
+        index.close()
+    saved.write_text(token + "\n")
+    saved.chmod(0o600)
+    return token
+
+
+def wait_for(client: Client, lab: subprocess.Popen[bytes]) -> None:
+    deadline = time.monotonic() + 600  # the first start builds the controller runtime
+    while time.monotonic() < deadline:
+        if lab.poll() is not None:
+            raise CommandError(f"labd serve exited with {lab.returncode}")
+        try:
+            client.request("GET", "/api/tasks")
+            return
+        except CommandError:
+            time.sleep(0.5)
+    raise CommandError("labd serve did not answer within 10 minutes")
+
+
+def _git(path: Path, *args: str) -> str:
+    env = {
+        **os.environ,
+        "GIT_AUTHOR_NAME": "labd demo",
+        "GIT_AUTHOR_EMAIL": "demo@localhost",
+        "GIT_COMMITTER_NAME": "labd demo",
+        "GIT_COMMITTER_EMAIL": "demo@localhost",
+    }
+    done = subprocess.run(
+        ["git", "-C", str(path), *args], check=True, capture_output=True, text=True, env=env
+    )
+    return done.stdout.strip()

@@ -1,0 +1,152 @@
+"""The lab as a service: the archive's index and blobs, the queue, and its workers.
+
+``labd serve`` builds one ``Service`` beside the bridge, and the HTTP API answers from
+it. By default everything is under the data folder: ``DATA/index.sqlite``,
+``DATA/blobs/`` (the content-addressed store), ``DATA/cache/`` (git mirrors, controller
+runtimes) and ``DATA/work/`` (trials while they run). A database URL and a blob store
+URL put the index on PostgreSQL and the blobs in an S3-compatible bucket.
+
+Workers in the service are named ``HOST:PID/local-N``. When ``labd serve`` starts, the
+trials that a previous ``labd serve`` on this host left running (it was killed) go back
+to the queue at once, rather than when their lease runs out.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import os
+import socket
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import sandbox
+from labd.commands.run import client_library
+from labd.graph.types import TypeRegistry
+from repository.blobs import BlobStore
+from repository.index import Index
+from scheduler.fetch import FetchPolicy
+from scheduler.queue import Queue, QueueConfig
+from scheduler.runner import RunOptions
+from scheduler.submit import Submissions
+from scheduler.worker import Worker, WorkerConfig
+
+log = logging.getLogger("labd.service")
+
+
+@dataclass(frozen=True)
+class ServiceConfig:
+    data: Path = Path("lab-data")
+    database: str | None = None  # SQLAlchemy URL; default sqlite:///DATA/index.sqlite
+    blobs: str | None = None  # folder or fsspec URL; default DATA/blobs
+    blob_options: Mapping[str, Any] = field(default_factory=dict)
+    cache: Path | None = None  # mirrors and runtimes; default DATA/cache
+    workers: int = 1
+    sandbox: str | None = None  # docker, bwrap, or None: docker if it answers
+    queue: QueueConfig = field(default_factory=QueueConfig)
+    heartbeat: float = 10.0
+    fetch: FetchPolicy = field(default_factory=FetchPolicy)
+    run: RunOptions = field(default_factory=RunOptions)
+
+    @property
+    def database_url(self) -> str:
+        return self.database or f"sqlite:///{(self.data / 'index.sqlite').resolve()}"
+
+    @property
+    def blobs_url(self) -> str:
+        return self.blobs or str((self.data / "blobs").resolve())
+
+
+def host_prefix() -> str:
+    return f"{socket.gethostname()}:"
+
+
+class Service:
+    """Index, blob store, queue, submissions and (after ``start``) workers."""
+
+    def __init__(self, config: ServiceConfig, types: TypeRegistry | None = None) -> None:
+        self.config = config
+        self.types = types or TypeRegistry.default()
+        config.data.mkdir(parents=True, exist_ok=True)
+        self.cache = (config.cache or config.data / "cache").resolve()
+        self.index = Index.open(config.database_url)
+        self.store = BlobStore(config.blobs_url, dict(config.blob_options) or None)
+        self.queue = Queue(self.index, config.queue)
+        self.submissions = Submissions(self.queue, self.cache, config.fetch)
+        self.workers: list[Worker] = []
+        self._tasks: list[asyncio.Task[None]] = []
+        self._stop = asyncio.Event()
+        self.name = f"{host_prefix()}{os.getpid()}"
+
+    async def start(self) -> None:
+        """Requeue what a killed predecessor left running; start the workers."""
+        if self.config.workers <= 0:
+            return
+        released = await asyncio.to_thread(self._release_dead_workers)
+        if released:
+            log.warning("requeued trials a killed labd left running: %s", released)
+        backend = await asyncio.to_thread(
+            sandbox.backend, self.config.sandbox, self.cache, [client_library()]
+        )
+        work = (self.config.data / "work").resolve()
+        work.mkdir(parents=True, exist_ok=True)
+        for n in range(self.config.workers):
+            worker = Worker(
+                self.queue,
+                self.store,
+                backend,
+                self.types,
+                WorkerConfig(
+                    name=f"{self.name}/local-{n + 1}",
+                    work=work,
+                    cache=self.cache,
+                    heartbeat=self.config.heartbeat,
+                    options=self.config.run,
+                ),
+            )
+            self.workers.append(worker)
+            self._tasks.append(asyncio.create_task(worker.run(self._stop), name=worker.config.name))
+        log.info("%d worker(s) on %s", len(self.workers), backend.name)
+
+    def _release_dead_workers(self) -> list[int]:
+        """Requeue trials held by workers of this host whose process is gone."""
+        released = []
+        for worker in self.queue.running_workers():
+            host, _, rest = worker.partition(":")
+            pid = rest.partition("/")[0]
+            if host + ":" != host_prefix() or not pid.isdigit():
+                continue
+            if _alive(int(pid)) and int(pid) != os.getpid():  # ours: a predecessor's pid
+                continue
+            released += self.queue.release_worker(f"{host}:{pid}/")
+        return released
+
+    def wake(self) -> None:
+        """A trial was queued: let idle workers claim it now."""
+        for worker in self.workers:
+            worker.wake.set()
+
+    async def close(self) -> None:
+        """Stop the workers; trials they held go back to the queue at once."""
+        self._stop.set()
+        for task in self._tasks:
+            task.cancel()
+        for task in self._tasks:
+            with contextlib.suppress(asyncio.CancelledError):
+                await task
+        if self.workers:
+            await asyncio.to_thread(self.queue.release_worker, self.name + "/")
+        self.index.close()
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True

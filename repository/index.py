@@ -1,0 +1,409 @@
+"""The index of the archive: trial records and users, in SQLAlchemy.
+
+SQLite by default (a file under the lab's data folder), PostgreSQL for more than one
+machine: the same tables and queries on both. A trial's row is its whole record:
+what was asked (repository, ref, the commit it resolved to, task, parameters, seed,
+submitter), where it is in the queue (status, lease), and what came out (manifest,
+digests, metrics, the blobs of its MCAP and logs, whether a rerun reproduced).
+
+The queue's rules (claiming, leases, quotas) live in ``scheduler.queue``; this module
+keeps the rows and answers the archive's questions: trials by repository, commit,
+task, status, user and time, newest first, a page at a time; and per commit, its trials
+with their reruns.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import secrets
+import time
+from collections.abc import Iterator, Mapping, Sequence
+from contextlib import contextmanager
+from dataclasses import dataclass
+from typing import Any
+
+import sqlalchemy as sa
+from sqlalchemy.engine import Connection, Engine
+
+from repository.errors import ArchiveError, RecordNotFound
+
+SCHEMA_VERSION = 1
+STATUSES = ("queued", "running", "succeeded", "failed", "cancelled")
+ENDED = ("succeeded", "failed", "cancelled")
+HEX = frozenset("0123456789abcdef")
+
+metadata = sa.MetaData()
+
+meta = sa.Table(
+    "labd_meta",
+    metadata,
+    sa.Column("key", sa.String(64), primary_key=True),
+    sa.Column("value", sa.String(256), nullable=False),
+)
+
+users = sa.Table(
+    "users",
+    metadata,
+    sa.Column("name", sa.String(64), primary_key=True),
+    sa.Column("token_sha256", sa.String(64), nullable=False, unique=True),
+    sa.Column("created", sa.Float, nullable=False),
+    sa.Column("max_running", sa.Integer, nullable=False),
+    sa.Column("max_daily", sa.Integer, nullable=False),
+)
+
+trials = sa.Table(
+    "trials",
+    metadata,
+    sa.Column("id", sa.Integer, primary_key=True, autoincrement=True),
+    # what was asked
+    sa.Column("repository", sa.String(2048), nullable=False),
+    sa.Column("ref", sa.String(256)),
+    sa.Column("commit", sa.String(40), nullable=False),
+    sa.Column("task", sa.String(64), nullable=False),
+    sa.Column("params", sa.JSON, nullable=False),
+    sa.Column("seed", sa.BigInteger, nullable=False),
+    sa.Column("submitter", sa.String(64), nullable=False),
+    sa.Column("public", sa.Boolean, nullable=False),
+    sa.Column("rerun_of", sa.Integer, sa.ForeignKey("trials.id")),
+    # the queue
+    sa.Column("status", sa.String(16), nullable=False),
+    sa.Column("reason", sa.Text, nullable=False),
+    sa.Column("created", sa.Float, nullable=False),
+    sa.Column("started", sa.Float),
+    sa.Column("finished", sa.Float),
+    sa.Column("worker", sa.String(128)),
+    sa.Column("lease_until", sa.Float),
+    sa.Column("attempts", sa.Integer, nullable=False),
+    sa.Column("cancel_requested", sa.Boolean, nullable=False),
+    # what came out
+    sa.Column("manifest", sa.JSON),
+    sa.Column("manifest_digest", sa.String(64)),
+    sa.Column("data_digest", sa.String(64)),
+    sa.Column("digest_topics", sa.JSON),
+    sa.Column("metrics", sa.JSON),
+    sa.Column("backend", sa.String(16)),
+    sa.Column("wall_seconds", sa.Float),
+    sa.Column("mcap", sa.String(71)),  # blob digests, "sha256:..."
+    sa.Column("mcap_size", sa.BigInteger),
+    sa.Column("stdout", sa.String(71)),
+    sa.Column("stderr", sa.String(71)),
+    sa.Column("reproduced", sa.Boolean),  # reruns only: identical data digest
+    sa.Column("divergence", sa.Text),  # reruns that did not reproduce: where they parted
+)
+
+# Every list is newest first, so each filter has an index ending in id.
+sa.Index("ix_trials_repository", trials.c.repository, trials.c.id)
+sa.Index("ix_trials_commit", trials.c.commit, trials.c.id)
+sa.Index("ix_trials_task", trials.c.task, trials.c.id)
+sa.Index("ix_trials_status", trials.c.status, trials.c.id)
+sa.Index("ix_trials_submitter", trials.c.submitter, trials.c.id)
+sa.Index("ix_trials_created", trials.c.created)
+sa.Index("ix_trials_rerun_of", trials.c.rerun_of)
+# Claiming: the oldest queued trial of each submitter, public ones first.
+sa.Index("ix_trials_queue", trials.c.status, trials.c.public, trials.c.submitter, trials.c.id)
+
+
+@dataclass(frozen=True)
+class User:
+    name: str
+    max_running: int
+    max_daily: int
+    created: float
+
+
+@dataclass(frozen=True)
+class Page:
+    """One page of a list, newest first; ``next`` is the cursor of the following page."""
+
+    items: list[dict[str, Any]]
+    next: int | None
+
+
+@dataclass(frozen=True)
+class Filters:
+    repository: str | None = None
+    commit: str | None = None  # a full commit or a prefix of at least 4 hex digits
+    task: str | None = None
+    status: str | None = None
+    submitter: str | None = None
+    since: float | None = None  # created at or after (epoch seconds)
+    until: float | None = None  # created before
+    rerun_of: int | None = None
+
+
+def connect(url: str, **engine_options: Any) -> Engine:
+    """An engine for ``url`` (``sqlite:///path`` or ``postgresql+psycopg://...``)."""
+    if url.startswith("sqlite"):
+        engine = sa.create_engine(url, connect_args={"timeout": 30}, **engine_options)
+        sa.event.listen(engine, "connect", _sqlite_pragmas)
+        return engine
+    return sa.create_engine(url, pool_pre_ping=True, **engine_options)
+
+
+def _sqlite_pragmas(dbapi_connection: Any, _record: Any) -> None:
+    # WAL lets readers (the API) go on while a worker writes; foreign keys are off by default.
+    cursor = dbapi_connection.cursor()
+    cursor.execute("PRAGMA journal_mode=WAL")
+    cursor.execute("PRAGMA synchronous=NORMAL")
+    cursor.execute("PRAGMA foreign_keys=ON")
+    cursor.close()
+
+
+class Index:
+    """The archive's tables on one database; safe to share between threads."""
+
+    def __init__(self, engine: Engine, *, clock: Any = time.time) -> None:
+        self.engine = engine
+        self.clock = clock
+        self.trials = trials
+        self.users = users
+
+    @classmethod
+    def open(cls, url: str, **engine_options: Any) -> Index:
+        index = cls(connect(url, **engine_options))
+        index.create()
+        return index
+
+    def create(self) -> None:
+        """Create the tables if they are missing; refuse a database of another schema."""
+        metadata.create_all(self.engine)
+        with self.engine.begin() as db:
+            found = db.execute(sa.select(meta.c.value).where(meta.c.key == "schema")).scalar()
+            if found is None:
+                db.execute(sa.insert(meta).values(key="schema", value=str(SCHEMA_VERSION)))
+            elif found != str(SCHEMA_VERSION):
+                raise ArchiveError(
+                    f"the database holds archive schema {found}; this labd reads {SCHEMA_VERSION}"
+                )
+
+    def close(self) -> None:
+        self.engine.dispose()
+
+    @contextmanager
+    def begin(self) -> Iterator[Connection]:
+        with self.engine.begin() as db:
+            yield db
+
+    # -- users --------------------------------------------------------------------------
+
+    def add_user(self, name: str, *, max_running: int = 2, max_daily: int = 500) -> str:
+        """Add a user and return their new token (only its hash is kept)."""
+        if not name or len(name) > 64 or not all(c.isalnum() or c in "-_." for c in name):
+            raise ArchiveError(f"user name {name!r}: use 1 to 64 letters, digits, '-', '_' or '.'")
+        token = "labd_" + secrets.token_urlsafe(24)
+        with self.begin() as db:
+            if db.execute(sa.select(users.c.name).where(users.c.name == name)).first():
+                raise ArchiveError(f"user {name!r} exists already")
+            db.execute(
+                sa.insert(users).values(
+                    name=name,
+                    token_sha256=token_hash(token),
+                    created=self.clock(),
+                    max_running=max_running,
+                    max_daily=max_daily,
+                )
+            )
+        return token
+
+    def user_by_token(self, token: str) -> User | None:
+        with self.engine.connect() as db:
+            row = db.execute(
+                sa.select(users).where(users.c.token_sha256 == token_hash(token))
+            ).first()
+        return None if row is None else _user(row)
+
+    def user(self, name: str) -> User:
+        with self.engine.connect() as db:
+            row = db.execute(sa.select(users).where(users.c.name == name)).first()
+        if row is None:
+            raise RecordNotFound("user", name)
+        return _user(row)
+
+    # -- trials -------------------------------------------------------------------------
+
+    def add_trial(
+        self,
+        *,
+        repository: str,
+        ref: str | None,
+        commit: str,
+        task: str,
+        params: Mapping[str, Any],
+        seed: int,
+        submitter: str,
+        public: bool,
+        rerun_of: int | None = None,
+        db: Connection | None = None,
+    ) -> int:
+        values = {
+            "repository": repository,
+            "ref": ref,
+            "commit": commit,
+            "task": task,
+            "params": dict(params),
+            "seed": seed,
+            "submitter": submitter,
+            "public": public,
+            "rerun_of": rerun_of,
+            "status": "queued",
+            "reason": "waiting for a worker",
+            "created": self.clock(),
+            "attempts": 0,
+            "cancel_requested": False,
+        }
+        if db is not None:
+            return _inserted_id(db.execute(sa.insert(trials).values(values)))
+        with self.begin() as own:
+            return _inserted_id(own.execute(sa.insert(trials).values(values)))
+
+    def trial(self, trial_id: int) -> dict[str, Any]:
+        with self.engine.connect() as db:
+            row = db.execute(sa.select(trials).where(trials.c.id == trial_id)).first()
+        if row is None:
+            raise RecordNotFound("trial", str(trial_id))
+        return dict(row._mapping)
+
+    def find(self, filters: Filters, *, limit: int = 50, before: int | None = None) -> Page:
+        """Trials matching ``filters``, newest first; ``before`` is a page's cursor."""
+        query = sa.select(trials).where(*self._conditions(filters))
+        if before is not None:
+            query = query.where(trials.c.id < before)
+        query = query.order_by(trials.c.id.desc()).limit(limit + 1)
+        with self.engine.connect() as db:
+            rows = [dict(r._mapping) for r in db.execute(query)]
+        more = len(rows) > limit
+        rows = rows[:limit]
+        return Page(rows, rows[-1]["id"] if more and rows else None)
+
+    def _conditions(self, f: Filters) -> list[sa.ColumnElement[bool]]:
+        conditions: list[sa.ColumnElement[bool]] = []
+        if f.repository is not None:
+            conditions.append(trials.c.repository == f.repository)
+        if f.commit is not None:
+            conditions.append(commit_condition(f.commit))
+        if f.task is not None:
+            conditions.append(trials.c.task == f.task)
+        if f.status is not None:
+            if f.status not in STATUSES:
+                raise ArchiveError(f"status {f.status!r}: use one of {', '.join(STATUSES)}")
+            conditions.append(trials.c.status == f.status)
+        if f.submitter is not None:
+            conditions.append(trials.c.submitter == f.submitter)
+        if f.since is not None:
+            conditions.append(trials.c.created >= f.since)
+        if f.until is not None:
+            conditions.append(trials.c.created < f.until)
+        if f.rerun_of is not None:
+            conditions.append(trials.c.rerun_of == f.rerun_of)
+        return conditions
+
+    def commits(self, prefix: str) -> list[str]:
+        """The full commits that start with ``prefix`` (at most a few)."""
+        query = (
+            sa.select(trials.c.commit)
+            .where(commit_condition(prefix))
+            .group_by(trials.c.commit)
+            .limit(10)
+        )
+        with self.engine.connect() as db:
+            return [r[0] for r in db.execute(query)]
+
+    def commit_page(self, commit: str, *, limit: int = 200) -> dict[str, Any]:
+        """A commit's trials, newest first, each original with its reruns.
+
+        ``reproduced``/``diverged``/``pending`` count the reruns of this commit that
+        ended with an identical data digest, with another one, or have not ended.
+        """
+        found = self.commits(commit)
+        if not found:
+            raise RecordNotFound("commit with trials", commit)
+        if len(found) > 1:
+            raise ArchiveError(
+                f"commit {commit!r} is ambiguous: it starts {', '.join(c[:12] for c in found)}"
+            )
+        full = found[0]
+        query = (
+            sa.select(trials)
+            .where(trials.c.commit == full)
+            .order_by(trials.c.id.desc())
+            .limit(limit + 1)
+        )
+        with self.engine.connect() as db:
+            rows = [dict(r._mapping) for r in db.execute(query)]
+        truncated = len(rows) > limit
+        rows = rows[:limit]
+        reruns: dict[int, list[dict[str, Any]]] = {}
+        originals = []
+        for row in rows:
+            if row["rerun_of"] is not None:
+                reruns.setdefault(row["rerun_of"], []).append(row)
+            else:
+                originals.append(row)
+        counts = {"reproduced": 0, "diverged": 0, "pending": 0}
+        for row in rows:
+            if row["rerun_of"] is None:
+                continue
+            if row["reproduced"] is True:
+                counts["reproduced"] += 1
+            elif row["reproduced"] is False:
+                counts["diverged"] += 1
+            else:
+                counts["pending"] += 1
+        return {
+            "commit": full,
+            "repositories": sorted({r["repository"] for r in rows}),
+            "trials": originals,
+            "reruns": reruns,
+            "rerun_counts": counts,
+            "truncated": truncated,
+        }
+
+    def originals_of_commit(self, commit: str) -> list[dict[str, Any]]:
+        """The commit's trials that are not reruns, newest first."""
+        found = self.commits(commit)
+        if len(found) != 1:
+            return []
+        query = (
+            sa.select(trials)
+            .where(trials.c.commit == found[0], trials.c.rerun_of.is_(None))
+            .order_by(trials.c.id.desc())
+        )
+        with self.engine.connect() as db:
+            return [dict(r._mapping) for r in db.execute(query)]
+
+    def update(self, trial_id: int, db: Connection | None = None, **values: Any) -> int:
+        """Set columns of one trial; the number of rows changed."""
+        statement = sa.update(trials).where(trials.c.id == trial_id).values(values)
+        if db is not None:
+            return int(db.execute(statement).rowcount)
+        with self.begin() as own:
+            return int(own.execute(statement).rowcount)
+
+    def bulk_insert(self, rows: Sequence[Mapping[str, Any]]) -> None:
+        """Insert finished records as they are (benchmarks, imports)."""
+        with self.begin() as db:
+            db.execute(sa.insert(trials), [dict(r) for r in rows])
+
+
+def commit_condition(commit: str) -> sa.ColumnElement[bool]:
+    """Rows whose commit is ``commit`` or starts with it (an index range, on any database)."""
+    commit = commit.lower()
+    if not 4 <= len(commit) <= 40 or not set(commit) <= HEX:
+        raise ArchiveError(f"commit {commit!r}: give 4 to 40 hexadecimal digits")
+    if len(commit) == 40:
+        return trials.c.commit == commit
+    return sa.and_(trials.c.commit >= commit, trials.c.commit < commit + "g")
+
+
+def token_hash(token: str) -> str:
+    return hashlib.sha256(token.encode()).hexdigest()
+
+
+def _user(row: Any) -> User:
+    return User(row.name, row.max_running, row.max_daily, row.created)
+
+
+def _inserted_id(result: sa.CursorResult[Any]) -> int:
+    key = result.inserted_primary_key
+    assert key is not None
+    return int(key[0])

@@ -1,0 +1,290 @@
+"""The persistent queue of trials, on the archive's index.
+
+A trial is queued when submitted and goes queued → running → succeeded, failed or
+cancelled. Workers *claim* the next trial with a lease they renew by heartbeat; a
+trial whose lease ran out (its worker died, or ``labd serve`` was killed) goes back to
+the queue, up to ``max_attempts`` times, so nothing submitted is lost.
+
+Which trial is next:
+
+1. public repositories before private ones (the rosjs authors' policy: work that
+   everyone can read and rerun goes first);
+2. fair share: the submitter with the fewest trials running, so one user's hundred
+   submissions do not starve another's one;
+3. the oldest.
+
+A submitter at their limit of running trials waits; their daily limit is checked at
+submission. Every change is one conditional UPDATE (``WHERE status = 'queued'`` or
+``WHERE worker = me``), so two workers never hold the same trial, on SQLite as on
+PostgreSQL, and a late worker cannot overwrite what the queue already decided.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Mapping
+from dataclasses import dataclass
+from typing import Any
+
+import sqlalchemy as sa
+
+from repository.index import Index, User
+from repository.index import trials as T
+from scheduler.errors import QueueError, QuotaExceeded
+
+log = logging.getLogger("scheduler.queue")
+DAY = 86400.0
+
+
+@dataclass(frozen=True)
+class QueueConfig:
+    lease: float = 30.0  # seconds a claim lasts without a heartbeat
+    max_attempts: int = 3  # claims a trial gets before it fails as lost
+
+
+@dataclass(frozen=True)
+class Claim:
+    """A trial a worker holds, with what it needs to run it."""
+
+    id: int
+    repository: str
+    commit: str
+    task: str
+    params: dict[str, Any]
+    seed: int
+    rerun_of: int | None
+    attempt: int
+
+
+class Queue:
+    def __init__(self, index: Index, config: QueueConfig | None = None) -> None:
+        self.index = index
+        self.config = config or QueueConfig()
+        self.clock = index.clock
+
+    # -- submitting ---------------------------------------------------------------------
+
+    def submit(
+        self,
+        user: User,
+        *,
+        repository: str,
+        ref: str | None,
+        commit: str,
+        task: str,
+        params: Mapping[str, Any],
+        seed: int,
+        public: bool,
+        rerun_of: int | None = None,
+    ) -> int:
+        """Queue a trial for ``user``, within their daily limit (QuotaExceeded)."""
+        with self.index.begin() as db:
+            since = self.clock() - DAY
+            today = db.execute(
+                sa.select(sa.func.count())
+                .select_from(T)
+                .where(T.c.submitter == user.name, T.c.created >= since)
+            ).scalar_one()
+            if today >= user.max_daily:
+                raise QuotaExceeded(
+                    f"{user.name} has submitted {today} trials in the last 24 hours, "
+                    f"the daily limit; try again later or ask the operator for more"
+                )
+            return self.index.add_trial(
+                repository=repository,
+                ref=ref,
+                commit=commit,
+                task=task,
+                params=params,
+                seed=seed,
+                submitter=user.name,
+                public=public,
+                rerun_of=rerun_of,
+                db=db,
+            )
+
+    def cancel(self, trial_id: int, user: User) -> str:
+        """Cancel a queued trial now, or ask the worker of a running one to stop.
+
+        Returns the trial's status after the call. Only the submitter may cancel.
+        """
+        with self.index.begin() as db:
+            row = db.execute(
+                sa.select(T.c.status, T.c.submitter).where(T.c.id == trial_id)
+            ).first()
+            if row is None:
+                raise QueueError(f"no trial {trial_id}")
+            if row.submitter != user.name:
+                raise QueueError(f"trial {trial_id} is {row.submitter}'s; only they may cancel it")
+            if row.status == "queued":
+                db.execute(
+                    sa.update(T)
+                    .where(T.c.id == trial_id, T.c.status == "queued")
+                    .values(
+                        status="cancelled",
+                        reason=f"cancelled by {user.name} before it ran",
+                        finished=self.clock(),
+                    )
+                )
+                return "cancelled"
+            if row.status == "running":
+                db.execute(sa.update(T).where(T.c.id == trial_id).values(cancel_requested=True))
+                return "running"
+            return str(row.status)
+
+    # -- workers ------------------------------------------------------------------------
+
+    def claim(self, worker: str) -> Claim | None:
+        """Take the next trial for ``worker``, or None when nothing may run now."""
+        self.requeue_expired()
+        for _ in range(5):  # another worker may take the chosen trial first
+            chosen = self._choose()
+            if chosen is None:
+                return None
+            now = self.clock()
+            with self.index.begin() as db:
+                taken = db.execute(
+                    sa.update(T)
+                    .where(T.c.id == chosen, T.c.status == "queued")
+                    .values(
+                        status="running",
+                        reason="running",
+                        worker=worker,
+                        started=now,
+                        lease_until=now + self.config.lease,
+                        attempts=T.c.attempts + 1,
+                    )
+                ).rowcount
+                if taken != 1:
+                    continue
+                row = db.execute(sa.select(T).where(T.c.id == chosen)).one()
+            log.info("worker %s claimed trial %d (attempt %d)", worker, chosen, row.attempts)
+            return Claim(
+                row.id,
+                row.repository,
+                row.commit,
+                row.task,
+                dict(row.params),
+                row.seed,
+                row.rerun_of,
+                row.attempts,
+            )
+        return None
+
+    def _choose(self) -> int | None:
+        with self.index.engine.connect() as db:
+            heads = db.execute(
+                sa.select(T.c.submitter, T.c.public, sa.func.min(T.c.id))
+                .where(T.c.status == "queued")
+                .group_by(T.c.submitter, T.c.public)
+            ).all()
+            if not heads:
+                return None
+            running: dict[str, int] = dict(
+                db.execute(
+                    sa.select(T.c.submitter, sa.func.count())
+                    .where(T.c.status == "running")
+                    .group_by(T.c.submitter)
+                ).all()
+            )
+            names = {h[0] for h in heads}
+            limits = dict(
+                db.execute(
+                    sa.select(self.index.users.c.name, self.index.users.c.max_running).where(
+                        self.index.users.c.name.in_(names)
+                    )
+                ).all()
+            )
+        ready = [
+            (not public, running.get(name, 0), first)
+            for name, public, first in heads
+            if running.get(name, 0) < limits.get(name, 1)
+        ]
+        return min(ready)[2] if ready else None
+
+    def heartbeat(self, trial_id: int, worker: str) -> bool:
+        """Renew the lease; False if the trial is no longer this worker's or must stop."""
+        with self.index.begin() as db:
+            renewed = db.execute(
+                sa.update(T)
+                .where(T.c.id == trial_id, T.c.worker == worker, T.c.status == "running")
+                .values(lease_until=self.clock() + self.config.lease)
+            ).rowcount
+            if renewed != 1:
+                return False
+            stop = db.execute(sa.select(T.c.cancel_requested).where(T.c.id == trial_id)).scalar()
+        return not stop
+
+    def finish(self, trial_id: int, worker: str, **record: Any) -> bool:
+        """Store the outcome of a trial this worker holds; False if it lost the lease."""
+        record.setdefault("finished", self.clock())
+        with self.index.begin() as db:
+            done = db.execute(
+                sa.update(T)
+                .where(T.c.id == trial_id, T.c.worker == worker, T.c.status == "running")
+                .values(lease_until=None, **record)
+            ).rowcount
+        if done != 1:
+            log.warning("worker %s finished trial %d after losing it; dropped", worker, trial_id)
+        return done == 1
+
+    def requeue_expired(self) -> list[int]:
+        """Put running trials whose lease ran out back in the queue (or fail them)."""
+        now = self.clock()
+        with self.index.begin() as db:
+            lost = db.execute(
+                sa.select(T.c.id, T.c.worker, T.c.attempts, T.c.cancel_requested).where(
+                    T.c.status == "running", T.c.lease_until < now
+                )
+            ).all()
+            for trial_id, worker, attempts, cancel in lost:
+                if cancel:
+                    values = {"status": "cancelled", "reason": "cancelled; its worker was lost"}
+                elif attempts >= self.config.max_attempts:
+                    values = {
+                        "status": "failed",
+                        "reason": f"its worker was lost {attempts} times; the lab gave up",
+                    }
+                else:
+                    values = {"status": "queued", "reason": f"requeued: worker {worker} was lost"}
+                ended = values["status"] != "queued"
+                db.execute(
+                    sa.update(T)
+                    .where(T.c.id == trial_id, T.c.status == "running", T.c.lease_until < now)
+                    .values(
+                        worker=None,
+                        lease_until=None,
+                        finished=now if ended else None,
+                        started=None if not ended else T.c.started,
+                        **values,
+                    )
+                )
+                log.warning("trial %d: lease of worker %s ran out: %s", trial_id, worker, values)
+        return [row[0] for row in lost]
+
+    def running_workers(self) -> set[str]:
+        """The workers holding running trials."""
+        with self.index.engine.connect() as db:
+            rows = db.execute(
+                sa.select(T.c.worker).where(T.c.status == "running").group_by(T.c.worker)
+            ).all()
+        return {r[0] for r in rows if r[0]}
+
+    def release_worker(self, worker_prefix: str) -> list[int]:
+        """Requeue the running trials of workers named ``worker_prefix*`` (a restart)."""
+        with self.index.begin() as db:
+            rows = db.execute(
+                sa.select(T.c.id).where(
+                    T.c.status == "running", T.c.worker.startswith(worker_prefix, autoescape=True)
+                )
+            ).all()
+            ids = [r[0] for r in rows]
+            if ids:
+                db.execute(
+                    sa.update(T)
+                    .where(T.c.id.in_(ids), T.c.status == "running")
+                    .values(lease_until=self.clock() - 1)
+                )
+        if ids:
+            self.requeue_expired()
+        return ids

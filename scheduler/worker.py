@@ -1,0 +1,211 @@
+"""Workers: claim a trial, run it, file its record in the archive, repeat.
+
+A worker holds its trial by a lease it renews every ``heartbeat`` seconds. When the
+queue says the trial must stop (its submitter cancelled it) the run is cancelled and
+filed as cancelled. When the worker dies, the lease runs out and the queue gives the
+trial to another worker: nothing is filed twice, because finishing is conditional on
+still holding the lease.
+
+Filing a trial: the MCAP and the controller's logs go to the content-addressed store,
+the record (manifest, digests, metrics, outcome) to the index. A rerun is compared with
+the trial it reruns: the same data digest is "reproduced", otherwise the first message
+where the two records part says where they diverged.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import shutil
+import tempfile
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from labd.graph.types import TypeRegistry
+from labd.recorder import first_difference
+from repository.blobs import BlobStore
+from repository.errors import ArchiveError
+from sandbox.api import Backend
+from scheduler.queue import Claim, Queue
+from scheduler.runner import RunOptions, TrialResult, TrialSpec, run_trial
+
+log = logging.getLogger("scheduler.worker")
+
+
+@dataclass
+class WorkerConfig:
+    name: str
+    work: Path  # where trials run before they are filed
+    cache: Path  # mirrors, runtimes, requirements
+    heartbeat: float = 10.0  # seconds between lease renewals
+    poll: float = 2.0  # seconds between claims while the queue is empty
+    options: RunOptions = field(default_factory=RunOptions)
+
+
+class Worker:
+    """Runs trials from ``queue`` one at a time until ``stop`` is set."""
+
+    def __init__(
+        self,
+        queue: Queue,
+        store: BlobStore,
+        backend: Backend,
+        types: TypeRegistry,
+        config: WorkerConfig,
+    ) -> None:
+        self.queue = queue
+        self.store = store
+        self.backend = backend
+        self.types = types
+        self.config = config
+        self.wake = asyncio.Event()  # set by a submission, to claim at once
+        self.current: int | None = None
+        self.on_filed: Callable[[int], None] | None = None
+        self.log = logging.getLogger(f"scheduler.worker.{config.name}")
+
+    async def run(self, stop: asyncio.Event) -> None:
+        stopping = asyncio.create_task(stop.wait())
+        try:
+            while not stop.is_set():
+                claim = await asyncio.to_thread(self.queue.claim, self.config.name)
+                if claim is None:
+                    self.wake.clear()
+                    waker = asyncio.create_task(self.wake.wait())
+                    await asyncio.wait(
+                        {waker, stopping},
+                        timeout=self.config.poll,
+                        return_when=asyncio.FIRST_COMPLETED,
+                    )
+                    waker.cancel()
+                    continue
+                await self.execute(claim)
+        finally:
+            stopping.cancel()
+
+    async def execute(self, claim: Claim) -> None:
+        """Run one claimed trial to its end and file it."""
+        self.current = claim.id
+        out = self.config.work / f"trial-{claim.id}-{claim.attempt}"
+        shutil.rmtree(out, ignore_errors=True)
+        spec = TrialSpec(
+            source=claim.repository,
+            ref=claim.commit,
+            task=claim.task,
+            params=claim.params,
+            seed=claim.seed,
+        )
+        self.log.info("trial %d: %s@%s %s", claim.id, claim.repository, claim.commit[:12], spec)
+        running = asyncio.create_task(
+            run_trial(
+                spec,
+                backend=self.backend,
+                out=out,
+                cache=self.config.cache,
+                types=self.types,
+                options=self.config.options,
+            )
+        )
+        beat = asyncio.create_task(self._heartbeat(claim.id, running))
+        try:
+            result: TrialResult | None = await running
+        except asyncio.CancelledError:
+            me = asyncio.current_task()
+            if me is not None and me.cancelling():
+                raise  # the worker itself is being stopped: the lease will requeue the trial
+            result = None
+        finally:
+            beat.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await beat
+        try:
+            record = await asyncio.to_thread(self._record, claim, result, out)
+            await asyncio.to_thread(self.queue.finish, claim.id, self.config.name, **record)
+            self.log.info("trial %d %s: %s", claim.id, record["status"], record["reason"])
+            if self.on_filed is not None:
+                self.on_filed(claim.id)
+        finally:
+            shutil.rmtree(out, ignore_errors=True)
+            self.current = None
+
+    async def _heartbeat(self, trial_id: int, running: asyncio.Task[TrialResult]) -> None:
+        while True:
+            await asyncio.sleep(self.config.heartbeat)
+            keep = await asyncio.to_thread(self.queue.heartbeat, trial_id, self.config.name)
+            if not keep:
+                self.log.info("trial %d: stopping (cancelled, or the lease was lost)", trial_id)
+                running.cancel()
+                return
+
+    def _record(self, claim: Claim, result: TrialResult | None, out: Path) -> dict[str, Any]:
+        """The index columns for a finished trial; its files go to the blob store."""
+        record: dict[str, Any]
+        if result is None:
+            record = {"status": "cancelled", "reason": "cancelled while it ran"}
+        else:
+            record = {
+                "status": result.status,
+                "reason": result.reason,
+                "manifest": result.manifest or None,
+                "manifest_digest": result.manifest_digest or None,
+                "data_digest": result.data_digest or None,
+                "digest_topics": result.digest_topics or None,
+                "metrics": result.metrics or None,
+                "backend": result.backend,
+                "wall_seconds": round(result.wall_seconds, 3),
+            }
+        try:
+            mcap = out / "trial.mcap"
+            if mcap.exists():
+                record["mcap"] = self.store.put_file(mcap)
+                record["mcap_size"] = mcap.stat().st_size
+            for stream in ("stdout", "stderr"):
+                path = out / f"controller.{stream}.log"
+                if path.exists():
+                    record[stream] = self.store.put_file(path)
+        except (OSError, ArchiveError) as err:
+            self.log.exception("trial %d: the record could not be stored", claim.id)
+            return {
+                "status": "failed",
+                "reason": f"the archive could not store the trial's record: {err}",
+            }
+        if claim.rerun_of is not None and result is not None and result.status != "cancelled":
+            record.update(self._compare(claim.rerun_of, result))
+        return record
+
+    def _compare(self, original_id: int, result: TrialResult) -> dict[str, Any]:
+        """Did this rerun reproduce the trial it reruns?"""
+        original = self.queue.index.trial(original_id)
+        if not original["data_digest"] or not original["mcap"]:
+            return {"reproduced": None, "divergence": "the original trial has no record"}
+        if not result.data_digest or result.mcap is None:
+            return {"reproduced": False, "divergence": "the rerun made no record"}
+        if original["data_digest"] == result.data_digest:
+            return {"reproduced": True, "divergence": None}
+        topics = original["digest_topics"] or result.digest_topics
+        with tempfile.TemporaryDirectory(prefix="labd-compare-") as folder:
+            theirs = Path(folder) / "original.mcap"
+            try:
+                self.store.copy_to(original["mcap"], theirs)
+            except ArchiveError as err:
+                return {"reproduced": False, "divergence": f"the original's record: {err}"}
+            difference = first_difference(theirs, result.mcap, topics)
+        text = str(difference) if difference else "the data digests differ"
+        changed = manifest_changes(original["manifest"] or {}, result.manifest)
+        if changed:
+            text += f"; the manifest differs in {', '.join(changed)}"
+        return {"reproduced": False, "divergence": text}
+
+
+def manifest_changes(a: dict[str, Any], b: dict[str, Any], prefix: str = "") -> list[str]:
+    """The dotted keys whose values differ between two manifests."""
+    changed = []
+    for key in sorted(set(a) | set(b)):
+        x, y = a.get(key), b.get(key)
+        if isinstance(x, dict) and isinstance(y, dict):
+            changed += manifest_changes(x, y, f"{prefix}{key}.")
+        elif x != y:
+            changed.append(prefix + key)
+    return changed

@@ -1,0 +1,212 @@
+"""`labd serve` as a service, used through the `labd` command as users use it.
+
+A real server process (HTTP API, queue, one worker with bubblewrap), real git
+repositories, the real CLI: submit, list, show, download, rerun by commit and read
+"reproduced"; and a SIGKILL in the middle of a trial, after which nothing is lost.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import queue
+import re
+import shutil
+import signal
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import pytest
+from mcap.reader import make_reader
+
+pytestmark = pytest.mark.integration
+ROOT = Path(__file__).resolve().parents[2]
+EXAMPLES = ROOT / "controllers" / "examples"
+
+SLOW = '''\
+"""Steps slowly, so a test can kill the lab in the middle of the trial."""
+import time
+from controllers.client import Lab, EpisodeOver
+
+with Lab.connect() as lab:
+    for _ in range(150):
+        lab.publish("/cmd_vel", "geometry_msgs/msg/Twist", {"angular": {"z": 0.5}})
+        try:
+            lab.step()
+        except EpisodeOver:
+            break
+        time.sleep(0.02)
+'''
+
+
+def git(cwd, *args):
+    env = {
+        **os.environ,
+        "GIT_AUTHOR_NAME": "T",
+        "GIT_AUTHOR_EMAIL": "t@example.org",
+        "GIT_COMMITTER_NAME": "T",
+        "GIT_COMMITTER_EMAIL": "t@example.org",
+    }
+    return subprocess.run(
+        ["git", "-C", str(cwd), *args], check=True, capture_output=True, text=True, env=env
+    ).stdout.strip()
+
+
+def make_repo(path: Path, files: dict[str, str] | None = None, copy: Path | None = None) -> Path:
+    path.mkdir(parents=True)
+    if copy is not None:
+        shutil.copytree(copy, path, dirs_exist_ok=True, ignore=shutil.ignore_patterns("__pycache__"))
+    for name, text in (files or {}).items():
+        (path / name).write_text(text)
+    git(path, "init", "-q", "-b", "main")
+    git(path, "add", "-A")
+    git(path, "commit", "-q", "-m", "a controller")
+    return path
+
+
+@pytest.fixture(scope="module")
+def cache(request) -> Path:
+    """The runtime cache the trial tests use, so the runtime is built once per session."""
+    folder = request.config.cache.mkdir("labd-trials")
+    folder.chmod(0o755)
+    return folder
+
+
+class Lab:
+    """A `labd serve` process and the `labd` command pointed at it."""
+
+    def __init__(self, data: Path, cache: Path) -> None:
+        self.data = data
+        self.cache = cache
+        self.process: subprocess.Popen[str] | None = None
+        self.server = ""
+        self.token = ""
+
+    def start(self) -> None:
+        command = [
+            sys.executable, "-m", "labd", "serve", "--data", str(self.data),
+            "--cache", str(self.cache), "--http-port", "0", "--bridge-port", "0",
+            "--no-robots", "--no-playground", "--workers", "1", "--sandbox", "bwrap",
+            "--lease", "3",
+        ]  # fmt: skip
+        self.process = subprocess.Popen(
+            command,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.STDOUT,
+            text=True,
+            start_new_session=True,
+        )
+        lines: queue.Queue[str] = queue.Queue()
+        self.output: list[str] = []
+
+        def read() -> None:
+            assert self.process is not None and self.process.stdout is not None
+            for line in self.process.stdout:
+                self.output.append(line)
+                lines.put(line)
+            lines.put("")
+
+        threading.Thread(target=read, daemon=True).start()
+        deadline = time.monotonic() + 300
+        while time.monotonic() < deadline:
+            line = lines.get(timeout=max(0.1, deadline - time.monotonic()))
+            if not line:
+                pytest.fail("labd serve exited:\n" + "".join(self.output))
+            found = re.search(r"HTTP API on (http://\S+?)/api", line)
+            if found:
+                self.server = found.group(1)
+                return
+        pytest.fail("labd serve did not start:\n" + "".join(self.output))
+
+    def kill(self) -> None:
+        assert self.process is not None
+        self.process.send_signal(signal.SIGKILL)
+        self.process.wait(10)
+
+    def stop(self) -> None:
+        if self.process is not None and self.process.poll() is None:
+            self.process.send_signal(signal.SIGTERM)
+            try:
+                self.process.wait(30)
+            except subprocess.TimeoutExpired:
+                os.killpg(self.process.pid, signal.SIGKILL)
+                self.process.wait(10)
+
+    def labd(self, *args: str, check: bool = True) -> subprocess.CompletedProcess[str]:
+        env = {**os.environ, "LABD_SERVER": self.server, "LABD_TOKEN": self.token}
+        done = subprocess.run(
+            [sys.executable, "-m", "labd", *args],
+            capture_output=True,
+            text=True,
+            env=env,
+            timeout=300,
+        )
+        if check and done.returncode != 0:
+            pytest.fail(f"labd {' '.join(args)} exited {done.returncode}:\n{done.stderr}")
+        return done
+
+    def json(self, *args: str) -> object:
+        return json.loads(self.labd(*args, "--json").stdout)
+
+
+@pytest.fixture
+def lab(tmp_path, cache):
+    lab = Lab(tmp_path / "data", cache)
+    user = lab.labd("users", "add", "alice", "--data", str(lab.data), "--json")
+    lab.token = json.loads(user.stdout)["token"]
+    lab.start()
+    yield lab
+    lab.stop()
+
+
+def test_submit_list_download_and_rerun_by_commit(lab, tmp_path):
+    """A newcomer's path: submit by path and ref, list, download the MCAP, rerun, reproduced."""
+    repo = make_repo(tmp_path / "maze", copy=EXAMPLES / "icreate-maze")
+    commit = git(repo, "rev-parse", "HEAD")
+    trial = lab.json("submit", str(repo), "--ref", "main", "--task", "icreate-maze", "--wait")
+    assert trial["status"] == "succeeded", trial
+    assert trial["commit"] == commit
+    assert trial["metrics"]["success"] is True
+    listed = lab.json("trials", "--commit", commit[:8])
+    assert [t["id"] for t in listed["trials"]] == [trial["id"]]
+    mcap = tmp_path / "record.mcap"
+    lab.labd("download", str(trial["id"]), "-o", str(mcap))
+    with mcap.open("rb") as stream:
+        topics = {c.topic for c in make_reader(stream).get_summary().channels.values()}
+    assert {"/odom", "/cmd_vel", "/clock"} <= topics
+    text = lab.labd("rerun", commit[:10], "--wait").stdout
+    assert re.search(r"trial \d+ \(rerun of \d+\): reproduced", text), text
+    page = lab.json("show", str(trial["id"]))
+    assert page["status"] == "succeeded"
+
+
+def test_a_sigkill_mid_trial_loses_nothing(lab, tmp_path):
+    """`labd serve` killed while a trial runs: after a restart every trial still ends."""
+    repo = make_repo(
+        tmp_path / "slow",
+        {"lab.toml": '[controller]\ncommand = ["python", "slow.py"]\n', "slow.py": SLOW},
+    )
+    first = lab.json("submit", str(repo), "--task", "icreate-maze")
+    second = lab.json("submit", str(repo), "--task", "icreate-maze", "--seed", "1")
+    record = lab.data / "work" / f"trial-{first['id']}-1" / "trial.mcap"
+    deadline = time.monotonic() + 120
+    while not record.exists():  # the recording has begun: the trial is under way
+        assert time.monotonic() < deadline, "".join(lab.output)
+        time.sleep(0.05)
+    assert lab.json("show", str(first["id"]))["status"] == "running"
+    lab.kill()
+    lab.start()
+    deadline = time.monotonic() + 180
+    while True:
+        rows = [lab.json("show", str(t["id"])) for t in (first, second)]
+        if all(r["status"] in ("succeeded", "failed", "cancelled") for r in rows):
+            break
+        assert time.monotonic() < deadline, rows
+        time.sleep(0.5)
+    assert [r["status"] for r in rows] == ["succeeded", "succeeded"], rows
+    assert rows[0]["attempts"] == 2
+    assert rows[1]["attempts"] == 1
+    assert all(r["mcap"] for r in rows)

@@ -1,0 +1,236 @@
+"""The HTTP API in process: submissions against real git repositories, the archive's
+reads, tokens, and every bad request getting a 4xx that says what to do.
+
+No workers run here: trials stay queued, and finished records are filed the way a
+worker files them (blobs in the store, columns in the index).
+"""
+
+from __future__ import annotations
+
+import subprocess
+from pathlib import Path
+
+import pytest
+import httpx
+
+from labd.api.app import create_app
+from labd.service import Service, ServiceConfig
+from scheduler.fetch import FetchPolicy
+
+
+def git(cwd, *args):
+    return subprocess.run(
+        ["git", "-C", str(cwd), *args], check=True, capture_output=True, text=True
+    ).stdout.strip()
+
+
+@pytest.fixture
+def repo(tmp_path) -> Path:
+    """A controller repository with two commits, a branch and a tag."""
+    path = tmp_path / "controller"
+    path.mkdir()
+    git(path, "init", "-q", "-b", "main")
+    git(path, "config", "user.email", "t@example.org")
+    git(path, "config", "user.name", "T")
+    (path / "lab.toml").write_text('[controller]\ncommand = ["python", "c.py"]\n')
+    (path / "c.py").write_text("print('one')\n")
+    git(path, "add", ".")
+    git(path, "commit", "-q", "-m", "one")
+    git(path, "tag", "v1")
+    (path / "c.py").write_text("print('two')\n")
+    git(path, "commit", "-q", "-am", "two")
+    return path
+
+
+@pytest.fixture
+def service(tmp_path, database_url):
+    config = ServiceConfig(
+        data=tmp_path / "data",
+        database=database_url,
+        workers=0,
+        fetch=FetchPolicy(schemes=frozenset({"file"})),
+    )
+    service = Service(config)
+    yield service
+    service.index.close()
+
+
+@pytest.fixture
+async def api(service):
+    woken = []
+    app = create_app(service, on_submit=lambda: woken.append(1))
+    transport = httpx.ASGITransport(app=app)
+    async with httpx.AsyncClient(transport=transport, base_url="http://lab.test") as client:
+        client.woken = woken
+        yield client
+
+
+@pytest.fixture
+def token(service):
+    return service.index.add_user("alice", max_running=2, max_daily=50)
+
+
+def auth(token):
+    return {"Authorization": f"Bearer {token}"}
+
+
+async def submit(api, token, repo, **body):
+    return await api.post(
+        "/api/trials",
+        json={"repository": str(repo), "task": "icreate-maze", **body},
+        headers=auth(token),
+    )
+
+
+async def test_submit_pins_the_ref_to_a_commit(api, token, repo):
+    """A submission answers 201 with the full commit the ref named when it was made."""
+    tag = git(repo, "rev-parse", "v1")
+    reply = await submit(api, token, repo, ref="v1", seed=7, params={"maze_size": "7"})
+    assert reply.status_code == 201, reply.text
+    trial = reply.json()
+    assert trial["commit"] == tag and trial["ref"] == "v1"
+    assert trial["status"] == "queued" and trial["seed"] == 7
+    assert trial["params"] == {"maze_size": 7}
+    assert trial["submitter"] == "alice"
+    assert reply.headers["location"].endswith(f"/api/trials/{trial['id']}")
+    assert api.woken == [1]
+    head = (await submit(api, token, repo)).json()
+    assert head["commit"] == git(repo, "rev-parse", "HEAD")
+    short = (await submit(api, token, repo, ref=tag[:8])).json()
+    assert short["commit"] == tag
+
+
+@pytest.mark.parametrize(
+    ("body", "status", "words"),
+    [
+        ({"task": "no-such-task"}, 422, "no-such-task"),
+        ({"params": {"maze_size": 8}}, 422, "must be odd"),
+        ({"params": {"wings": 2}}, 422, "not a parameter"),
+        ({"seed": -1}, 422, "seed"),
+        ({"ref": "no-such-branch"}, 422, "no-such-branch"),
+        ({"repository": "ftp://example.org/x.git"}, 422, "not allowed"),
+        ({"repository": "/no/such/repository"}, 422, "/no/such/repository"),
+        ({"colour": "blue"}, 422, "colour"),
+    ],
+)
+async def test_bad_submissions_get_a_4xx_and_leave_nothing(api, token, repo, body, status, words):
+    """Each bad request is refused with a message naming the problem, and nothing is queued."""
+    reply = await submit(api, token, repo, **body)
+    assert reply.status_code == status, reply.text
+    assert words in reply.json()["error"]
+    assert (await api.get("/api/trials")).json()["trials"] == []
+
+
+async def test_malformed_json_is_a_400(api, token):
+    reply = await api.post(
+        "/api/trials",
+        content=b'{"repository": ',
+        headers={**auth(token), "Content-Type": "application/json"},
+    )
+    assert reply.status_code == 400
+    assert "not valid JSON" in reply.json()["error"]
+
+
+async def test_writing_needs_a_valid_token(api, token, repo):
+    """No token or a wrong one is a 401 that says how to get one; reading needs none."""
+    missing = await api.post("/api/trials", json={"repository": str(repo), "task": "icreate-maze"})
+    assert missing.status_code == 401
+    assert "labd users add" in missing.json()["error"]
+    wrong = await submit(api, "labd_wrong", repo)
+    assert wrong.status_code == 401
+    assert (await api.get("/api/trials")).status_code == 200
+    assert (await api.post("/api/trials/1/rerun")).status_code == 401
+
+
+async def test_daily_limit_is_a_429(api, service, repo):
+    token = service.index.add_user("bob", max_daily=1)
+    assert (await submit(api, token, repo)).status_code == 201
+    reply = await submit(api, token, repo)
+    assert reply.status_code == 429
+    assert "daily limit" in reply.json()["error"]
+
+
+def file_record(service, trial_id, data: bytes, **columns):
+    """File a finished trial as a worker does."""
+    digest = service.store.put_bytes(data)
+    service.index.update(
+        trial_id,
+        status="succeeded",
+        reason="the episode ended",
+        mcap=digest,
+        mcap_size=len(data),
+        data_digest="d" * 64,
+        manifest={"schema": "labd.trial/1"},
+        **columns,
+    )
+    return digest
+
+
+async def test_reading_a_trial_and_its_record(api, service, token, repo):
+    """A filed trial shows its outcome, and its MCAP downloads byte for byte."""
+    trial = (await submit(api, token, repo)).json()
+    data = b"\x89MCAP0\r\n" + bytes(range(256)) * 100
+    digest = file_record(service, trial["id"], data)
+    shown = (await api.get(f"/api/trials/{trial['id']}")).json()
+    assert shown["status"] == "succeeded"
+    assert shown["manifest"] == {"schema": "labd.trial/1"}
+    assert shown["mcap"]["digest"] == digest and shown["mcap"]["size"] == len(data)
+    download = await api.get(f"/api/trials/{trial['id']}/data.mcap")
+    assert download.status_code == 200
+    assert download.content == data
+    assert download.headers["etag"] == f'"{digest}"'
+    assert (await api.get("/api/trials/999")).status_code == 404
+    assert (await api.get(f"/api/trials/{trial['id']}/logs/stdout")).status_code == 404
+
+
+async def test_a_damaged_blob_is_never_served(api, service, token, repo):
+    """A record whose bytes no longer match its digest is refused, not sent."""
+    trial = (await submit(api, token, repo)).json()
+    digest = file_record(service, trial["id"], b"record bytes" * 1000)
+    hexdigest = digest.removeprefix("sha256:")
+    path = Path(service.store.url) / "sha256" / hexdigest[:2] / hexdigest
+    path.chmod(0o644)
+    path.write_bytes(b"record bytez" * 1000)
+    reply = await api.get(f"/api/trials/{trial['id']}/data.mcap")
+    assert reply.status_code == 500
+    assert "damaged" in reply.json()["error"]
+
+
+async def test_rerun_cancel_and_the_commit_page(api, service, token, repo):
+    """A rerun is a new trial linked to the old; the commit page shows both."""
+    trial = (await submit(api, token, repo)).json()
+    file_record(service, trial["id"], b"x")
+    rerun = await api.post(f"/api/trials/{trial['id']}/rerun", headers=auth(token))
+    assert rerun.status_code == 201
+    again = rerun.json()
+    assert again["rerun_of"] == trial["id"]
+    assert (again["commit"], again["seed"]) == (trial["commit"], trial["seed"])
+    page = (await api.get(f"/api/commits/{trial['commit'][:10]}")).json()
+    assert [t["id"] for t in page["trials"]] == [trial["id"]]
+    assert [r["id"] for r in page["trials"][0]["reruns"]] == [again["id"]]
+    assert page["rerun_counts"]["pending"] == 1
+    cancelled = (await api.post(f"/api/trials/{again['id']}/cancel", headers=auth(token))).json()
+    assert cancelled["status"] == "cancelled"
+    assert (await api.get("/api/commits/zzzz")).status_code == 422
+    assert (await api.get("/api/commits/ffffffff")).status_code == 404
+
+
+async def test_lists_filter_and_page(api, token, repo):
+    ids = [(await submit(api, token, repo, seed=s)).json()["id"] for s in range(5)]
+    first = (await api.get("/api/trials", params={"limit": 2})).json()
+    assert [t["id"] for t in first["trials"]] == ids[:-3:-1]
+    second = (await api.get("/api/trials", params={"limit": 2, "before": first["next"]})).json()
+    assert [t["id"] for t in second["trials"]] == ids[-3:-5:-1]
+    assert (await api.get("/api/trials", params={"status": "queued"})).json()["trials"]
+    assert (await api.get("/api/trials", params={"user": "nobody"})).json()["trials"] == []
+    bad = await api.get("/api/trials", params={"status": "lost"})
+    assert bad.status_code == 422 and "status" in bad.json()["error"]
+
+
+async def test_openapi_and_tasks(api):
+    spec = (await api.get("/openapi.json")).json()
+    for path in ("/api/trials", "/api/trials/{trial_id}/data.mcap", "/api/commits/{sha}"):
+        assert path in spec["paths"]
+    tasks = {t["name"]: t for t in (await api.get("/api/tasks")).json()["tasks"]}
+    assert set(tasks) == {"icreate-maze", "pr2-table"}
+    assert tasks["icreate-maze"]["params"]["maze_size"]["type"] == "int"

@@ -1,0 +1,89 @@
+"""The archive's index: users and tokens, the commit page, schema checks."""
+
+from __future__ import annotations
+
+import pytest
+import sqlalchemy as sa
+
+from repository.errors import ArchiveError, RecordNotFound
+from repository.index import Index, meta
+
+
+@pytest.fixture
+def index(database_url):
+    index = Index.open(database_url)
+    yield index
+    index.close()
+
+
+def trial(index, commit, *, rerun_of=None, seed=0):
+    return index.add_trial(
+        repository="https://example.org/r.git",
+        ref=None,
+        commit=commit,
+        task="icreate-maze",
+        params={"maze_size": 7},
+        seed=seed,
+        submitter="alice",
+        public=True,
+        rerun_of=rerun_of,
+    )
+
+
+def test_tokens_find_their_user_and_only_a_hash_is_kept(index):
+    """A token names its user; the database never holds the token itself."""
+    token = index.add_user("alice")
+    assert index.user_by_token(token).name == "alice"
+    assert index.user_by_token(token + "x") is None
+    with index.engine.connect() as db:
+        stored = db.execute(sa.select(index.users.c.token_sha256)).scalar()
+    assert token not in stored
+    with pytest.raises(ArchiveError, match="exists already"):
+        index.add_user("alice")
+    with pytest.raises(ArchiveError, match="user name"):
+        index.add_user("no spaces")
+
+
+def test_commit_page_groups_reruns_and_counts_verdicts(index):
+    """A commit's page lists its trials with their reruns and how many reproduced."""
+    commit = "c0ffee" + "0" * 34
+    original = trial(index, commit)
+    other = trial(index, commit, seed=1)
+    good = trial(index, commit, rerun_of=original)
+    bad = trial(index, commit, rerun_of=original)
+    index.update(good, reproduced=True, status="succeeded")
+    index.update(bad, reproduced=False, divergence="diverged at tick 3 on /odom")
+    trial(index, "d" * 40)
+    page = index.commit_page("c0ffee")
+    assert page["commit"] == commit
+    assert [t["id"] for t in page["trials"]] == [other, original]
+    assert sorted(r["id"] for r in page["reruns"][original]) == [good, bad]
+    assert page["rerun_counts"] == {"reproduced": 1, "diverged": 1, "pending": 0}
+
+
+def test_commit_prefixes_are_checked(index):
+    """Short, non-hex, unknown and ambiguous commits get errors that say so."""
+    trial(index, "abcd" + "1" * 36)
+    trial(index, "abcd" + "2" * 36)
+    with pytest.raises(ArchiveError, match="4 to 40 hexadecimal"):
+        index.commit_page("ab")
+    with pytest.raises(ArchiveError, match="4 to 40 hexadecimal"):
+        index.commit_page("zzzzzz")
+    with pytest.raises(RecordNotFound):
+        index.commit_page("ffff")
+    with pytest.raises(ArchiveError, match="ambiguous"):
+        index.commit_page("abcd")
+    assert index.commit_page("abcd1")["commit"] == "abcd" + "1" * 36
+
+
+def test_a_database_of_another_schema_is_refused(index):
+    """Opening a database written by another schema version fails with a clear error."""
+    with index.begin() as db:
+        db.execute(sa.update(meta).values(value="99"))
+    with pytest.raises(ArchiveError, match="schema 99"):
+        index.create()
+
+
+def test_trial_not_found(index):
+    with pytest.raises(RecordNotFound, match="no trial '42'"):
+        index.trial(42)

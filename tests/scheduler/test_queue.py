@@ -1,0 +1,208 @@
+"""The persistent queue: claiming, leases, fair share, quotas, cancel (SQLite and PostgreSQL)."""
+
+from __future__ import annotations
+
+import threading
+
+import pytest
+
+from repository.index import Filters, Index, connect
+from scheduler.errors import QueueError, QuotaExceeded
+from scheduler.queue import Queue, QueueConfig
+
+COMMIT = "a" * 40
+
+
+class Clock:
+    def __init__(self) -> None:
+        self.now = 1_000_000.0
+
+    def __call__(self) -> float:
+        return self.now
+
+
+@pytest.fixture
+def clock():
+    return Clock()
+
+
+@pytest.fixture
+def index(database_url, clock):
+    index = Index(connect(database_url), clock=clock)
+    index.create()
+    yield index
+    index.close()
+
+
+@pytest.fixture
+def queue(index):
+    return Queue(index, QueueConfig(lease=30.0, max_attempts=2))
+
+
+def submit(queue, user, *, public=True, commit=COMMIT, seed=0):
+    return queue.submit(
+        user,
+        repository="https://example.org/r.git",
+        ref="main",
+        commit=commit,
+        task="icreate-maze",
+        params={},
+        seed=seed,
+        public=public,
+    )
+
+
+def make_user(index, name, **limits):
+    index.add_user(name, **limits)
+    return index.user(name)
+
+
+def test_a_claimed_trial_is_running_and_no_other_worker_gets_it(index, queue):
+    """A claim moves the oldest queued trial to running under that worker, once."""
+    alice = make_user(index, "alice")
+    first = submit(queue, alice)
+    claim = queue.claim("w1")
+    assert claim is not None and claim.id == first and claim.attempt == 1
+    assert index.trial(first)["status"] == "running"
+    assert index.trial(first)["worker"] == "w1"
+    assert queue.claim("w2") is None
+
+
+def test_public_repositories_go_first(index, queue):
+    """A public repository's trial is claimed before an older private one."""
+    alice = make_user(index, "alice", max_running=5)
+    private = submit(queue, alice, public=False)
+    public = submit(queue, alice, public=True)
+    assert queue.claim("w").id == public
+    assert queue.claim("w").id == private
+
+
+def test_fair_share_between_users(index, queue):
+    """A user with a trial running waits behind another user's first trial."""
+    alice = make_user(index, "alice", max_running=5)
+    bob = make_user(index, "bob", max_running=5)
+    a1, a2, a3 = (submit(queue, alice, seed=s) for s in range(3))
+    b1 = submit(queue, bob)
+    order = [queue.claim("w").id for _ in range(4)]
+    assert order == [a1, b1, a2, a3]
+
+
+def test_per_user_running_limit(index, queue):
+    """A user at their limit of running trials gets no more until one ends."""
+    alice = make_user(index, "alice", max_running=1)
+    first = submit(queue, alice)
+    second = submit(queue, alice)
+    assert queue.claim("w1").id == first
+    assert queue.claim("w2") is None
+    assert queue.finish(first, "w1", status="succeeded", reason="done")
+    assert queue.claim("w2").id == second
+
+
+def test_daily_limit(index, queue, clock):
+    """Submissions past the daily limit are refused until 24 hours have passed."""
+    alice = make_user(index, "alice", max_daily=2)
+    submit(queue, alice)
+    submit(queue, alice)
+    with pytest.raises(QuotaExceeded, match="daily limit"):
+        submit(queue, alice)
+    clock.now += 86401
+    submit(queue, alice)
+
+
+def test_a_lost_worker_s_trial_goes_back_to_the_queue(index, queue, clock):
+    """When the lease runs out without a heartbeat, another worker gets the trial."""
+    alice = make_user(index, "alice")
+    trial = submit(queue, alice)
+    assert queue.claim("dead").id == trial
+    clock.now += 20
+    assert queue.heartbeat(trial, "dead")  # renewed: 30 s from now
+    clock.now += 29
+    assert queue.claim("other") is None
+    clock.now += 2
+    claim = queue.claim("other")
+    assert claim.id == trial and claim.attempt == 2
+    # the dead worker comes back: it may neither renew nor file the trial
+    assert not queue.heartbeat(trial, "dead")
+    assert not queue.finish(trial, "dead", status="succeeded", reason="late")
+    assert queue.finish(trial, "other", status="succeeded", reason="ok")
+    assert index.trial(trial)["reason"] == "ok"
+
+
+def test_a_trial_lost_too_often_fails(index, queue, clock):
+    """After max_attempts lost leases the trial fails with the reason, not forever requeued."""
+    alice = make_user(index, "alice")
+    trial = submit(queue, alice)
+    for _ in range(2):
+        assert queue.claim("w").id == trial
+        clock.now += 31
+    assert queue.claim("w") is None
+    row = index.trial(trial)
+    assert row["status"] == "failed"
+    assert "lost 2 times" in row["reason"]
+
+
+def test_cancel_queued_and_running(index, queue):
+    """A queued trial is cancelled at once; a running one is flagged for its worker."""
+    alice = make_user(index, "alice", max_running=5)
+    bob = make_user(index, "bob")
+    queued = submit(queue, alice)
+    running = submit(queue, alice)
+    assert queue.claim("w").id == queued  # oldest first
+    assert queue.cancel(running, alice) == "cancelled"
+    assert index.trial(running)["status"] == "cancelled"
+    with pytest.raises(QueueError, match="only they may cancel"):
+        queue.cancel(queued, bob)
+    assert queue.heartbeat(queued, "w")
+    assert queue.cancel(queued, alice) == "running"
+    assert not queue.heartbeat(queued, "w")  # the worker is told to stop
+
+
+def test_release_worker_requeues_at_once(index, queue):
+    """A restarted server hands back its dead predecessor's trials without waiting."""
+    alice = make_user(index, "alice")
+    trial = submit(queue, alice)
+    queue.claim("host:123/local-1")
+    assert queue.running_workers() == {"host:123/local-1"}
+    assert queue.release_worker("host:123/") == [trial]
+    assert index.trial(trial)["status"] == "queued"
+    assert "requeued" in index.trial(trial)["reason"]
+
+
+def test_concurrent_claims_never_share_a_trial(index, queue):
+    """Workers claiming at once on threads each get a different trial."""
+    alice = make_user(index, "alice", max_running=100)
+    ids = {submit(queue, alice, seed=s) for s in range(12)}
+    got: list[int] = []
+    lock = threading.Lock()
+
+    def work(name):
+        while (claim := queue.claim(name)) is not None:
+            with lock:
+                got.append(claim.id)
+
+    threads = [threading.Thread(target=work, args=(f"w{n}",)) for n in range(4)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert sorted(got) == sorted(ids)
+
+
+def test_lists_filter_and_paginate(index, queue):
+    """Lists are newest first, filtered, and their cursor pages through all rows."""
+    alice = make_user(index, "alice", max_running=100)
+    bob = make_user(index, "bob")
+    mine = [submit(queue, alice, seed=s, commit=("b" * 39 + str(s % 2))) for s in range(7)]
+    submit(queue, bob)
+    seen, before = [], None
+    while True:
+        page = index.find(Filters(submitter="alice"), limit=3, before=before)
+        seen += [r["id"] for r in page.items]
+        if page.next is None:
+            break
+        before = page.next
+    assert seen == sorted(mine, reverse=True)
+    odd = index.find(Filters(commit="b" * 39 + "1")).items
+    assert [r["id"] for r in odd] == [m for m in reversed(mine) if (mine.index(m) % 2)]
+    assert len(index.find(Filters(commit="bbbb")).items) == 7
+    assert index.find(Filters(status="running")).items == []
