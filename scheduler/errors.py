@@ -1,12 +1,27 @@
 """Exceptions of the scheduler.
 
-TrialError                   a trial could not be prepared or run
-├── RepositoryError          the repository could not be read, fetched or resolved
-├── ControllerConfigError    lab.toml is missing or does not say what the lab needs
-└── RequirementsError        the repository's requirements could not be installed
+TrialError                      a trial could not be prepared or run
+├── RepositoryError             the repository could not be read, fetched or resolved
+│   ├── SchemeNotAllowed        its kind of URL is not one this lab accepts
+│   ├── Unreachable             no such host or path, refused, or it needs a credential
+│   ├── RefNotFound             the ref is no branch, tag or commit of it
+│   ├── TooLarge                it is over the lab's size limit
+│   ├── FetchTimeout            fetching it took longer than the lab's time limit
+│   └── SubmoduleNotAllowed     a submodule's URL is outside the lab's allow-list
+├── ControllerConfigError       lab.toml is missing or does not say what the lab needs
+└── RequirementsError           the repository's requirements could not be installed
+QueueError                      a queue operation was refused
+└── QuotaExceeded               a submitter is over a limit the operator set
+
+Each says what a person can do about it. None carries a credential: the URLs in them
+are the ones the lab records, which never hold one.
 """
 
 from __future__ import annotations
+
+from collections.abc import Collection, Iterable
+
+MiB = 1024 * 1024
 
 
 class TrialError(Exception):
@@ -14,10 +29,102 @@ class TrialError(Exception):
 
 
 class RepositoryError(TrialError):
-    def __init__(self, source: str, reason: str) -> None:
+    def __init__(self, source: str, reason: str, *, message: str | None = None) -> None:
         self.source = source
         self.reason = reason
-        super().__init__(f"{source}: {reason}")
+        super().__init__(message or f"{source}: {reason}")
+
+
+class SchemeNotAllowed(RepositoryError):
+    """The URL's scheme (or a local path, ``file``) is not in the operator's list."""
+
+    def __init__(self, source: str, scheme: str, allowed: Iterable[str]) -> None:
+        self.scheme = scheme
+        self.allowed = tuple(sorted(allowed))
+        what = "local paths and file:// URLs are" if scheme == "file" else f"scheme {scheme!r} is"
+        super().__init__(
+            source, f"{what} not allowed here; this lab accepts {accepted(self.allowed)}"
+        )
+
+
+class Unreachable(RepositoryError):
+    """Fetching failed: no such host or repository, refused, or authentication needed."""
+
+    def __init__(self, source: str, detail: str, *, auth: bool = False) -> None:
+        self.detail = detail
+        self.auth = auth
+        if auth:
+            hint = (
+                "the repository is private and this lab has no credential for it: make it"
+                " public, or ask the lab's operator to add a deploy key or token"
+            )
+        else:
+            hint = "check the URL, and that the repository exists and is public"
+        super().__init__(source, f"could not be fetched ({detail}); {hint}")
+
+
+class RefNotFound(RepositoryError):
+    """The ref names no branch, tag or commit of the repository (or is ambiguous)."""
+
+    def __init__(self, source: str, ref: str | None, *, ambiguous: bool = False) -> None:
+        self.ref = ref
+        if ref is None:
+            reason = "has no commits on its default branch; push one, or name a branch or tag"
+            message = None
+        elif ambiguous:
+            reason = f"{ref!r} is the start of more than one commit; give more of its digits"
+            message = f"{ref!r} is the start of more than one commit of {source}; give more digits"
+        else:
+            reason = f"{ref!r} is not a branch, tag or commit of it"
+            message = (
+                f"{ref!r} is not a branch, tag or commit of {source}; check the name, and"
+                " that it has been pushed"
+            )
+        super().__init__(source, reason, message=message)
+
+
+class TooLarge(RepositoryError):
+    """The repository (its mirror, all branches and tags) is over the size limit."""
+
+    def __init__(self, source: str, limit: int, size: int) -> None:
+        self.limit = limit
+        self.size = size
+        super().__init__(
+            source,
+            f"is larger than this lab's limit of {_mib(limit)} (at least {_mib(size)},"
+            " all branches and tags); keep large files out of the repository, or ask the"
+            " lab's operator for a higher limit",
+        )
+
+
+class FetchTimeout(RepositoryError):
+    """Fetching took longer than the time limit (a slow or stalled server, or a big repo)."""
+
+    def __init__(self, source: str, seconds: float) -> None:
+        self.seconds = seconds
+        super().__init__(
+            source,
+            f"took longer than this lab's limit of {seconds:g} s to fetch; try again later"
+            " (the server may be slow), or make the repository smaller",
+        )
+
+
+class SubmoduleNotAllowed(RepositoryError):
+    """A submodule's URL does not start with any prefix of the operator's allow-list."""
+
+    def __init__(self, source: str, path: str, url: str, allowed: Iterable[str]) -> None:
+        self.path = path
+        self.url = url
+        self.allowed = tuple(allowed)
+        if self.allowed:
+            where = "follows submodules only from " + ", ".join(self.allowed)
+        else:
+            where = "follows no submodules"
+        super().__init__(
+            source,
+            f"submodule {path!r} ({url}) is not allowed here; this lab {where}. Copy that"
+            " code into the repository instead, or ask the lab's operator",
+        )
 
 
 class ControllerConfigError(TrialError):
@@ -31,3 +138,25 @@ class RequirementsError(TrialError):
         self.reason = reason
         self.log = log
         super().__init__(f"requirements: {reason}")
+
+
+class QueueError(Exception):
+    """A queue operation was refused (no such trial, not yours to cancel...)."""
+
+
+class QuotaExceeded(QueueError):
+    """A submitter is over a limit the operator set."""
+
+
+def accepted(schemes: Collection[str]) -> str:
+    """``https, ssh, git URLs and local paths``: what a lab with these schemes accepts."""
+    order = ["https", "http", "ssh", "git"]
+    rank = {name: i for i, name in enumerate(order)}
+    names = sorted((s for s in schemes if s != "file"), key=lambda s: (rank.get(s, 9), s))
+    urls = f"{', '.join(names)} URLs" if names else ""
+    local = "local paths" if "file" in schemes else ""
+    return " and ".join(part for part in (urls, local) if part) or "no repositories at all"
+
+
+def _mib(size: int) -> str:
+    return f"{size / MiB:.1f} MiB"

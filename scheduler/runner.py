@@ -44,6 +44,7 @@ from sandbox.api import Backend, Exit, InstallError, Job, Limits, Running, Sandb
 from scheduler import controller as controller_config
 from scheduler import manifest as manifests
 from scheduler.errors import ControllerConfigError, RequirementsError, TrialError
+from scheduler.fetch import FetchPolicy
 from scheduler.outcome import CANCELLED, FAILED, Outcome, judge
 from scheduler.source import checkout
 
@@ -67,6 +68,7 @@ class RunOptions:
     stall: float = 10.0  # seconds without /lab/step
     first_step: float = 60.0  # seconds to the first /lab/step
     grace: float = 2.0  # after the episode ends, for the controller to exit by itself
+    fetch: FetchPolicy | None = None  # the lab's; None: labd run (local folders from disk)
 
 
 @dataclass
@@ -129,7 +131,9 @@ async def run_trial(
     out.mkdir(parents=True, exist_ok=True)
     try:
         code = work / "code"
-        source = await asyncio.to_thread(checkout, spec.source, spec.ref, code, cache)
+        source = await asyncio.to_thread(
+            checkout, spec.source, spec.ref, code, cache, options.fetch
+        )
         config = controller_config.load(code)
         task = spec.task or config.task
         if task is None:

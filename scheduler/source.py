@@ -5,8 +5,14 @@ are: the commit (when there is one), git's tree hash, and ``tree``, a digest of 
 files themselves that names the code whatever its origin.
 
 - A URL (``https://``, ``ssh://``, ``git://``, ``file://``, ``user@host:path``) is
-  fetched into a bare mirror in the cache (no hooks run, no submodules followed) and
-  the commit the ref resolves to is exported.
+  fetched into a bare mirror in the cache (scheduler.fetch: no hooks run, submodules
+  only from the allow-list, each exported into its path) and the commit the ref
+  resolves to is exported. A full commit id already in the mirror is exported without
+  fetching, so reruns work after a branch has moved.
+- With a fetch policy (a lab's worker), a local repository path is taken through the
+  mirror cache as well, under that policy: the trial runs the pinned commit, whatever
+  the folder holds now. Without one (``labd run``), URLs are fetched under
+  ``PREFLIGHT`` and local folders are read from disk as follows.
 - A local folder inside a git work tree is taken as it is on disk (tracked and
   untracked files, not ignored ones), so a pre-flight runs what the user is editing;
   ``commit`` is HEAD only when the folder has no uncommitted changes, otherwise None
@@ -28,18 +34,10 @@ from pathlib import Path
 
 import git
 
-from scheduler.errors import RepositoryError
+from scheduler.errors import RefNotFound, RepositoryError
+from scheduler.fetch import PREFLIGHT, FetchPolicy, fetch_commit
 
 URL = re.compile(r"^(?:[a-z][a-z0-9+.-]*://|[\w.-]+@[\w.-]+:)")
-# No prompts, no system config, and no hooks of any kind while fetching.
-GIT_ENV = {
-    "GIT_TERMINAL_PROMPT": "0",
-    "GIT_ASKPASS": "true",
-    "GIT_CONFIG_NOSYSTEM": "1",
-    "GIT_CONFIG_COUNT": "1",
-    "GIT_CONFIG_KEY_0": "core.hooksPath",
-    "GIT_CONFIG_VALUE_0": "/dev/null",
-}
 SKIP = {".git", "__pycache__"}
 
 
@@ -59,10 +57,15 @@ def is_url(source: str) -> bool:
     return bool(URL.match(source))
 
 
-def checkout(source: str, ref: str | None, dest: Path, cache: Path) -> Source:
-    """Put the files of ``source`` at ``ref`` into ``dest`` (which must not exist)."""
-    if is_url(source):
-        return _from_url(source, ref, dest, cache)
+def checkout(
+    source: str, ref: str | None, dest: Path, cache: Path, policy: FetchPolicy | None = None
+) -> Source:
+    """Put the files of ``source`` at ``ref`` into ``dest`` (which must not exist).
+
+    ``policy`` is the lab's fetch policy; None for ``labd run`` (see the module's doc).
+    """
+    if policy is not None or is_url(source):
+        return _from_mirror(source, ref, dest, cache, policy or PREFLIGHT)
     return _from_folder(Path(source), ref, dest)
 
 
@@ -131,39 +134,26 @@ def _from_folder(folder: Path, ref: str | None, dest: Path) -> Source:
         )
 
 
-def _from_url(url: str, ref: str | None, dest: Path, cache: Path) -> Source:
-    mirror = cache / "mirrors" / hashlib.sha256(url.encode()).hexdigest()[:24]
-    try:
-        if mirror.exists():
-            repo = git.Repo(mirror)
-            repo.git.fetch(
-                "--prune",
-                "--no-recurse-submodules",
-                "origin",
-                "+refs/heads/*:refs/heads/*",
-                "+refs/tags/*:refs/tags/*",
-                env=GIT_ENV,
-            )
-        else:
-            mirror.parent.mkdir(parents=True, exist_ok=True)
-            partial = mirror.with_name(mirror.name + ".partial")
-            shutil.rmtree(partial, ignore_errors=True)
-            git.Repo.clone_from(url, partial, mirror=True, env=GIT_ENV)
-            partial.rename(mirror)
-            repo = git.Repo(mirror)
-    except git.GitCommandError as err:
-        raise RepositoryError(url, f"could not be fetched: {_git_reason(err)}") from None
-    with repo:
-        commit = _resolve(repo, url, ref or "HEAD")
-        _export(repo, commit, "", dest, url)
-        return Source(url, commit, tree_digest(dest), _git_tree(repo, commit, ""), "", False)
+def _from_mirror(
+    source: str, ref: str | None, dest: Path, cache: Path, policy: FetchPolicy
+) -> Source:
+    fetched = fetch_commit(source, ref, cache, policy)
+    with git.Repo(fetched.mirror) as repo:
+        _export(repo, fetched.commit, "", dest, fetched.repository)
+        git_tree = _git_tree(repo, fetched.commit, "")
+    for sub in fetched.submodules:
+        if not (dest / sub.path).resolve().is_relative_to(dest.resolve()):
+            raise RepositoryError(fetched.repository, f"submodule path {sub.path!r} leaves it")
+        with git.Repo(sub.mirror) as repo:
+            _export(repo, sub.commit, "", dest / sub.path, sub.repository, into=True)
+    return Source(fetched.repository, fetched.commit, tree_digest(dest), git_tree, "", False)
 
 
 def _resolve(repo: git.Repo, source: str, ref: str) -> str:
     try:
         return str(repo.git.rev_parse("--verify", "--quiet", f"{ref}^{{commit}}"))
     except git.GitCommandError:
-        raise RepositoryError(source, f"has no commit, branch or tag {ref!r}") from None
+        raise RefNotFound(source, ref) from None
 
 
 def _git_tree(repo: git.Repo, commit: str, subdir: str) -> str | None:
@@ -174,7 +164,12 @@ def _git_tree(repo: git.Repo, commit: str, subdir: str) -> str | None:
         return None
 
 
-def _export(repo: git.Repo, commit: str, subdir: str, dest: Path, source: str) -> None:
+def _export(
+    repo: git.Repo, commit: str, subdir: str, dest: Path, source: str, *, into: bool = False
+) -> None:
+    """Extract ``commit``'s files (of ``subdir``) into ``dest``: a new folder, or with
+    ``into`` an existing one (a submodule's path, which the superproject's export made).
+    """
     buffer = io.BytesIO()
     try:
         repo.archive(buffer, commit, format="tar", path=subdir or None)
@@ -183,7 +178,7 @@ def _export(repo: git.Repo, commit: str, subdir: str, dest: Path, source: str) -
             source, f"could not export {commit[:12]}: {_git_reason(err)}"
         ) from None
     buffer.seek(0)
-    dest.mkdir(parents=True)
+    dest.mkdir(parents=True, exist_ok=into)
     prefix = f"{subdir}/" if subdir else ""
     with tarfile.open(fileobj=buffer) as archive:
         for member in archive.getmembers():

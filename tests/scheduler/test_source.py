@@ -81,7 +81,7 @@ def test_url_resolves_refs_to_commits(repo, tmp_path):
     assert (tmp_path / "b" / "c.py").read_text() == "print(1)\n"
     short = checkout(url, head.commit[:8], tmp_path / "c", cache)
     assert short.commit == head.commit and short.tree == head.tree
-    with pytest.raises(RepositoryError, match="has no commit, branch or tag 'nope'"):
+    with pytest.raises(RepositoryError, match="'nope' is not a branch, tag or commit of"):
         checkout(url, "nope", tmp_path / "d", cache)
 
 

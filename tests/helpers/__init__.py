@@ -1,0 +1,1 @@
+"""Test helpers shared by test modules: real git repositories and a git HTTP server."""

@@ -1,0 +1,336 @@
+"""Fetching under the lab's policy: refs to commits, the mirror cache, limits, credentials."""
+
+from __future__ import annotations
+
+import base64
+import os
+import socket
+import time
+from pathlib import Path
+
+import pytest
+
+from scheduler.errors import (
+    FetchTimeout,
+    RefNotFound,
+    RepositoryError,
+    SchemeNotAllowed,
+    SubmoduleNotAllowed,
+    TooLarge,
+    Unreachable,
+)
+from scheduler.fetch import (
+    Credential,
+    FetchPolicy,
+    Location,
+    git_environment,
+    mirror_path,
+    resolve,
+)
+from scheduler.source import checkout
+from tests.helpers.githttp import GitHttpServer, GitRepo
+
+TOKEN = "tok-3f9a2c71d0"
+SCHEMES = frozenset({"https", "http", "ssh", "git", "file"})
+POLICY = FetchPolicy(schemes=SCHEMES)
+MiB = 1024 * 1024
+
+
+@pytest.fixture
+def served(tmp_path) -> Path:
+    return tmp_path / "served"
+
+
+@pytest.fixture
+def robot(served) -> GitRepo:
+    """A controller repository: v1 prints 1, main (one commit later) prints 2."""
+    repo = GitRepo.create(served / "robot", {"lab.toml": "[controller]\n", "c.py": "print(1)\n"})
+    repo.tag("v1")
+    repo.commit({"c.py": "print(2)\n"}, "two")
+    return repo
+
+
+@pytest.fixture
+def server(served):
+    served.mkdir(parents=True, exist_ok=True)
+    with GitHttpServer(served, users={"bot": TOKEN}, private={"secret"}) as running:
+        yield running
+
+
+@pytest.fixture
+def cache(tmp_path) -> Path:
+    return tmp_path / "cache"
+
+
+def mirrors(cache: Path) -> list[str]:
+    folder = cache / "mirrors"
+    return sorted(p.name for p in folder.iterdir()) if folder.exists() else []
+
+
+def refs_of(repo: GitRepo) -> dict[str | None, str]:
+    head = repo.rev()
+    return {
+        "main": head,
+        "v1": repo.rev("v1"),
+        head[:7]: head,
+        repo.rev("v1"): repo.rev("v1"),
+        None: head,
+    }
+
+
+def test_local_path_resolves_branch_tag_short_and_full_commit_and_head(robot, cache):
+    """A local repository resolves every kind of ref to its full commit, and is public."""
+    for ref, commit in refs_of(robot).items():
+        resolved = resolve(f"{robot.path}/", ref, cache, POLICY)
+        assert resolved.commit == commit, ref
+        assert resolved.repository == str(robot.path.resolve())
+        assert resolved.ref == ref and resolved.public
+    assert mirrors(cache) == [mirror_path(cache, str(robot.path.resolve())).name]
+
+
+@pytest.mark.integration
+def test_http_resolves_branch_tag_short_and_full_commit_and_head(robot, server, cache):
+    """Over smart HTTP every kind of ref resolves too, and a public repository is public."""
+    for ref, commit in refs_of(robot).items():
+        resolved = resolve(server.url("robot") + "/", ref, cache, POLICY)
+        assert (resolved.commit, resolved.public) == (commit, True), ref
+        assert resolved.repository == server.url("robot")
+
+
+def test_a_local_repository_runs_from_the_mirror_not_the_folder(robot, cache, tmp_path):
+    """With the lab's policy the pinned commit is exported, even after the folder is gone."""
+    resolved = resolve(str(robot.path), "main", cache, POLICY)
+    (robot.path / "c.py").write_text("print('edited')\n")
+    robot.path.rename(tmp_path / "moved")
+    source = checkout(resolved.repository, resolved.commit, tmp_path / "out", cache, POLICY)
+    assert source.commit == resolved.commit and not source.dirty
+    assert (tmp_path / "out" / "c.py").read_text() == "print(2)\n"
+
+
+@pytest.mark.integration
+def test_a_pinned_commit_still_runs_after_its_branch_is_force_moved(robot, server, cache, tmp_path):
+    """After a force push and a refetch, the old commit exports from the mirror, offline."""
+    url = server.url("robot")
+    old = resolve(url, "main", cache, POLICY)
+    robot.git("reset", "-q", "--hard", "v1")
+    robot.commit({"c.py": "print(3)\n"}, "rewritten")
+    new = resolve(url, "main", cache, POLICY)
+    assert new.commit == robot.rev() != old.commit
+    mirror = mirror_path(cache, url)
+    assert robot.git("--git-dir", str(mirror), "rev-parse", "refs/heads/main") == new.commit
+    server.close()  # nothing below may need the network
+    source = checkout(url, old.commit, tmp_path / "old", cache, POLICY)
+    assert source.commit == old.commit
+    assert (tmp_path / "old" / "c.py").read_text() == "print(2)\n"
+
+
+@pytest.mark.integration
+def test_unreachable_repositories_say_so_and_leave_nothing(server, cache, tmp_path):
+    """A missing repository, a refused connection and a missing folder are Unreachable."""
+    with pytest.raises(Unreachable, match=r"could not be fetched \(.*\); check the URL"):
+        resolve(server.url("nothing-here"), None, cache, POLICY)
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        port = probe.getsockname()[1]
+    with pytest.raises(Unreachable, match=r"(?i)connect"):
+        resolve(f"http://127.0.0.1:{port}/robot", None, cache, POLICY)
+    with pytest.raises(Unreachable, match="no such folder"):
+        resolve(str(tmp_path / "nowhere"), None, cache, POLICY)
+    assert mirrors(cache) == []
+
+
+def test_a_ref_that_does_not_exist_is_named(robot, cache):
+    """A missing ref, or one that is an expression rather than a name, is RefNotFound."""
+    pattern = r"'nope' is not a branch, tag or commit of .*robot"
+    with pytest.raises(RefNotFound, match=pattern):
+        resolve(str(robot.path), "nope", cache, POLICY)
+    for ref in ("main~1", "-h", "main..v1", "HEAD@{1}", "0" * 40):
+        with pytest.raises(RefNotFound, match="is not a branch, tag or commit"):
+            resolve(str(robot.path), ref, cache, POLICY)
+
+
+def test_an_empty_repository_has_no_head(tmp_path, cache):
+    """A repository without commits says so, rather than failing on HEAD."""
+    empty = GitRepo.create(tmp_path / "empty")
+    with pytest.raises(RefNotFound, match="has no commits"):
+        resolve(str(empty.path), None, cache, POLICY)
+
+
+def test_schemes_outside_the_policy_are_refused_before_any_fetch(robot, cache):
+    """Schemes the operator did not list, transports and URLs with secrets are refused."""
+    with pytest.raises(
+        SchemeNotAllowed,
+        match="scheme 'ftp' is not allowed here; this lab accepts https, ssh, git URLs"
+        " and local paths",
+    ):
+        resolve("ftp://example.org/robot.git", None, cache, FetchPolicy())
+    with pytest.raises(SchemeNotAllowed, match="scheme 'http' is not allowed"):
+        resolve("http://127.0.0.1:9/robot", None, cache, FetchPolicy())
+    with pytest.raises(SchemeNotAllowed, match="scheme 'ext' is not allowed"):
+        resolve("ext::sh -c touch% /tmp/owned", None, cache, POLICY)
+    https_only = FetchPolicy(schemes=frozenset({"https"}))
+    with pytest.raises(SchemeNotAllowed, match="local paths and file:// URLs are not allowed"):
+        resolve(str(robot.path), None, cache, https_only)
+    with pytest.raises(
+        SchemeNotAllowed, match=r"file:// URLs are not allowed.*accepts https URLs$"
+    ):
+        resolve(robot.url, None, cache, https_only)
+    with pytest.raises(SchemeNotAllowed, match="scheme 'ssh'"):
+        resolve("git@example.org:team/robot.git", None, cache, https_only)
+    with pytest.raises(RepositoryError, match="user name or password") as caught:
+        resolve(f"https://bot:{TOKEN}@example.org/robot.git", None, cache, POLICY)
+    assert TOKEN not in str(caught.value)
+    assert not cache.exists()
+
+
+def big_repository(path: Path, megabytes: int) -> GitRepo:
+    return GitRepo.create(path, {"lab.toml": "", "blob.bin": os.urandom(megabytes * MiB)})
+
+
+def test_a_new_mirror_over_the_size_limit_leaves_nothing(tmp_path, cache):
+    """A repository over max_bytes is TooLarge and leaves no mirror, partial or whole."""
+    repo = big_repository(tmp_path / "big", 8)
+    policy = FetchPolicy(schemes=SCHEMES, max_bytes=1 * MiB)
+    with pytest.raises(TooLarge, match=r"larger than this lab's limit of 1\.0 MiB"):
+        resolve(str(repo.path), None, cache, policy)
+    assert mirrors(cache) == []
+
+
+def test_an_update_over_the_size_limit_keeps_the_old_mirror_usable(tmp_path, cache):
+    """When an update is too large, the commits fetched before still check out."""
+    repo = GitRepo.create(tmp_path / "grows", {"lab.toml": "", "c.py": "print(1)\n"})
+    policy = FetchPolicy(schemes=SCHEMES, max_bytes=1 * MiB)
+    before = resolve(str(repo.path), None, cache, policy)
+    repo.commit({"blob.bin": os.urandom(8 * MiB)}, "big")
+    with pytest.raises(TooLarge):
+        resolve(str(repo.path), None, cache, policy)
+    mirror = mirror_path(cache, before.repository)
+    leftovers = [p.name for p in mirror.rglob("*") if p.name.startswith("tmp_")]
+    assert leftovers == [] and list(mirror.rglob("*.lock")) == []
+    source = checkout(before.repository, before.commit, tmp_path / "out", cache, policy)
+    assert (tmp_path / "out" / "c.py").read_text() == "print(1)\n"
+    assert source.commit == before.commit
+
+
+@pytest.mark.integration
+def test_a_server_that_stalls_hits_the_time_limit(server, cache):
+    """A fetch that gets no answer is stopped at the time limit, and leaves nothing."""
+    policy = FetchPolicy(schemes=SCHEMES, timeout=0.5)
+    started = time.monotonic()
+    with pytest.raises(FetchTimeout, match=r"took longer than this lab's limit of 0\.5 s"):
+        resolve(server.stalled_url(), None, cache, policy)
+    assert time.monotonic() - started < 10
+    assert mirrors(cache) == []
+
+
+def files_holding(folder: Path, secrets: list[bytes]) -> list[str]:
+    found = []
+    for path in folder.rglob("*"):
+        if path.is_file() and any(secret in path.read_bytes() for secret in secrets):
+            found.append(str(path))
+    return found
+
+
+@pytest.mark.integration
+def test_a_private_repository_needs_the_lab_token_which_stays_out_of_everything(
+    robot, served, server, cache, tmp_path
+):
+    """A token opens a private repository (not public); it is in no file, record or message."""
+    secret = GitRepo.create(served / "secret", {"lab.toml": "", "c.py": "print('s')\n"})
+    url = server.url("secret")
+    with pytest.raises(Unreachable, match="private and this lab has no credential") as caught:
+        resolve(url, None, cache, POLICY)
+    assert caught.value.auth
+    wrong = FetchPolicy(
+        schemes=SCHEMES,
+        credentials=(Credential(server.url(""), token="not-" + TOKEN, username="bot"),),
+    )
+    with pytest.raises(Unreachable, match="no credential") as caught:
+        resolve(url, None, cache, wrong)
+    assert "not-" + TOKEN not in str(caught.value)
+    policy = FetchPolicy(
+        schemes=SCHEMES, credentials=(Credential(server.url(""), token=TOKEN, username="bot"),)
+    )
+    resolved = resolve(url, "main", cache, policy)
+    assert resolved.commit == secret.rev() and not resolved.public
+    source = checkout(url, resolved.commit, tmp_path / "out", cache, policy)
+    assert (tmp_path / "out" / "c.py").read_text() == "print('s')\n"
+    basic = base64.b64encode(f"bot:{TOKEN}".encode())
+    assert files_holding(tmp_path, [TOKEN.encode(), basic]) == []
+    assert TOKEN not in repr(resolved) + repr(source) + repr(policy)
+    assert any(r.user == "bot" for r in server.requests)
+    # The token goes only where it is needed: a public repository is fetched without it.
+    server.requests.clear()
+    assert resolve(server.url("robot"), None, cache, policy).public
+    assert server.requests and not any(r.authorization for r in server.requests)
+
+
+@pytest.mark.integration
+def test_submodules_are_followed_only_from_the_allow_list(served, server, cache, tmp_path):
+    """A submodule outside the allow-list is refused by name; an allowed one is exported."""
+    lib = GitRepo.create(served / "lib", {"lib.py": "VALUE = 7\n"})
+    robot = GitRepo.create(served / "parent", {"lab.toml": "", "c.py": "import lib\n"})
+    robot.add_submodule("vendor/lib", "../lib", lib.rev())
+    url = server.url("parent")
+    with pytest.raises(
+        SubmoduleNotAllowed,
+        match=r"submodule 'vendor/lib' \(http://127.0.0.1:\d+/lib\) is not allowed here; this"
+        " lab follows no submodules",
+    ):
+        resolve(url, None, cache, POLICY)
+    elsewhere = FetchPolicy(schemes=SCHEMES, submodules=("https://example.org/",))
+    with pytest.raises(SubmoduleNotAllowed, match=r"only from https://example\.org/\. Copy"):
+        resolve(url, None, cache, elsewhere)
+    allowed = FetchPolicy(schemes=SCHEMES, submodules=(server.url(""),))
+    resolved = resolve(url, None, cache, allowed)
+    assert resolved.commit == robot.rev() and resolved.public
+    lib.commit({"lib.py": "VALUE = 8\n"})  # the submodule's pin, not its branch, is run
+    source = checkout(url, resolved.commit, tmp_path / "out", cache, allowed)
+    assert (tmp_path / "out" / "vendor" / "lib" / "lib.py").read_text() == "VALUE = 7\n"
+    assert source.commit == resolved.commit
+
+
+def test_no_hooks_run_while_fetching(tmp_path, cache):
+    """Hooks in the mirror (which git would run on ref updates) never run while fetching."""
+    repo = GitRepo.create(tmp_path / "hooked", {"lab.toml": ""})
+    resolved = resolve(str(repo.path), None, cache, POLICY)
+    mirror = mirror_path(cache, resolved.repository)
+    marker = tmp_path / "hook-ran"
+    hook = mirror / "hooks" / "reference-transaction"
+    hook.parent.mkdir(exist_ok=True)
+    hook.write_text(f"#!/bin/sh\necho ran >> {marker}\n")
+    hook.chmod(0o755)
+    repo.git("--git-dir", str(mirror), "update-ref", "refs/probe", resolved.commit)
+    assert marker.exists(), "the hook must be live, or this test proves nothing"
+    marker.unlink()
+    repo.commit({"c.py": "print(1)\n"})
+    assert resolve(str(repo.path), None, cache, POLICY).commit == repo.rev()
+    assert not marker.exists()
+
+
+def test_credentials_reach_only_their_urls_through_git_config_in_the_environment():
+    """A token becomes an extraHeader for its prefix only; an ssh key, a strict ssh command."""
+    policy = FetchPolicy(
+        credentials=(
+            Credential("https://git.example.org/team/", token=TOKEN),
+            Credential("git@git.example.org:", ssh_key=Path("/keys/deploy key")),
+        )
+    )
+    team = Location("https://git.example.org/team/robot", "https")
+    env = git_environment(team, policy, policy.credential_for(team))
+    config = {
+        env[f"GIT_CONFIG_KEY_{i}"]: env[f"GIT_CONFIG_VALUE_{i}"]
+        for i in range(int(env["GIT_CONFIG_COUNT"]))
+    }
+    basic = base64.b64encode(f"x-access-token:{TOKEN}".encode()).decode()
+    header = config["http.https://git.example.org/team/robot.extraHeader"]
+    assert header == f"Authorization: Basic {basic}"
+    assert config["protocol.allow"] == "never" and config["core.hooksPath"] == "/dev/null"
+    assert env["GIT_CONFIG_GLOBAL"] == "/dev/null" and env["GIT_TERMINAL_PROMPT"] == "0"
+    other = Location("https://git.example.org/others/robot", "https")
+    assert policy.credential_for(other) is None
+    ssh = Location("git@git.example.org:team/robot.git", "ssh")
+    command = git_environment(ssh, policy, policy.credential_for(ssh))["GIT_SSH_COMMAND"]
+    assert "-i '/keys/deploy key'" in command
+    assert "IdentitiesOnly=yes" in command and "BatchMode=yes" in command
+    assert TOKEN not in repr(policy) and TOKEN not in str(git_environment(other, policy, None))
