@@ -89,7 +89,7 @@ class Lab:
         command = [
             sys.executable, "-m", "labd", "serve", "--data", str(self.data),
             "--cache", str(self.cache), "--http-port", "0", "--bridge-port", "0",
-            "--no-robots", "--no-playground", "--workers", "1", "--sandbox", "bwrap",
+            "--no-robots", "--workers", "1", "--sandbox", "bwrap",
             "--lease", "3",
         ]  # fmt: skip
         self.process = subprocess.Popen(
@@ -109,7 +109,8 @@ class Lab:
                 lines.put(line)
             lines.put("")
 
-        threading.Thread(target=read, daemon=True).start()
+        self.reader = threading.Thread(target=read, daemon=True)
+        self.reader.start()
         deadline = time.monotonic() + 300
         while time.monotonic() < deadline:
             line = lines.get(timeout=max(0.1, deadline - time.monotonic()))
@@ -125,6 +126,12 @@ class Lab:
         assert self.process is not None
         self.process.send_signal(signal.SIGKILL)
         self.process.wait(10)
+        self._closed()
+
+    def _closed(self) -> None:
+        assert self.process is not None and self.process.stdout is not None
+        self.reader.join(30)
+        self.process.stdout.close()
 
     def stop(self) -> None:
         if self.process is not None and self.process.poll() is None:
@@ -134,6 +141,7 @@ class Lab:
             except subprocess.TimeoutExpired:
                 os.killpg(self.process.pid, signal.SIGKILL)
                 self.process.wait(10)
+            self._closed()
 
     def labd(self, *args: str, check: bool = True) -> subprocess.CompletedProcess[str]:
         env = {**os.environ, "LABD_SERVER": self.server, "LABD_TOKEN": self.token}
