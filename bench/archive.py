@@ -33,6 +33,7 @@ from pathlib import Path
 from typing import Any
 
 import httpx
+import sqlalchemy as sa
 
 from labd.api.app import create_app
 from labd.api.server import HttpServer
@@ -59,7 +60,9 @@ with Lab.connect() as lab:
 
 
 def synthetic(n: int, rng: random.Random) -> list[dict[str, Any]]:
-    repos = [f"https://git.example.org/group{g}/controller{r}.git" for g in range(50) for r in range(20)]
+    repos = [
+        f"https://git.example.org/group{g}/controller{r}.git" for g in range(50) for r in range(20)
+    ]
     commits = [f"{rng.getrandbits(160):040x}" for _ in range(n // 10)]
     users = [f"user{u}" for u in range(200)]
     start = 1.7e9
@@ -127,9 +130,7 @@ def bench_index(url: str, n: int, repeat: int, rng: random.Random) -> dict[str, 
         "baseline: one trial by id": lambda: index.trial(rng.randrange(1, n)),
         "commit page": lambda: index.commit_page(rng.choice(commits)),
         "commit page by 8-digit prefix": lambda: index.commit_page(rng.choice(commits)[:8]),
-        "list: status + task": lambda: index.find(
-            Filters(status="failed", task=rng.choice(TASKS))
-        ),
+        "list: status + task": lambda: index.find(Filters(status="failed", task=rng.choice(TASKS))),
         "list: user": lambda: index.find(Filters(submitter=rng.choice(users))),
         "list: repository": lambda: index.find(Filters(repository=rng.choice(repos))),
         "list: user + time range": lambda: index.find(
@@ -158,7 +159,13 @@ def make_repo(path: Path) -> Path:
     path.mkdir(parents=True)
     (path / "lab.toml").write_text('[controller]\ncommand = ["python", "c.py"]\n')
     (path / "c.py").write_text(CONTROLLER)
-    env = {**os.environ, "GIT_AUTHOR_NAME": "b", "GIT_AUTHOR_EMAIL": "b@x", "GIT_COMMITTER_NAME": "b", "GIT_COMMITTER_EMAIL": "b@x"}
+    env = {
+        **os.environ,
+        "GIT_AUTHOR_NAME": "b",
+        "GIT_AUTHOR_EMAIL": "b@x",
+        "GIT_COMMITTER_NAME": "b",
+        "GIT_COMMITTER_EMAIL": "b@x",
+    }
     for args in (["init", "-q", "-b", "main"], ["add", "-A"], ["commit", "-q", "-m", "c"]):
         subprocess.run(["git", "-C", str(path), *args], check=True, env=env)
     return path
@@ -217,7 +224,9 @@ async def bench_service(folder: Path, trials: int, sandbox: str | None) -> dict[
             out[f"trials_per_minute_{workers}_workers"] = trials / elapsed * 60
         await http.close()
         await service.close()
-    out["speedup_2_workers"] = out["trials_per_minute_2_workers"] / out["trials_per_minute_1_workers"]
+    out["speedup_2_workers"] = (
+        out["trials_per_minute_2_workers"] / out["trials_per_minute_1_workers"]
+    )
     return out
 
 
@@ -268,7 +277,11 @@ def main() -> None:
         r = report[db]
         print(f"index on {db}: {r['records']:,} records (loaded in {r['load_seconds']:.1f} s)")
         for name, q in r["queries"].items():
-            mark = "" if name.startswith("baseline") else ("  ok" if q["p95_ms"] < 50 else "  OVER 50 ms")
+            mark = (
+                ""
+                if name.startswith("baseline")
+                else ("  ok" if q["p95_ms"] < 50 else "  OVER 50 ms")
+            )
             print(
                 f"  {name:<34} p50 {q['p50_ms']:7.2f} ms  p95 {q['p95_ms']:7.2f} ms"
                 f"  ({q['p95_ratio']:5.1f}x baseline){mark}"
@@ -282,14 +295,13 @@ def main() -> None:
             + ("  ok" if s["submit_to_running_s"] < 2 else "  OVER 2 s")
         )
         print(
-            f"  trials per minute, 2 s maze episodes: 1 worker {s['trials_per_minute_1_workers']:.1f},"
+            "  trials per minute, 2 s maze episodes:"
+            f" 1 worker {s['trials_per_minute_1_workers']:.1f},"
             f" 2 workers {s['trials_per_minute_2_workers']:.1f} ({s['speedup_2_workers']:.2f}x)"
         )
 
 
 def bench_postgres(admin_url: str, n: int, repeat: int, rng: random.Random) -> dict[str, Any]:
-    import sqlalchemy as sa
-
     name = f"labd_bench_{os.getpid()}"
     admin = sa.create_engine(admin_url, isolation_level="AUTOCOMMIT")
     with admin.connect() as db:

@@ -32,10 +32,10 @@ from labd.commands import demo, remote, run, users
 from labd.config import DEFAULT_ROBOTS, BridgeConfig, LabConfig, RobotConfig
 from labd.errors import LabError
 from labd.lab import Lab
-from labd.sim import registry
 from labd.service import ServiceConfig
+from labd.sim import registry
 from labd.sim.params import parse_assignments
-from scheduler.fetch import FetchPolicy
+from scheduler.fetch import Credential, FetchPolicy
 from scheduler.queue import QueueConfig
 from scheduler.runner import RunOptions
 
@@ -132,6 +132,21 @@ def build_parser() -> argparse.ArgumentParser:
         help="submodules whose URL starts with this may be followed (repeatable)",
     )
     service.add_argument(
+        "--git-token",
+        action="append",
+        default=[],
+        metavar="URL_PREFIX=FILE",
+        help="for private https repositories under URL_PREFIX: a token, read from FILE "
+        "(repeatable); git alone sees it, never a controller",
+    )
+    service.add_argument(
+        "--git-ssh-key",
+        action="append",
+        default=[],
+        metavar="URL_PREFIX=KEYFILE",
+        help="for private ssh repositories under URL_PREFIX: a deploy key (repeatable)",
+    )
+    service.add_argument(
         "--cache", type=Path, help="git mirrors and controller runtimes (default DATA/cache)"
     )
     service.add_argument("--no-service", action="store_true", help="no HTTP API, no workers")
@@ -171,7 +186,21 @@ def service_config(args: argparse.Namespace) -> ServiceConfig | None:
     if args.no_service:
         return None
     defaults = FetchPolicy()
+    credentials = []
+    for item in args.git_token:
+        prefix, file = _pair(item, "--git-token", "URL_PREFIX=FILE")
+        try:
+            token = Path(file).read_text().strip()
+        except OSError as err:
+            raise SystemExit(f"labd serve: --git-token {prefix}: {err}") from None
+        credentials.append(Credential(prefix, token=token))
+    for item in args.git_ssh_key:
+        prefix, file = _pair(item, "--git-ssh-key", "URL_PREFIX=KEYFILE")
+        if not Path(file).is_file():
+            raise SystemExit(f"labd serve: --git-ssh-key {prefix}: no key file {file}")
+        credentials.append(Credential(prefix, ssh_key=Path(file).resolve()))
     fetch = FetchPolicy(
+        credentials=tuple(credentials),
         schemes=frozenset(args.schemes) if args.schemes else defaults.schemes,
         max_bytes=args.max_repo_mb * 1024 * 1024,
         timeout=args.fetch_timeout,
@@ -189,6 +218,13 @@ def service_config(args: argparse.Namespace) -> ServiceConfig | None:
         fetch=fetch,
         run=RunOptions(fetch=fetch),
     )
+
+
+def _pair(item: str, flag: str, form: str) -> tuple[str, str]:
+    prefix, sep, value = item.rpartition("=")
+    if not sep or not prefix or not value:
+        raise SystemExit(f"labd serve: {flag} takes {form}, got {item!r}")
+    return prefix, value
 
 
 def bridge_config(args: argparse.Namespace) -> BridgeConfig:

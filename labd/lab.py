@@ -56,9 +56,7 @@ class Lab:
         self.http: HttpServer | None = None
         if config.service is not None:
             self.service = Service(config.service, self.types)
-            self.http = HttpServer(
-                create_app(self.service), config.bridge.host, config.http_port
-            )
+            self.http = HttpServer(create_app(self.service), config.bridge.host, config.http_port)
 
     async def start(self) -> None:
         for name, robot in self.robots.items():

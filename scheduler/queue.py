@@ -109,9 +109,7 @@ class Queue:
         Returns the trial's status after the call. Only the submitter may cancel.
         """
         with self.index.begin() as db:
-            row = db.execute(
-                sa.select(T.c.status, T.c.submitter).where(T.c.id == trial_id)
-            ).first()
+            row = db.execute(sa.select(T.c.status, T.c.submitter).where(T.c.id == trial_id)).first()
             if row is None:
                 raise QueueError(f"no trial {trial_id}")
             if row.submitter != user.name:

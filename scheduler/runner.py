@@ -85,6 +85,7 @@ class TrialResult:
     wall_seconds: float = 0.0
     start_seconds: float | None = None  # from starting the sandbox to the first /lab/step
     run_seconds: float | None = None  # from the first /lab/step to the end
+    digest_topics: list[str] = field(default_factory=list)  # what data_digest covers
 
     @property
     def mcap(self) -> Path | None:
@@ -296,6 +297,7 @@ class _Trial:
                 result.run_seconds = round(now - self.first_step, 4)
             summary = recorder.finish(attachments=self._attachments(manifest, exit_, result))
             result.data_digest = summary.data_digest
+            result.digest_topics = sorted(self.digest_topics())
             self.robot.close()
             self.rosapi.close()
         return result

@@ -101,7 +101,14 @@ class Submissions:
             task,
         )
         return Submitted(
-            trial_id, resolved.repository, ref, resolved.commit, task, checked, seed, resolved.public
+            trial_id,
+            resolved.repository,
+            ref,
+            resolved.commit,
+            task,
+            checked,
+            seed,
+            resolved.public,
         )
 
     def rerun(self, user: User, trial_id: int) -> Submitted:

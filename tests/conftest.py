@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import asyncio
+import os
+import secrets
 import threading
 from collections.abc import Callable, Iterator
 from concurrent.futures import Future
@@ -10,6 +12,7 @@ from typing import Any, TypeVar
 
 import orjson
 import pytest
+import sqlalchemy as sa
 
 from labd.bridge.ops import CAPABILITIES
 from labd.bridge.rosapi import Rosapi
@@ -188,11 +191,6 @@ def database_url(request: pytest.FixtureRequest, tmp_path: Any) -> Iterator[str]
     if request.param == "sqlite":
         yield f"sqlite:///{tmp_path / 'index.sqlite'}"
         return
-    import os
-    import secrets
-
-    import sqlalchemy as sa
-
     admin_url = os.environ.get("LABD_TEST_POSTGRES_URL")
     if not admin_url:
         if os.environ.get("CI"):

@@ -17,15 +17,15 @@ token, sent as ``Authorization: Bearer TOKEN``; ``labd users add NAME`` prints o
 Errors are ``{"error": "what went wrong and what to do"}`` with a 4xx status.
 """
 
-# No "from __future__ import annotations": FastAPI reads the annotations of the
-# handlers defined inside create_app at run time, and they name local dependencies.
+from __future__ import annotations
 
 import datetime as dt
 import logging
 from collections.abc import Callable, Iterator
+from dataclasses import dataclass
 from typing import Annotated, Any
 
-from fastapi import Depends, FastAPI, Query, Request
+from fastapi import APIRouter, Depends, FastAPI, Query, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse, StreamingResponse
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
@@ -70,183 +70,208 @@ def create_app(service: Service, *, on_submit: Callable[[], None] | None = None)
         version=__version__,
         description="A remote robot lab: submit controllers by git URL, browse the archive.",
     )
-    index = service.index
-    queued = on_submit or service.wake
-
-    @app.exception_handler(ApiError)
-    async def api_error(_: Request, err: ApiError) -> JSONResponse:
-        return JSONResponse({"error": err.message}, status_code=err.status)
-
-    @app.exception_handler(RequestValidationError)
-    async def invalid(_: Request, err: RequestValidationError) -> JSONResponse:
-        problems = list(err.errors())
-        if any(p.get("type") == "json_invalid" for p in problems):
-            return JSONResponse(
-                {"error": "the request body is not valid JSON"}, status_code=400
-            )
-        parts = []
-        for p in problems:
-            where = ".".join(str(x) for x in p.get("loc", ()) if x != "body")
-            parts.append(f"{where}: {p.get('msg', 'invalid')}" if where else p.get("msg", ""))
-        return JSONResponse({"error": "; ".join(parts)}, status_code=422)
-
-    def writer(
-        credentials: Annotated[HTTPAuthorizationCredentials | None, Depends(bearer)],
-    ) -> User:
-        if credentials is None:
-            raise ApiError(
-                401,
-                "this needs a token: send Authorization: Bearer TOKEN "
-                "(the operator makes one with `labd users add NAME`; "
-                "labd commands take --token or LABD_TOKEN)",
-            )
-        user = index.user_by_token(credentials.credentials)
-        if user is None:
-            raise ApiError(401, "the token is not valid here; ask the operator for a new one")
-        return user
-
-    def base(request: Request) -> str:
-        return str(request.base_url).rstrip("/")
-
-    def one(trial_id: int) -> dict[str, Any]:
-        try:
-            return index.trial(trial_id)
-        except RecordNotFound as err:
-            raise ApiError(404, str(err)) from None
-
-    @app.get("/api/tasks", tags=["tasks"])
-    def tasks() -> dict[str, Any]:
-        """The tasks a trial can run, with their parameters."""
-        return {"tasks": [views.task(name) for name in registry.names()]}
-
-    @app.post("/api/trials", status_code=201, tags=["trials"])
-    def submit(
-        body: SubmitRequest, request: Request, user: Annotated[User, Depends(writer)]
-    ) -> JSONResponse:
-        """Resolve the ref to a commit now, and queue a trial of that commit."""
-        try:
-            done = service.submissions.submit(
-                user,
-                repository=body.repository,
-                ref=body.ref,
-                task=body.task,
-                params=body.params,
-                seed=body.seed,
-            )
-        except (InvalidRequest, RepositoryError, QuotaExceeded) as err:
-            raise _error(err) from None
-        queued()
-        row = views.trial(index.trial(done.id), base=base(request))
-        return JSONResponse(row, status_code=201, headers={"Location": row["url"]})
-
-    @app.get("/api/trials", tags=["trials"])
-    def list_trials(
-        request: Request,
-        repository: str | None = None,
-        commit: str | None = None,
-        task: str | None = None,
-        status: Annotated[str | None, Query(description=" | ".join(STATUSES))] = None,
-        user: str | None = None,
-        since: dt.datetime | None = None,
-        until: dt.datetime | None = None,
-        rerun_of: int | None = None,
-        limit: Annotated[int, Query(ge=1, le=500)] = 50,
-        before: Annotated[int | None, Query(description="the `next` of the page before")] = None,
-    ) -> dict[str, Any]:
-        """Trials, newest first, a page at a time."""
-        filters = Filters(
-            repository=repository,
-            commit=commit,
-            task=task,
-            status=status,
-            submitter=user,
-            since=_epoch(since),
-            until=_epoch(until),
-            rerun_of=rerun_of,
-        )
-        try:
-            page = index.find(filters, limit=limit, before=before)
-        except ArchiveError as err:
-            raise ApiError(422, str(err)) from None
-        link = base(request)
-        return {"trials": [views.trial(r, base=link) for r in page.items], "next": page.next}
-
-    @app.get("/api/trials/{trial_id}", tags=["trials"])
-    def show(trial_id: int, request: Request) -> dict[str, Any]:
-        """One trial: what was asked, where it is, what came out, its manifest."""
-        return views.trial(one(trial_id), base=base(request), full=True)
-
-    @app.get("/api/trials/{trial_id}/data.mcap", tags=["data"])
-    def data(trial_id: int) -> StreamingResponse:
-        """The trial's MCAP record, checked against its digest before it is sent."""
-        row = one(trial_id)
-        if not row["mcap"]:
-            raise ApiError(404, f"trial {trial_id} has no record ({row['status']})")
-        return _blob(service, row["mcap"], "application/x-mcap", f"trial-{trial_id}.mcap")
-
-    @app.get("/api/trials/{trial_id}/logs/{stream}", tags=["data"])
-    def logs(trial_id: int, stream: str) -> StreamingResponse:
-        """The controller's ``stdout`` or ``stderr``."""
-        if stream not in ("stdout", "stderr"):
-            raise ApiError(404, "logs are stdout or stderr")
-        row = one(trial_id)
-        if not row[stream]:
-            raise ApiError(404, f"trial {trial_id} has no {stream} log")
-        return _blob(service, row[stream], "text/plain; charset=utf-8", None)
-
-    @app.post("/api/trials/{trial_id}/rerun", status_code=201, tags=["trials"])
-    def rerun(
-        trial_id: int, request: Request, user: Annotated[User, Depends(writer)]
-    ) -> JSONResponse:
-        """Queue a new trial from the same commit, task, parameters and seed."""
-        one(trial_id)
-        try:
-            done = service.submissions.rerun(user, trial_id)
-        except QuotaExceeded as err:
-            raise _error(err) from None
-        queued()
-        row = views.trial(index.trial(done.id), base=base(request))
-        return JSONResponse(row, status_code=201, headers={"Location": row["url"]})
-
-    @app.post("/api/trials/{trial_id}/cancel", tags=["trials"])
-    def cancel(
-        trial_id: int, request: Request, user: Annotated[User, Depends(writer)]
-    ) -> dict[str, Any]:
-        """Cancel a queued trial, or stop a running one (its worker ends it shortly)."""
-        one(trial_id)
-        try:
-            service.queue.cancel(trial_id, user)
-        except QueueError as err:
-            raise ApiError(403, str(err)) from None
-        return views.trial(index.trial(trial_id), base=base(request))
-
-    @app.get("/api/commits/{sha}", tags=["archive"])
-    def commit(sha: str, request: Request) -> dict[str, Any]:
-        """A commit's trials (newest first), each with its reruns and their verdicts."""
-        try:
-            page = index.commit_page(sha)
-        except RecordNotFound as err:
-            raise ApiError(404, str(err)) from None
-        except ArchiveError as err:
-            raise ApiError(422, str(err)) from None
-        link = base(request)
-        return {
-            "commit": page["commit"],
-            "repositories": page["repositories"],
-            "trials": [
-                {
-                    **views.trial(row, base=link),
-                    "reruns": [
-                        views.trial(r, base=link) for r in page["reruns"].get(row["id"], [])
-                    ],
-                }
-                for row in page["trials"]
-            ],
-            "rerun_counts": page["rerun_counts"],
-            "truncated": page["truncated"],
-        }
-
+    app.state.service = service
+    app.state.on_submit = on_submit or service.wake
+    app.add_exception_handler(ApiError, _api_error)  # type: ignore[arg-type]
+    app.add_exception_handler(RequestValidationError, _invalid)  # type: ignore[arg-type]
+    app.include_router(router)
     return app
+
+
+router = APIRouter()
+
+
+async def _api_error(_: Request, err: ApiError) -> JSONResponse:
+    return JSONResponse({"error": err.message}, status_code=err.status)
+
+
+async def _invalid(_: Request, err: RequestValidationError) -> JSONResponse:
+    problems = list(err.errors())
+    if any(p.get("type") == "json_invalid" for p in problems):
+        return JSONResponse({"error": "the request body is not valid JSON"}, status_code=400)
+    parts = []
+    for p in problems:
+        where = ".".join(str(x) for x in p.get("loc", ()) if x != "body")
+        parts.append(f"{where}: {p.get('msg', 'invalid')}" if where else p.get("msg", ""))
+    return JSONResponse({"error": "; ".join(parts)}, status_code=422)
+
+
+def _service(request: Request) -> Service:
+    service: Service = request.app.state.service
+    return service
+
+
+Lab = Annotated[Service, Depends(_service)]
+
+
+def _writer(
+    service: Lab,
+    credentials: Annotated[HTTPAuthorizationCredentials | None, Depends(bearer)],
+) -> User:
+    if credentials is None:
+        raise ApiError(
+            401,
+            "this needs a token: send Authorization: Bearer TOKEN "
+            "(the operator makes one with `labd users add NAME`; "
+            "labd commands take --token or LABD_TOKEN)",
+        )
+    user = service.index.user_by_token(credentials.credentials)
+    if user is None:
+        raise ApiError(401, "the token is not valid here; ask the operator for a new one")
+    return user
+
+
+Writer = Annotated[User, Depends(_writer)]
+
+
+def _base(request: Request) -> str:
+    return str(request.base_url).rstrip("/")
+
+
+def _one(service: Service, trial_id: int) -> dict[str, Any]:
+    try:
+        return service.index.trial(trial_id)
+    except RecordNotFound as err:
+        raise ApiError(404, str(err)) from None
+
+
+@dataclass(frozen=True)
+class TrialQuery:
+    """The filters of GET /api/trials."""
+
+    repository: str | None = None
+    commit: str | None = None
+    task: str | None = None
+    status: Annotated[str | None, Query(description=" | ".join(STATUSES))] = None
+    user: str | None = None
+    since: dt.datetime | None = None
+    until: dt.datetime | None = None
+    rerun_of: int | None = None
+    limit: Annotated[int, Query(ge=1, le=500)] = 50
+    before: Annotated[int | None, Query(description="the `next` of the page before")] = None
+
+
+@router.get("/api/tasks", tags=["tasks"])
+def tasks() -> dict[str, Any]:
+    """The tasks a trial can run, with their parameters."""
+    return {"tasks": [views.task(name) for name in registry.names()]}
+
+
+@router.post("/api/trials", status_code=201, tags=["trials"])
+def submit(body: SubmitRequest, request: Request, service: Lab, user: Writer) -> JSONResponse:
+    """Resolve the ref to a commit now, and queue a trial of that commit."""
+    try:
+        done = service.submissions.submit(
+            user,
+            repository=body.repository,
+            ref=body.ref,
+            task=body.task,
+            params=body.params,
+            seed=body.seed,
+        )
+    except (InvalidRequest, RepositoryError, QuotaExceeded) as err:
+        raise _error(err) from None
+    request.app.state.on_submit()
+    row = views.trial(service.index.trial(done.id), base=_base(request))
+    return JSONResponse(row, status_code=201, headers={"Location": row["url"]})
+
+
+@router.get("/api/trials", tags=["trials"])
+def list_trials(
+    request: Request, service: Lab, q: Annotated[TrialQuery, Depends()]
+) -> dict[str, Any]:
+    """Trials, newest first, a page at a time."""
+    filters = Filters(
+        repository=q.repository,
+        commit=q.commit,
+        task=q.task,
+        status=q.status,
+        submitter=q.user,
+        since=_epoch(q.since),
+        until=_epoch(q.until),
+        rerun_of=q.rerun_of,
+    )
+    try:
+        page = service.index.find(filters, limit=q.limit, before=q.before)
+    except ArchiveError as err:
+        raise ApiError(422, str(err)) from None
+    link = _base(request)
+    return {"trials": [views.trial(r, base=link) for r in page.items], "next": page.next}
+
+
+@router.get("/api/trials/{trial_id}", tags=["trials"])
+def show(trial_id: int, request: Request, service: Lab) -> dict[str, Any]:
+    """One trial: what was asked, where it is, what came out, its manifest."""
+    return views.trial(_one(service, trial_id), base=_base(request), full=True)
+
+
+@router.get("/api/trials/{trial_id}/data.mcap", tags=["data"])
+def data(trial_id: int, service: Lab) -> StreamingResponse:
+    """The trial's MCAP record, checked against its digest before it is sent."""
+    row = _one(service, trial_id)
+    if not row["mcap"]:
+        raise ApiError(404, f"trial {trial_id} has no record ({row['status']})")
+    return _blob(service, row["mcap"], "application/x-mcap", f"trial-{trial_id}.mcap")
+
+
+@router.get("/api/trials/{trial_id}/logs/{stream}", tags=["data"])
+def logs(trial_id: int, stream: str, service: Lab) -> StreamingResponse:
+    """The controller's ``stdout`` or ``stderr``."""
+    if stream not in ("stdout", "stderr"):
+        raise ApiError(404, "logs are stdout or stderr")
+    row = _one(service, trial_id)
+    if not row[stream]:
+        raise ApiError(404, f"trial {trial_id} has no {stream} log")
+    return _blob(service, row[stream], "text/plain; charset=utf-8", None)
+
+
+@router.post("/api/trials/{trial_id}/rerun", status_code=201, tags=["trials"])
+def rerun(trial_id: int, request: Request, service: Lab, user: Writer) -> JSONResponse:
+    """Queue a new trial from the same commit, task, parameters and seed."""
+    _one(service, trial_id)
+    try:
+        done = service.submissions.rerun(user, trial_id)
+    except QuotaExceeded as err:
+        raise _error(err) from None
+    request.app.state.on_submit()
+    row = views.trial(service.index.trial(done.id), base=_base(request))
+    return JSONResponse(row, status_code=201, headers={"Location": row["url"]})
+
+
+@router.post("/api/trials/{trial_id}/cancel", tags=["trials"])
+def cancel(trial_id: int, request: Request, service: Lab, user: Writer) -> dict[str, Any]:
+    """Cancel a queued trial, or stop a running one (its worker ends it shortly)."""
+    _one(service, trial_id)
+    try:
+        service.queue.cancel(trial_id, user)
+    except QueueError as err:
+        raise ApiError(403, str(err)) from None
+    return views.trial(service.index.trial(trial_id), base=_base(request))
+
+
+@router.get("/api/commits/{sha}", tags=["archive"])
+def commit(sha: str, request: Request, service: Lab) -> dict[str, Any]:
+    """A commit's trials (newest first), each with its reruns and their verdicts."""
+    try:
+        page = service.index.commit_page(sha)
+    except RecordNotFound as err:
+        raise ApiError(404, str(err)) from None
+    except ArchiveError as err:
+        raise ApiError(422, str(err)) from None
+    link = _base(request)
+    return {
+        "commit": page["commit"],
+        "repositories": page["repositories"],
+        "trials": [
+            {
+                **views.trial(row, base=link),
+                "reruns": [views.trial(r, base=link) for r in page["reruns"].get(row["id"], [])],
+            }
+            for row in page["trials"]
+        ],
+        "rerun_counts": page["rerun_counts"],
+        "truncated": page["truncated"],
+    }
 
 
 def _error(err: Exception) -> ApiError:

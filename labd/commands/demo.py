@@ -61,7 +61,7 @@ def main(args: argparse.Namespace) -> int:
     if args.sandbox:
         command += ["--sandbox", args.sandbox]
     print("starting:", " ".join(command), flush=True)
-    lab = subprocess.Popen(command)
+    lab = subprocess.Popen(command)  # noqa: S603 - this Python, running labd serve
     client = Client(server, token)
     try:
         wait_for(client, lab)
@@ -185,7 +185,11 @@ def _git(path: Path, *args: str) -> str:
         "GIT_COMMITTER_NAME": "labd demo",
         "GIT_COMMITTER_EMAIL": "demo@localhost",
     }
-    done = subprocess.run(
-        ["git", "-C", str(path), *args], check=True, capture_output=True, text=True, env=env
+    done = subprocess.run(  # noqa: S603 - git on the demo's own folders
+        ["git", "-C", str(path), *args],  # noqa: S607
+        check=True,
+        capture_output=True,
+        text=True,
+        env=env,
     )
     return done.stdout.strip()

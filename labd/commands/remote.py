@@ -341,7 +341,10 @@ def _table(page: dict[str, Any]) -> Iterator[str]:
     if not rows:
         yield "no trials"
         return
-    yield f"{'ID':>6}  {'STATUS':<9}  {'TASK':<12}  {'COMMIT':<12}  {'SEED':>5}  {'USER':<10}  REPOSITORY"
+    yield (
+        f"{'ID':>6}  {'STATUS':<9}  {'TASK':<12}  {'COMMIT':<12}  {'SEED':>5}  "
+        f"{'USER':<10}  REPOSITORY"
+    )
     for r in rows:
         yield (
             f"{r['id']:>6}  {r['status']:<9}  {r['task']:<12}  {r['commit'][:12]:<12}  "

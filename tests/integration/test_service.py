@@ -58,7 +58,9 @@ def git(cwd, *args):
 def make_repo(path: Path, files: dict[str, str] | None = None, copy: Path | None = None) -> Path:
     path.mkdir(parents=True)
     if copy is not None:
-        shutil.copytree(copy, path, dirs_exist_ok=True, ignore=shutil.ignore_patterns("__pycache__"))
+        shutil.copytree(
+            copy, path, dirs_exist_ok=True, ignore=shutil.ignore_patterns("__pycache__")
+        )
     for name, text in (files or {}).items():
         (path / name).write_text(text)
     git(path, "init", "-q", "-b", "main")
@@ -151,6 +153,7 @@ class Lab:
             text=True,
             env=env,
             timeout=300,
+            check=False,
         )
         if check and done.returncode != 0:
             pytest.fail(f"labd {' '.join(args)} exited {done.returncode}:\n{done.stderr}")

@@ -10,8 +10,8 @@ from __future__ import annotations
 import subprocess
 from pathlib import Path
 
-import pytest
 import httpx
+import pytest
 
 from labd.api.app import create_app
 from labd.service import Service, ServiceConfig
