@@ -41,6 +41,7 @@ bench: $(STAMP)
 	$(PY) bench/sim.py
 	$(PY) bench/trial.py
 	$(PY) bench/bridge.py
+	$(PY) bench/archive.py
 
 clean:
 	rm -rf $(VENV) $(JS)/node_modules .mypy_cache .ruff_cache .pytest_cache

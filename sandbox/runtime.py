@@ -365,8 +365,12 @@ def _pip_install(target: Path, requirements: Iterable[str]) -> None:
     done = subprocess.run(command, capture_output=True, text=True, check=False)  # noqa: S603
     if done.returncode != 0:
         raise RuntimeBuildError(f"pip failed ({done.returncode}): {_tail(done.stderr)}")
-    # Console scripts name the interpreter that ran pip, which does not exist inside.
+    # Console scripts name the interpreter that ran pip, which does not exist inside;
+    # their lines in RECORD go too, so the runtime does not depend on where pip ran.
     shutil.rmtree(target / "bin", ignore_errors=True)
+    for record in target.glob("*.dist-info/RECORD"):
+        lines = record.read_text().splitlines(keepends=True)
+        record.write_text("".join(x for x in lines if not x.startswith("../../bin/")))
     for cache in target.rglob("__pycache__"):
         shutil.rmtree(cache)
 

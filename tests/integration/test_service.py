@@ -19,8 +19,11 @@ import threading
 import time
 from pathlib import Path
 
+import httpx
 import pytest
 from mcap.reader import make_reader
+
+from tests.helpers.githttp import GitHttpServer, GitRepo
 
 pytestmark = pytest.mark.integration
 ROOT = Path(__file__).resolve().parents[2]
@@ -80,9 +83,10 @@ def cache(request) -> Path:
 class Lab:
     """A `labd serve` process and the `labd` command pointed at it."""
 
-    def __init__(self, data: Path, cache: Path) -> None:
+    def __init__(self, data: Path, cache: Path, *extra: str) -> None:
         self.data = data
         self.cache = cache
+        self.extra = list(extra)
         self.process: subprocess.Popen[str] | None = None
         self.server = ""
         self.token = ""
@@ -92,7 +96,7 @@ class Lab:
             sys.executable, "-m", "labd", "serve", "--data", str(self.data),
             "--cache", str(self.cache), "--http-port", "0", "--bridge-port", "0",
             "--no-robots", "--workers", "1", "--sandbox", "bwrap",
-            "--lease", "3",
+            "--lease", "3", *self.extra,
         ]  # fmt: skip
         self.process = subprocess.Popen(
             command,
@@ -164,13 +168,25 @@ class Lab:
 
 
 @pytest.fixture
-def lab(tmp_path, cache):
-    lab = Lab(tmp_path / "data", cache)
-    user = lab.labd("users", "add", "alice", "--data", str(lab.data), "--json")
-    lab.token = json.loads(user.stdout)["token"]
-    lab.start()
-    yield lab
-    lab.stop()
+def make_lab(tmp_path, cache):
+    labs = []
+
+    def make(*extra: str) -> Lab:
+        lab = Lab(tmp_path / "data", cache, *extra)
+        user = lab.labd("users", "add", "alice", "--data", str(lab.data), "--json")
+        lab.token = json.loads(user.stdout)["token"]
+        lab.start()
+        labs.append(lab)
+        return lab
+
+    yield make
+    for lab in labs:
+        lab.stop()
+
+
+@pytest.fixture
+def lab(make_lab):
+    return make_lab()
 
 
 def test_submit_list_download_and_rerun_by_commit(lab, tmp_path):
@@ -221,3 +237,50 @@ def test_a_sigkill_mid_trial_loses_nothing(lab, tmp_path):
     assert rows[0]["attempts"] == 2
     assert rows[1]["attempts"] == 1
     assert all(r["mcap"] for r in rows)
+
+
+TELLTALE = """\
+import os, sys
+from controllers.client import Lab
+print("environment:", sorted(os.environ.items()))
+with Lab.connect() as lab:
+    for _ in range(5):
+        lab.step()
+"""
+
+
+def test_public_and_private_repositories_over_smart_http(make_lab, tmp_path):
+    """Over a real git smart-HTTP server: a public repository, and a private one fetched
+    with the operator's token, which the controller never sees."""
+    token = "tok-" + "s3cret" * 4
+    served = tmp_path / "served"
+    files = {"lab.toml": '[controller]\ncommand = ["python", "c.py"]\n', "c.py": TELLTALE}
+    public = GitRepo.create(served / "open-bot", files)
+    private = GitRepo.create(served / "secret-bot", files)
+    with GitHttpServer(
+        served, users={"x-access-token": token}, private={"secret-bot"}
+    ) as git_server:
+        token_file = tmp_path / "token"
+        token_file.write_text(token + "\n")
+        lab = make_lab(
+            "--allow-scheme", "http", "--git-token", f"{git_server.url('secret-bot')}={token_file}"
+        )
+        shown = {}
+        for name, repo in (("open-bot", public), ("secret-bot", private)):
+            trial = lab.json("submit", git_server.url(name), "--ref", "main", "--task",
+                             "icreate-maze", "--wait")  # fmt: skip
+            assert trial["status"] == "succeeded", trial
+            assert trial["commit"] == repo.rev("main")
+            shown[name] = trial
+        assert shown["open-bot"]["public"] is True
+        assert shown["secret-bot"]["public"] is False
+        done = lab.labd("show", str(shown["secret-bot"]["id"]), "--json")
+        logs = json.loads(done.stdout)["logs"]
+        text = httpx.get(logs["stdout"]).text
+        assert "environment:" in text
+        assert token not in text
+        refused = lab.labd(
+            "submit", "ftp://example.org/x.git", "--task", "icreate-maze", check=False
+        )
+        assert refused.returncode == 2
+        assert "not allowed" in refused.stderr
