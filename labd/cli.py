@@ -11,6 +11,7 @@
                                                (labd.commands.remote: the HTTP API)
     labd users add NAME                        (labd.commands.users)
     labd demo                                  (labd.commands.demo: what make demo runs)
+    labd worker --server URL                   (labd.commands.worker: a worker elsewhere)
 
 ``labd serve`` runs the bridge and its robots, the HTTP API (port 8080), the archive
 (``--data``: SQLite and a folder by default) and its workers (``--workers``).
@@ -28,14 +29,13 @@ from collections.abc import Sequence
 from pathlib import Path
 
 from labd import __version__
-from labd.commands import demo, remote, run, users
+from labd.commands import demo, fetching, remote, run, users, worker
 from labd.config import DEFAULT_ROBOTS, BridgeConfig, LabConfig, RobotConfig
 from labd.errors import LabError
 from labd.lab import Lab
 from labd.service import ServiceConfig
 from labd.sim import registry
 from labd.sim.params import parse_assignments
-from scheduler.fetch import Credential, FetchPolicy
 from scheduler.queue import QueueConfig
 from scheduler.runner import RunOptions
 
@@ -110,42 +110,7 @@ def build_parser() -> argparse.ArgumentParser:
     service.add_argument(
         "--lease", type=float, default=30.0, help="seconds before a silent worker's trial requeues"
     )
-    service.add_argument(
-        "--allow-scheme",
-        action="append",
-        dest="schemes",
-        metavar="SCHEME",
-        help="repository URL schemes accepted (repeatable; default https ssh git file; "
-        "file means local paths)",
-    )
-    service.add_argument(
-        "--max-repo-mb", type=int, default=512, help="largest repository fetched, in MiB"
-    )
-    service.add_argument(
-        "--fetch-timeout", type=float, default=300.0, help="seconds a fetch may take"
-    )
-    service.add_argument(
-        "--submodule-allow",
-        action="append",
-        default=[],
-        metavar="URL_PREFIX",
-        help="submodules whose URL starts with this may be followed (repeatable)",
-    )
-    service.add_argument(
-        "--git-token",
-        action="append",
-        default=[],
-        metavar="URL_PREFIX=FILE",
-        help="for private https repositories under URL_PREFIX: a token, read from FILE "
-        "(repeatable); git alone sees it, never a controller",
-    )
-    service.add_argument(
-        "--git-ssh-key",
-        action="append",
-        default=[],
-        metavar="URL_PREFIX=KEYFILE",
-        help="for private ssh repositories under URL_PREFIX: a deploy key (repeatable)",
-    )
+    fetching.add_options(service)
     service.add_argument(
         "--cache", type=Path, help="git mirrors and controller runtimes (default DATA/cache)"
     )
@@ -154,6 +119,7 @@ def build_parser() -> argparse.ArgumentParser:
     remote.add_parsers(commands)
     users.add_parser(commands)
     demo.add_parser(commands)
+    worker.add_parser(commands)
     return parser
 
 
@@ -185,27 +151,7 @@ def robot_configs(args: argparse.Namespace) -> tuple[RobotConfig, ...]:
 def service_config(args: argparse.Namespace) -> ServiceConfig | None:
     if args.no_service:
         return None
-    defaults = FetchPolicy()
-    credentials = []
-    for item in args.git_token:
-        prefix, file = _pair(item, "--git-token", "URL_PREFIX=FILE")
-        try:
-            token = Path(file).read_text().strip()
-        except OSError as err:
-            raise SystemExit(f"labd serve: --git-token {prefix}: {err}") from None
-        credentials.append(Credential(prefix, token=token))
-    for item in args.git_ssh_key:
-        prefix, file = _pair(item, "--git-ssh-key", "URL_PREFIX=KEYFILE")
-        if not Path(file).is_file():
-            raise SystemExit(f"labd serve: --git-ssh-key {prefix}: no key file {file}")
-        credentials.append(Credential(prefix, ssh_key=Path(file).resolve()))
-    fetch = FetchPolicy(
-        credentials=tuple(credentials),
-        schemes=frozenset(args.schemes) if args.schemes else defaults.schemes,
-        max_bytes=args.max_repo_mb * 1024 * 1024,
-        timeout=args.fetch_timeout,
-        submodules=tuple(args.submodule_allow),
-    )
+    fetch = fetching.policy(args, "labd serve")
     return ServiceConfig(
         data=args.data,
         database=args.database,
@@ -218,13 +164,6 @@ def service_config(args: argparse.Namespace) -> ServiceConfig | None:
         fetch=fetch,
         run=RunOptions(fetch=fetch),
     )
-
-
-def _pair(item: str, flag: str, form: str) -> tuple[str, str]:
-    prefix, sep, value = item.rpartition("=")
-    if not sep or not prefix or not value:
-        raise SystemExit(f"labd serve: {flag} takes {form}, got {item!r}")
-    return prefix, value
 
 
 def bridge_config(args: argparse.Namespace) -> BridgeConfig:
@@ -298,6 +237,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         return users.main(args)
     if args.command == "demo":
         return demo.main(args)
+    if args.command == "worker":
+        return worker.main(args)
     if args.command == "serve":
         return_freed_memory()
         config = LabConfig(

@@ -49,6 +49,7 @@ users = sa.Table(
     sa.Column("created", sa.Float, nullable=False),
     sa.Column("max_running", sa.Integer, nullable=False),
     sa.Column("max_daily", sa.Integer, nullable=False),
+    sa.Column("worker", sa.Boolean, nullable=False),  # may claim and file trials (labd worker)
 )
 
 trials = sa.Table(
@@ -109,6 +110,7 @@ class User:
     max_running: int
     max_daily: int
     created: float
+    worker: bool = False
 
 
 @dataclass(frozen=True)
@@ -186,7 +188,9 @@ class Index:
 
     # -- users --------------------------------------------------------------------------
 
-    def add_user(self, name: str, *, max_running: int = 2, max_daily: int = 500) -> str:
+    def add_user(
+        self, name: str, *, max_running: int = 2, max_daily: int = 500, worker: bool = False
+    ) -> str:
         """Add a user and return their new token (only its hash is kept)."""
         if not name or len(name) > 64 or not all(c.isalnum() or c in "-_." for c in name):
             raise ArchiveError(f"user name {name!r}: use 1 to 64 letters, digits, '-', '_' or '.'")
@@ -201,6 +205,7 @@ class Index:
                     created=self.clock(),
                     max_running=max_running,
                     max_daily=max_daily,
+                    worker=worker,
                 )
             )
         return token
@@ -400,7 +405,7 @@ def token_hash(token: str) -> str:
 
 
 def _user(row: Any) -> User:
-    return User(row.name, row.max_running, row.max_daily, row.created)
+    return User(row.name, row.max_running, row.max_daily, row.created, row.worker)
 
 
 def _inserted_id(result: sa.CursorResult[Any]) -> int:

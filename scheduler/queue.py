@@ -268,6 +268,10 @@ class Queue:
             ).all()
         return {r[0] for r in rows if r[0]}
 
+    def trial(self, trial_id: int) -> dict[str, Any]:
+        """A trial's record (a worker compares a rerun with its original)."""
+        return self.index.trial(trial_id)
+
     def release_worker(self, worker_prefix: str) -> list[int]:
         """Requeue the running trials of workers named ``worker_prefix*`` (a restart)."""
         with self.index.begin() as db:

@@ -22,17 +22,34 @@ import tempfile
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Protocol
 
 from labd.graph.types import TypeRegistry
 from labd.recorder import first_difference
-from repository.blobs import BlobStore
 from repository.errors import ArchiveError
 from sandbox.api import Backend
-from scheduler.queue import Claim, Queue
+from scheduler.errors import QueueError
+from scheduler.queue import Claim
 from scheduler.runner import RunOptions, TrialResult, TrialSpec, run_trial
 
 log = logging.getLogger("scheduler.worker")
+
+
+class Jobs(Protocol):
+    """Where a worker gets trials and files them: the queue itself (``Queue``, in
+    ``labd serve``) or a lab's HTTP API (``scheduler.remote``, for ``labd worker``)."""
+
+    def claim(self, worker: str) -> Claim | None: ...
+    def heartbeat(self, trial_id: int, worker: str) -> bool: ...
+    def finish(self, trial_id: int, worker: str, **record: Any) -> bool: ...
+    def trial(self, trial_id: int) -> dict[str, Any]: ...
+
+
+class Blobs(Protocol):
+    """Where records go: the blob store itself, or a lab's HTTP API."""
+
+    def put_file(self, path: str | Path) -> str: ...
+    def copy_to(self, digest: str, dest: str | Path) -> Path: ...
 
 
 @dataclass
@@ -50,8 +67,8 @@ class Worker:
 
     def __init__(
         self,
-        queue: Queue,
-        store: BlobStore,
+        queue: Jobs,
+        store: Blobs,
         backend: Backend,
         types: TypeRegistry,
         config: WorkerConfig,
@@ -70,7 +87,11 @@ class Worker:
         stopping = asyncio.create_task(stop.wait())
         try:
             while not stop.is_set():
-                claim = await asyncio.to_thread(self.queue.claim, self.config.name)
+                try:
+                    claim = await asyncio.to_thread(self.queue.claim, self.config.name)
+                except QueueError as err:  # a remote lab that is down: try again later
+                    self.log.warning("could not claim a trial: %s", err)
+                    claim = None
                 if claim is None:
                     self.wake.clear()
                     waker = asyncio.create_task(self.wake.wait())
@@ -122,7 +143,11 @@ class Worker:
                 await beat
         try:
             record = await asyncio.to_thread(self._record, claim, result, out)
-            await asyncio.to_thread(self.queue.finish, claim.id, self.config.name, **record)
+            try:
+                await asyncio.to_thread(self.queue.finish, claim.id, self.config.name, **record)
+            except QueueError as err:  # the lease will run out and the trial run again
+                self.log.error("trial %d could not be filed: %s", claim.id, err)
+                return
             self.log.info("trial %d %s: %s", claim.id, record["status"], record["reason"])
             if self.on_filed is not None:
                 self.on_filed(claim.id)
@@ -133,7 +158,11 @@ class Worker:
     async def _heartbeat(self, trial_id: int, running: asyncio.Task[TrialResult]) -> None:
         while True:
             await asyncio.sleep(self.config.heartbeat)
-            keep = await asyncio.to_thread(self.queue.heartbeat, trial_id, self.config.name)
+            try:
+                keep = await asyncio.to_thread(self.queue.heartbeat, trial_id, self.config.name)
+            except QueueError as err:  # a remote lab briefly away: the lease may still hold
+                self.log.warning("trial %d: heartbeat failed: %s", trial_id, err)
+                continue
             if not keep:
                 self.log.info("trial %d: stopping (cancelled, or the lease was lost)", trial_id)
                 running.cancel()
@@ -165,7 +194,7 @@ class Worker:
                 path = out / f"controller.{stream}.log"
                 if path.exists():
                     record[stream] = self.store.put_file(path)
-        except (OSError, ArchiveError) as err:
+        except (OSError, ArchiveError, QueueError) as err:
             self.log.exception("trial %d: the record could not be stored", claim.id)
             return {
                 "status": "failed",
@@ -177,7 +206,7 @@ class Worker:
 
     def _compare(self, original_id: int, result: TrialResult) -> dict[str, Any]:
         """Did this rerun reproduce the trial it reruns?"""
-        original = self.queue.index.trial(original_id)
+        original = self.queue.trial(original_id)
         if not original["data_digest"] or not original["mcap"]:
             return {"reproduced": None, "divergence": "the original trial has no record"}
         if not result.data_digest or result.mcap is None:
@@ -189,7 +218,7 @@ class Worker:
             theirs = Path(folder) / "original.mcap"
             try:
                 self.store.copy_to(original["mcap"], theirs)
-            except ArchiveError as err:
+            except (ArchiveError, QueueError) as err:
                 return {"reproduced": False, "divergence": f"the original's record: {err}"}
             difference = first_difference(theirs, result.mcap, topics)
         text = str(difference) if difference else "the data digests differ"

@@ -21,35 +21,27 @@ from __future__ import annotations
 
 import datetime as dt
 import logging
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Annotated, Any
 
 from fastapi import APIRouter, Depends, FastAPI, Query, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse, StreamingResponse
-from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 from pydantic import BaseModel, ConfigDict, Field
 
 from labd import __version__
-from labd.api import views
+from labd.api import views, workers
+from labd.api.common import ApiError, Lab, Writer, blob_response
 from labd.service import Service
 from labd.sim import registry
-from repository.errors import ArchiveError, BlobError, BlobNotFound, RecordNotFound
-from repository.index import STATUSES, Filters, User
+from repository.errors import ArchiveError, RecordNotFound
+from repository.index import STATUSES, Filters
 from scheduler.errors import QueueError, QuotaExceeded, RepositoryError, TooLarge
 from scheduler.submit import InvalidRequest
 
 log = logging.getLogger("labd.api")
 Value = bool | int | float | str
-bearer = HTTPBearer(auto_error=False, description="a token from `labd users add NAME`")
-
-
-class ApiError(Exception):
-    def __init__(self, status: int, message: str) -> None:
-        self.status = status
-        self.message = message
-        super().__init__(message)
 
 
 class SubmitRequest(BaseModel):
@@ -75,6 +67,7 @@ def create_app(service: Service, *, on_submit: Callable[[], None] | None = None)
     app.add_exception_handler(ApiError, _api_error)  # type: ignore[arg-type]
     app.add_exception_handler(RequestValidationError, _invalid)  # type: ignore[arg-type]
     app.include_router(router)
+    app.include_router(workers.router)
     return app
 
 
@@ -94,34 +87,6 @@ async def _invalid(_: Request, err: RequestValidationError) -> JSONResponse:
         where = ".".join(str(x) for x in p.get("loc", ()) if x != "body")
         parts.append(f"{where}: {p.get('msg', 'invalid')}" if where else p.get("msg", ""))
     return JSONResponse({"error": "; ".join(parts)}, status_code=422)
-
-
-def _service(request: Request) -> Service:
-    service: Service = request.app.state.service
-    return service
-
-
-Lab = Annotated[Service, Depends(_service)]
-
-
-def _writer(
-    service: Lab,
-    credentials: Annotated[HTTPAuthorizationCredentials | None, Depends(bearer)],
-) -> User:
-    if credentials is None:
-        raise ApiError(
-            401,
-            "this needs a token: send Authorization: Bearer TOKEN "
-            "(the operator makes one with `labd users add NAME`; "
-            "labd commands take --token or LABD_TOKEN)",
-        )
-    user = service.index.user_by_token(credentials.credentials)
-    if user is None:
-        raise ApiError(401, "the token is not valid here; ask the operator for a new one")
-    return user
-
-
-Writer = Annotated[User, Depends(_writer)]
 
 
 def _base(request: Request) -> str:
@@ -211,7 +176,7 @@ def data(trial_id: int, service: Lab) -> StreamingResponse:
     row = _one(service, trial_id)
     if not row["mcap"]:
         raise ApiError(404, f"trial {trial_id} has no record ({row['status']})")
-    return _blob(service, row["mcap"], "application/x-mcap", f"trial-{trial_id}.mcap")
+    return blob_response(service, row["mcap"], "application/x-mcap", f"trial-{trial_id}.mcap")
 
 
 @router.get("/api/trials/{trial_id}/logs/{stream}", tags=["data"])
@@ -222,7 +187,7 @@ def logs(trial_id: int, stream: str, service: Lab) -> StreamingResponse:
     row = _one(service, trial_id)
     if not row[stream]:
         raise ApiError(404, f"trial {trial_id} has no {stream} log")
-    return _blob(service, row[stream], "text/plain; charset=utf-8", None)
+    return blob_response(service, row[stream], "text/plain; charset=utf-8", None)
 
 
 @router.post("/api/trials/{trial_id}/rerun", status_code=201, tags=["trials"])
@@ -288,24 +253,3 @@ def _epoch(moment: dt.datetime | None) -> float | None:
     if moment.tzinfo is None:
         moment = moment.replace(tzinfo=dt.UTC)
     return moment.timestamp()
-
-
-def _blob(
-    service: Service, digest: str, media_type: str, filename: str | None
-) -> StreamingResponse:
-    store = service.store
-    try:
-        store.verify(digest)
-    except BlobError as err:
-        log.error("%s", err)
-        status = 404 if isinstance(err, BlobNotFound) else 500  # 500: the store is damaged
-        raise ApiError(status, str(err)) from None
-
-    def chunks() -> Iterator[bytes]:
-        yield from store.iter_chunks(digest)
-
-    headers = {"ETag": f'"{digest}"', "Cache-Control": "public, max-age=31536000, immutable"}
-    if filename:
-        headers["Content-Disposition"] = f'attachment; filename="{filename}"'
-    headers["Content-Length"] = str(store.size(digest))
-    return StreamingResponse(chunks(), media_type=media_type, headers=headers)

@@ -27,6 +27,9 @@ def add_parser(commands: Any) -> None:
     add.add_argument("--database", help="SQLAlchemy URL (default: DATA/index.sqlite)")
     add.add_argument("--max-running", type=int, default=2, help="trials running at once")
     add.add_argument("--max-daily", type=int, default=500, help="trials submitted per 24 h")
+    add.add_argument(
+        "--worker", action="store_true", help="a worker's token: labd worker --server uses it"
+    )
     add.add_argument("--json", action="store_true")
 
 
@@ -37,7 +40,10 @@ def main(args: argparse.Namespace) -> int:
         index = Index.open(config.database_url)
         try:
             token = index.add_user(
-                args.name, max_running=args.max_running, max_daily=args.max_daily
+                args.name,
+                max_running=args.max_running,
+                max_daily=args.max_daily,
+                worker=args.worker,
             )
         finally:
             index.close()

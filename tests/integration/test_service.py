@@ -35,13 +35,13 @@ import time
 from controllers.client import Lab, EpisodeOver
 
 with Lab.connect() as lab:
-    for _ in range(150):
+    for _ in range(200):
         lab.publish("/cmd_vel", "geometry_msgs/msg/Twist", {"angular": {"z": 0.5}})
         try:
             lab.step()
         except EpisodeOver:
             break
-        time.sleep(0.02)
+        time.sleep(0.05)
 '''
 
 
@@ -223,7 +223,7 @@ def test_a_sigkill_mid_trial_loses_nothing(lab, tmp_path):
     while not record.exists():  # the recording has begun: the trial is under way
         assert time.monotonic() < deadline, "".join(lab.output)
         time.sleep(0.05)
-    assert lab.json("show", str(first["id"]))["status"] == "running"
+    assert httpx.get(f"{lab.server}/api/trials/{first['id']}").json()["status"] == "running"
     lab.kill()
     lab.start()
     deadline = time.monotonic() + 180
@@ -284,3 +284,36 @@ def test_public_and_private_repositories_over_smart_http(make_lab, tmp_path):
         )
         assert refused.returncode == 2
         assert "not allowed" in refused.stderr
+
+
+def test_a_worker_on_another_machine(make_lab, tmp_path, cache):
+    """`labd worker --server` runs the queue's trials over the HTTP API and files them."""
+    lab = make_lab("--workers", "0")
+    made = lab.labd("users", "add", "w1", "--worker", "--data", str(lab.data), "--json")
+    worker_token = json.loads(made.stdout)["token"]
+    denied = httpx.post(
+        f"{lab.server}/api/workers/claim",
+        json={"worker": "x"},
+        headers={"Authorization": f"Bearer {lab.token}"},
+    )
+    assert denied.status_code == 403
+    assert "not a worker" in denied.json()["error"]
+    repo = make_repo(tmp_path / "maze", copy=EXAMPLES / "icreate-maze")
+    first = lab.json("submit", str(repo), "--task", "icreate-maze")
+    data = tmp_path / "worker-data"
+    data.mkdir()
+    (data / "cache").symlink_to(cache)
+    worker = subprocess.Popen(
+        [sys.executable, "-m", "labd", "worker", "--server", lab.server, "--token",
+         worker_token, "--sandbox", "bwrap", "--data", str(data), "--poll", "0.2"],
+        stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+    )  # fmt: skip
+    try:
+        text = lab.labd("rerun", str(first["id"]), "--wait").stdout
+        done = lab.json("show", str(first["id"]))
+    finally:
+        worker.send_signal(signal.SIGTERM)
+        output, _ = worker.communicate(timeout=60)
+    assert done["status"] == "succeeded", output
+    assert done["worker"].startswith("w1@")
+    assert "reproduced" in text, output

@@ -1,0 +1,79 @@
+"""What a lab fetches and how: the options ``labd serve`` and ``labd worker`` share."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+from typing import Any
+
+from scheduler.fetch import Credential, FetchPolicy
+
+
+def add_options(group: Any) -> None:
+    group.add_argument(
+        "--allow-scheme",
+        action="append",
+        dest="schemes",
+        metavar="SCHEME",
+        help="repository URL schemes accepted (repeatable; default https ssh git file; "
+        "file means local paths)",
+    )
+    group.add_argument(
+        "--max-repo-mb", type=int, default=512, help="largest repository fetched, in MiB"
+    )
+    group.add_argument(
+        "--fetch-timeout", type=float, default=300.0, help="seconds a fetch may take"
+    )
+    group.add_argument(
+        "--submodule-allow",
+        action="append",
+        default=[],
+        metavar="URL_PREFIX",
+        help="submodules whose URL starts with this may be followed (repeatable)",
+    )
+    group.add_argument(
+        "--git-token",
+        action="append",
+        default=[],
+        metavar="URL_PREFIX=FILE",
+        help="for private https repositories under URL_PREFIX: a token, read from FILE "
+        "(repeatable); git alone sees it, never a controller",
+    )
+    group.add_argument(
+        "--git-ssh-key",
+        action="append",
+        default=[],
+        metavar="URL_PREFIX=KEYFILE",
+        help="for private ssh repositories under URL_PREFIX: a deploy key (repeatable)",
+    )
+
+
+def policy(args: argparse.Namespace, command: str) -> FetchPolicy:
+    """The fetch policy the options describe (SystemExit with the reason if they are wrong)."""
+    credentials = []
+    for item in args.git_token:
+        prefix, file = _pair(item, command, "--git-token", "URL_PREFIX=FILE")
+        try:
+            token = Path(file).read_text().strip()
+        except OSError as err:
+            raise SystemExit(f"{command}: --git-token {prefix}: {err}") from None
+        credentials.append(Credential(prefix, token=token))
+    for item in args.git_ssh_key:
+        prefix, file = _pair(item, command, "--git-ssh-key", "URL_PREFIX=KEYFILE")
+        if not Path(file).is_file():
+            raise SystemExit(f"{command}: --git-ssh-key {prefix}: no key file {file}")
+        credentials.append(Credential(prefix, ssh_key=Path(file).resolve()))
+    return FetchPolicy(
+        credentials=tuple(credentials),
+        schemes=frozenset(args.schemes) if args.schemes else FetchPolicy().schemes,
+        max_bytes=args.max_repo_mb * 1024 * 1024,
+        timeout=args.fetch_timeout,
+        submodules=tuple(args.submodule_allow),
+    )
+
+
+def _pair(item: str, command: str, flag: str, form: str) -> tuple[str, str]:
+    prefix, sep, value = item.rpartition("=")
+    if not sep or not prefix or not value:
+        raise SystemExit(f"{command}: {flag} takes {form}, got {item!r}")
+    return prefix, value

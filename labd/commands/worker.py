@@ -1,0 +1,98 @@
+"""``labd worker --server URL``: run trials for a lab from another machine.
+
+    labd worker --server URL [--token TOKEN] [--workers N] [--sandbox docker|bwrap]
+                [--data DIR] [fetch options as for labd serve]
+
+It claims trials from the lab's queue over the HTTP API, runs them here in the sandbox
+(fetching the repositories itself, into ``DATA/cache``), uploads the MCAP files and
+logs to the lab's archive and files the outcomes, until SIGINT or SIGTERM. The token
+must be a worker's: ``labd users add NAME --worker`` on the lab's machine.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import logging
+import os
+import signal
+import socket
+import sys
+from pathlib import Path
+from typing import Any
+
+import sandbox
+from labd.commands import fetching
+from labd.commands.remote import DEFAULT_SERVER
+from labd.commands.run import client_library
+from labd.graph.types import TypeRegistry
+from sandbox.api import SandboxError
+from scheduler.remote import RemoteLab
+from scheduler.runner import RunOptions
+from scheduler.worker import Worker, WorkerConfig
+
+log = logging.getLogger("labd.worker")
+
+
+def add_parser(commands: Any) -> None:
+    p = commands.add_parser("worker", help="run a lab's queued trials on this machine")
+    p.add_argument("--server", default=os.environ.get("LABD_SERVER", DEFAULT_SERVER))
+    p.add_argument("--token", default=os.environ.get("LABD_TOKEN"), help="a worker's token")
+    p.add_argument("--workers", type=int, default=1, help="trials run at once (default 1)")
+    p.add_argument("--sandbox", choices=["docker", "bwrap"], help="default: docker if up")
+    p.add_argument("--data", type=Path, default=Path("lab-data"), help="cache and work folders")
+    p.add_argument("--heartbeat", type=float, default=10.0, help="seconds between heartbeats")
+    p.add_argument("--poll", type=float, default=2.0, help="seconds between claims when idle")
+    fetching.add_options(p.add_argument_group("what this worker fetches"))
+
+
+def main(args: argparse.Namespace) -> int:
+    if not args.token:
+        print("labd worker: give a worker's token (--token or LABD_TOKEN)", file=sys.stderr)
+        return 2
+    policy = fetching.policy(args, "labd worker")
+    cache = (args.data / "cache").resolve()
+    work = (args.data / "work").resolve()
+    work.mkdir(parents=True, exist_ok=True)
+    try:
+        backend = sandbox.backend(args.sandbox, cache, [client_library()])
+    except SandboxError as err:
+        print(f"labd worker: {err}", file=sys.stderr)
+        return 2
+    lab = RemoteLab(args.server, args.token)
+    name = f"{socket.gethostname()}:{os.getpid()}"
+    workers = [
+        Worker(
+            lab,
+            lab,
+            backend,
+            TypeRegistry.default(),
+            WorkerConfig(
+                name=f"{name}/remote-{n + 1}",
+                work=work,
+                cache=cache,
+                heartbeat=args.heartbeat,
+                poll=args.poll,
+                options=RunOptions(fetch=policy),
+            ),
+        )
+        for n in range(args.workers)
+    ]
+    print(f"labd worker: {len(workers)} worker(s) on {backend.name} for {args.server}", flush=True)
+    try:
+        asyncio.run(_run(workers))
+    finally:
+        lab.close()
+    return 0
+
+
+async def _run(workers: list[Worker]) -> None:
+    stop = asyncio.Event()
+    loop = asyncio.get_running_loop()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        loop.add_signal_handler(sig, stop.set)
+    tasks = [asyncio.create_task(w.run(stop)) for w in workers]
+    await stop.wait()
+    for task in tasks:  # a trial under way is abandoned: its lease runs out and it requeues
+        task.cancel()
+    await asyncio.gather(*tasks, return_exceptions=True)
