@@ -96,6 +96,7 @@ trials = sa.Table(
 sa.Index("ix_trials_repository", trials.c.repository, trials.c.id)
 sa.Index("ix_trials_commit", trials.c.commit, trials.c.id)
 sa.Index("ix_trials_task", trials.c.task, trials.c.id)
+sa.Index("ix_trials_task_status", trials.c.task, trials.c.status, trials.c.id)
 sa.Index("ix_trials_status", trials.c.status, trials.c.id)
 sa.Index("ix_trials_submitter", trials.c.submitter, trials.c.id)
 sa.Index("ix_trials_created", trials.c.created)

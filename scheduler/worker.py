@@ -101,10 +101,14 @@ class Worker:
                         return_when=asyncio.FIRST_COMPLETED,
                     )
                     waker.cancel()
+                    with contextlib.suppress(asyncio.CancelledError):
+                        await waker
                     continue
                 await self.execute(claim)
         finally:
             stopping.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await stopping
 
     async def execute(self, claim: Claim) -> None:
         """Run one claimed trial to its end and file it."""

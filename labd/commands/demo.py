@@ -99,10 +99,11 @@ Try (in another terminal, in this folder):
   .venv/bin/labd rerun {first["commit"][:12]} --wait
   .venv/bin/labd export {first["id"]} --format lerobot
   .venv/bin/labd submit {repos["icreate-maze"]} --ref main --task icreate-maze --seed 3 --wait
-
-The lab keeps running; Ctrl-C stops it.""",
+""",
             flush=True,
         )
+        if not args.exit:
+            print("The lab keeps running; Ctrl-C stops it.", flush=True)
         if args.exit:
             return 0 if all(r["status"] == "succeeded" for r in done) else 1
         return lab.wait()
