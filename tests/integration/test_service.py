@@ -317,3 +317,38 @@ def test_a_worker_on_another_machine(make_lab, tmp_path, cache):
     assert done["status"] == "succeeded", output
     assert done["worker"].startswith("w1@")
     assert "reproduced" in text, output
+
+
+def test_cancel_a_running_trial(lab, tmp_path):
+    """`labd cancel` stops a running trial at its worker's next heartbeat; it is filed as
+    cancelled, and the queue goes on to the next trial."""
+    repo = make_repo(
+        tmp_path / "slow",
+        {"lab.toml": '[controller]\ncommand = ["python", "slow.py"]\n', "slow.py": SLOW},
+    )
+    first = lab.json("submit", str(repo), "--task", "icreate-maze")
+    quick = make_repo(tmp_path / "quick", {"lab.toml": TELLTALE_TOML, "c.py": TELLTALE})
+    second = lab.json("submit", str(quick), "--task", "icreate-maze")
+    record = lab.data / "work" / f"trial-{first['id']}-1" / "trial.mcap"
+    deadline = time.monotonic() + 120
+    while not record.exists():
+        assert time.monotonic() < deadline, "".join(lab.output)
+        time.sleep(0.05)
+    assert lab.json("cancel", str(first["id"]))["status"] == "running"
+    [cancelled, after] = lab_wait(lab, [first["id"], second["id"]])
+    assert cancelled["status"] == "cancelled"
+    assert "cancelled while it ran" in cancelled["reason"]
+    assert after["status"] == "succeeded"
+
+
+def lab_wait(lab, ids, timeout=180):
+    deadline = time.monotonic() + timeout
+    while True:
+        rows = [httpx.get(f"{lab.server}/api/trials/{i}").json() for i in ids]
+        if all(r["status"] in ("succeeded", "failed", "cancelled") for r in rows):
+            return rows
+        assert time.monotonic() < deadline, rows
+        time.sleep(0.2)
+
+
+TELLTALE_TOML = '[controller]\ncommand = ["python", "c.py"]\n'

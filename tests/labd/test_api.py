@@ -7,6 +7,7 @@ worker files them (blobs in the store, columns in the index).
 
 from __future__ import annotations
 
+import os
 import subprocess
 from pathlib import Path
 
@@ -234,3 +235,28 @@ async def test_openapi_and_tasks(api):
     tasks = {t["name"]: t for t in (await api.get("/api/tasks")).json()["tasks"]}
     assert set(tasks) == {"icreate-maze", "pr2-table"}
     assert tasks["icreate-maze"]["params"]["maze_size"]["type"] == "int"
+
+
+async def test_a_repository_over_the_size_limit_is_a_413(tmp_path, repo):
+    """A repository larger than the operator's limit is refused, and no mirror is left."""
+    (repo / "weights.bin").write_bytes(os.urandom(600_000))
+    git(repo, "add", ".")
+    git(repo, "commit", "-q", "-m", "weights")
+    config = ServiceConfig(
+        data=tmp_path / "small",
+        workers=0,
+        fetch=FetchPolicy(schemes=frozenset({"file"}), max_bytes=200_000),
+    )
+    service = Service(config)
+    token = service.index.add_user("alice")
+    transport = httpx.ASGITransport(app=create_app(service, on_submit=lambda: None))
+    try:
+        async with httpx.AsyncClient(transport=transport, base_url="http://lab.test") as api:
+            reply = await submit(api, token, repo)
+            assert reply.status_code == 413, reply.text
+            assert "limit" in reply.json()["error"]
+            assert (await api.get("/api/trials")).json()["trials"] == []
+        mirrors = service.cache / "mirrors"
+        assert not mirrors.exists() or not any(mirrors.iterdir())
+    finally:
+        service.index.close()
