@@ -50,7 +50,10 @@ def build_parser() -> argparse.ArgumentParser:
     )
     commands = parser.add_subparsers(dest="command", required=True)
 
-    serve = commands.add_parser("serve", help="run the lab: the rosbridge server and its robots")
+    serve = commands.add_parser(
+        "serve",
+        help="run the lab: the bridge and robots, the HTTP API, the archive and its workers",
+    )
     defaults = BridgeConfig()
     serve.add_argument("--host", default=defaults.host, help="address to listen on")
     serve.add_argument(

@@ -20,7 +20,6 @@ Errors are ``{"error": "what went wrong and what to do"}`` with a 4xx status.
 from __future__ import annotations
 
 import datetime as dt
-import logging
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Annotated, Any
@@ -40,7 +39,6 @@ from repository.index import STATUSES, Filters
 from scheduler.errors import QueueError, QuotaExceeded, RepositoryError, TooLarge
 from scheduler.submit import InvalidRequest
 
-log = logging.getLogger("labd.api")
 Value = bool | int | float | str
 
 

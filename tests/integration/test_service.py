@@ -208,6 +208,13 @@ def test_submit_list_download_and_rerun_by_commit(lab, tmp_path):
     assert re.search(r"trial \d+ \(rerun of \d+\): reproduced", text), text
     page = lab.json("show", str(trial["id"]))
     assert page["status"] == "succeeded"
+    out = tmp_path / "lerobot"
+    exported = lab.json("export", str(trial["id"]), "--format", "lerobot", "-o", str(out))
+    assert exported["frames"] > 100
+    info = json.loads((out / "meta" / "info.json").read_text())
+    assert info["labd"]["commit"] == commit
+    assert info["labd"]["manifest"] == page["manifest"]
+    assert info["labd"]["data_digest"] == trial["data_digest"]
 
 
 def test_a_sigkill_mid_trial_loses_nothing(lab, tmp_path):
