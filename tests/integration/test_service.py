@@ -212,9 +212,10 @@ def test_submit_list_download_and_rerun_by_commit(lab, tmp_path):
     exported = lab.json("export", str(trial["id"]), "--format", "lerobot", "-o", str(out))
     assert exported["frames"] > 100
     info = json.loads((out / "meta" / "info.json").read_text())
-    assert info["labd"]["commit"] == commit
-    assert info["labd"]["manifest"] == page["manifest"]
-    assert info["labd"]["data_digest"] == trial["data_digest"]
+    provenance = info["labd"]["provenance"]
+    assert provenance["commit"] == commit
+    assert provenance["manifest"] == page["manifest"]
+    assert provenance["data_digest"] == trial["data_digest"]
 
 
 def test_a_sigkill_mid_trial_loses_nothing(lab, tmp_path):
