@@ -107,6 +107,14 @@ def build_parser() -> argparse.ArgumentParser:
         "--blobs", help="blob store: a folder or an fsspec URL such as s3://bucket/prefix"
     )
     service.add_argument(
+        "--blobs-option",
+        action="append",
+        default=[],
+        metavar="NAME=VALUE",
+        help="an fsspec storage option for --blobs, e.g. endpoint_url=http://127.0.0.1:9000 "
+        "(repeatable; S3 keys come from AWS_ACCESS_KEY_ID and AWS_SECRET_ACCESS_KEY)",
+    )
+    service.add_argument(
         "--workers", type=int, default=1, help="trials run at once (default 1; 0: none)"
     )
     service.add_argument("--sandbox", choices=["docker", "bwrap"], help="default: docker if up")
@@ -159,6 +167,7 @@ def service_config(args: argparse.Namespace) -> ServiceConfig | None:
         data=args.data,
         database=args.database,
         blobs=args.blobs,
+        blob_options=_options(args.blobs_option),
         cache=args.cache,
         workers=args.workers,
         sandbox=args.sandbox,
@@ -167,6 +176,16 @@ def service_config(args: argparse.Namespace) -> ServiceConfig | None:
         fetch=fetch,
         run=RunOptions(fetch=fetch),
     )
+
+
+def _options(items: list[str]) -> dict[str, str]:
+    options = {}
+    for item in items:
+        name, sep, value = item.partition("=")
+        if not sep or not name:
+            raise SystemExit(f"labd serve: --blobs-option takes NAME=VALUE, got {item!r}")
+        options[name] = value
+    return options
 
 
 def bridge_config(args: argparse.Namespace) -> BridgeConfig:

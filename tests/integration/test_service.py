@@ -21,7 +21,9 @@ from pathlib import Path
 
 import httpx
 import pytest
+import s3fs
 from mcap.reader import make_reader
+from moto.server import ThreadedMotoServer
 
 from tests.helpers.githttp import GitHttpServer, GitRepo
 
@@ -360,3 +362,40 @@ def lab_wait(lab, ids, timeout=180):
 
 
 TELLTALE_TOML = '[controller]\ncommand = ["python", "c.py"]\n'
+
+
+@pytest.fixture
+def s3(monkeypatch):
+    """A real S3-compatible server (moto) on 127.0.0.1, with a bucket for the archive."""
+    server = ThreadedMotoServer(ip_address="127.0.0.1", port=0, verbose=False)
+    server.start()
+    host, port = server.get_host_and_port()
+    endpoint = f"http://{host}:{port}"
+    monkeypatch.setenv("AWS_ACCESS_KEY_ID", "testing")
+    monkeypatch.setenv("AWS_SECRET_ACCESS_KEY", "testing")
+    fs = s3fs.S3FileSystem(endpoint_url=endpoint, key="testing", secret="testing")
+    fs.mkdir("lab-archive")
+    yield endpoint, fs
+    server.stop()
+
+
+def test_the_archive_in_an_s3_bucket(make_lab, s3, tmp_path):
+    """With --blobs s3://..., records go to the bucket and come back checked."""
+    endpoint, fs = s3
+    lab = make_lab(
+        "--blobs", "s3://lab-archive/records", "--blobs-option", f"endpoint_url={endpoint}"
+    )
+    repo = make_repo(tmp_path / "quick", {"lab.toml": TELLTALE_TOML, "c.py": TELLTALE})
+    trial = lab.json("submit", str(repo), "--task", "icreate-maze", "--wait")
+    assert trial["status"] == "succeeded", trial
+    digest = trial["mcap"]["digest"]
+    fs.invalidate_cache()
+    key = f"lab-archive/records/sha256/{digest[7:9]}/{digest[7:]}"
+    assert fs.exists(key)
+    mcap = tmp_path / "record.mcap"
+    lab.labd("download", str(trial["id"]), "-o", str(mcap))
+    assert mcap.read_bytes() == fs.cat_file(key)
+    fs.pipe_file(key, b"damaged")  # the bucket's copy is altered behind the lab's back
+    damaged = httpx.get(f"{lab.server}/api/trials/{trial['id']}/data.mcap")
+    assert damaged.status_code == 500
+    assert "damaged" in damaged.json()["error"]
