@@ -152,11 +152,34 @@ def _sqlite_pragmas(dbapi_connection: Any, _record: Any) -> None:
     cursor.close()
 
 
+def _sqlite_writer(url: sa.URL) -> Engine:
+    """An engine whose transactions start with BEGIN IMMEDIATE.
+
+    A transaction that reads and then writes (check a quota, then insert) would otherwise
+    start as a reader and fail at once with "database is locked" when another connection
+    wrote in between; taking the write lock first makes writers queue for it instead.
+    """
+    engine = sa.create_engine(url, connect_args={"timeout": 30})
+    sa.event.listen(engine, "connect", _sqlite_pragmas)
+
+    @sa.event.listens_for(engine, "connect")
+    def _no_implicit_begin(dbapi_connection: Any, _record: Any) -> None:
+        dbapi_connection.isolation_level = None
+
+    @sa.event.listens_for(engine, "begin")
+    def _begin_immediate(connection: Connection) -> None:
+        connection.exec_driver_sql("BEGIN IMMEDIATE")
+
+    return engine
+
+
 class Index:
     """The archive's tables on one database; safe to share between threads."""
 
     def __init__(self, engine: Engine, *, clock: Any = time.time) -> None:
-        self.engine = engine
+        self.engine = engine  # reads
+        sqlite = engine.dialect.name == "sqlite"
+        self.writer = _sqlite_writer(engine.url) if sqlite else engine  # transactions
         self.clock = clock
         self.trials = trials
         self.users = users
@@ -170,7 +193,7 @@ class Index:
     def create(self) -> None:
         """Create the tables if they are missing; refuse a database of another schema."""
         metadata.create_all(self.engine)
-        with self.engine.begin() as db:
+        with self.begin() as db:
             found = db.execute(sa.select(meta.c.value).where(meta.c.key == "schema")).scalar()
             if found is None:
                 db.execute(sa.insert(meta).values(key="schema", value=str(SCHEMA_VERSION)))
@@ -181,10 +204,12 @@ class Index:
 
     def close(self) -> None:
         self.engine.dispose()
+        self.writer.dispose()
 
     @contextmanager
     def begin(self) -> Iterator[Connection]:
-        with self.engine.begin() as db:
+        """A transaction that may read and then write."""
+        with self.writer.begin() as db:
             yield db
 
     # -- users --------------------------------------------------------------------------

@@ -27,6 +27,7 @@ from dataclasses import dataclass
 from typing import Any
 
 import sqlalchemy as sa
+from sqlalchemy.engine import Connection
 
 from repository.index import Index, User
 from repository.index import trials as T
@@ -133,14 +134,30 @@ class Queue:
     # -- workers ------------------------------------------------------------------------
 
     def claim(self, worker: str) -> Claim | None:
-        """Take the next trial for ``worker``, or None when nothing may run now."""
+        """Take the next trial for ``worker``, or None when nothing may run now.
+
+        On PostgreSQL the candidates are locked with ``FOR UPDATE SKIP LOCKED``, so
+        workers claiming at once each take a different trial without waiting; on
+        SQLite, writers take turns anyway. Either way the UPDATE is conditional on the
+        trial still being queued.
+        """
         self.requeue_expired()
         for _ in range(5):  # another worker may take the chosen trial first
-            chosen = self._choose()
-            if chosen is None:
-                return None
             now = self.clock()
             with self.index.begin() as db:
+                order = self._choose(db)
+                if order and db.dialect.name == "postgresql":
+                    free = set(
+                        db.execute(
+                            sa.select(T.c.id)
+                            .where(T.c.id.in_(order), T.c.status == "queued")
+                            .with_for_update(skip_locked=True)
+                        ).scalars()
+                    )
+                    order = [i for i in order if i in free]
+                if not order:
+                    return None
+                chosen = order[0]
                 taken = db.execute(
                     sa.update(T)
                     .where(T.c.id == chosen, T.c.status == "queued")
@@ -169,36 +186,35 @@ class Queue:
             )
         return None
 
-    def _choose(self) -> int | None:
-        with self.index.engine.connect() as db:
-            heads = db.execute(
-                sa.select(T.c.submitter, T.c.public, sa.func.min(T.c.id))
-                .where(T.c.status == "queued")
-                .group_by(T.c.submitter, T.c.public)
+    def _choose(self, db: Connection) -> list[int]:
+        """The queued trials that may run now, best first (one per submitter and kind)."""
+        heads = db.execute(
+            sa.select(T.c.submitter, T.c.public, sa.func.min(T.c.id))
+            .where(T.c.status == "queued")
+            .group_by(T.c.submitter, T.c.public)
+        ).all()
+        if not heads:
+            return []
+        running: dict[str, int] = dict(
+            db.execute(
+                sa.select(T.c.submitter, sa.func.count())
+                .where(T.c.status == "running")
+                .group_by(T.c.submitter)
             ).all()
-            if not heads:
-                return None
-            running: dict[str, int] = dict(
-                db.execute(
-                    sa.select(T.c.submitter, sa.func.count())
-                    .where(T.c.status == "running")
-                    .group_by(T.c.submitter)
-                ).all()
-            )
-            names = {h[0] for h in heads}
-            limits = dict(
-                db.execute(
-                    sa.select(self.index.users.c.name, self.index.users.c.max_running).where(
-                        self.index.users.c.name.in_(names)
-                    )
-                ).all()
-            )
-        ready = [
+        )
+        users = self.index.users
+        names = {h[0] for h in heads}
+        limits = dict(
+            db.execute(
+                sa.select(users.c.name, users.c.max_running).where(users.c.name.in_(names))
+            ).all()
+        )
+        ready = sorted(
             (not public, running.get(name, 0), first)
             for name, public, first in heads
             if running.get(name, 0) < limits.get(name, 1)
-        ]
-        return min(ready)[2] if ready else None
+        )
+        return [first for _, _, first in ready]
 
     def heartbeat(self, trial_id: int, worker: str) -> bool:
         """Renew the lease; False if the trial is no longer this worker's or must stop."""

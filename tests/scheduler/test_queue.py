@@ -206,3 +206,37 @@ def test_lists_filter_and_paginate(index, queue):
     assert [r["id"] for r in odd] == [m for m in reversed(mine) if (mine.index(m) % 2)]
     assert len(index.find(Filters(commit="bbbb")).items) == 7
     assert index.find(Filters(status="running")).items == []
+
+
+def test_concurrent_submissions_and_claims_all_land(index, queue):
+    """API threads submitting while workers claim: no "database is locked", nothing lost."""
+    alice = make_user(index, "alice", max_running=1000)
+    errors: list[BaseException] = []
+    claimed: list[int] = []
+
+    def submitter(n):
+        try:
+            for s in range(10):
+                submit(queue, alice, seed=n * 100 + s)
+        except BaseException as err:
+            errors.append(err)
+
+    def worker(name):
+        try:
+            for _ in range(20):
+                claim = queue.claim(name)
+                if claim is not None:
+                    claimed.append(claim.id)
+        except BaseException as err:
+            errors.append(err)
+
+    threads = [threading.Thread(target=submitter, args=(n,)) for n in range(4)]
+    threads += [threading.Thread(target=worker, args=(f"w{n}",)) for n in range(2)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert errors == []
+    assert len(set(claimed)) == len(claimed)
+    rows = index.find(Filters(submitter="alice"), limit=500).items
+    assert len(rows) == 40
