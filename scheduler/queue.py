@@ -80,6 +80,7 @@ class Queue:
     ) -> int:
         """Queue a trial for ``user``, within their daily limit (QuotaExceeded)."""
         with self.index.begin() as db:
+            _lock_user(db, user.name)
             since = self.clock() - DAY
             today = db.execute(
                 sa.select(sa.func.count())
@@ -146,18 +147,14 @@ class Queue:
             now = self.clock()
             with self.index.begin() as db:
                 order = self._choose(db)
-                if order and db.dialect.name == "postgresql":
-                    free = set(
-                        db.execute(
-                            sa.select(T.c.id)
-                            .where(T.c.id.in_(order), T.c.status == "queued")
-                            .with_for_update(skip_locked=True)
-                        ).scalars()
-                    )
-                    order = [i for i in order if i in free]
+                if db.dialect.name == "postgresql":  # the best one no one else is taking
+                    first = next((o for o in order if _lock_row(db, o[0])), None)
+                    order = [first] if first else []
                 if not order:
                     return None
-                chosen = order[0]
+                chosen, submitter, limit = order[0]
+                if _lock_user(db, submitter) and _running(db, submitter) >= limit:
+                    continue  # another worker just gave this submitter their last slot
                 taken = db.execute(
                     sa.update(T)
                     .where(T.c.id == chosen, T.c.status == "queued")
@@ -186,7 +183,7 @@ class Queue:
             )
         return None
 
-    def _choose(self, db: Connection) -> list[int]:
+    def _choose(self, db: Connection) -> list[tuple[int, str, int]]:
         """The queued trials that may run now, best first (one per submitter and kind)."""
         heads = db.execute(
             sa.select(T.c.submitter, T.c.public, sa.func.min(T.c.id))
@@ -210,11 +207,11 @@ class Queue:
             ).all()
         )
         ready = sorted(
-            (not public, running.get(name, 0), first)
+            (not public, running.get(name, 0), first, name)
             for name, public, first in heads
             if running.get(name, 0) < limits.get(name, 1)
         )
-        return [first for _, _, first in ready]
+        return [(first, name, limits.get(name, 1)) for _, _, first, name in ready]
 
     def heartbeat(self, trial_id: int, worker: str) -> bool:
         """Renew the lease; False if the trial is no longer this worker's or must stop."""
@@ -306,3 +303,33 @@ class Queue:
         if ids:
             self.requeue_expired()
         return ids
+
+
+def _lock_user(db: Connection, name: str) -> bool:
+    """On PostgreSQL, hold a lock on this submitter's quota until the transaction ends.
+
+    Counting a submitter's trials and then adding one must not interleave with another
+    transaction doing the same, or both could pass a limit that only one may. SQLite
+    needs nothing: its write transactions already run one at a time. True if locked.
+    """
+    if db.dialect.name != "postgresql":
+        return False
+    db.execute(sa.text("SELECT pg_advisory_xact_lock(hashtext(:key))"), {"key": f"labd:{name}"})
+    return True
+
+
+def _running(db: Connection, name: str) -> int:
+    count = db.execute(
+        sa.select(sa.func.count()).where(T.c.submitter == name, T.c.status == "running")
+    ).scalar_one()
+    return int(count)
+
+
+def _lock_row(db: Connection, trial_id: int) -> bool:
+    """Lock a queued trial's row unless another transaction holds it (then False at once)."""
+    locked = db.execute(
+        sa.select(T.c.id)
+        .where(T.c.id == trial_id, T.c.status == "queued")
+        .with_for_update(skip_locked=True)
+    ).first()
+    return locked is not None

@@ -240,3 +240,51 @@ def test_concurrent_submissions_and_claims_all_land(index, queue):
     assert len(set(claimed)) == len(claimed)
     rows = index.find(Filters(submitter="alice"), limit=500).items
     assert len(rows) == 40
+
+
+def test_concurrent_claims_keep_the_running_limit(index, queue):
+    """Workers claiming at once never give a submitter more trials than their limit."""
+    alice = make_user(index, "alice", max_running=2)
+    for s in range(6):
+        submit(queue, alice, seed=s, public=bool(s % 2))
+    got: list[int] = []
+    lock = threading.Lock()
+
+    def work(name):
+        claim = queue.claim(name)
+        if claim is not None:
+            with lock:
+                got.append(claim.id)
+
+    threads = [threading.Thread(target=work, args=(f"w{n}",)) for n in range(6)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert len(got) == 2
+    assert len(index.find(Filters(status="running")).items) == 2
+
+
+def test_concurrent_submissions_keep_the_daily_limit(index, queue):
+    """Submitting from many threads at once never passes the daily limit."""
+    alice = make_user(index, "alice", max_daily=5)
+    accepted: list[int] = []
+    refused: list[Exception] = []
+    lock = threading.Lock()
+
+    def send(seed):
+        try:
+            trial = submit(queue, alice, seed=seed)
+        except QuotaExceeded as err:
+            with lock:
+                refused.append(err)
+        else:
+            with lock:
+                accepted.append(trial)
+
+    threads = [threading.Thread(target=send, args=(s,)) for s in range(12)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert (len(accepted), len(refused)) == (5, 7)
