@@ -389,19 +389,6 @@ class Index:
             "truncated": truncated,
         }
 
-    def originals_of_commit(self, commit: str) -> list[dict[str, Any]]:
-        """The commit's trials that are not reruns, newest first."""
-        found = self.commits(commit)
-        if len(found) != 1:
-            return []
-        query = (
-            sa.select(trials)
-            .where(trials.c.commit == found[0], trials.c.rerun_of.is_(None))
-            .order_by(trials.c.id.desc())
-        )
-        with self.engine.connect() as db:
-            return [dict(r._mapping) for r in db.execute(query)]
-
     def update(self, trial_id: int, db: Connection | None = None, **values: Any) -> int:
         """Set columns of one trial; the number of rows changed."""
         statement = sa.update(trials).where(trials.c.id == trial_id).values(values)

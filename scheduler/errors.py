@@ -11,7 +11,9 @@ TrialError                      a trial could not be prepared or run
 ├── ControllerConfigError       lab.toml is missing or does not say what the lab needs
 └── RequirementsError           the repository's requirements could not be installed
 QueueError                      a queue operation was refused
-└── QuotaExceeded               a submitter is over a limit the operator set
+├── InvalidRequest              a submission names an unknown task, a bad parameter or seed
+├── QuotaExceeded               a submitter is over a limit the operator set
+└── RemoteError                 a lab's API refused a remote worker, or could not be reached
 
 Each says what a person can do about it. None carries a credential: the URLs in them
 are the ones the lab records, which never hold one.
@@ -160,3 +162,11 @@ def accepted(schemes: Collection[str]) -> str:
 
 def _mib(size: int) -> str:
     return f"{size / MiB:.1f} MiB"
+
+
+class InvalidRequest(QueueError):
+    """The request itself is wrong (an unknown task, a bad parameter or seed)."""
+
+
+class RemoteError(QueueError):
+    """The lab's API refused a worker's request, or could not be reached."""

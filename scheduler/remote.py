@@ -10,21 +10,15 @@ its digest by the server before it is stored.
 from __future__ import annotations
 
 import hashlib
-import logging
 from pathlib import Path
 from typing import Any
 
 import httpx
 
-from scheduler.errors import QueueError
+from scheduler.errors import RemoteError
 from scheduler.queue import Claim
 
-log = logging.getLogger("scheduler.remote")
 CHUNK = 1 << 20
-
-
-class RemoteError(QueueError):
-    """The lab's API refused a worker's request, or could not be reached."""
 
 
 class RemoteLab:

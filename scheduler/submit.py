@@ -14,50 +14,18 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Mapping
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 from labd.errors import LabError
 from labd.sim import registry
 from repository.index import Index, User
-from scheduler.errors import QueueError
+from scheduler.errors import InvalidRequest
 from scheduler.fetch import FetchPolicy, resolve
 from scheduler.queue import Queue
 
 log = logging.getLogger("scheduler.submit")
 MAX_SEED = 2**63 - 1
-
-
-class InvalidRequest(QueueError):
-    """The request itself is wrong (an unknown task, a bad parameter or seed)."""
-
-
-@dataclass(frozen=True)
-class Submitted:
-    id: int
-    repository: str
-    ref: str | None
-    commit: str
-    task: str
-    params: dict[str, Any]
-    seed: int
-    public: bool
-    rerun_of: int | None = None
-
-    def to_json(self) -> dict[str, Any]:
-        return {
-            "id": self.id,
-            "status": "queued",
-            "repository": self.repository,
-            "ref": self.ref,
-            "commit": self.commit,
-            "task": self.task,
-            "params": self.params,
-            "seed": self.seed,
-            "public": self.public,
-            "rerun_of": self.rerun_of,
-        }
 
 
 class Submissions:
@@ -76,8 +44,11 @@ class Submissions:
         task: str,
         params: Mapping[str, Any] | None = None,
         seed: int = 0,
-    ) -> Submitted:
-        """Check, resolve and queue (InvalidRequest, RepositoryError, QuotaExceeded)."""
+    ) -> int:
+        """Check, resolve and queue; the new trial's id.
+
+        Raises InvalidRequest, RepositoryError or QuotaExceeded, having written nothing.
+        """
         given = dict(params or {})
         checked = check_task(task, given, seed)
         resolved = resolve(repository, ref, self.cache, self.policy)
@@ -100,19 +71,10 @@ class Submissions:
             ref or "HEAD",
             task,
         )
-        return Submitted(
-            trial_id,
-            resolved.repository,
-            ref,
-            resolved.commit,
-            task,
-            checked,
-            seed,
-            resolved.public,
-        )
+        return trial_id
 
-    def rerun(self, user: User, trial_id: int) -> Submitted:
-        """Queue a rerun of trial ``trial_id`` (RecordNotFound, QuotaExceeded)."""
+    def rerun(self, user: User, trial_id: int) -> int:
+        """Queue a rerun of trial ``trial_id``; its id (RecordNotFound, QuotaExceeded)."""
         old = self.index.trial(trial_id)
         original = old["rerun_of"] or old["id"]  # a rerun of a rerun compares to the original
         if original != old["id"]:
@@ -129,17 +91,7 @@ class Submissions:
             rerun_of=original,
         )
         log.info("trial %d queued for %s: a rerun of %d", new_id, user.name, original)
-        return Submitted(
-            new_id,
-            old["repository"],
-            old["commit"],
-            old["commit"],
-            old["task"],
-            dict(old["params"]),
-            old["seed"],
-            old["public"],
-            rerun_of=original,
-        )
+        return new_id
 
 
 def check_task(task: str, given: dict[str, Any], seed: int) -> dict[str, Any]:

@@ -19,7 +19,6 @@ import contextlib
 import logging
 import shutil
 import tempfile
-from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Protocol
@@ -31,8 +30,6 @@ from sandbox.api import Backend
 from scheduler.errors import QueueError
 from scheduler.queue import Claim
 from scheduler.runner import RunOptions, TrialResult, TrialSpec, run_trial
-
-log = logging.getLogger("scheduler.worker")
 
 
 class Jobs(Protocol):
@@ -79,8 +76,6 @@ class Worker:
         self.types = types
         self.config = config
         self.wake = asyncio.Event()  # set by a submission, to claim at once
-        self.current: int | None = None
-        self.on_filed: Callable[[int], None] | None = None
         self.log = logging.getLogger(f"scheduler.worker.{config.name}")
 
     async def run(self, stop: asyncio.Event) -> None:
@@ -112,7 +107,6 @@ class Worker:
 
     async def execute(self, claim: Claim) -> None:
         """Run one claimed trial to its end and file it."""
-        self.current = claim.id
         out = self.config.work / f"trial-{claim.id}-{claim.attempt}"
         shutil.rmtree(out, ignore_errors=True)
         spec = TrialSpec(
@@ -153,11 +147,8 @@ class Worker:
                 self.log.error("trial %d could not be filed: %s", claim.id, err)
                 return
             self.log.info("trial %d %s: %s", claim.id, record["status"], record["reason"])
-            if self.on_filed is not None:
-                self.on_filed(claim.id)
         finally:
             shutil.rmtree(out, ignore_errors=True)
-            self.current = None
 
     async def _heartbeat(self, trial_id: int, running: asyncio.Task[TrialResult]) -> None:
         while True:

@@ -36,8 +36,13 @@ from labd.service import Service
 from labd.sim import registry
 from repository.errors import ArchiveError, RecordNotFound
 from repository.index import STATUSES, Filters
-from scheduler.errors import QueueError, QuotaExceeded, RepositoryError, TooLarge
-from scheduler.submit import InvalidRequest
+from scheduler.errors import (
+    InvalidRequest,
+    QueueError,
+    QuotaExceeded,
+    RepositoryError,
+    TooLarge,
+)
 
 Value = bool | int | float | str
 
@@ -124,7 +129,7 @@ def tasks() -> dict[str, Any]:
 def submit(body: SubmitRequest, request: Request, service: Lab, user: Writer) -> JSONResponse:
     """Resolve the ref to a commit now, and queue a trial of that commit."""
     try:
-        done = service.submissions.submit(
+        trial_id = service.submissions.submit(
             user,
             repository=body.repository,
             ref=body.ref,
@@ -135,7 +140,7 @@ def submit(body: SubmitRequest, request: Request, service: Lab, user: Writer) ->
     except (InvalidRequest, RepositoryError, QuotaExceeded) as err:
         raise _error(err) from None
     request.app.state.on_submit()
-    row = views.trial(service.index.trial(done.id), base=_base(request))
+    row = views.trial(service.index.trial(trial_id), base=_base(request))
     return JSONResponse(row, status_code=201, headers={"Location": row["url"]})
 
 
@@ -193,11 +198,11 @@ def rerun(trial_id: int, request: Request, service: Lab, user: Writer) -> JSONRe
     """Queue a new trial from the same commit, task, parameters and seed."""
     _one(service, trial_id)
     try:
-        done = service.submissions.rerun(user, trial_id)
+        new_id = service.submissions.rerun(user, trial_id)
     except QuotaExceeded as err:
         raise _error(err) from None
     request.app.state.on_submit()
-    row = views.trial(service.index.trial(done.id), base=_base(request))
+    row = views.trial(service.index.trial(new_id), base=_base(request))
     return JSONResponse(row, status_code=201, headers={"Location": row["url"]})
 
 

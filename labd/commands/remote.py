@@ -60,11 +60,7 @@ class Client:
         except httpx.HTTPError as err:
             raise CommandError(f"cannot reach the lab at {self.server}: {err}") from None
         if response.status_code >= 400:
-            try:
-                message = response.json().get("error") or response.text
-            except ValueError:
-                message = response.text.strip() or response.reason_phrase
-            raise CommandError(f"{message} (HTTP {response.status_code})")
+            raise CommandError(f"{_error_text(response)} (HTTP {response.status_code})")
         return response.json()
 
     def download(self, path: str, dest: Path) -> int:

@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import argparse
 import asyncio
-import logging
 import os
 import signal
 import socket
@@ -30,8 +29,6 @@ from sandbox.api import SandboxError
 from scheduler.remote import RemoteLab
 from scheduler.runner import RunOptions
 from scheduler.worker import Worker, WorkerConfig
-
-log = logging.getLogger("labd.worker")
 
 
 def add_parser(commands: Any) -> None:

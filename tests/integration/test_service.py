@@ -11,7 +11,6 @@ import json
 import os
 import queue
 import re
-import shutil
 import signal
 import subprocess
 import sys
@@ -47,31 +46,11 @@ with Lab.connect() as lab:
 '''
 
 
-def git(cwd, *args):
-    env = {
-        **os.environ,
-        "GIT_AUTHOR_NAME": "T",
-        "GIT_AUTHOR_EMAIL": "t@example.org",
-        "GIT_COMMITTER_NAME": "T",
-        "GIT_COMMITTER_EMAIL": "t@example.org",
-    }
-    return subprocess.run(
-        ["git", "-C", str(cwd), *args], check=True, capture_output=True, text=True, env=env
-    ).stdout.strip()
-
-
 def make_repo(path: Path, files: dict[str, str] | None = None, copy: Path | None = None) -> Path:
-    path.mkdir(parents=True)
+    """A git repository at ``path`` with one commit: ``files``, or the files of ``copy``."""
     if copy is not None:
-        shutil.copytree(
-            copy, path, dirs_exist_ok=True, ignore=shutil.ignore_patterns("__pycache__")
-        )
-    for name, text in (files or {}).items():
-        (path / name).write_text(text)
-    git(path, "init", "-q", "-b", "main")
-    git(path, "add", "-A")
-    git(path, "commit", "-q", "-m", "a controller")
-    return path
+        files = {p.name: p.read_text() for p in copy.iterdir() if p.is_file()}
+    return GitRepo.create(path, files, "a controller").path
 
 
 @pytest.fixture(scope="module")
@@ -194,7 +173,7 @@ def lab(make_lab):
 def test_submit_list_download_and_rerun_by_commit(lab, tmp_path):
     """A newcomer's path: submit by path and ref, list, download the MCAP, rerun, reproduced."""
     repo = make_repo(tmp_path / "maze", copy=EXAMPLES / "icreate-maze")
-    commit = git(repo, "rev-parse", "HEAD")
+    commit = GitRepo(repo).rev()
     trial = lab.json("submit", str(repo), "--ref", "main", "--task", "icreate-maze", "--wait")
     assert trial["status"] == "succeeded", trial
     assert trial["commit"] == commit

@@ -8,7 +8,6 @@ worker files them (blobs in the store, columns in the index).
 from __future__ import annotations
 
 import os
-import subprocess
 from pathlib import Path
 
 import httpx
@@ -17,30 +16,19 @@ import pytest
 from labd.api.app import create_app
 from labd.service import Service, ServiceConfig
 from scheduler.fetch import FetchPolicy
-
-
-def git(cwd, *args):
-    return subprocess.run(
-        ["git", "-C", str(cwd), *args], check=True, capture_output=True, text=True
-    ).stdout.strip()
+from tests.helpers.githttp import GitRepo
 
 
 @pytest.fixture
 def repo(tmp_path) -> Path:
-    """A controller repository with two commits, a branch and a tag."""
-    path = tmp_path / "controller"
-    path.mkdir()
-    git(path, "init", "-q", "-b", "main")
-    git(path, "config", "user.email", "t@example.org")
-    git(path, "config", "user.name", "T")
-    (path / "lab.toml").write_text('[controller]\ncommand = ["python", "c.py"]\n')
-    (path / "c.py").write_text("print('one')\n")
-    git(path, "add", ".")
-    git(path, "commit", "-q", "-m", "one")
-    git(path, "tag", "v1")
-    (path / "c.py").write_text("print('two')\n")
-    git(path, "commit", "-q", "-am", "two")
-    return path
+    """A controller repository with two commits and a tag on the first."""
+    made = GitRepo.create(
+        tmp_path / "controller",
+        {"lab.toml": '[controller]\ncommand = ["python", "c.py"]\n', "c.py": "print('one')\n"},
+    )
+    made.tag("v1")
+    made.commit({"c.py": "print('two')\n"}, "two")
+    return made.path
 
 
 @pytest.fixture
@@ -85,7 +73,7 @@ async def submit(api, token, repo, **body):
 
 async def test_submit_pins_the_ref_to_a_commit(api, token, repo):
     """A submission answers 201 with the full commit the ref named when it was made."""
-    tag = git(repo, "rev-parse", "v1")
+    tag = GitRepo(repo).rev("v1")
     reply = await submit(api, token, repo, ref="v1", seed=7, params={"maze_size": "7"})
     assert reply.status_code == 201, reply.text
     trial = reply.json()
@@ -96,7 +84,7 @@ async def test_submit_pins_the_ref_to_a_commit(api, token, repo):
     assert reply.headers["location"].endswith(f"/api/trials/{trial['id']}")
     assert api.woken == [1]
     head = (await submit(api, token, repo)).json()
-    assert head["commit"] == git(repo, "rev-parse", "HEAD")
+    assert head["commit"] == GitRepo(repo).rev()
     short = (await submit(api, token, repo, ref=tag[:8])).json()
     assert short["commit"] == tag
 
@@ -239,9 +227,7 @@ async def test_openapi_and_tasks(api):
 
 async def test_a_repository_over_the_size_limit_is_a_413(tmp_path, repo):
     """A repository larger than the operator's limit is refused, and no mirror is left."""
-    (repo / "weights.bin").write_bytes(os.urandom(600_000))
-    git(repo, "add", ".")
-    git(repo, "commit", "-q", "-m", "weights")
+    GitRepo(repo).commit({"weights.bin": os.urandom(600_000)}, "weights")
     config = ServiceConfig(
         data=tmp_path / "small",
         workers=0,
