@@ -15,10 +15,11 @@ formats itself, so a handler turns it into a protocol reply without string surge
     │   ├── FrameError             a frame is not a well-formed rosbridge operation
     │   ├── ProtectedError         the name is protected and never crosses the bridge
     │   └── LimitError             a per-client limit would be exceeded
-    └── SimError                   a simulated robot or task refused something
-        ├── UnknownTaskError       no task of that name
-        ├── ParamError             a task parameter is unknown, of the wrong kind, out of range
-        └── EpisodeOverError       the episode has ended; no more steps
+    ├── SimError                   a simulated robot or task refused something
+    │   ├── UnknownTaskError       no task of that name
+    │   ├── ParamError             a task parameter is unknown, of the wrong kind, out of range
+    │   └── EpisodeOverError       the episode has ended; no more steps
+    └── PortInUse                  a port the lab was told to listen on is taken
 """
 
 from __future__ import annotations
@@ -170,3 +171,16 @@ class EpisodeOverError(SimError):
         self.status = status
         self.reason = reason
         super().__init__(f"the episode has ended ({status}: {reason})")
+
+
+class PortInUse(LabError):
+    """A port the lab was told to listen on is taken; ``flag`` is the option to change."""
+
+    def __init__(self, host: str, port: int, flag: str) -> None:
+        self.host = host
+        self.port = port
+        self.flag = flag
+        super().__init__(
+            f"port {port} on {host} is in use (by another labd, or another program);"
+            f" choose another with {flag} PORT (0 picks a free one)"
+        )

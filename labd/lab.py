@@ -8,7 +8,10 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import errno
 import logging
+from collections.abc import Coroutine
+from typing import Any
 
 from labd.api.app import create_app
 from labd.api.server import HttpServer
@@ -16,10 +19,12 @@ from labd.bridge.auth import Authorizer, HttpAuthorizer
 from labd.bridge.rosapi import Rosapi
 from labd.bridge.server import BridgeServer
 from labd.config import LabConfig
+from labd.errors import PortInUse
 from labd.graph.graph import Graph
 from labd.graph.types import TypeRegistry
 from labd.service import Service
 from labd.sim.robot import LiveRunner, Robot
+from labd.station import Station
 
 log = logging.getLogger("labd.lab")
 
@@ -37,16 +42,27 @@ class Lab:
         self.config = config
         self.types = types or TypeRegistry.default()
         self.graphs: dict[str, Graph] = {}
+        self.stations: dict[str, Station] = {}
         self.robots: dict[str, Robot] = {}
+        protected = config.bridge.protected_prefixes
         for robot in config.robots:
-            graph = self.graphs[robot.name] = Graph(self.types, name=robot.name)
-            node = "/" + robot.name.replace("-", "_")
-            self.robots[robot.name] = Robot(
-                graph, robot.task, dict(robot.params), robot.seed, live=robot.live, node_name=node
+            station = Station(
+                self.types,
+                robot.name,
+                robot.task,
+                dict(robot.params),
+                robot.seed,
+                live=robot.live,
+                protected_prefixes=protected,
+                node_name="/" + robot.name.replace("-", "_"),
             )
+            self.stations[robot.name] = station
+            self.graphs[robot.name] = station.graph
+            self.robots[robot.name] = station.robot
+        self.rosapi: list[Rosapi] = []
         if config.playground:
             self.graphs["playground"] = Graph(self.types, name="playground")
-        self.rosapi = [Rosapi(g, config.bridge.protected_prefixes) for g in self.graphs.values()]
+            self.rosapi.append(Rosapi(self.graphs["playground"], protected))
         self._runners: list[asyncio.Task[None]] = []
         self._own_authorizer: HttpAuthorizer | None = None
         if authorizer is None and config.bridge.authorizer_url:
@@ -63,9 +79,13 @@ class Lab:
             if robot.live:
                 task = asyncio.create_task(LiveRunner(robot).run(), name=f"live {name}")
                 self._runners.append(task)
-        await self.bridge.start()
+        await _listen(
+            self.bridge.start(), self.config.bridge.host, self.config.bridge.port, "--bridge-port"
+        )
         if self.service is not None and self.http is not None:
-            await self.http.start()
+            await _listen(
+                self.http.start(), self.config.bridge.host, self.config.http_port, "--http-port"
+            )
             await self.service.start()
 
     async def close(self) -> None:
@@ -79,9 +99,19 @@ class Lab:
             with contextlib.suppress(asyncio.CancelledError):
                 await task
         await self.bridge.close()
-        for robot in self.robots.values():
-            robot.close()
+        for station in self.stations.values():
+            station.close()
         for api in self.rosapi:
             api.close()
         if self._own_authorizer is not None:
             await self._own_authorizer.aclose()
+
+
+async def _listen(start: Coroutine[Any, Any, None], host: str, port: int, flag: str) -> None:
+    """Start a server; a port in use is a ``PortInUse`` naming the flag to change."""
+    try:
+        await start
+    except OSError as err:
+        if err.errno == errno.EADDRINUSE:
+            raise PortInUse(host, port, flag) from None
+        raise

@@ -24,8 +24,8 @@ from pathlib import Path
 from typing import Any
 
 import sandbox
-from labd.commands.run import client_library
 from labd.graph.types import TypeRegistry
+from labd.trial import LabHost, client_library
 from repository.blobs import BlobStore
 from repository.index import Index
 from scheduler.fetch import FetchPolicy
@@ -69,13 +69,13 @@ class Service:
 
     def __init__(self, config: ServiceConfig, types: TypeRegistry | None = None) -> None:
         self.config = config
-        self.types = types or TypeRegistry.default()
+        self.host = LabHost(types or TypeRegistry.default())
         config.data.mkdir(parents=True, exist_ok=True)
         self.cache = (config.cache or config.data / "cache").resolve()
         self.index = Index.open(config.database_url)
         self.store = BlobStore(config.blobs_url, dict(config.blob_options) or None)
         self.queue = Queue(self.index, config.queue)
-        self.submissions = Submissions(self.queue, self.cache, config.fetch)
+        self.submissions = Submissions(self.queue, self.host, self.cache, config.fetch)
         self.workers: list[Worker] = []
         self._tasks: list[asyncio.Task[None]] = []
         self._stop = asyncio.Event()
@@ -98,7 +98,7 @@ class Service:
                 self.queue,
                 self.store,
                 backend,
-                self.types,
+                self.host,
                 WorkerConfig(
                     name=f"{self.name}/local-{n + 1}",
                     work=work,

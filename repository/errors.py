@@ -5,6 +5,7 @@ ArchiveError                 the archive could not do what was asked
 │   ├── BlobNotFound         no blob has that digest
 │   └── BlobCorrupt          a blob's bytes no longer match its digest
 ├── RecordNotFound           no trial, commit or user by that name
+├── SchemaMismatch           the index was written by another version of labd
 └── ExportError              a record could not be exported (format, content)
 """
 
@@ -38,6 +39,27 @@ class RecordNotFound(ArchiveError):
         self.kind = kind
         self.name = name
         super().__init__(f"no {kind} {name!r}")
+
+
+class SchemaMismatch(ArchiveError):
+    """The index has another schema than this labd reads: older (``labd migrate``
+    upgrades it in place) or newer (this labd is too old for it)."""
+
+    def __init__(self, found: int, expected: int) -> None:
+        self.found = found
+        self.expected = expected
+        if found < expected:
+            what = (
+                f"the archive's index has schema {found}, from an older labd; this labd"
+                f" reads schema {expected}: upgrade it in place with `labd migrate`"
+                " (nothing is lost)"
+            )
+        else:
+            what = (
+                f"the archive's index has schema {found}, from a newer labd; this labd"
+                f" reads schema {expected}: run the newer labd"
+            )
+        super().__init__(what)
 
 
 class ExportError(ArchiveError):

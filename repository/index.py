@@ -14,6 +14,7 @@ with their reruns.
 
 from __future__ import annotations
 
+import datetime as dt
 import hashlib
 import secrets
 import time
@@ -25,11 +26,10 @@ from typing import Any
 import sqlalchemy as sa
 from sqlalchemy.engine import Connection, Engine
 
-from repository.errors import ArchiveError, RecordNotFound
+from repository.errors import ArchiveError, RecordNotFound, SchemaMismatch
+from repository.trial import Kind, Outcome, Status, Trial
 
-SCHEMA_VERSION = 1
-STATUSES = ("queued", "running", "succeeded", "failed", "cancelled")
-ENDED = ("succeeded", "failed", "cancelled")
+SCHEMA_VERSION = 2  # 1: labd 0.1 (status succeeded/failed); 2: status and outcome apart
 HEX = frozenset("0123456789abcdef")
 
 metadata = sa.MetaData()
@@ -56,6 +56,7 @@ trials = sa.Table(
     "trials",
     metadata,
     sa.Column("id", sa.Integer, primary_key=True, autoincrement=True),
+    sa.Column("kind", sa.String(16), nullable=False),
     # what was asked
     sa.Column("repository", sa.String(2048), nullable=False),
     sa.Column("ref", sa.String(256)),
@@ -68,6 +69,7 @@ trials = sa.Table(
     sa.Column("rerun_of", sa.Integer, sa.ForeignKey("trials.id")),
     # the queue
     sa.Column("status", sa.String(16), nullable=False),
+    sa.Column("outcome", sa.String(16)),  # finished trials only
     sa.Column("reason", sa.Text, nullable=False),
     sa.Column("created", sa.Float, nullable=False),
     sa.Column("started", sa.Float),
@@ -98,11 +100,25 @@ sa.Index("ix_trials_commit", trials.c.commit, trials.c.id)
 sa.Index("ix_trials_task", trials.c.task, trials.c.id)
 sa.Index("ix_trials_task_status", trials.c.task, trials.c.status, trials.c.id)
 sa.Index("ix_trials_status", trials.c.status, trials.c.id)
+sa.Index("ix_trials_outcome", trials.c.outcome, trials.c.id)
+sa.Index("ix_trials_task_outcome", trials.c.task, trials.c.outcome, trials.c.id)
+sa.Index("ix_trials_kind", trials.c.kind, trials.c.id)
 sa.Index("ix_trials_submitter", trials.c.submitter, trials.c.id)
 sa.Index("ix_trials_created", trials.c.created)
 sa.Index("ix_trials_rerun_of", trials.c.rerun_of)
 # Claiming: the oldest queued trial of each submitter, public ones first.
 sa.Index("ix_trials_queue", trials.c.status, trials.c.public, trials.c.submitter, trials.c.id)
+
+
+@dataclass(frozen=True)
+class UserLimits:
+    """What a new user may do unless the operator says otherwise."""
+
+    max_running: int = 2  # trials running at once
+    max_daily: int = 500  # trials submitted per 24 hours
+
+
+USER_LIMITS = UserLimits()
 
 
 @dataclass(frozen=True)
@@ -118,8 +134,20 @@ class User:
 class Page:
     """One page of a list, newest first; ``next`` is the cursor of the following page."""
 
-    items: list[dict[str, Any]]
+    items: list[Trial]
     next: int | None
+
+
+@dataclass(frozen=True)
+class CommitPage:
+    """A commit's trials: originals newest first, their reruns, and the verdicts' counts."""
+
+    commit: str
+    repositories: list[str]
+    trials: list[Trial]
+    reruns: dict[int, list[Trial]]  # by the id of the trial they rerun
+    rerun_counts: dict[str, int]  # reproduced, diverged, pending
+    truncated: bool
 
 
 @dataclass(frozen=True)
@@ -127,7 +155,9 @@ class Filters:
     repository: str | None = None
     commit: str | None = None  # a full commit or a prefix of at least 4 hex digits
     task: str | None = None
-    status: str | None = None
+    status: Status | None = None
+    outcome: Outcome | None = None
+    kind: Kind | None = None
     submitter: str | None = None
     since: float | None = None  # created at or after (epoch seconds)
     until: float | None = None  # created before
@@ -191,16 +221,25 @@ class Index:
         return index
 
     def create(self) -> None:
-        """Create the tables if they are missing; refuse a database of another schema."""
+        """Create the tables if they are missing; refuse a database of another schema.
+
+        An index of an older schema is upgraded by ``repository.migrate`` (``labd
+        migrate``), never silently here: the operator decides when to change it.
+        """
+        with self.begin() as db:
+            existing = sa.inspect(db).has_table(meta.name)
+            found = (
+                db.execute(sa.select(meta.c.value).where(meta.c.key == "schema")).scalar()
+                if existing
+                else None
+            )
+        if found is not None and found != str(SCHEMA_VERSION):
+            raise SchemaMismatch(int(found), SCHEMA_VERSION)
         metadata.create_all(self.engine)
         with self.begin() as db:
             found = db.execute(sa.select(meta.c.value).where(meta.c.key == "schema")).scalar()
             if found is None:
                 db.execute(sa.insert(meta).values(key="schema", value=str(SCHEMA_VERSION)))
-            elif found != str(SCHEMA_VERSION):
-                raise ArchiveError(
-                    f"the database holds archive schema {found}; this labd reads {SCHEMA_VERSION}"
-                )
 
     def close(self) -> None:
         self.engine.dispose()
@@ -215,7 +254,12 @@ class Index:
     # -- users --------------------------------------------------------------------------
 
     def add_user(
-        self, name: str, *, max_running: int = 2, max_daily: int = 500, worker: bool = False
+        self,
+        name: str,
+        *,
+        max_running: int = USER_LIMITS.max_running,
+        max_daily: int = USER_LIMITS.max_daily,
+        worker: bool = False,
     ) -> str:
         """Add a user and return their new token (only its hash is kept)."""
         if not name or len(name) > 64 or not all(c.isalnum() or c in "-_." for c in name):
@@ -264,9 +308,11 @@ class Index:
         submitter: str,
         public: bool,
         rerun_of: int | None = None,
+        kind: Kind = Kind.TRIAL,
         db: Connection | None = None,
     ) -> int:
         values = {
+            "kind": kind.value,
             "repository": repository,
             "ref": ref,
             "commit": commit,
@@ -276,7 +322,7 @@ class Index:
             "submitter": submitter,
             "public": public,
             "rerun_of": rerun_of,
-            "status": "queued",
+            "status": Status.QUEUED.value,
             "reason": "waiting for a worker",
             "created": self.clock(),
             "attempts": 0,
@@ -287,12 +333,12 @@ class Index:
         with self.begin() as own:
             return _inserted_id(own.execute(sa.insert(trials).values(values)))
 
-    def trial(self, trial_id: int) -> dict[str, Any]:
+    def trial(self, trial_id: int) -> Trial:
         with self.engine.connect() as db:
             row = db.execute(sa.select(trials).where(trials.c.id == trial_id)).first()
         if row is None:
             raise RecordNotFound("trial", str(trial_id))
-        return dict(row._mapping)
+        return to_trial(row)
 
     def find(self, filters: Filters, *, limit: int = 50, before: int | None = None) -> Page:
         """Trials matching ``filters``, newest first; ``before`` is a page's cursor."""
@@ -301,31 +347,34 @@ class Index:
             query = query.where(trials.c.id < before)
         query = query.order_by(trials.c.id.desc()).limit(limit + 1)
         with self.engine.connect() as db:
-            rows = [dict(r._mapping) for r in db.execute(query)]
+            rows = [to_trial(r) for r in db.execute(query)]
         more = len(rows) > limit
         rows = rows[:limit]
-        return Page(rows, rows[-1]["id"] if more and rows else None)
+        return Page(rows, rows[-1].id if more and rows else None)
 
     def _conditions(self, f: Filters) -> list[sa.ColumnElement[bool]]:
+        c = trials.c
         conditions: list[sa.ColumnElement[bool]] = []
         if f.repository is not None:
-            conditions.append(trials.c.repository == f.repository)
+            conditions.append(c.repository == f.repository)
         if f.commit is not None:
             conditions.append(commit_condition(f.commit))
         if f.task is not None:
-            conditions.append(trials.c.task == f.task)
+            conditions.append(c.task == f.task)
         if f.status is not None:
-            if f.status not in STATUSES:
-                raise ArchiveError(f"status {f.status!r}: use one of {', '.join(STATUSES)}")
-            conditions.append(trials.c.status == f.status)
+            conditions.append(c.status == Status(f.status).value)
+        if f.outcome is not None:
+            conditions.append(c.outcome == Outcome(f.outcome).value)
+        if f.kind is not None:
+            conditions.append(c.kind == Kind(f.kind).value)
         if f.submitter is not None:
-            conditions.append(trials.c.submitter == f.submitter)
+            conditions.append(c.submitter == f.submitter)
         if f.since is not None:
-            conditions.append(trials.c.created >= f.since)
+            conditions.append(c.created >= f.since)
         if f.until is not None:
-            conditions.append(trials.c.created < f.until)
+            conditions.append(c.created < f.until)
         if f.rerun_of is not None:
-            conditions.append(trials.c.rerun_of == f.rerun_of)
+            conditions.append(c.rerun_of == f.rerun_of)
         return conditions
 
     def commits(self, prefix: str) -> list[str]:
@@ -339,7 +388,7 @@ class Index:
         with self.engine.connect() as db:
             return [r[0] for r in db.execute(query)]
 
-    def commit_page(self, commit: str, *, limit: int = 200) -> dict[str, Any]:
+    def commit_page(self, commit: str, *, limit: int = 200) -> CommitPage:
         """A commit's trials, newest first, each original with its reruns.
 
         ``reproduced``/``diverged``/``pending`` count the reruns of this commit that
@@ -360,34 +409,31 @@ class Index:
             .limit(limit + 1)
         )
         with self.engine.connect() as db:
-            rows = [dict(r._mapping) for r in db.execute(query)]
+            rows = [to_trial(r) for r in db.execute(query)]
         truncated = len(rows) > limit
         rows = rows[:limit]
-        reruns: dict[int, list[dict[str, Any]]] = {}
+        reruns: dict[int, list[Trial]] = {}
         originals = []
-        for row in rows:
-            if row["rerun_of"] is not None:
-                reruns.setdefault(row["rerun_of"], []).append(row)
-            else:
-                originals.append(row)
         counts = {"reproduced": 0, "diverged": 0, "pending": 0}
         for row in rows:
-            if row["rerun_of"] is None:
+            if row.rerun_of is None:
+                originals.append(row)
                 continue
-            if row["reproduced"] is True:
+            reruns.setdefault(row.rerun_of, []).append(row)
+            if row.reproduced is True:
                 counts["reproduced"] += 1
-            elif row["reproduced"] is False:
+            elif row.reproduced is False:
                 counts["diverged"] += 1
             else:
                 counts["pending"] += 1
-        return {
-            "commit": full,
-            "repositories": sorted({r["repository"] for r in rows}),
-            "trials": originals,
-            "reruns": reruns,
-            "rerun_counts": counts,
-            "truncated": truncated,
-        }
+        return CommitPage(
+            commit=full,
+            repositories=sorted({r.repository for r in rows}),
+            trials=originals,
+            reruns=reruns,
+            rerun_counts=counts,
+            truncated=truncated,
+        )
 
     def update(self, trial_id: int, db: Connection | None = None, **values: Any) -> int:
         """Set columns of one trial; the number of rows changed."""
@@ -411,6 +457,19 @@ def commit_condition(commit: str) -> sa.ColumnElement[bool]:
     if len(commit) == 40:
         return trials.c.commit == commit
     return sa.and_(trials.c.commit >= commit, trials.c.commit < commit + "g")
+
+
+def to_trial(row: Any) -> Trial:
+    """A row of ``trials`` as the typed record (times become UTC datetimes)."""
+    values = dict(row._mapping)
+    for name in ("created", "started", "finished"):
+        values[name] = _moment(values[name])
+    values.pop("lease_until", None)
+    return Trial.model_validate(values)
+
+
+def _moment(seconds: float | None) -> dt.datetime | None:
+    return None if seconds is None else dt.datetime.fromtimestamp(seconds, dt.UTC)
 
 
 def token_hash(token: str) -> str:

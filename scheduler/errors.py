@@ -13,7 +13,10 @@ TrialError                      a trial could not be prepared or run
 QueueError                      a queue operation was refused
 ├── InvalidRequest              a submission names an unknown task, a bad parameter or seed
 ├── QuotaExceeded               a submitter is over a limit the operator set
-└── RemoteError                 a lab's API refused a remote worker, or could not be reached
+├── NotYours                    a trial may be changed only by its submitter
+└── RemoteError                 talking to a lab's HTTP API went wrong
+    ├── LabUnreachable          no lab answered at that address
+    └── ApiRefused              the lab answered with an error (its status and words)
 
 Each says what a person can do about it. None carries a credential: the URLs in them
 are the ones the lab records, which never hold one.
@@ -164,9 +167,42 @@ def _mib(size: int) -> str:
     return f"{size / MiB:.1f} MiB"
 
 
+class NotYours(QueueError):
+    """Only a trial's submitter may cancel it (or otherwise change it)."""
+
+    def __init__(self, trial_id: int, owner: str, action: str) -> None:
+        self.trial_id = trial_id
+        self.owner = owner
+        self.action = action
+        super().__init__(f"trial {trial_id} is {owner}'s; only they may {action} it")
+
+
 class InvalidRequest(QueueError):
     """The request itself is wrong (an unknown task, a bad parameter or seed)."""
 
 
 class RemoteError(QueueError):
-    """The lab's API refused a worker's request, or could not be reached."""
+    """Talking to a lab's HTTP API went wrong (the message says how)."""
+
+
+class LabUnreachable(RemoteError):
+    """Nothing answered at the lab's address, after a few tries."""
+
+    def __init__(self, server: str, detail: str) -> None:
+        self.server = server
+        self.detail = detail
+        super().__init__(
+            f"cannot reach the lab at {server} ({detail}); is `labd serve` running there?"
+            " Give its address with --server URL or LABD_SERVER"
+        )
+
+
+class ApiRefused(RemoteError):
+    """The lab answered a request with an error status."""
+
+    def __init__(self, status: int, message: str, method: str = "", path: str = "") -> None:
+        self.status = status
+        self.message = message
+        self.method = method
+        self.path = path
+        super().__init__(f"{message} (HTTP {status})")

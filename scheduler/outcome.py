@@ -1,68 +1,87 @@
-"""How a trial ended, in a sentence a person can act on."""
+"""How a trial ended, in a sentence a person can act on.
+
+``judge`` turns how the controller's process ended and where the episode was into an
+``Ending`` (``repository.trial``): ``success`` when the task was achieved, ``fail``
+when the trial ran to its end without achieving it, ``error`` when something broke.
+"""
 
 from __future__ import annotations
 
+import re
 import signal
-from dataclasses import dataclass
 
-from labd.sim.simulation import Simulation
+from repository.trial import Ending
 from sandbox.api import Exit, Limits
+from scheduler.host import Episode
 
-SUCCEEDED, FAILED, CANCELLED = "succeeded", "failed", "cancelled"
 MiB = 1024 * 1024
+_FRAME = re.compile(r'^\s*File "(?P<file>[^"]+)", line (?P<line>\d+)(?:, in (?P<where>.+))?$')
 
 
-@dataclass(frozen=True)
-class Outcome:
-    status: str  # succeeded, failed or cancelled
-    reason: str
-
-
-def judge(exit_: Exit, sim: Simulation, *, ended: bool, limits: Limits) -> Outcome:
-    """The outcome of a trial whose controller ended as ``exit_``.
+def judge(exit_: Exit, episode: Episode, *, ended: bool, limits: Limits) -> Ending:
+    """The ending of a trial whose controller ended as ``exit_``.
 
     The episode's end wins over how the controller went: a controller stopped after
-    the episode ended has done its part. A physics divergence is a failure of the
-    trial (the lab's model broke), not of the robot's task. A controller that exits
-    with 0 having never stepped ran nothing: that is a failure too.
+    the episode ended has done its part. A physics divergence is an error (the lab's
+    model broke), not a failure of the controller at its task. A controller that exits
+    with 0 having never stepped ran nothing: an error too. One that exits with 0 before
+    the episode ended gave up: the task was not achieved, a fail.
     """
-    at = f"at tick {sim.tick}"
-    if sim.diverged:
-        return Outcome(FAILED, sim.reason)
+    at = f"at tick {episode.tick}"
+    if episode.diverged:
+        return Ending.error(
+            f"{episode.reason}; the lab's simulation broke (report it, with the trial)"
+        )
     if ended:
-        return Outcome(SUCCEEDED, f"the episode ended {at}: {sim.status}: {sim.reason}")
+        return episode_ending(episode)
     if exit_.out_of_memory:
-        return Outcome(FAILED, f"out of memory {at} (the limit is {limits.memory // MiB} MiB)")
+        return Ending.error(f"out of memory {at} (the limit is {limits.memory // MiB} MiB)")
     if exit_.output_exceeded:
-        return Outcome(
-            FAILED,
+        return Ending.error(
             f"the controller printed more than {limits.output // MiB} MiB {at}; it was stopped",
         )
     if exit_.wall_exceeded:
-        return Outcome(
-            FAILED, f"time limit: the controller ran for {limits.wall:g} s (stopped {at})"
-        )
+        return Ending.error(f"time limit: the controller ran for {limits.wall:g} s (stopped {at})")
     if exit_.cpu_exceeded:
-        return Outcome(FAILED, f"CPU time limit of {limits.cpu_seconds} s reached {at}")
-    if exit_.code == 0 and sim.tick == 0:
-        return Outcome(
-            FAILED, "the controller exited with 0 before its first /lab/step: nothing ran"
-        )
+        return Ending.error(f"CPU time limit of {limits.cpu_seconds} s reached {at}")
+    if exit_.code == 0 and episode.tick == 0:
+        return Ending.error("the controller exited with 0 before its first /lab/step: nothing ran")
     if exit_.code == 0:
-        return Outcome(SUCCEEDED, f"the controller exited with 0 {at}")
+        return Ending.fail(
+            f"the controller exited with 0 {at}, before the episode ended; the task was not"
+            " achieved"
+        )
     if exit_.code is None:
         name = _signal_name(exit_.signal)
-        return Outcome(FAILED, f"the controller was killed by {name} {at}")
-    last = last_error_line(exit_.stderr)
-    detail = f": {last}" if last else ""
-    return Outcome(FAILED, f"controller exited with {exit_.code} {at}{detail}")
+        return Ending.error(f"the controller was killed by {name} {at}")
+    detail = crash_summary(exit_.stderr)
+    return Ending.error(
+        f"the controller exited with {exit_.code} {at}" + (f": {detail}" if detail else "")
+    )
 
 
-def last_error_line(stderr: bytes) -> str:
-    """The last meaningful line of a controller's stderr (a traceback's last line)."""
-    lines = [line.strip() for line in stderr.decode("utf-8", "replace").splitlines()]
-    lines = [line for line in lines if line]
-    return lines[-1][:300] if lines else ""
+def episode_ending(episode: Episode) -> Ending:
+    """The ending of a trial whose episode ended: success or fail, as the task says."""
+    what = f"{episode.status}: {episode.reason}" if episode.reason else episode.status
+    if episode.achieved:
+        return Ending.success(f"the task was achieved at tick {episode.tick}: {episode.reason}")
+    return Ending.fail(f"the episode ended at tick {episode.tick} without success: {what}")
+
+
+def crash_summary(stderr: bytes) -> str:
+    """The end of a crash's stderr: a Python traceback's last frame (file and line) and
+    its error, or else the last meaningful line."""
+    lines = [line.rstrip() for line in stderr.decode("utf-8", "replace").splitlines()]
+    lines = [line for line in lines if line.strip()]
+    if not lines:
+        return ""
+    last = lines[-1].strip()[:300]
+    for line in reversed(lines):
+        match = _FRAME.match(line)
+        if match:
+            where = f" in {match['where']}" if match["where"] else ""
+            return f"{last} ({match['file']}, line {match['line']}{where})"
+    return last
 
 
 def _signal_name(number: int | None) -> str:

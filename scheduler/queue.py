@@ -1,9 +1,10 @@
 """The persistent queue of trials, on the archive's index.
 
-A trial is queued when submitted and goes queued → running → succeeded, failed or
-cancelled. Workers *claim* the next trial with a lease they renew by heartbeat; a
-trial whose lease ran out (its worker died, or ``labd serve`` was killed) goes back to
-the queue, up to ``max_attempts`` times, so nothing submitted is lost.
+A trial is queued when submitted and goes queued → running → finished (with its
+outcome) or cancelled (``repository.trial``). Workers *claim* the next trial with a
+lease they renew by heartbeat; a trial whose lease ran out (its worker died, or ``labd
+serve`` was killed) goes back to the queue, up to ``max_attempts`` times, so nothing
+submitted is lost.
 
 Which trial is next:
 
@@ -24,14 +25,16 @@ from __future__ import annotations
 import logging
 from collections.abc import Mapping
 from dataclasses import dataclass
+from enum import StrEnum
 from typing import Any
 
 import sqlalchemy as sa
 from sqlalchemy.engine import Connection
 
-from repository.index import Index, User
+from repository.index import Index, User, to_trial
 from repository.index import trials as T
-from scheduler.errors import QueueError, QuotaExceeded
+from repository.trial import Claim, Filing, Outcome, Status, Trial
+from scheduler.errors import NotYours, QuotaExceeded
 
 log = logging.getLogger("scheduler.queue")
 DAY = 86400.0
@@ -43,18 +46,15 @@ class QueueConfig:
     max_attempts: int = 3  # claims a trial gets before it fails as lost
 
 
-@dataclass(frozen=True)
-class Claim:
-    """A trial a worker holds, with what it needs to run it."""
+QUEUED, RUNNING = Status.QUEUED.value, Status.RUNNING.value
 
-    id: int
-    repository: str
-    commit: str
-    task: str
-    params: dict[str, Any]
-    seed: int
-    rerun_of: int | None
-    attempt: int
+
+class Cancel(StrEnum):
+    """What cancelling did."""
+
+    CANCELLED = "cancelled"  # it was queued: it will never run
+    STOPPING = "stopping"  # it runs: its worker stops it at its next heartbeat
+    ENDED = "ended"  # it had ended already: nothing was done
 
 
 class Queue:
@@ -105,32 +105,35 @@ class Queue:
                 db=db,
             )
 
-    def cancel(self, trial_id: int, user: User) -> str:
+    def cancel(self, trial_id: int, user: User) -> Cancel:
         """Cancel a queued trial now, or ask the worker of a running one to stop.
 
-        Returns the trial's status after the call. Only the submitter may cancel.
+        Says what it did: ``cancelled`` (it was queued), ``stopping`` (it runs, and stops
+        at its worker's next heartbeat) or ``ended`` (it had ended: nothing to do). Only
+        the submitter may cancel (``NotYours``); ``RecordNotFound`` if there is no such
+        trial.
         """
+        trial = self.index.trial(trial_id)
+        if trial.submitter != user.name:
+            raise NotYours(trial_id, trial.submitter, "cancel")
         with self.index.begin() as db:
-            row = db.execute(sa.select(T.c.status, T.c.submitter).where(T.c.id == trial_id)).first()
-            if row is None:
-                raise QueueError(f"no trial {trial_id}")
-            if row.submitter != user.name:
-                raise QueueError(f"trial {trial_id} is {row.submitter}'s; only they may cancel it")
-            if row.status == "queued":
-                db.execute(
-                    sa.update(T)
-                    .where(T.c.id == trial_id, T.c.status == "queued")
-                    .values(
-                        status="cancelled",
-                        reason=f"cancelled by {user.name} before it ran",
-                        finished=self.clock(),
-                    )
+            cancelled = db.execute(
+                sa.update(T)
+                .where(T.c.id == trial_id, T.c.status == QUEUED)
+                .values(
+                    status=Status.CANCELLED.value,
+                    reason=f"cancelled by {user.name} before it ran",
+                    finished=self.clock(),
                 )
-                return "cancelled"
-            if row.status == "running":
-                db.execute(sa.update(T).where(T.c.id == trial_id).values(cancel_requested=True))
-                return "running"
-            return str(row.status)
+            ).rowcount
+            if cancelled:
+                return Cancel.CANCELLED
+            stopping = db.execute(
+                sa.update(T)
+                .where(T.c.id == trial_id, T.c.status == RUNNING)
+                .values(cancel_requested=True)
+            ).rowcount
+        return Cancel.STOPPING if stopping else Cancel.ENDED
 
     # -- workers ------------------------------------------------------------------------
 
@@ -157,9 +160,9 @@ class Queue:
                     continue  # another worker just gave this submitter their last slot
                 taken = db.execute(
                     sa.update(T)
-                    .where(T.c.id == chosen, T.c.status == "queued")
+                    .where(T.c.id == chosen, T.c.status == QUEUED)
                     .values(
-                        status="running",
+                        status=RUNNING,
                         reason="running",
                         worker=worker,
                         started=now,
@@ -172,14 +175,14 @@ class Queue:
                 row = db.execute(sa.select(T).where(T.c.id == chosen)).one()
             log.info("worker %s claimed trial %d (attempt %d)", worker, chosen, row.attempts)
             return Claim(
-                row.id,
-                row.repository,
-                row.commit,
-                row.task,
-                dict(row.params),
-                row.seed,
-                row.rerun_of,
-                row.attempts,
+                id=row.id,
+                repository=row.repository,
+                commit=row.commit,
+                task=row.task,
+                params=dict(row.params),
+                seed=row.seed,
+                rerun_of=row.rerun_of,
+                attempt=row.attempts,
             )
         return None
 
@@ -187,7 +190,7 @@ class Queue:
         """The queued trials that may run now, best first (one per submitter and kind)."""
         heads = db.execute(
             sa.select(T.c.submitter, T.c.public, sa.func.min(T.c.id))
-            .where(T.c.status == "queued")
+            .where(T.c.status == QUEUED)
             .group_by(T.c.submitter, T.c.public)
         ).all()
         if not heads:
@@ -195,7 +198,7 @@ class Queue:
         running: dict[str, int] = dict(
             db.execute(
                 sa.select(T.c.submitter, sa.func.count())
-                .where(T.c.status == "running")
+                .where(T.c.status == RUNNING)
                 .group_by(T.c.submitter)
             ).all()
         )
@@ -218,7 +221,7 @@ class Queue:
         with self.index.begin() as db:
             renewed = db.execute(
                 sa.update(T)
-                .where(T.c.id == trial_id, T.c.worker == worker, T.c.status == "running")
+                .where(T.c.id == trial_id, T.c.worker == worker, T.c.status == RUNNING)
                 .values(lease_until=self.clock() + self.config.lease)
             ).rowcount
             if renewed != 1:
@@ -226,14 +229,15 @@ class Queue:
             stop = db.execute(sa.select(T.c.cancel_requested).where(T.c.id == trial_id)).scalar()
         return not stop
 
-    def finish(self, trial_id: int, worker: str, **record: Any) -> bool:
-        """Store the outcome of a trial this worker holds; False if it lost the lease."""
-        record.setdefault("finished", self.clock())
+    def finish(self, trial_id: int, worker: str, filing: Filing) -> bool:
+        """Store the ending of a trial this worker holds; False if it lost the lease."""
+        values = filing.model_dump(mode="json")
+        values["finished"] = self.clock()
         with self.index.begin() as db:
             done = db.execute(
                 sa.update(T)
-                .where(T.c.id == trial_id, T.c.worker == worker, T.c.status == "running")
-                .values(lease_until=None, **record)
+                .where(T.c.id == trial_id, T.c.worker == worker, T.c.status == RUNNING)
+                .values(lease_until=None, **values)
             ).rowcount
         if done != 1:
             log.warning("worker %s finished trial %d after losing it; dropped", worker, trial_id)
@@ -245,23 +249,28 @@ class Queue:
         with self.index.begin() as db:
             lost = db.execute(
                 sa.select(T.c.id, T.c.worker, T.c.attempts, T.c.cancel_requested).where(
-                    T.c.status == "running", T.c.lease_until < now
+                    T.c.status == RUNNING, T.c.lease_until < now
                 )
             ).all()
             for trial_id, worker, attempts, cancel in lost:
+                values: dict[str, Any]
                 if cancel:
-                    values = {"status": "cancelled", "reason": "cancelled; its worker was lost"}
+                    values = {
+                        "status": Status.CANCELLED.value,
+                        "reason": "cancelled; its worker was lost",
+                    }
                 elif attempts >= self.config.max_attempts:
                     values = {
-                        "status": "failed",
+                        "status": Status.FINISHED.value,
+                        "outcome": Outcome.ERROR.value,
                         "reason": f"its worker was lost {attempts} times; the lab gave up",
                     }
                 else:
-                    values = {"status": "queued", "reason": f"requeued: worker {worker} was lost"}
-                ended = values["status"] != "queued"
+                    values = {"status": QUEUED, "reason": f"requeued: worker {worker} was lost"}
+                ended = values["status"] != QUEUED
                 db.execute(
                     sa.update(T)
-                    .where(T.c.id == trial_id, T.c.status == "running", T.c.lease_until < now)
+                    .where(T.c.id == trial_id, T.c.status == RUNNING, T.c.lease_until < now)
                     .values(
                         worker=None,
                         lease_until=None,
@@ -277,11 +286,25 @@ class Queue:
         """The workers holding running trials."""
         with self.index.engine.connect() as db:
             rows = db.execute(
-                sa.select(T.c.worker).where(T.c.status == "running").group_by(T.c.worker)
+                sa.select(T.c.worker).where(T.c.status == RUNNING).group_by(T.c.worker)
             ).all()
         return {r[0] for r in rows if r[0]}
 
-    def trial(self, trial_id: int) -> dict[str, Any]:
+    def running(self) -> list[Trial]:
+        """The trials running now, oldest first: who runs them and since when."""
+        with self.index.engine.connect() as db:
+            rows = db.execute(sa.select(T).where(T.c.status == RUNNING).order_by(T.c.id)).all()
+        return [to_trial(r) for r in rows]
+
+    def queued(self) -> int:
+        """How many trials wait for a worker."""
+        with self.index.engine.connect() as db:
+            count = db.execute(
+                sa.select(sa.func.count()).select_from(T).where(T.c.status == QUEUED)
+            ).scalar_one()
+        return int(count)
+
+    def trial(self, trial_id: int) -> Trial:
         """A trial's record (a worker compares a rerun with its original)."""
         return self.index.trial(trial_id)
 
@@ -290,14 +313,14 @@ class Queue:
         with self.index.begin() as db:
             rows = db.execute(
                 sa.select(T.c.id).where(
-                    T.c.status == "running", T.c.worker.startswith(worker_prefix, autoescape=True)
+                    T.c.status == RUNNING, T.c.worker.startswith(worker_prefix, autoescape=True)
                 )
             ).all()
             ids = [r[0] for r in rows]
             if ids:
                 db.execute(
                     sa.update(T)
-                    .where(T.c.id.in_(ids), T.c.status == "running")
+                    .where(T.c.id.in_(ids), T.c.status == RUNNING)
                     .values(lease_until=self.clock() - 1)
                 )
         if ids:
@@ -320,7 +343,7 @@ def _lock_user(db: Connection, name: str) -> bool:
 
 def _running(db: Connection, name: str) -> int:
     count = db.execute(
-        sa.select(sa.func.count()).where(T.c.submitter == name, T.c.status == "running")
+        sa.select(sa.func.count()).where(T.c.submitter == name, T.c.status == RUNNING)
     ).scalar_one()
     return int(count)
 
@@ -329,7 +352,7 @@ def _lock_row(db: Connection, trial_id: int) -> bool:
     """Lock a queued trial's row unless another transaction holds it (then False at once)."""
     locked = db.execute(
         sa.select(T.c.id)
-        .where(T.c.id == trial_id, T.c.status == "queued")
+        .where(T.c.id == trial_id, T.c.status == QUEUED)
         .with_for_update(skip_locked=True)
     ).first()
     return locked is not None

@@ -1,111 +1,101 @@
 """A worker on another machine: the queue and the blob store through a lab's HTTP API.
 
 ``labd worker --server URL --token TOKEN`` runs the same ``Worker`` as ``labd serve``
-does, with these two in place of the database and the store. The token must be a
-worker's (``labd users add NAME --worker``). The worker fetches repositories itself,
-with its own mirror cache and its own credentials; what it uploads is checked against
-its digest by the server before it is stored.
+does, with this in place of the database and the store. The token must be a worker's
+(``labd users add NAME --worker``). The worker fetches repositories itself, with its
+own mirror cache and its own credentials; what it uploads is checked against its
+digest by the server before it is stored.
+
+Every request names the worker protocol it speaks (``PROTOCOL_HEADER``); a lab that
+speaks another refuses it with a message naming both versions, so a worker left at an
+old version never files records the new lab would misread.
 """
 
 from __future__ import annotations
 
-import hashlib
 from pathlib import Path
-from typing import Any
 
-import httpx
+from pydantic import BaseModel, ConfigDict, Field
 
+from repository.trial import Claim, Filing, Trial
+from scheduler.client import ApiClient, version
 from scheduler.errors import RemoteError
-from scheduler.queue import Claim
 
-CHUNK = 1 << 20
+PROTOCOL = 2  # 1: labd 0.1 (status succeeded/failed); 2: status and outcome apart
+PROTOCOL_HEADER = "X-Labd-Worker-Protocol"
+VERSION_HEADER = "X-Labd-Version"
 
 
 class RemoteLab:
-    """``Jobs`` and ``Blobs`` over a lab's HTTP API (thread-safe: httpx.Client is)."""
+    """``Jobs`` and ``Blobs`` (``scheduler.worker``) over a lab's HTTP API."""
 
     def __init__(self, server: str, token: str, *, timeout: float = 60.0) -> None:
-        self.server = server.rstrip("/")
-        self.http = httpx.Client(
-            base_url=self.server,
-            headers={"Authorization": f"Bearer {token}"},
+        self.api = ApiClient(
+            server,
+            token,
             timeout=timeout,
+            headers={PROTOCOL_HEADER: str(PROTOCOL), VERSION_HEADER: version()},
         )
+        self.server = self.api.server
 
     def close(self) -> None:
-        self.http.close()
+        self.api.close()
 
-    def _call(self, method: str, path: str, **kwargs: Any) -> httpx.Response:
-        try:
-            response = self.http.request(method, path, **kwargs)
-        except httpx.HTTPError as err:
-            raise RemoteError(f"cannot reach the lab at {self.server}: {err}") from None
-        if response.status_code >= 400:
-            try:
-                message = response.json().get("error", response.text)
-            except ValueError:
-                message = response.text
-            raise RemoteError(f"{method} {path}: {message} (HTTP {response.status_code})")
-        return response
+    def hello(self) -> str:
+        """Check the token and that the lab speaks this worker protocol; the lab's version
+        (``ApiRefused`` with the lab's explanation if not)."""
+        reply = self.api.request("GET", "/api/workers/hello").json()
+        return str(reply["version"])
 
     # -- Jobs -------------------------------------------------------------------------
 
     def claim(self, worker: str) -> Claim | None:
-        response = self._call("POST", "/api/workers/claim", json={"worker": worker})
+        response = self.api.request("POST", "/api/workers/claim", json={"worker": worker})
         if response.status_code == 204:
             return None
-        return Claim(**response.json())
+        return self.api.parse(response, Claim)
 
     def heartbeat(self, trial_id: int, worker: str) -> bool:
         path = f"/api/workers/trials/{trial_id}/heartbeat"
-        return bool(self._call("POST", path, json={"worker": worker}).json()["keep"])
+        return self.api.post(path, Kept, json={"worker": worker}).keep
 
-    def finish(self, trial_id: int, worker: str, **record: Any) -> bool:
+    def finish(self, trial_id: int, worker: str, filing: Filing) -> bool:
         path = f"/api/workers/trials/{trial_id}/finish"
-        reply = self._call("POST", path, json={"worker": worker, "record": record})
-        return bool(reply.json()["filed"])
+        body = {"worker": worker, "filing": filing.model_dump(mode="json")}
+        return self.api.post(path, Filed, json=body).filed
 
-    def trial(self, trial_id: int) -> dict[str, Any]:
-        reply: dict[str, Any] = self._call("GET", f"/api/trials/{trial_id}").json()
-        mcap = reply.get("mcap")
-        reply["mcap"] = mcap["digest"] if mcap else None  # as the index keeps it
-        return reply
+    def trial(self, trial_id: int) -> Trial:
+        return self.api.get(f"/api/workers/trials/{trial_id}", Trial)
 
     # -- Blobs ------------------------------------------------------------------------
 
     def put_file(self, path: str | Path) -> str:
-        sha = hashlib.sha256()
-        with Path(path).open("rb") as stream:
-            while chunk := stream.read(CHUNK):
-                sha.update(chunk)
-        digest = f"sha256:{sha.hexdigest()}"
-        with Path(path).open("rb") as stream:
-            self._call(
-                "PUT",
-                f"/api/blobs/{digest}",
-                content=stream,
-                headers={"Content-Type": "application/octet-stream"},
-            )
-        return digest
+        return self.api.upload(Path(path))
 
     def copy_to(self, digest: str, dest: str | Path) -> Path:
         dest = Path(dest)
-        partial = dest.with_name(dest.name + ".partial")
-        sha = hashlib.sha256()
         try:
-            with self.http.stream("GET", f"/api/blobs/{digest}") as response:
-                if response.status_code >= 400:
-                    response.read()
-                    raise RemoteError(f"blob {digest}: HTTP {response.status_code}")
-                with partial.open("wb") as out:
-                    for chunk in response.iter_bytes(CHUNK):
-                        sha.update(chunk)
-                        out.write(chunk)
-            if f"sha256:{sha.hexdigest()}" != digest:
-                raise RemoteError(f"blob {digest}: the bytes received do not match it")
-            partial.rename(dest)
-        except httpx.HTTPError as err:
+            self.api.download(f"/api/blobs/{digest}", dest, digest=digest)
+        except RemoteError as err:
             raise RemoteError(f"blob {digest}: {err}") from None
-        finally:
-            partial.unlink(missing_ok=True)
         return dest
+
+
+# The bodies of the workers' API, shared by this client and the lab's server.
+
+
+class WorkerName(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+    worker: str = Field(min_length=1, max_length=100)
+
+
+class FinishBody(WorkerName):
+    filing: Filing
+
+
+class Kept(BaseModel):
+    keep: bool  # false: stop (cancelled, or the lease was lost)
+
+
+class Filed(BaseModel):
+    filed: bool  # false: this worker no longer held the trial

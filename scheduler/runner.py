@@ -1,10 +1,11 @@
-"""The trial runner: one controller, one robot, one recording, one outcome.
+"""The trial runner: one controller, one robot, one recording, one ending.
 
 ``run_trial`` checks the code out, reads ``lab.toml``, installs the requirements (a
 build step with the package index as its only network, cached by the file's hash),
-starts the task in lockstep with a bridge session private to the trial (on a unix
-socket the sandbox reaches as ``ws://127.0.0.1:9090``), records every topic, starts the
-sandboxed controller, and stops everything when the first of these happens:
+opens the lab side of the trial (``scheduler.host``: the task in lockstep with a bridge
+session private to the trial, on a unix socket the sandbox reaches as
+``ws://127.0.0.1:9090``, and a recorder), starts the sandboxed controller, and stops
+everything when the first of these happens:
 
 - the episode ends (the controller gets a moment to exit by itself);
 - the controller exits;
@@ -12,9 +13,11 @@ sandboxed controller, and stops everything when the first of these happens:
   before the first one, for imports and connecting);
 - a sandbox limit is hit (time, memory, output, CPU).
 
-The outcome says whether the trial ran to its end (``succeeded``), broke (``failed``,
-with a reason a person can act on) or was stopped (``cancelled``); whether the robot
-did its task is in the metrics.
+Its ending (``repository.trial.Ending``) is ``success`` when the task was achieved,
+``fail`` when the trial ran to its end without achieving it, ``error`` when it broke
+(it could not start, crashed, stalled, hit a limit), or ``cancelled``. Each stage has
+a deadline, reported in ``Progress`` so that a worker can tell a trial that still moves
+from one that is stuck.
 """
 
 from __future__ import annotations
@@ -26,27 +29,21 @@ import json
 import logging
 import shutil
 import tempfile
+import time
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from labd.bridge.rosapi import Rosapi
-from labd.bridge.server import BridgeServer
-from labd.config import BridgeConfig
-from labd.errors import LabError
-from labd.graph.graph import Graph
-from labd.graph.types import TypeRegistry
-from labd.recorder import Recorder
-from labd.sim import registry
-from labd.sim.robot import LiveRunner, Robot
+from repository.trial import Ending, Outcome, Status, Value
 from sandbox.api import Backend, Exit, InstallError, Job, Limits, Running, SandboxError
 from scheduler import controller as controller_config
 from scheduler import manifest as manifests
 from scheduler.errors import ControllerConfigError, RequirementsError, TrialError
 from scheduler.fetch import FetchPolicy
-from scheduler.outcome import CANCELLED, FAILED, Outcome, judge
-from scheduler.source import checkout
+from scheduler.host import TrialHost, TrialLab
+from scheduler.outcome import judge
+from scheduler.source import Source, checkout
 
 log = logging.getLogger("scheduler.runner")
 
@@ -68,13 +65,45 @@ class RunOptions:
     stall: float = 10.0  # seconds without /lab/step
     first_step: float = 60.0  # seconds to the first /lab/step
     grace: float = 2.0  # after the episode ends, for the controller to exit by itself
+    prepare: float = 900.0  # seconds to check out, read lab.toml and install requirements
     fetch: FetchPolicy | None = None  # the lab's; None: labd run (local folders from disk)
+
+    @property
+    def run_deadline(self) -> float:
+        """The longest a started controller may take before the trial must be over."""
+        return self.limits.wall + self.first_step + self.grace + 30.0
+
+
+class Progress:
+    """Which stage a trial is in, since when, and until when it may stay there.
+
+    The runner moves it on; a worker reads it to show what it does, and to notice a
+    trial stuck past its stage's deadline (then its lease is no longer renewed).
+    """
+
+    def __init__(self, clock: Any = time.monotonic) -> None:
+        self.clock = clock
+        self.stage = "starting"
+        self.since = clock()
+        self.deadline = self.since + 60.0
+
+    def enter(self, stage: str, seconds: float) -> None:
+        self.stage = stage
+        self.since = self.clock()
+        self.deadline = self.since + seconds
+
+    @property
+    def elapsed(self) -> float:
+        return float(self.clock() - self.since)
+
+    def overdue(self) -> float:
+        """Seconds past the stage's deadline (0 while on time)."""
+        return max(0.0, float(self.clock() - self.deadline))
 
 
 @dataclass
 class TrialResult:
-    status: str
-    reason: str
+    ending: Ending
     folder: Path
     manifest: dict[str, Any] = field(default_factory=dict)
     manifest_digest: str = ""
@@ -88,13 +117,26 @@ class TrialResult:
     digest_topics: list[str] = field(default_factory=list)  # what data_digest covers
 
     @property
+    def status(self) -> Status:
+        return self.ending.status
+
+    @property
+    def outcome(self) -> Outcome | None:
+        return self.ending.outcome
+
+    @property
+    def reason(self) -> str:
+        return self.ending.reason
+
+    @property
     def mcap(self) -> Path | None:
         path = self.folder / "trial.mcap"
         return path if path.exists() else None
 
     def to_json(self) -> dict[str, Any]:
         return {
-            "status": self.status,
+            "status": self.status.value,
+            "outcome": self.outcome.value if self.outcome else None,
             "reason": self.reason,
             "manifest_digest": self.manifest_digest,
             "data_digest": self.data_digest,
@@ -114,59 +156,85 @@ async def run_trial(
     spec: TrialSpec,
     *,
     backend: Backend,
+    host: TrialHost,
     out: Path,
     cache: Path,
-    types: TypeRegistry,
     options: RunOptions | None = None,
+    progress: Progress | None = None,
 ) -> TrialResult:
     """Run one trial into the folder ``out``.
 
     A trial that cannot start (no lab.toml, an unknown task, requirements that do not
-    install...) is a failed trial with the reason, not an exception.
+    install...) ends as an ``error`` with the reason, not with an exception.
     """
     options = options or RunOptions()
+    progress = progress or Progress()
     loop = asyncio.get_running_loop()
     started = loop.time()
     work = Path(tempfile.mkdtemp(prefix="labd-trial-"))
     work.chmod(0o755)  # the sandbox's unprivileged user reads the code below it
     out.mkdir(parents=True, exist_ok=True)
     try:
-        code = work / "code"
-        source = await asyncio.to_thread(
-            checkout, spec.source, spec.ref, code, cache, options.fetch
-        )
-        config = controller_config.load(code)
-        task = spec.task or config.task
-        if task is None:
-            raise ControllerConfigError("it names no task and none was given (--task)")
-        values = registry.validate(task, spec.params)
-        python_paths, requirements_sha = [], None
-        if config.requirements:
-            target, requirements_sha = await install_requirements(
-                backend, code / config.requirements, cache
+        progress.enter("preparing", options.prepare)
+        try:
+            prepared = await asyncio.wait_for(
+                _prepare(spec, backend=backend, host=host, work=work, cache=cache, options=options),
+                options.prepare,
             )
-            python_paths.append(target)
-        trial = _Trial(
-            spec=spec,
-            config=config,
-            task=task,
-            values=values,
-            types=types,
-            backend=backend,
-            options=options,
-            work=work,
-            out=out,
-        )
-        result = await trial.run(source, python_paths, requirements_sha)
-    except (TrialError, LabError, SandboxError) as err:
-        # The trial could not start: it is failed, with the reason, and has no record.
+        except TimeoutError:
+            raise TrialError(
+                f"preparing the trial (checking out, reading lab.toml, installing the"
+                f" requirements) took longer than {options.prepare:g} s"
+            ) from None
+        trial = _Trial(prepared, backend=backend, options=options, work=work, out=out)
+        progress.enter("running", options.run_deadline)
+        result = await trial.run()
+    except (TrialError, SandboxError) as err:
+        # The trial could not start: an error, with the reason, and no record.
         log.info("trial of %s could not start: %s", spec.source, err)
-        result = TrialResult(FAILED, str(err), out, backend=backend.name)
+        result = TrialResult(Ending.error(str(err)), out, backend=backend.name)
     finally:
         shutil.rmtree(work, ignore_errors=True)
     result.wall_seconds = loop.time() - started
     (out / "result.json").write_text(json.dumps(result.to_json(), indent=2) + "\n")
     return result
+
+
+@dataclass
+class _Prepared:
+    spec: TrialSpec
+    source: Source
+    config: controller_config.ControllerConfig
+    task: str
+    values: dict[str, Value]
+    host: TrialHost
+    python_paths: list[Path]
+    requirements_sha: str | None
+
+
+async def _prepare(
+    spec: TrialSpec,
+    *,
+    backend: Backend,
+    host: TrialHost,
+    work: Path,
+    cache: Path,
+    options: RunOptions,
+) -> _Prepared:
+    code = work / "code"
+    source = await asyncio.to_thread(checkout, spec.source, spec.ref, code, cache, options.fetch)
+    config = controller_config.load(code)
+    task = spec.task or config.task
+    if task is None:
+        raise ControllerConfigError("it names no task and none was given (--task)")
+    values = host.check(task, spec.params)
+    python_paths, requirements_sha = [], None
+    if config.requirements:
+        target, requirements_sha = await install_requirements(
+            backend, code / config.requirements, cache
+        )
+        python_paths.append(target)
+    return _Prepared(spec, source, config, task, values, host, python_paths, requirements_sha)
 
 
 async def install_requirements(backend: Backend, file: Path, cache: Path) -> tuple[Path, str]:
@@ -192,102 +260,62 @@ class _Trial:
     """The parts of one running trial, and their orderly end."""
 
     def __init__(
-        self,
-        *,
-        spec: TrialSpec,
-        config: controller_config.ControllerConfig,
-        task: str,
-        values: dict[str, Any],
-        types: TypeRegistry,
-        backend: Backend,
-        options: RunOptions,
-        work: Path,
-        out: Path,
+        self, prepared: _Prepared, *, backend: Backend, options: RunOptions, work: Path, out: Path
     ) -> None:
-        self.spec = spec
-        self.config = config
-        self.task = task
-        self.values = values
+        self.prepared = prepared
         self.backend = backend
         self.options = options
         self.work = work
         self.out = out
-        self.graph = Graph(types, name="trial")
-        limit = float(values["time_limit"]) if config.realtime else None
-        self.robot = Robot(
-            self.graph, task, values, spec.seed, live=config.realtime, time_limit=limit
+        self.lab: TrialLab = prepared.host.open(
+            prepared.task,
+            prepared.values,
+            prepared.spec.seed,
+            realtime=prepared.config.realtime,
+            out=out,
         )
-        self.rosapi = Rosapi(self.graph, BridgeConfig().protected_prefixes)
-        self.ticked = asyncio.Event()
-        self.robot.on_tick = self._tick
         self.launched: float | None = None  # loop time the sandbox was started
         self.first_step: float | None = None
 
-    def _tick(self) -> None:
-        if self.first_step is None:
-            self.first_step = asyncio.get_running_loop().time()
-        self.ticked.set()
-
-    def digest_topics(self) -> set[str]:
-        task = self.robot.sim.task
-        names = {o.name for o in task.observations} | {c.name for c in task.commands}
-        return names | {"/clock", "/lab/episode"}
-
-    async def run(
-        self, source: Any, python_paths: list[Path], requirements_sha: str | None
-    ) -> TrialResult:
-        sim = self.robot.sim
+    async def run(self) -> TrialResult:
+        p = self.prepared
+        lab = self.lab
         manifest = manifests.build(
-            source=source,
-            controller=self.config,
-            task=self.task,
-            task_version=sim.spec.version,
-            parameters=self.values,
-            seed=self.spec.seed,
+            source=p.source,
+            controller=p.config,
+            task=p.task,
+            task_version=lab.task_version,
+            parameters=p.values,
+            seed=p.spec.seed,
             runtime=self.backend.runtime_digest(),
-            requirements_sha256=requirements_sha,
-            model_sha256=sim.model_digest(),
+            requirements_sha256=p.requirements_sha,
+            model_sha256=lab.model_sha256,
         )
         digest = manifests.digest(manifest)
         socket_dir = self.work / "bridge"
         socket_dir.mkdir()
         socket_dir.chmod(0o755)
-        bridge = BridgeServer({"trial": self.graph}, BridgeConfig(port=0, max_connections=16))
-        recorder = Recorder(
-            self.graph, self.out, digest_topics=self.digest_topics(), manifest=manifest
-        )
         running: Running | None = None
         exit_: Exit | None = None
-        outcome = Outcome(FAILED, "the trial did not start")
-        live: asyncio.Task[None] | None = None
+        ending = Ending.error("the trial did not start")
         try:
-            await bridge.start(unix_path=socket_dir / "bridge.sock")
+            await lab.start(socket_dir / "bridge.sock", manifest)
             (socket_dir / "bridge.sock").chmod(0o777)
-            self.robot.publish()  # tick 0, now that the recorder listens
-            if self.config.realtime:
-                live = asyncio.create_task(LiveRunner(self.robot).run())
             self.launched = asyncio.get_running_loop().time()
-            running = await self.backend.start(self._job(socket_dir / "bridge.sock", python_paths))
-            exit_, outcome = await self._watch(running)
+            running = await self.backend.start(self._job(socket_dir / "bridge.sock"))
+            exit_, ending = await self._watch(running)
         except asyncio.CancelledError:
-            outcome = Outcome(CANCELLED, "the trial was cancelled")
+            ending = Ending.cancelled("the trial was cancelled")
             if running is not None:
                 exit_ = await running.stop()
             raise
         finally:
-            if live is not None:
-                live.cancel()
-                with contextlib.suppress(asyncio.CancelledError):
-                    await live
-            await bridge.close()
-            metrics = self.robot.sim.metrics()
             result = TrialResult(
-                outcome.status,
-                outcome.reason,
+                ending,
                 self.out,
                 manifest,
                 digest,
-                metrics=metrics,
+                metrics=lab.metrics(),
                 backend=self.backend.name,
                 exit_code=exit_.code if exit_ else None,
             )
@@ -295,85 +323,80 @@ class _Trial:
             if self.launched is not None and self.first_step is not None:
                 result.start_seconds = round(self.first_step - self.launched, 4)
                 result.run_seconds = round(now - self.first_step, 4)
-            summary = recorder.finish(attachments=self._attachments(manifest, exit_, result))
-            result.data_digest = summary.data_digest
-            result.digest_topics = sorted(self.digest_topics())
-            self.robot.close()
-            self.rosapi.close()
+            result.data_digest = await lab.finish(self._attachments(manifest, exit_, result))
+            result.digest_topics = sorted(lab.digest_topics)
         return result
 
-    def _job(self, socket: Path, python_paths: list[Path]) -> Job:
+    def _job(self, socket: Path) -> Job:
+        p = self.prepared
         env = {
-            "LAB_TASK": self.task,
-            "LAB_SEED": str(self.spec.seed),
-            "LAB_PARAMS": json.dumps(self.values, sort_keys=True),
+            "LAB_TASK": p.task,
+            "LAB_SEED": str(p.spec.seed),
+            "LAB_PARAMS": json.dumps(p.values, sort_keys=True),
         }
         return Job(
-            command=self.config.command,
+            command=p.config.command,
             code=self.work / "code",
             bridge_socket=socket,
             env=env,
-            python_paths=python_paths,
+            python_paths=p.python_paths,
             limits=self.options.limits,
         )
 
-    async def _watch(self, running: Running) -> tuple[Exit, Outcome]:
+    async def _watch(self, running: Running) -> tuple[Exit, Ending]:
         """Wait for the first thing that ends the trial; stop the controller; judge."""
         exit_task = asyncio.create_task(running.wait())
-        sim = self.robot.sim
+        lab = self.lab
+        limits = self.options.limits
         while True:
-            if not self.robot.sim.running:
+            episode = lab.episode()
+            if episode.tick > 0 and self.first_step is None:
+                self.first_step = asyncio.get_running_loop().time()
+            if not episode.running:
                 try:
                     exit_ = await asyncio.wait_for(asyncio.shield(exit_task), self.options.grace)
                 except TimeoutError:
                     exit_ = await running.stop()
-                return exit_, judge(exit_, self.robot.sim, ended=True, limits=self.options.limits)
-            stall = self.options.first_step if sim.tick == 0 else self.options.stall
-            if self.config.realtime:
-                stall = self.options.limits.wall
-            self.ticked.clear()
-            waiter = asyncio.create_task(self.ticked.wait())
+                return exit_, judge(exit_, lab.episode(), ended=True, limits=limits)
+            stall = self.options.first_step if episode.tick == 0 else self.options.stall
+            if self.prepared.config.realtime:
+                stall = limits.wall
+            waiter = asyncio.create_task(lab.next_tick())
             done, _ = await asyncio.wait(
                 {exit_task, waiter}, timeout=stall, return_when=asyncio.FIRST_COMPLETED
             )
             waiter.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await waiter
             if exit_task in done:
                 exit_ = exit_task.result()
-                return exit_, judge(
-                    exit_,
-                    self.robot.sim,
-                    ended=not self.robot.sim.running,
-                    limits=self.options.limits,
-                )
+                episode = lab.episode()
+                return exit_, judge(exit_, episode, ended=not episode.running, limits=limits)
             if not done:
                 exit_ = await running.stop()
-                return exit_, Outcome(
-                    FAILED,
-                    f"stalled at tick {self.robot.sim.tick}: no /lab/step for {stall:g} s",
-                )
+                tick = lab.episode().tick
+                return exit_, Ending.error(f"stalled at tick {tick}: no /lab/step for {stall:g} s")
 
     def _attachments(
         self, manifest: dict[str, Any], exit_: Exit | None, result: TrialResult
     ) -> dict[str, tuple[str, bytes]]:
-        sim = self.robot.sim
         files: dict[str, tuple[str, bytes]] = {
             "manifest.json": ("application/json", _json(manifest)),
             "outcome.json": (
                 "application/json",
                 _json(
                     {
-                        "status": result.status,
+                        "status": result.status.value,
+                        "outcome": result.outcome.value if result.outcome else None,
                         "reason": result.reason,
                         "metrics": result.metrics,
                         "exit_code": result.exit_code,
                     }
                 ),
             ),
-            "lab.toml": ("application/toml", self.config.text.encode()),
-            "model.xml": ("application/xml", sim.model_xml().encode()),
+            "lab.toml": ("application/toml", self.prepared.config.text.encode()),
+            **self.lab.model_files(),
         }
-        for name, data in sim.task.model_assets.items():
-            files[f"model/{name}"] = ("application/octet-stream", data)
         if exit_ is not None:
             files["controller.stdout.log"] = ("text/plain", exit_.stdout)
             files["controller.stderr.log"] = ("text/plain", exit_.stderr)

@@ -1,13 +1,19 @@
 """Workers: claim a trial, run it, file its record in the archive, repeat.
 
-A worker holds its trial by a lease it renews every ``heartbeat`` seconds. When the
-queue says the trial must stop (its submitter cancelled it) the run is cancelled and
-filed as cancelled. When the worker dies, the lease runs out and the queue gives the
-trial to another worker: nothing is filed twice, because finishing is conditional on
-still holding the lease.
+A worker holds its trial by a lease it renews every ``heartbeat`` seconds, but only
+while the trial moves: a trial stuck in a stage past that stage's deadline is stopped
+and filed as an error, and if even that hangs the heartbeat stops, the lease runs out
+and the queue treats the worker as dead. When the queue says the trial must stop (its
+submitter cancelled it) the run is cancelled and filed as cancelled. When the worker
+dies, the lease runs out and the queue gives the trial to another worker: nothing is
+filed twice, because finishing is conditional on still holding the lease.
+
+Whatever goes wrong inside a trial (an exception anywhere in the runner, the lab side
+or filing) ends that trial as an ``error`` with the reason, logged with its traceback,
+and the worker goes on with the next one.
 
 Filing a trial: the MCAP and the controller's logs go to the content-addressed store,
-the record (manifest, digests, metrics, outcome) to the index. A rerun is compared with
+the record (manifest, digests, metrics, ending) to the index. A rerun is compared with
 the trial it reruns: the same data digest is "reproduced", otherwise the first message
 where the two records part says where they diverged.
 """
@@ -23,13 +29,12 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Protocol
 
-from labd.graph.types import TypeRegistry
-from labd.recorder import first_difference
 from repository.errors import ArchiveError
+from repository.trial import Claim, Ending, Filing, Status, Trial
 from sandbox.api import Backend
 from scheduler.errors import QueueError
-from scheduler.queue import Claim
-from scheduler.runner import RunOptions, TrialResult, TrialSpec, run_trial
+from scheduler.host import TrialHost
+from scheduler.runner import Progress, RunOptions, TrialResult, TrialSpec, run_trial
 
 
 class Jobs(Protocol):
@@ -38,8 +43,8 @@ class Jobs(Protocol):
 
     def claim(self, worker: str) -> Claim | None: ...
     def heartbeat(self, trial_id: int, worker: str) -> bool: ...
-    def finish(self, trial_id: int, worker: str, **record: Any) -> bool: ...
-    def trial(self, trial_id: int) -> dict[str, Any]: ...
+    def finish(self, trial_id: int, worker: str, filing: Filing) -> bool: ...
+    def trial(self, trial_id: int) -> Trial: ...
 
 
 class Blobs(Protocol):
@@ -56,7 +61,19 @@ class WorkerConfig:
     cache: Path  # mirrors, runtimes, requirements
     heartbeat: float = 10.0  # seconds between lease renewals
     poll: float = 2.0  # seconds between claims while the queue is empty
+    filing: float = 300.0  # seconds to store a record and file it
     options: RunOptions = field(default_factory=RunOptions)
+
+
+@dataclass(frozen=True)
+class Current:
+    """What a worker is doing: its trial, the stage, how long it has been at it."""
+
+    trial: int
+    attempt: int
+    stage: str
+    stage_seconds: float
+    progress: Progress
 
 
 class Worker:
@@ -67,16 +84,24 @@ class Worker:
         queue: Jobs,
         store: Blobs,
         backend: Backend,
-        types: TypeRegistry,
+        host: TrialHost,
         config: WorkerConfig,
     ) -> None:
         self.queue = queue
         self.store = store
         self.backend = backend
-        self.types = types
+        self.host = host
         self.config = config
         self.wake = asyncio.Event()  # set by a submission, to claim at once
         self.log = logging.getLogger(f"scheduler.worker.{config.name}")
+        self._current: tuple[Claim, Progress] | None = None
+
+    @property
+    def current(self) -> Current | None:
+        if self._current is None:
+            return None
+        claim, progress = self._current
+        return Current(claim.id, claim.attempt, progress.stage, progress.elapsed, progress)
 
     async def run(self, stop: asyncio.Event) -> None:
         stopping = asyncio.create_task(stop.wait())
@@ -99,7 +124,10 @@ class Worker:
                     with contextlib.suppress(asyncio.CancelledError):
                         await waker
                     continue
-                await self.execute(claim)
+                try:
+                    await self.execute(claim)
+                except Exception:  # a bug: never let one trial stop the worker
+                    self.log.exception("trial %d: the worker failed; going on", claim.id)
         finally:
             stopping.cancel()
             with contextlib.suppress(asyncio.CancelledError):
@@ -117,42 +145,82 @@ class Worker:
             seed=claim.seed,
         )
         self.log.info("trial %d: %s@%s %s", claim.id, claim.repository, claim.commit[:12], spec)
+        progress = Progress()
+        self._current = (claim, progress)
         running = asyncio.create_task(
             run_trial(
                 spec,
                 backend=self.backend,
+                host=self.host,
                 out=out,
                 cache=self.config.cache,
-                types=self.types,
                 options=self.config.options,
+                progress=progress,
             )
         )
-        beat = asyncio.create_task(self._heartbeat(claim.id, running))
+        stuck: list[str] = []
+        beat = asyncio.create_task(self._heartbeat(claim.id, running, progress, stuck))
+        result: TrialResult | None = None
+        ending: Ending | None = None
         try:
-            result: TrialResult | None = await running
+            result = await running
         except asyncio.CancelledError:
             me = asyncio.current_task()
             if me is not None and me.cancelling():
                 raise  # the worker itself is being stopped: the lease will requeue the trial
-            result = None
+            ending = Ending.error(stuck[0]) if stuck else Ending.cancelled("cancelled while it ran")
+        except Exception as err:
+            self.log.exception("trial %d: the lab failed while running it", claim.id)
+            ending = Ending.error(f"the lab failed while running the trial ({_name(err)}: {err})")
         finally:
             beat.cancel()
             with contextlib.suppress(asyncio.CancelledError):
                 await beat
         try:
-            record = await asyncio.to_thread(self._record, claim, result, out)
-            try:
-                await asyncio.to_thread(self.queue.finish, claim.id, self.config.name, **record)
-            except QueueError as err:  # the lease will run out and the trial run again
-                self.log.error("trial %d could not be filed: %s", claim.id, err)
-                return
-            self.log.info("trial %d %s: %s", claim.id, record["status"], record["reason"])
+            progress.enter("filing", self.config.filing)
+            filing = await asyncio.wait_for(
+                asyncio.to_thread(self._filing, claim, result, ending, out), self.config.filing
+            )
+        except TimeoutError:
+            filing = Filing.error(
+                f"the archive did not store the record within {self.config.filing:g} s"
+            )
+        except Exception as err:
+            self.log.exception("trial %d: the record could not be filed", claim.id)
+            filing = Filing.error(f"the lab could not file the record ({_name(err)})")
+        try:
+            await asyncio.to_thread(self.queue.finish, claim.id, self.config.name, filing)
+            self.log.info(
+                "trial %d %s: %s",
+                claim.id,
+                filing.outcome or filing.status,
+                filing.reason,
+            )
+        except QueueError as err:  # the lease will run out and the trial run again
+            self.log.error("trial %d could not be filed: %s", claim.id, err)
         finally:
+            self._current = None
             shutil.rmtree(out, ignore_errors=True)
 
-    async def _heartbeat(self, trial_id: int, running: asyncio.Task[TrialResult]) -> None:
+    async def _heartbeat(
+        self,
+        trial_id: int,
+        running: asyncio.Task[TrialResult],
+        progress: Progress,
+        stuck: list[str],
+    ) -> None:
         while True:
             await asyncio.sleep(self.config.heartbeat)
+            late = progress.overdue()
+            if late > 0:
+                reason = (
+                    f"the trial made no progress: it was {progress.stage} for"
+                    f" {progress.elapsed:.0f} s, past that stage's deadline"
+                )
+                self.log.error("trial %d: %s; stopping it", trial_id, reason)
+                stuck.append(reason)
+                running.cancel()
+                return  # no more renewals: if stopping hangs too, the lease runs out
             try:
                 keep = await asyncio.to_thread(self.queue.heartbeat, trial_id, self.config.name)
             except QueueError as err:  # a remote lab briefly away: the lease may still hold
@@ -163,15 +231,17 @@ class Worker:
                 running.cancel()
                 return
 
-    def _record(self, claim: Claim, result: TrialResult | None, out: Path) -> dict[str, Any]:
-        """The index columns for a finished trial; its files go to the blob store."""
+    def _filing(
+        self, claim: Claim, result: TrialResult | None, ending: Ending | None, out: Path
+    ) -> Filing:
+        """What to file for a trial that ended; its files go to the blob store."""
         record: dict[str, Any]
         if result is None:
-            record = {"status": "cancelled", "reason": "cancelled while it ran"}
+            assert ending is not None
+            record = ending.model_dump()
         else:
             record = {
-                "status": result.status,
-                "reason": result.reason,
+                **result.ending.model_dump(),
                 "manifest": result.manifest or None,
                 "manifest_digest": result.manifest_digest or None,
                 "data_digest": result.data_digest or None,
@@ -191,33 +261,30 @@ class Worker:
                     record[stream] = self.store.put_file(path)
         except (OSError, ArchiveError, QueueError) as err:
             self.log.exception("trial %d: the record could not be stored", claim.id)
-            return {
-                "status": "failed",
-                "reason": f"the archive could not store the trial's record: {err}",
-            }
-        if claim.rerun_of is not None and result is not None and result.status != "cancelled":
+            return Filing.error(f"the archive could not store the trial's record: {err}")
+        if claim.rerun_of is not None and result is not None and result.status is Status.FINISHED:
             record.update(self._compare(claim.rerun_of, result))
-        return record
+        return Filing(**record)
 
     def _compare(self, original_id: int, result: TrialResult) -> dict[str, Any]:
         """Did this rerun reproduce the trial it reruns?"""
         original = self.queue.trial(original_id)
-        if not original["data_digest"] or not original["mcap"]:
+        if not original.data_digest or not original.mcap:
             return {"reproduced": None, "divergence": "the original trial has no record"}
         if not result.data_digest or result.mcap is None:
             return {"reproduced": False, "divergence": "the rerun made no record"}
-        if original["data_digest"] == result.data_digest:
+        if original.data_digest == result.data_digest:
             return {"reproduced": True, "divergence": None}
-        topics = original["digest_topics"] or result.digest_topics
+        topics = original.digest_topics or result.digest_topics
         with tempfile.TemporaryDirectory(prefix="labd-compare-") as folder:
             theirs = Path(folder) / "original.mcap"
             try:
-                self.store.copy_to(original["mcap"], theirs)
+                self.store.copy_to(original.mcap, theirs)
             except (ArchiveError, QueueError) as err:
                 return {"reproduced": False, "divergence": f"the original's record: {err}"}
-            difference = first_difference(theirs, result.mcap, topics)
-        text = str(difference) if difference else "the data digests differ"
-        changed = manifest_changes(original["manifest"] or {}, result.manifest)
+            difference = self.host.first_difference(theirs, result.mcap, topics)
+        text = difference or "the data digests differ"
+        changed = manifest_changes(original.manifest or {}, result.manifest)
         if changed:
             text += f"; the manifest differs in {', '.join(changed)}"
         return {"reproduced": False, "divergence": text}
@@ -233,3 +300,7 @@ def manifest_changes(a: dict[str, Any], b: dict[str, Any], prefix: str = "") -> 
         elif x != y:
             changed.append(prefix + key)
     return changed
+
+
+def _name(err: BaseException) -> str:
+    return type(err).__name__

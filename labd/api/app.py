@@ -3,10 +3,11 @@
 Reading the archive is public. Writing (submitting, rerunning, cancelling) needs a
 token, sent as ``Authorization: Bearer TOKEN``; ``labd users add NAME`` prints one.
 
+    GET  /api/status                       the queue and what each busy worker runs
     GET  /api/tasks                        the tasks and their parameters
     POST /api/trials                       submit: repository, ref, task, params, seed
-    GET  /api/trials                       filters: repository commit task status user
-                                           since until; limit, before (the page cursor)
+    GET  /api/trials                       filters: repository commit task status outcome
+                                           kind user since until; limit, before (cursor)
     GET  /api/trials/{id}                  one trial, with its manifest
     GET  /api/trials/{id}/data.mcap        its record, checked against its digest
     GET  /api/trials/{id}/logs/{stream}    the controller's stdout or stderr
@@ -14,48 +15,43 @@ token, sent as ``Authorization: Bearer TOKEN``; ``labd users add NAME`` prints o
     POST /api/trials/{id}/cancel           cancel a queued or running trial
     GET  /api/commits/{sha}                a commit's trials and their reruns
 
-Errors are ``{"error": "what went wrong and what to do"}`` with a 4xx status.
+Every body, success or error, is a model of ``labd.api.models``; errors are
+``{"error": "what went wrong and what to do"}``, mapped from exceptions in one table
+(``labd.api.errors``).
 """
 
 from __future__ import annotations
 
 import datetime as dt
+import time
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Annotated, Any
+from typing import Annotated, Literal
 
 from fastapi import APIRouter, Depends, FastAPI, Query, Request
-from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse, StreamingResponse
-from pydantic import BaseModel, ConfigDict, Field
 
 from labd import __version__
-from labd.api import views, workers
-from labd.api.common import ApiError, Lab, Writer, blob_response
+from labd.api import errors, workers
+from labd.api.common import Lab, Writer, blob_response
+from labd.api.errors import ApiError, responses
+from labd.api.models import (
+    CancelView,
+    CommitView,
+    LabStatus,
+    TaskList,
+    TrialDetail,
+    TrialPage,
+    WorkerView,
+    commit_view,
+    task_view,
+    trial_detail,
+    trial_summary,
+)
 from labd.service import Service
 from labd.sim import registry
-from repository.errors import ArchiveError, RecordNotFound
-from repository.index import STATUSES, Filters
-from scheduler.errors import (
-    InvalidRequest,
-    QueueError,
-    QuotaExceeded,
-    RepositoryError,
-    TooLarge,
-)
-
-Value = bool | int | float | str
-
-
-class SubmitRequest(BaseModel):
-    """A trial to run: a repository at a ref, a task, its parameters and a seed."""
-
-    model_config = ConfigDict(extra="forbid")
-    repository: str = Field(min_length=1, max_length=2048, description="a git URL or path")
-    ref: str | None = Field(None, max_length=256, description="branch, tag or commit")
-    task: str = Field(description="a task from /api/tasks")
-    params: dict[str, Value] = Field(default_factory=dict)
-    seed: int = Field(0, ge=0, le=2**63 - 1)
+from repository.index import Filters
+from repository.trial import Kind, Outcome, Status, TrialRequest
 
 
 def create_app(service: Service, *, on_submit: Callable[[], None] | None = None) -> FastAPI:
@@ -67,40 +63,18 @@ def create_app(service: Service, *, on_submit: Callable[[], None] | None = None)
     )
     app.state.service = service
     app.state.on_submit = on_submit or service.wake
-    app.add_exception_handler(ApiError, _api_error)  # type: ignore[arg-type]
-    app.add_exception_handler(RequestValidationError, _invalid)  # type: ignore[arg-type]
+    errors.install(app)
     app.include_router(router)
     app.include_router(workers.router)
+    app.include_router(workers.blobs)
     return app
 
 
 router = APIRouter()
 
 
-async def _api_error(_: Request, err: ApiError) -> JSONResponse:
-    return JSONResponse({"error": err.message}, status_code=err.status)
-
-
-async def _invalid(_: Request, err: RequestValidationError) -> JSONResponse:
-    problems = list(err.errors())
-    if any(p.get("type") == "json_invalid" for p in problems):
-        return JSONResponse({"error": "the request body is not valid JSON"}, status_code=400)
-    parts = []
-    for p in problems:
-        where = ".".join(str(x) for x in p.get("loc", ()) if x != "body")
-        parts.append(f"{where}: {p.get('msg', 'invalid')}" if where else p.get("msg", ""))
-    return JSONResponse({"error": "; ".join(parts)}, status_code=422)
-
-
 def _base(request: Request) -> str:
     return str(request.base_url).rstrip("/")
-
-
-def _one(service: Service, trial_id: int) -> dict[str, Any]:
-    try:
-        return service.index.trial(trial_id)
-    except RecordNotFound as err:
-        raise ApiError(404, str(err)) from None
 
 
 @dataclass(frozen=True)
@@ -108,10 +82,12 @@ class TrialQuery:
     """The filters of GET /api/trials."""
 
     repository: str | None = None
-    commit: str | None = None
+    commit: Annotated[str | None, Query(description="a commit or its first 4+ digits")] = None
     task: str | None = None
-    status: Annotated[str | None, Query(description=" | ".join(STATUSES))] = None
-    user: str | None = None
+    status: Status | None = None
+    outcome: Outcome | None = None
+    kind: Kind | None = None
+    user: Annotated[str | None, Query(description="the submitter")] = None
     since: dt.datetime | None = None
     until: dt.datetime | None = None
     rerun_of: int | None = None
@@ -119,135 +95,157 @@ class TrialQuery:
     before: Annotated[int | None, Query(description="the `next` of the page before")] = None
 
 
-@router.get("/api/tasks", tags=["tasks"])
-def tasks() -> dict[str, Any]:
-    """The tasks a trial can run, with their parameters."""
-    return {"tasks": [views.task(name) for name in registry.names()]}
-
-
-@router.post("/api/trials", status_code=201, tags=["trials"])
-def submit(body: SubmitRequest, request: Request, service: Lab, user: Writer) -> JSONResponse:
-    """Resolve the ref to a commit now, and queue a trial of that commit."""
-    try:
-        trial_id = service.submissions.submit(
-            user,
-            repository=body.repository,
-            ref=body.ref,
-            task=body.task,
-            params=body.params,
-            seed=body.seed,
+@router.get("/api/status", tags=["lab"])
+def status(service: Lab) -> LabStatus:
+    """The lab now: trials waiting, and each busy worker's trial and how long it has run."""
+    now = time.time()
+    local = {w.config.name: w.current for w in service.workers}
+    running = []
+    for trial in service.queue.running():
+        here = local.get(trial.worker or "")
+        started = trial.started.timestamp() if trial.started else None
+        running.append(
+            WorkerView(
+                worker=trial.worker or "",
+                trial=trial.id,
+                task=trial.task,
+                started=trial.started,
+                running_seconds=None if started is None else round(now - started, 1),
+                stage=here.stage if here else None,
+                stage_seconds=round(here.stage_seconds, 1) if here else None,
+            )
         )
-    except (InvalidRequest, RepositoryError, QuotaExceeded) as err:
-        raise _error(err) from None
+    return LabStatus(
+        version=__version__,
+        queued=service.queue.queued(),
+        running=running,
+        local_workers=len(service.workers),
+    )
+
+
+@router.get("/api/tasks", tags=["tasks"])
+def tasks() -> TaskList:
+    """The tasks a trial can run, with their parameters."""
+    return TaskList(tasks=[task_view(name) for name in registry.names()])
+
+
+@router.post(
+    "/api/trials",
+    status_code=201,
+    tags=["trials"],
+    response_model=TrialDetail,
+    responses=responses(400, 401, 413, 422, 429),
+)
+def submit(body: TrialRequest, request: Request, service: Lab, user: Writer) -> JSONResponse:
+    """Resolve the ref to a commit now, and queue a trial of that commit."""
+    trial_id = service.submissions.submit(user, body)
     request.app.state.on_submit()
-    row = views.trial(service.index.trial(trial_id), base=_base(request))
-    return JSONResponse(row, status_code=201, headers={"Location": row["url"]})
+    return _created(service, trial_id, request)
 
 
-@router.get("/api/trials", tags=["trials"])
-def list_trials(
-    request: Request, service: Lab, q: Annotated[TrialQuery, Depends()]
-) -> dict[str, Any]:
+@router.get("/api/trials", tags=["trials"], responses=responses(422))
+def list_trials(request: Request, service: Lab, q: Annotated[TrialQuery, Depends()]) -> TrialPage:
     """Trials, newest first, a page at a time."""
     filters = Filters(
         repository=q.repository,
         commit=q.commit,
         task=q.task,
         status=q.status,
+        outcome=q.outcome,
+        kind=q.kind,
         submitter=q.user,
         since=_epoch(q.since),
         until=_epoch(q.until),
         rerun_of=q.rerun_of,
     )
-    try:
-        page = service.index.find(filters, limit=q.limit, before=q.before)
-    except ArchiveError as err:
-        raise ApiError(422, str(err)) from None
+    page = service.index.find(filters, limit=q.limit, before=q.before)
     link = _base(request)
-    return {"trials": [views.trial(r, base=link) for r in page.items], "next": page.next}
+    return TrialPage(trials=[trial_summary(t, link) for t in page.items], next=page.next)
 
 
-@router.get("/api/trials/{trial_id}", tags=["trials"])
-def show(trial_id: int, request: Request, service: Lab) -> dict[str, Any]:
-    """One trial: what was asked, where it is, what came out, its manifest."""
-    return views.trial(_one(service, trial_id), base=_base(request), full=True)
+@router.get("/api/trials/{trial_id}", tags=["trials"], responses=responses(404))
+def show(trial_id: int, request: Request, service: Lab) -> TrialDetail:
+    """One trial: its outcome, what was asked, what came out, its manifest."""
+    return trial_detail(service.index.trial(trial_id), _base(request))
 
 
-@router.get("/api/trials/{trial_id}/data.mcap", tags=["data"])
+@router.get(
+    "/api/trials/{trial_id}/data.mcap",
+    tags=["data"],
+    response_class=StreamingResponse,
+    responses={
+        200: {"content": {"application/x-mcap": {}}, "description": "the MCAP file"},
+        **responses(404, 500),
+    },
+)
 def data(trial_id: int, service: Lab) -> StreamingResponse:
     """The trial's MCAP record, checked against its digest before it is sent."""
-    row = _one(service, trial_id)
-    if not row["mcap"]:
-        raise ApiError(404, f"trial {trial_id} has no record ({row['status']})")
-    return blob_response(service, row["mcap"], "application/x-mcap", f"trial-{trial_id}.mcap")
+    trial = service.index.trial(trial_id)
+    if not trial.mcap:
+        raise ApiError(
+            404, f"trial {trial_id} has no record ({_state(trial.status, trial.outcome)})"
+        )
+    return blob_response(service, trial.mcap, "application/x-mcap", f"trial-{trial_id}.mcap")
 
 
-@router.get("/api/trials/{trial_id}/logs/{stream}", tags=["data"])
-def logs(trial_id: int, stream: str, service: Lab) -> StreamingResponse:
+@router.get(
+    "/api/trials/{trial_id}/logs/{stream}",
+    tags=["data"],
+    response_class=StreamingResponse,
+    responses={
+        200: {"content": {"text/plain": {}}, "description": "the log, as the controller wrote it"},
+        **responses(404, 422, 500),
+    },
+)
+def logs(trial_id: int, stream: Literal["stdout", "stderr"], service: Lab) -> StreamingResponse:
     """The controller's ``stdout`` or ``stderr``."""
-    if stream not in ("stdout", "stderr"):
-        raise ApiError(404, "logs are stdout or stderr")
-    row = _one(service, trial_id)
-    if not row[stream]:
+    trial = service.index.trial(trial_id)
+    digest = trial.stdout if stream == "stdout" else trial.stderr
+    if not digest:
         raise ApiError(404, f"trial {trial_id} has no {stream} log")
-    return blob_response(service, row[stream], "text/plain; charset=utf-8", None)
+    return blob_response(service, digest, "text/plain; charset=utf-8", None)
 
 
-@router.post("/api/trials/{trial_id}/rerun", status_code=201, tags=["trials"])
+@router.post(
+    "/api/trials/{trial_id}/rerun",
+    status_code=201,
+    tags=["trials"],
+    response_model=TrialDetail,
+    responses=responses(401, 404, 429),
+)
 def rerun(trial_id: int, request: Request, service: Lab, user: Writer) -> JSONResponse:
     """Queue a new trial from the same commit, task, parameters and seed."""
-    _one(service, trial_id)
-    try:
-        new_id = service.submissions.rerun(user, trial_id)
-    except QuotaExceeded as err:
-        raise _error(err) from None
+    new_id = service.submissions.rerun(user, trial_id)
     request.app.state.on_submit()
-    row = views.trial(service.index.trial(new_id), base=_base(request))
-    return JSONResponse(row, status_code=201, headers={"Location": row["url"]})
+    return _created(service, new_id, request)
 
 
-@router.post("/api/trials/{trial_id}/cancel", tags=["trials"])
-def cancel(trial_id: int, request: Request, service: Lab, user: Writer) -> dict[str, Any]:
-    """Cancel a queued trial, or stop a running one (its worker ends it shortly)."""
-    _one(service, trial_id)
-    try:
-        service.queue.cancel(trial_id, user)
-    except QueueError as err:
-        raise ApiError(403, str(err)) from None
-    return views.trial(service.index.trial(trial_id), base=_base(request))
+@router.post("/api/trials/{trial_id}/cancel", tags=["trials"], responses=responses(401, 403, 404))
+def cancel(trial_id: int, request: Request, service: Lab, user: Writer) -> CancelView:
+    """Cancel a queued trial, or stop a running one (its worker ends it shortly).
+
+    ``done`` says which: ``cancelled``, ``stopping``, or ``ended`` when the trial had
+    ended already and nothing was done; ``trial`` is the trial after the call.
+    """
+    done = service.queue.cancel(trial_id, user)
+    return CancelView(done=done, trial=trial_detail(service.index.trial(trial_id), _base(request)))
 
 
-@router.get("/api/commits/{sha}", tags=["archive"])
-def commit(sha: str, request: Request, service: Lab) -> dict[str, Any]:
+@router.get("/api/commits/{sha}", tags=["archive"], responses=responses(404, 422))
+def commit(sha: str, request: Request, service: Lab) -> CommitView:
     """A commit's trials (newest first), each with its reruns and their verdicts."""
-    try:
-        page = service.index.commit_page(sha)
-    except RecordNotFound as err:
-        raise ApiError(404, str(err)) from None
-    except ArchiveError as err:
-        raise ApiError(422, str(err)) from None
-    link = _base(request)
-    return {
-        "commit": page["commit"],
-        "repositories": page["repositories"],
-        "trials": [
-            {
-                **views.trial(row, base=link),
-                "reruns": [views.trial(r, base=link) for r in page["reruns"].get(row["id"], [])],
-            }
-            for row in page["trials"]
-        ],
-        "rerun_counts": page["rerun_counts"],
-        "truncated": page["truncated"],
-    }
+    return commit_view(service.index.commit_page(sha), _base(request))
 
 
-def _error(err: Exception) -> ApiError:
-    if isinstance(err, QuotaExceeded):
-        return ApiError(429, str(err))
-    if isinstance(err, TooLarge):
-        return ApiError(413, str(err))
-    return ApiError(422, str(err))
+def _created(service: Lab, trial_id: int, request: Request) -> JSONResponse:
+    body = trial_detail(service.index.trial(trial_id), _base(request))
+    return JSONResponse(
+        body.model_dump(mode="json"), status_code=201, headers={"Location": body.url}
+    )
+
+
+def _state(status: Status, outcome: Outcome | None) -> str:
+    return f"{status.value}: {outcome.value}" if outcome else status.value
 
 
 def _epoch(moment: dt.datetime | None) -> float | None:

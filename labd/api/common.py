@@ -1,4 +1,4 @@
-"""What the API's routers share: errors, the service, tokens, serving blobs."""
+"""What the API's routers share: the service, tokens, serving blobs."""
 
 from __future__ import annotations
 
@@ -10,19 +10,12 @@ from fastapi import Depends, Request
 from fastapi.responses import StreamingResponse
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 
+from labd.api.errors import Unauthorized
 from labd.service import Service
-from repository.errors import BlobError, BlobNotFound
 from repository.index import User
 
 log = logging.getLogger("labd.api")
 bearer = HTTPBearer(auto_error=False, description="a token from `labd users add NAME`")
-
-
-class ApiError(Exception):
-    def __init__(self, status: int, message: str) -> None:
-        self.status = status
-        self.message = message
-        super().__init__(message)
 
 
 def _service(request: Request) -> Service:
@@ -38,15 +31,14 @@ def _writer(
     credentials: Annotated[HTTPAuthorizationCredentials | None, Depends(bearer)],
 ) -> User:
     if credentials is None:
-        raise ApiError(
-            401,
+        raise Unauthorized(
             "this needs a token: send Authorization: Bearer TOKEN "
             "(the operator makes one with `labd users add NAME`; "
             "labd commands take --token or LABD_TOKEN)",
         )
     user = service.index.user_by_token(credentials.credentials)
     if user is None:
-        raise ApiError(401, "the token is not valid here; ask the operator for a new one")
+        raise Unauthorized("the token is not valid here; ask the operator for a new one")
     return user
 
 
@@ -56,13 +48,9 @@ Writer = Annotated[User, Depends(_writer)]
 def blob_response(
     service: Service, digest: str, media_type: str, filename: str | None
 ) -> StreamingResponse:
+    """Stream a blob, checked against its digest first (a damaged one is never sent)."""
     store = service.store
-    try:
-        store.verify(digest)
-    except BlobError as err:
-        log.error("%s", err)
-        status = 404 if isinstance(err, BlobNotFound) else 500  # 500: the store is damaged
-        raise ApiError(status, str(err)) from None
+    store.verify(digest)  # BlobNotFound: 404; BlobCorrupt: 500, logged (labd.api.errors)
 
     def chunks() -> Iterator[bytes]:
         yield from store.iter_chunks(digest)

@@ -1,70 +1,90 @@
 """The API of workers on other machines (``labd worker --server URL``), and blobs.
 
-    POST /api/workers/claim                        {"worker"} → a trial, or 204
+    POST /api/workers/claim                        {"worker"} → a Claim, or 204
     POST /api/workers/trials/{id}/heartbeat        {"worker"} → {"keep": bool}
-    POST /api/workers/trials/{id}/finish           {"worker", "record"} → {"filed": bool}
+    POST /api/workers/trials/{id}/finish           {"worker", "filing"} → {"filed": bool}
+    GET  /api/workers/trials/{id}                  the whole record (a rerun's original)
     PUT  /api/blobs/sha256:HEX                     the bytes; stored if they match
     GET  /api/blobs/sha256:HEX                     a blob, checked before it is sent
 
-Workers need a worker's token (``labd users add NAME --worker``). A finished record
-may set only the columns a worker fills; everything else stays the queue's.
+Workers need a worker's token (``labd users add NAME --worker``) and must speak this
+lab's worker protocol (``scheduler.remote.PROTOCOL``): a worker of another version is
+refused with a 409 naming both, before it can claim or file anything. A filing sets
+only what a worker knows (``repository.trial.Filing``); everything else stays the
+queue's.
 """
 
 from __future__ import annotations
 
-import dataclasses
 import hashlib
 import tempfile
 from pathlib import Path
-from typing import Annotated, Any
+from typing import Annotated
 
-from fastapi import APIRouter, Depends, Request, Response
+from fastapi import APIRouter, Depends, Header, Request, Response
 from fastapi.responses import StreamingResponse
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel
 
-from labd.api.common import ApiError, Lab, Writer, blob_response
-from repository.errors import ArchiveError
+from labd import __version__
+from labd.api.common import Lab, Writer, blob_response
+from labd.api.errors import ApiError, Conflict, Forbidden, responses
 from repository.index import User
-
-router = APIRouter(tags=["workers"])
-FILED = frozenset(
-    {
-        "status",
-        "reason",
-        "manifest",
-        "manifest_digest",
-        "data_digest",
-        "digest_topics",
-        "metrics",
-        "backend",
-        "wall_seconds",
-        "mcap",
-        "mcap_size",
-        "stdout",
-        "stderr",
-        "reproduced",
-        "divergence",
-    }
+from repository.trial import Claim, Trial
+from scheduler.remote import (
+    PROTOCOL,
+    PROTOCOL_HEADER,
+    VERSION_HEADER,
+    Filed,
+    FinishBody,
+    Kept,
+    WorkerName,
 )
+
 MAX_BLOB = 4 << 30
+
+
+class Stored(BaseModel):
+    digest: str  # sha256:HEX
+
+
+def _protocol(
+    protocol: Annotated[str | None, Header(alias=PROTOCOL_HEADER)] = None,
+    version: Annotated[str | None, Header(alias=VERSION_HEADER)] = None,
+) -> None:
+    if protocol == str(PROTOCOL):
+        return
+    theirs = f"labd {version}" if version else "a labd older than 0.2"
+    spoken = f"worker protocol {protocol}" if protocol else "no worker protocol"
+    raise Conflict(
+        f"this worker is {theirs} and speaks {spoken}; this lab is labd {__version__}"
+        f" and speaks worker protocol {PROTOCOL}: run the same version of labd on both"
+    )
 
 
 def _worker(user: Writer) -> User:
     if not user.worker:
-        raise ApiError(403, f"{user.name} is not a worker (labd users add NAME --worker)")
+        raise Forbidden(f"{user.name} is not a worker (labd users add NAME --worker)")
     return user
 
 
 WorkerUser = Annotated[User, Depends(_worker)]
+router = APIRouter(
+    tags=["workers"],
+    dependencies=[Depends(_protocol)],
+    responses=responses(401, 403, 409),
+)
 
 
-class WorkerName(BaseModel):
-    model_config = ConfigDict(extra="forbid")
-    worker: str = Field(min_length=1, max_length=100)
+class Hello(BaseModel):
+    version: str  # the lab's labd
+    protocol: int  # the worker protocol it speaks
+    worker: str  # the user the token belongs to
 
 
-class Finished(WorkerName):
-    record: dict[str, Any]
+@router.get("/api/workers/hello")
+def hello(user: WorkerUser) -> Hello:
+    """A worker checks its token and version before it claims anything."""
+    return Hello(version=__version__, protocol=PROTOCOL, worker=user.name)
 
 
 def _named(user: User, name: str) -> str:
@@ -72,38 +92,44 @@ def _named(user: User, name: str) -> str:
     return f"{user.name}@{name}"
 
 
-@router.post("/api/workers/claim", response_model=None)
-def claim(body: WorkerName, service: Lab, user: WorkerUser) -> dict[str, Any] | Response:
+@router.post(
+    "/api/workers/claim",
+    response_model=Claim,
+    responses={204: {"description": "nothing to run now"}},
+)
+def claim(body: WorkerName, service: Lab, user: WorkerUser) -> Claim | Response:
     """The next trial for this worker, under a lease; 204 when there is none."""
     got = service.queue.claim(_named(user, body.worker))
     if got is None:
         return Response(status_code=204)
-    return dataclasses.asdict(got)
+    return got
 
 
 @router.post("/api/workers/trials/{trial_id}/heartbeat")
-def heartbeat(trial_id: int, body: WorkerName, service: Lab, user: WorkerUser) -> dict[str, bool]:
+def heartbeat(trial_id: int, body: WorkerName, service: Lab, user: WorkerUser) -> Kept:
     """Renew the lease; ``keep`` false means stop (cancelled, or the lease was lost)."""
-    return {"keep": service.queue.heartbeat(trial_id, _named(user, body.worker))}
+    return Kept(keep=service.queue.heartbeat(trial_id, _named(user, body.worker)))
 
 
-@router.post("/api/workers/trials/{trial_id}/finish")
-def finish(trial_id: int, body: Finished, service: Lab, user: WorkerUser) -> dict[str, bool]:
-    """File a trial's outcome; ``filed`` false if this worker no longer held it."""
-    unknown = sorted(set(body.record) - FILED)
-    if unknown:
-        raise ApiError(422, f"record: a worker does not set {', '.join(unknown)}")
-    if body.record.get("status") not in ("succeeded", "failed", "cancelled"):
-        raise ApiError(422, "record.status: succeeded, failed or cancelled")
+@router.post("/api/workers/trials/{trial_id}/finish", responses=responses(422))
+def finish(trial_id: int, body: FinishBody, service: Lab, user: WorkerUser) -> Filed:
+    """File a trial's ending; ``filed`` false if this worker no longer held it."""
+    filing = body.filing
     for key in ("mcap", "stdout", "stderr"):
-        if body.record.get(key) and not service.store.exists(body.record[key]):
-            raise ApiError(422, f"record.{key}: upload {body.record[key]} first")
-    filed = service.queue.finish(trial_id, _named(user, body.worker), **body.record)
-    return {"filed": filed}
+        digest = getattr(filing, key)
+        if digest and not service.store.exists(digest):
+            raise ApiError(422, f"filing.{key}: upload {digest} first")
+    return Filed(filed=service.queue.finish(trial_id, _named(user, body.worker), filing))
 
 
-@router.put("/api/blobs/{digest}", status_code=201)
-async def put_blob(digest: str, request: Request, service: Lab, user: WorkerUser) -> dict[str, str]:
+@router.get("/api/workers/trials/{trial_id}", responses=responses(404))
+def record(trial_id: int, service: Lab, user: WorkerUser) -> Trial:
+    """A trial's whole record, as the index keeps it (a worker compares a rerun with it)."""
+    return service.index.trial(trial_id)
+
+
+@router.put("/api/blobs/{digest}", status_code=201, responses=responses(413, 422))
+async def put_blob(digest: str, request: Request, service: Lab, user: WorkerUser) -> Stored:
     """Store the body under ``digest``, if it is what the body hashes to."""
     sha = hashlib.sha256()
     size = 0
@@ -119,14 +145,18 @@ async def put_blob(digest: str, request: Request, service: Lab, user: WorkerUser
         actual = f"sha256:{sha.hexdigest()}"
         if actual != digest:
             raise ApiError(422, f"the body hashes to {actual}, not {digest}")
-        try:
-            stored = service.store.put_file(path)
-        except ArchiveError as err:
-            raise ApiError(422, str(err)) from None
-    return {"digest": stored}
+        stored = service.store.put_file(path)
+    return Stored(digest=stored)
 
 
-@router.get("/api/blobs/{digest}", tags=["data"])
+blobs = APIRouter(tags=["data"])
+
+
+@blobs.get(
+    "/api/blobs/{digest}",
+    response_class=StreamingResponse,
+    responses={200: {"content": {"application/octet-stream": {}}}, **responses(404, 500)},
+)
 def get_blob(digest: str, service: Lab) -> StreamingResponse:
     """A blob of the archive (records and logs are public), checked before it is sent."""
     return blob_response(service, digest, "application/octet-stream", None)

@@ -22,11 +22,15 @@ import time
 from pathlib import Path
 from typing import Any
 
-from labd.commands.remote import Client, CommandError
-from labd.commands.run import client_library
+from labd.api.models import TrialDetail
+from labd.commands.common import ExitCode, exit_code, worst
+from labd.commands.remote import headline, wait
 from labd.service import ServiceConfig
+from labd.trial import client_library
 from repository.errors import RecordNotFound
 from repository.index import Index
+from scheduler.client import ApiClient
+from scheduler.errors import RemoteError
 
 EXAMPLES = {"icreate-maze": "icreate-maze", "pr2-pick-place": "pr2-table"}
 
@@ -62,42 +66,41 @@ def main(args: argparse.Namespace) -> int:
         command += ["--sandbox", args.sandbox]
     print("starting:", " ".join(command), flush=True)
     lab = subprocess.Popen(command)  # noqa: S603 - this Python, running labd serve
-    client = Client(server, token)
+    client = ApiClient(server, token, connect_attempts=1)
     try:
         wait_for(client, lab)
         submitted = []
         for name, repo in repos.items():
-            row = client.request(
-                "POST",
+            row = client.post(
                 "/api/trials",
+                TrialDetail,
                 json={"repository": str(repo), "ref": "main", "task": EXAMPLES[name]},
             )
-            print(f"submitted {name}: trial {row['id']} at {row['commit'][:12]}", flush=True)
-            submitted.append(row["id"])
+            print(f"submitted {name}: trial {row.id} at {row.commit[:12]}", flush=True)
+            submitted.append(row.id)
         print("waiting for the trials (the first run builds the controller runtime)...")
-        done = client.wait(submitted)
+        done = wait(client, submitted)
         print()
         for row in done:
-            metrics = row["metrics"] or {}
-            print(f"trial {row['id']} ({row['task']}): {row['status']}: {row['reason']}")
-            print(f"  success={metrics.get('success')} reward={metrics.get('reward')}")
-            if row["mcap"]:
-                print(f"  record {row['mcap']['url']}")
+            print(f"{headline(row)}  ({row.task})")
+            print(f"  reward={row.reward}")
+            if row.mcap:
+                print(f"  record {row.mcap.url}")
         first = done[0]
         print(
             f"""
 Where to look:
   {server}/docs                      the API, to try in a browser
   {server}/api/trials                the archive
-  {server}/api/commits/{first["commit"][:12]}   a commit, its trials and reruns
+  {server}/api/commits/{first.commit[:12]}   a commit, its trials and reruns
 
 Try (in another terminal, in this folder):
   export LABD_TOKEN=$(cat {folder / "token"})
   .venv/bin/labd trials
-  .venv/bin/labd show {first["id"]}
-  .venv/bin/labd download {first["id"]} -o trial.mcap
-  .venv/bin/labd rerun {first["commit"][:12]} --wait
-  .venv/bin/labd export {first["id"]} --format lerobot
+  .venv/bin/labd show {first.id}
+  .venv/bin/labd download {first.id} -o trial.mcap
+  .venv/bin/labd rerun {first.commit[:12]} --wait
+  .venv/bin/labd export {first.id} --format lerobot
   .venv/bin/labd submit {repos["icreate-maze"]} --ref main --task icreate-maze --seed 3 --wait
 """,
             flush=True,
@@ -105,11 +108,11 @@ Try (in another terminal, in this folder):
         if not args.exit:
             print("The lab keeps running; Ctrl-C stops it.", flush=True)
         if args.exit:
-            return 0 if all(r["status"] == "succeeded" for r in done) else 1
+            return int(worst(exit_code(r.status, r.outcome) for r in done))
         return lab.wait()
-    except CommandError as err:
+    except RemoteError as err:
         print(f"labd demo: {err}", file=sys.stderr)
-        return 2
+        return int(ExitCode.USAGE)
     except KeyboardInterrupt:
         return 0
     finally:
@@ -165,17 +168,17 @@ def demo_token(data: Path, folder: Path) -> str:
     return token
 
 
-def wait_for(client: Client, lab: subprocess.Popen[bytes]) -> None:
+def wait_for(client: ApiClient, lab: subprocess.Popen[bytes]) -> None:
     deadline = time.monotonic() + 600  # the first start builds the controller runtime
     while time.monotonic() < deadline:
         if lab.poll() is not None:
-            raise CommandError(f"labd serve exited with {lab.returncode}")
+            raise RemoteError(f"labd serve exited with {lab.returncode}")
         try:
             client.request("GET", "/api/tasks")
             return
-        except CommandError:
+        except RemoteError:
             time.sleep(0.5)
-    raise CommandError("labd serve did not answer within 10 minutes")
+    raise RemoteError("labd serve did not answer within 10 minutes")
 
 
 def _git(path: Path, *args: str) -> str:

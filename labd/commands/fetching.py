@@ -8,6 +8,9 @@ from typing import Any
 
 from scheduler.fetch import Credential, FetchPolicy
 
+DEFAULTS = FetchPolicy()
+MiB = 1024 * 1024
+
 
 def add_options(group: Any) -> None:
     group.add_argument(
@@ -15,21 +18,27 @@ def add_options(group: Any) -> None:
         action="append",
         dest="schemes",
         metavar="SCHEME",
-        help="repository URL schemes accepted (repeatable; default https ssh git file; "
-        "file means local paths)",
+        help="repository URL schemes accepted (repeatable; default: "
+        f"{' '.join(sorted(DEFAULTS.schemes))}; file means local paths)",
     )
     group.add_argument(
-        "--max-repo-mb", type=int, default=512, help="largest repository fetched, in MiB"
+        "--max-repo-mb",
+        type=int,
+        default=DEFAULTS.max_bytes // MiB,
+        help="largest repository fetched, in MiB (default: %(default)s)",
     )
     group.add_argument(
-        "--fetch-timeout", type=float, default=300.0, help="seconds a fetch may take"
+        "--fetch-timeout",
+        type=float,
+        default=DEFAULTS.timeout,
+        help="seconds a fetch may take (default: %(default)g)",
     )
     group.add_argument(
         "--submodule-allow",
         action="append",
         default=[],
         metavar="URL_PREFIX",
-        help="submodules whose URL starts with this may be followed (repeatable)",
+        help="submodules whose URL starts with this may be followed (repeatable; default: none)",
     )
     group.add_argument(
         "--git-token",
@@ -37,14 +46,15 @@ def add_options(group: Any) -> None:
         default=[],
         metavar="URL_PREFIX=FILE",
         help="for private https repositories under URL_PREFIX: a token, read from FILE "
-        "(repeatable); git alone sees it, never a controller",
+        "(repeatable; default: none); git alone sees it, never a controller",
     )
     group.add_argument(
         "--git-ssh-key",
         action="append",
         default=[],
         metavar="URL_PREFIX=KEYFILE",
-        help="for private ssh repositories under URL_PREFIX: a deploy key (repeatable)",
+        help="for private ssh repositories under URL_PREFIX: a deploy key (repeatable;"
+        " default: none)",
     )
 
 
@@ -65,8 +75,8 @@ def policy(args: argparse.Namespace, command: str) -> FetchPolicy:
         credentials.append(Credential(prefix, ssh_key=Path(file).resolve()))
     return FetchPolicy(
         credentials=tuple(credentials),
-        schemes=frozenset(args.schemes) if args.schemes else FetchPolicy().schemes,
-        max_bytes=args.max_repo_mb * 1024 * 1024,
+        schemes=frozenset(args.schemes) if args.schemes else DEFAULTS.schemes,
+        max_bytes=args.max_repo_mb * MiB,
         timeout=args.fetch_timeout,
         submodules=tuple(args.submodule_allow),
     )

@@ -1,264 +1,262 @@
 """The commands that talk to a running lab over its HTTP API.
 
     labd submit REPO_URL [--ref REF] --task TASK [--seed N] [--param NAME=VALUE] [--wait]
-    labd trials [--repo URL] [--commit SHA] [--task T] [--status S] [--user U] [--limit N]
+    labd trials [--repo URL] [--commit SHA] [--task T] [--status S] [--outcome O]
+                [--kind K] [--user U] [--limit N] [--before ID]
     labd show TRIAL
+    labd logs TRIAL [--stream stdout|stderr]
     labd download TRIAL [-o FILE]
     labd rerun COMMIT|TRIAL [--all] [--wait]
     labd cancel TRIAL
     labd export TRIAL --format lerobot|parquet [-o DIR]
+    labd tasks
+    labd status
 
 Each takes ``--server URL`` (default ``$LABD_SERVER`` or http://127.0.0.1:8080) and
 ``--json``; those that write take ``--token`` (default ``$LABD_TOKEN``). Errors from
-the server are printed as it words them, and the exit status is 2; 1 means a trial
-that was waited for did not succeed (or, for a rerun, did not reproduce).
+the server are printed as it words them. Exit codes are in ``labd.commands.common``.
 """
 
 from __future__ import annotations
 
 import argparse
-import json
-import os
-import sys
 import tempfile
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
-import httpx
-
-from labd.errors import LabError
+from labd.api.models import (
+    CancelView,
+    CommitView,
+    LabStatus,
+    TaskList,
+    TrialDetail,
+    TrialPage,
+)
+from labd.commands.common import (
+    ExitCode,
+    assignment,
+    emit,
+    exit_code,
+    fail,
+    server_options,
+    worst,
+)
 from labd.sim import registry
-from labd.sim.params import parse_assignments
 from repository.errors import ArchiveError
 from repository.export import export
-
-DEFAULT_SERVER = "http://127.0.0.1:8080"
-ENDED = ("succeeded", "failed", "cancelled")
-
-
-class CommandError(Exception):
-    """What went wrong, as the person at the terminal should read it."""
-
-
-class Client:
-    """A small client of the lab's HTTP API."""
-
-    def __init__(self, server: str, token: str | None = None, timeout: float = 330.0) -> None:
-        self.server = server.rstrip("/")
-        headers = {"Authorization": f"Bearer {token}"} if token else {}
-        # Submitting fetches the repository first: allow for the lab's fetch time limit.
-        self.http = httpx.Client(base_url=self.server, headers=headers, timeout=timeout)
-
-    def close(self) -> None:
-        self.http.close()
-
-    def request(self, method: str, path: str, **kwargs: Any) -> Any:
-        try:
-            response = self.http.request(method, path, **kwargs)
-        except httpx.HTTPError as err:
-            raise CommandError(f"cannot reach the lab at {self.server}: {err}") from None
-        if response.status_code >= 400:
-            raise CommandError(f"{_error_text(response)} (HTTP {response.status_code})")
-        return response.json()
-
-    def download(self, path: str, dest: Path) -> int:
-        partial = dest.with_name(dest.name + ".partial")
-        try:
-            with self.http.stream("GET", path) as response:
-                if response.status_code >= 400:
-                    response.read()
-                    raise CommandError(f"{_error_text(response)} (HTTP {response.status_code})")
-                size = 0
-                with partial.open("wb") as out:
-                    for chunk in response.iter_bytes():
-                        out.write(chunk)
-                        size += len(chunk)
-        except httpx.HTTPError as err:
-            partial.unlink(missing_ok=True)
-            raise CommandError(f"the download from {self.server} broke off: {err}") from None
-        partial.rename(dest)
-        return size
-
-    def wait(self, trial_ids: list[int], poll: float = 1.0) -> list[dict[str, Any]]:
-        """Wait until every trial has ended; print each as it ends (to stderr)."""
-        pending = set(trial_ids)
-        rows: dict[int, dict[str, Any]] = {}
-        while pending:
-            for trial_id in sorted(pending):
-                row = self.request("GET", f"/api/trials/{trial_id}")
-                if row["status"] in ENDED:
-                    rows[trial_id] = row
-                    pending.discard(trial_id)
-            if pending:
-                time.sleep(poll)
-        return [rows[t] for t in trial_ids]
+from repository.trial import Kind, Outcome, Status
+from scheduler.client import ApiClient
+from scheduler.errors import RemoteError
+from scheduler.queue import Cancel
 
 
 def add_parsers(commands: Any) -> None:
-    def common(parser: argparse.ArgumentParser, *, write: bool = False) -> None:
-        parser.add_argument(
-            "--server",
-            default=os.environ.get("LABD_SERVER", DEFAULT_SERVER),
-            help="the lab's HTTP API (default $LABD_SERVER or %(default)s)",
-        )
-        parser.add_argument("--json", action="store_true", help="print JSON for scripts")
-        if write:
-            parser.add_argument(
-                "--token",
-                default=os.environ.get("LABD_TOKEN"),
-                help="your token (default $LABD_TOKEN; `labd users add NAME` makes one)",
-            )
-
     p = commands.add_parser("submit", help="queue a trial of a repository at a ref")
-    p.add_argument("repository", metavar="REPO_URL", help="a git URL (or a local repository)")
+    p.add_argument("repository", metavar="REPO_URL", help="a git URL, or a local repository")
     p.add_argument("--ref", help="branch, tag or commit (default: the repository's HEAD)")
-    p.add_argument("--task", required=True, help="the task (labd tasks lists them)")
-    p.add_argument("--seed", type=int, default=0, help="the episode's seed (default 0)")
-    p.add_argument("--param", action="append", default=[], metavar="NAME=VALUE")
-    p.add_argument("--wait", action="store_true", help="wait for the trial to end")
-    common(p, write=True)
+    p.add_argument("--task", required=True, help="the task to run (`labd tasks` lists them)")
+    p.add_argument("--seed", type=int, default=0, help="the episode's seed (default: 0)")
+    p.add_argument(
+        "--param",
+        action="append",
+        default=[],
+        type=assignment,
+        metavar="NAME=VALUE",
+        help="a task parameter (repeatable; default: the task's own values)",
+    )
+    p.add_argument("--wait", action="store_true", help="wait for the trial to end (default: no)")
+    server_options(p, write=True)
 
     p = commands.add_parser("trials", help="list trials in the archive, newest first")
-    p.add_argument("--repo", help="repository URL")
-    p.add_argument("--commit", help="a commit or its first digits")
-    p.add_argument("--task")
-    p.add_argument("--status", choices=["queued", "running", *ENDED])
-    p.add_argument("--user", help="the submitter")
-    p.add_argument("--limit", type=int, default=20)
+    p.add_argument("--repo", help="only this repository URL (default: all)")
+    p.add_argument("--commit", help="only this commit, or commits starting with these digits")
+    p.add_argument("--task", help="only this task (default: all)")
+    p.add_argument("--status", choices=[s.value for s in Status], help="only this status")
+    p.add_argument("--outcome", choices=[o.value for o in Outcome], help="only this outcome")
+    p.add_argument("--kind", choices=[k.value for k in Kind], help="trials or demonstrations")
+    p.add_argument("--user", help="only this submitter's (default: everyone's)")
+    p.add_argument("--limit", type=int, default=20, help="trials per page (default: 20)")
     p.add_argument("--before", type=int, help="the next page: the cursor a page printed")
-    common(p)
+    server_options(p)
 
-    p = commands.add_parser("show", help="one trial: what ran, how it ended, its record")
-    p.add_argument("trial", type=int, metavar="TRIAL")
-    common(p)
+    p = commands.add_parser("show", help="one trial: how it ended, what ran, its record")
+    p.add_argument("trial", type=int, metavar="TRIAL", help="the trial's number")
+    server_options(p)
+
+    p = commands.add_parser("logs", help="print a trial's controller output")
+    p.add_argument("trial", type=int, metavar="TRIAL", help="the trial's number")
+    p.add_argument(
+        "--stream",
+        choices=["stdout", "stderr", "both"],
+        default="both",
+        help="which output (default: both, stdout first)",
+    )
+    server_options(p)
 
     p = commands.add_parser("download", help="download a trial's MCAP record")
-    p.add_argument("trial", type=int, metavar="TRIAL")
-    p.add_argument("-o", "--output", type=Path, help="file (default trial-N.mcap)")
-    common(p)
+    p.add_argument("trial", type=int, metavar="TRIAL", help="the trial's number")
+    p.add_argument("-o", "--output", type=Path, help="the file (default: trial-N.mcap)")
+    server_options(p)
 
     p = commands.add_parser("rerun", help="rerun a trial, or a commit's trials, to check them")
     p.add_argument("target", metavar="COMMIT|TRIAL", help="a trial number or a commit")
-    p.add_argument("--all", action="store_true", help="every trial of the commit, not the newest")
+    p.add_argument(
+        "--all", action="store_true", help="every trial of the commit (default: the newest)"
+    )
     p.add_argument("--wait", action="store_true", help="wait and print the verdicts")
-    common(p, write=True)
+    server_options(p, write=True)
 
     p = commands.add_parser("cancel", help="cancel a queued or running trial")
-    p.add_argument("trial", type=int, metavar="TRIAL")
-    common(p, write=True)
+    p.add_argument("trial", type=int, metavar="TRIAL", help="the trial's number")
+    server_options(p, write=True)
 
     p = commands.add_parser("export", help="export a trial as observation-action pairs")
-    p.add_argument("trial", type=int, metavar="TRIAL")
-    p.add_argument("--format", required=True, choices=["lerobot", "parquet"])
-    p.add_argument("-o", "--output", type=Path, help="folder (default trial-N-FORMAT)")
-    common(p)
+    p.add_argument("trial", type=int, metavar="TRIAL", help="the trial's number")
+    p.add_argument("--format", required=True, choices=["lerobot", "parquet"], help="the format")
+    p.add_argument("-o", "--output", type=Path, help="the folder (default: trial-N-FORMAT)")
+    server_options(p)
 
+    p = commands.add_parser("tasks", help="the lab's tasks and their parameters")
+    server_options(p)
 
-COMMANDS = ("submit", "trials", "show", "download", "rerun", "cancel", "export")
+    p = commands.add_parser("status", help="the lab now: the queue and what workers run")
+    server_options(p)
 
 
 def main(args: argparse.Namespace) -> int:
-    client = Client(args.server, getattr(args, "token", None))
+    handler = COMMANDS[args.command]
     try:
-        handler = globals()[f"_{args.command}"]
-        code: int = handler(client, args)
-        return code
-    except (CommandError, LabError, ArchiveError) as err:
-        print(f"labd {args.command}: {err}", file=sys.stderr)
-        return 2
-    finally:
-        client.close()
+        with ApiClient(args.server, getattr(args, "token", None)) as client:
+            return int(handler(client, args))
+    except (RemoteError, ArchiveError) as err:
+        return fail(args, str(err))
 
 
-def _submit(client: Client, args: argparse.Namespace) -> int:
+def _submit(client: ApiClient, args: argparse.Namespace) -> int:
     body = {
         "repository": args.repository,
         "ref": args.ref,
         "task": args.task,
         "seed": args.seed,
-        "params": parse_assignments(args.param),
+        "params": dict(args.param),
     }
-    row = client.request("POST", "/api/trials", json=body)
+    row = client.post("/api/trials", TrialDetail, json=body)
     if not args.wait:
-        _print(args, row, lambda: _queued_lines(row))
-        return 0
+        emit(args, _json(row), lambda: _queued_lines(row))
+        return ExitCode.SUCCESS
     if not args.json:
         print("\n".join(_queued_lines(row)), flush=True)
-    [row] = client.wait([row["id"]])
-    _print(args, row, lambda: _trial_lines(row))
-    return 0 if row["status"] == "succeeded" else 1
+    [row] = wait(client, [row.id])
+    emit(args, _json(row), lambda: _trial_lines(row))
+    return exit_code(row.status, row.outcome)
 
 
-def _trials(client: Client, args: argparse.Namespace) -> int:
+def _trials(client: ApiClient, args: argparse.Namespace) -> int:
     query = {
         "repository": args.repo,
         "commit": args.commit,
         "task": args.task,
         "status": args.status,
+        "outcome": args.outcome,
+        "kind": args.kind,
         "user": args.user,
         "limit": args.limit,
         "before": args.before,
     }
-    page = client.request(
-        "GET", "/api/trials", params={k: v for k, v in query.items() if v is not None}
-    )
-    _print(args, page, lambda: _table(page))
-    return 0
+    params = {k: v for k, v in query.items() if v is not None}
+    page = client.get("/api/trials", TrialPage, params=params)
+    emit(args, page.model_dump(mode="json"), lambda: _table(page))
+    return ExitCode.SUCCESS
 
 
-def _show(client: Client, args: argparse.Namespace) -> int:
-    row = client.request("GET", f"/api/trials/{args.trial}")
-    _print(args, row, lambda: _trial_lines(row, full=True))
-    return 0
+def _show(client: ApiClient, args: argparse.Namespace) -> int:
+    row = client.get(f"/api/trials/{args.trial}", TrialDetail)
+    emit(args, _json(row), lambda: _trial_lines(row, full=True))
+    return ExitCode.SUCCESS
 
 
-def _download(client: Client, args: argparse.Namespace) -> int:
+def _logs(client: ApiClient, args: argparse.Namespace) -> int:
+    row = client.get(f"/api/trials/{args.trial}", TrialDetail)
+    streams = ["stdout", "stderr"] if args.stream == "both" else [args.stream]
+    texts = {}
+    for stream in streams:
+        if stream in row.logs:
+            texts[stream] = client.request("GET", row.logs[stream]).text
+    if not texts:
+        return fail(args, f"trial {row.id} has no controller output ({_state(row)})")
+
+    def lines() -> Iterator[str]:
+        for stream, text in texts.items():
+            if len(texts) > 1:
+                yield f"==> {stream} <=="
+            yield text.rstrip("\n")
+
+    emit(args, texts, lines)
+    return ExitCode.SUCCESS
+
+
+def _download(client: ApiClient, args: argparse.Namespace) -> int:
     dest = args.output or Path(f"trial-{args.trial}.mcap")
     size = client.download(f"/api/trials/{args.trial}/data.mcap", dest)
-    _print(args, {"path": str(dest), "size": size}, lambda: [f"{dest} ({size:,} bytes)"])
-    return 0
+    emit(args, {"path": str(dest), "size": size}, lambda: [f"{dest} ({size:,} bytes)"])
+    return ExitCode.SUCCESS
 
 
-def _rerun(client: Client, args: argparse.Namespace) -> int:
+def _rerun(client: ApiClient, args: argparse.Namespace) -> int:
     target = args.target
     if target.isdigit() and len(target) < 7:
         originals = [int(target)]
     else:
-        page = client.request("GET", f"/api/commits/{target}")
-        originals = [t["id"] for t in page["trials"]]
+        page = client.get(f"/api/commits/{target}", CommitView)
+        originals = [t.id for t in page.trials]
         if not originals:
-            raise CommandError(f"commit {target} has no trials to rerun")
+            return fail(args, f"commit {target} has no trials to rerun")
         originals = originals if args.all else originals[:1]
-    made = [client.request("POST", f"/api/trials/{t}/rerun") for t in originals]
+    made = [client.post(f"/api/trials/{t}/rerun", TrialDetail) for t in originals]
     if not args.wait:
-        _print(args, made, lambda: [line for row in made for line in _queued_lines(row)])
-        return 0
+        lines = [line for row in made for line in _queued_lines(row)]
+        emit(args, [_json(r) for r in made], lambda: lines)
+        return ExitCode.SUCCESS
     if not args.json:
         for row in made:
-            print(f"trial {row['id']} queued: a rerun of trial {row['rerun_of']}", flush=True)
-    done = client.wait([row["id"] for row in made])
-    _print(args, done, lambda: [_verdict_line(row) for row in done])
-    return 0 if all(row["reproduced"] for row in done) else 1
+            print(f"trial {row.id} queued: a rerun of trial {row.rerun_of}", flush=True)
+    done = wait(client, [row.id for row in made])
+    emit(args, [_json(r) for r in done], lambda: [_verdict_line(row) for row in done])
+    return worst(_rerun_code(row) for row in done)
 
 
-def _cancel(client: Client, args: argparse.Namespace) -> int:
-    row = client.request("POST", f"/api/trials/{args.trial}/cancel")
-    word = "cancelled" if row["status"] == "cancelled" else f"{row['status']}"
-    _print(args, row, lambda: [f"trial {row['id']}: {word}: {row['reason']}"])
-    return 0
+def _rerun_code(row: TrialDetail) -> ExitCode:
+    if row.reproduced:
+        return ExitCode.SUCCESS
+    if row.status is Status.FINISHED and row.reproduced is False:
+        return ExitCode.DIVERGED
+    return worst([exit_code(row.status, row.outcome), ExitCode.DIVERGED])
 
 
-def _export(client: Client, args: argparse.Namespace) -> int:
-    row = client.request("GET", f"/api/trials/{args.trial}")
-    if not row["mcap"]:
-        raise CommandError(f"trial {args.trial} has no record to export ({row['status']})")
-    observations, actions = registry.get(row["task"]).topics()
+def _cancel(client: ApiClient, args: argparse.Namespace) -> int:
+    answer = client.post(f"/api/trials/{args.trial}/cancel", CancelView)
+    row = answer.trial
+    if answer.done is Cancel.CANCELLED:
+        emit(args, _json(row), lambda: [f"trial {row.id} cancelled: {row.reason}"])
+        return ExitCode.SUCCESS
+    if answer.done is Cancel.STOPPING:
+        text = f"trial {row.id} is running: cancelling; its worker stops it within seconds"
+        emit(args, _json(row), lambda: [text, f"  follow it: labd show {row.id}"])
+        return ExitCode.SUCCESS
+    return fail(args, f"trial {row.id} had already ended ({_state(row)}); nothing to cancel")
+
+
+def _export(client: ApiClient, args: argparse.Namespace) -> int:
+    row = client.get(f"/api/trials/{args.trial}", TrialDetail)
+    if not row.mcap:
+        return fail(args, f"trial {args.trial} has no record to export ({_state(row)})")
+    observations, actions = registry.get(row.task).topics()
     out = args.output or Path(f"trial-{args.trial}-{args.format}")
     with tempfile.TemporaryDirectory(prefix="labd-export-") as folder:
         mcap = Path(folder) / "trial.mcap"
-        client.download(f"/api/trials/{args.trial}/data.mcap", mcap)
+        client.download(f"/api/trials/{args.trial}/data.mcap", mcap, digest=row.mcap.digest)
         summary = export(
             mcap,
             out,
@@ -266,89 +264,160 @@ def _export(client: Client, args: argparse.Namespace) -> int:
             observations=observations,
             actions=actions,
             provenance={
-                "trial": row["id"],
-                "url": row["url"],
-                "repository": row["repository"],
-                "commit": row["commit"],
-                "task": row["task"],
-                "manifest_digest": row["manifest_digest"],
-                "data_digest": row["data_digest"],
-                "manifest": row["manifest"],
+                "trial": row.id,
+                "url": row.url,
+                "repository": row.repository,
+                "commit": row.commit,
+                "task": row.task,
+                "outcome": row.outcome.value if row.outcome else None,
+                "manifest_digest": row.manifest_digest,
+                "data_digest": row.data_digest,
+                "manifest": row.manifest,
             },
         )
     info = {"path": str(out), "format": args.format, "frames": summary.frames}
-    _print(args, info, lambda: [f"{out}: {summary.frames} frames ({args.format})"])
-    return 0
+    emit(args, info, lambda: [f"{out}: {summary.frames} frames ({args.format})"])
+    return ExitCode.SUCCESS
+
+
+def _tasks(client: ApiClient, args: argparse.Namespace) -> int:
+    listing = client.get("/api/tasks", TaskList)
+
+    def lines() -> Iterator[str]:
+        for task in listing.tasks:
+            yield f"{task.name} (version {task.version})"
+            yield f"  {task.doc.strip().splitlines()[0] if task.doc.strip() else ''}"
+            for name, param in task.params.items():
+                yield f"  --param {name}=...  {param.describe}"
+
+    emit(args, listing.model_dump(mode="json"), lines)
+    return ExitCode.SUCCESS
+
+
+def _status(client: ApiClient, args: argparse.Namespace) -> int:
+    now = client.get("/api/status", LabStatus)
+
+    def lines() -> Iterator[str]:
+        yield f"labd {now.version}: {now.queued} queued, {len(now.running)} running"
+        for w in now.running:
+            stage = f", {w.stage} for {w.stage_seconds:.0f} s" if w.stage else ""
+            ran = f"{w.running_seconds:.0f} s" if w.running_seconds is not None else "?"
+            yield f"  trial {w.trial} ({w.task}) on {w.worker}: running {ran}{stage}"
+
+    emit(args, now.model_dump(mode="json"), lines)
+    return ExitCode.SUCCESS
+
+
+COMMANDS: dict[str, Callable[[ApiClient, argparse.Namespace], int]] = {
+    "submit": _submit,
+    "trials": _trials,
+    "show": _show,
+    "logs": _logs,
+    "download": _download,
+    "rerun": _rerun,
+    "cancel": _cancel,
+    "export": _export,
+    "tasks": _tasks,
+    "status": _status,
+}
+
+
+def wait(client: ApiClient, trial_ids: list[int], poll: float = 1.0) -> list[TrialDetail]:
+    """Wait until every trial has ended."""
+    pending = set(trial_ids)
+    rows: dict[int, TrialDetail] = {}
+    while pending:
+        for trial_id in sorted(pending):
+            row = client.get(f"/api/trials/{trial_id}", TrialDetail)
+            if row.status.ended:
+                rows[trial_id] = row
+                pending.discard(trial_id)
+        if pending:
+            time.sleep(poll)
+    return [rows[t] for t in trial_ids]
 
 
 # -- printing ----------------------------------------------------------------------------
 
 
-def _print(args: argparse.Namespace, data: Any, lines: Any) -> None:
-    if args.json:
-        print(json.dumps(data, indent=2))
-    else:
-        for line in lines():
-            print(line)
+def _json(row: TrialDetail) -> dict[str, Any]:
+    return row.model_dump(mode="json")
 
 
-def _queued_lines(row: dict[str, Any]) -> Iterator[str]:
-    ref = f" ({row['ref']})" if row["ref"] and row["ref"] != row["commit"] else ""
-    what = f"a rerun of trial {row['rerun_of']}" if row["rerun_of"] else row["task"]
-    yield f"trial {row['id']} queued: {what}"
-    yield f"  {row['repository']} @ {row['commit']}{ref}"
-    yield f"  seed {row['seed']}" + (f", params {_params(row['params'])}" if row["params"] else "")
-    yield f"  follow it: labd show {row['id']}   ({row['url']})"
+def _state(row: TrialDetail) -> str:
+    return f"{row.status.value}: {row.outcome.value}" if row.outcome else row.status.value
 
 
-def _trial_lines(row: dict[str, Any], full: bool = False) -> Iterator[str]:
-    yield f"trial {row['id']}: {row['status']}: {row['reason']}"
-    ref = f" ({row['ref']})" if row["ref"] and row["ref"] != row["commit"] else ""
-    yield f"  repository {row['repository']}"
-    yield f"  commit     {row['commit']}{ref}"
-    params = f", params {_params(row['params'])}" if row["params"] else ""
-    yield f"  task       {row['task']}, seed {row['seed']}{params}"
-    yield f"  submitter  {row['submitter']}, submitted {row['created']}"
-    if row["rerun_of"]:
-        yield f"  rerun of   trial {row['rerun_of']}: {row['verdict'] or 'not compared yet'}"
-    if row["metrics"]:
-        yield "  metrics    " + ", ".join(f"{k}={_fmt(v)}" for k, v in row["metrics"].items())
-    if row["manifest_digest"]:
-        yield f"  manifest   sha256:{row['manifest_digest']}"
-    if row["data_digest"]:
-        yield f"  data       sha256:{row['data_digest']}"
-    if row["mcap"]:
-        yield f"  record     {row['mcap']['url']} ({row['mcap']['size']:,} bytes)"
-    for stream, url in row["logs"].items():
-        yield f"  {stream:<10} {url}"
-    if full and row.get("manifest"):
-        versions = row["manifest"].get("versions", {})
+def headline(row: TrialDetail) -> str:
+    """The first thing said of a trial: its outcome once finished, else its status."""
+    if row.outcome is not None:
+        return f"trial {row.id}: {row.outcome.value.upper()}: {row.reason}"
+    return f"trial {row.id}: {row.status.value}: {row.reason}"
+
+
+def _queued_lines(row: TrialDetail) -> Iterator[str]:
+    ref = f" ({row.ref})" if row.ref and row.ref != row.commit else ""
+    what = f"a rerun of trial {row.rerun_of}" if row.rerun_of else row.task
+    yield f"trial {row.id} queued: {what}"
+    yield f"  {row.repository} @ {row.commit}{ref}"
+    yield f"  seed {row.seed}" + (f", params {_params(row.params)}" if row.params else "")
+    yield f"  follow it: labd show {row.id}   ({row.url})"
+
+
+def _trial_lines(row: TrialDetail, full: bool = False) -> Iterator[str]:
+    yield headline(row)
+    ref = f" ({row.ref})" if row.ref and row.ref != row.commit else ""
+    yield f"  repository {row.repository}"
+    yield f"  commit     {row.commit}{ref}"
+    params = f", params {_params(row.params)}" if row.params else ""
+    yield f"  task       {row.task}, seed {row.seed}{params}"
+    yield f"  submitter  {row.submitter}, submitted {_time(row.created)}"
+    if row.rerun_of:
+        yield f"  rerun of   trial {row.rerun_of}: {row.verdict or 'not compared yet'}"
+    if row.metrics:
+        yield "  metrics    " + ", ".join(f"{k}={_fmt(v)}" for k, v in row.metrics.items())
+    if row.manifest_digest:
+        yield f"  manifest   sha256:{row.manifest_digest}"
+    if row.data_digest:
+        yield f"  data       sha256:{row.data_digest}"
+    if row.mcap:
+        yield f"  record     {row.mcap.url} ({row.mcap.size or 0:,} bytes)"
+    if row.logs:
+        yield f"  logs       labd logs {row.id}"
+    if full and row.manifest:
+        versions = row.manifest.get("versions", {})
         yield "  versions   " + ", ".join(f"{k} {v}" for k, v in versions.items())
 
 
-def _verdict_line(row: dict[str, Any]) -> str:
-    if row["status"] != "succeeded" and not row["verdict"]:
-        return f"trial {row['id']} (rerun of {row['rerun_of']}): {row['status']}: {row['reason']}"
-    return f"trial {row['id']} (rerun of {row['rerun_of']}): {row['verdict']}"
+def _verdict_line(row: TrialDetail) -> str:
+    if row.verdict:
+        return f"trial {row.id} (rerun of {row.rerun_of}): {row.verdict}"
+    return f"trial {row.id} (rerun of {row.rerun_of}): {_state(row)}: {row.reason}"
 
 
-def _table(page: dict[str, Any]) -> Iterator[str]:
-    rows = page["trials"]
+def _table(page: TrialPage) -> Iterator[str]:
+    rows = page.trials
     if not rows:
         yield "no trials"
         return
     yield (
-        f"{'ID':>6}  {'STATUS':<9}  {'TASK':<12}  {'COMMIT':<12}  {'SEED':>5}  "
+        f"{'ID':>6}  {'OUTCOME':<9}  {'REWARD':>8}  {'TASK':<12}  {'COMMIT':<12}  {'SEED':>5}  "
         f"{'USER':<10}  REPOSITORY"
     )
     for r in rows:
+        outcome = r.outcome.value if r.outcome else r.status.value
+        reward = _fmt(r.reward) if r.reward is not None else "-"
+        rerun = f"  (rerun of {r.rerun_of}: {r.verdict or '...'})" if r.rerun_of else ""
         yield (
-            f"{r['id']:>6}  {r['status']:<9}  {r['task']:<12}  {r['commit'][:12]:<12}  "
-            f"{r['seed']:>5}  {r['submitter'][:10]:<10}  {r['repository']}"
-            + (f"  (rerun of {r['rerun_of']}: {r['verdict'] or '...'})" if r["rerun_of"] else "")
+            f"{r.id:>6}  {outcome:<9}  {reward:>8}  {r.task:<12}  {r.commit[:12]:<12}  "
+            f"{r.seed:>5}  {r.submitter[:10]:<10}  {r.repository}{rerun}"
         )
-    if page["next"]:
-        yield f"more: --before {page['next']}"
+    if page.next:
+        yield f"more: --before {page.next}"
+
+
+def _time(moment: Any) -> str:
+    return moment.strftime("%Y-%m-%d %H:%M:%S UTC") if moment else "-"
 
 
 def _params(params: dict[str, Any]) -> str:
@@ -357,10 +426,3 @@ def _params(params: dict[str, Any]) -> str:
 
 def _fmt(value: Any) -> str:
     return f"{value:.4g}" if isinstance(value, float) else str(value)
-
-
-def _error_text(response: httpx.Response) -> str:
-    try:
-        return str(response.json().get("error") or response.text)
-    except ValueError:
-        return response.text.strip() or response.reason_phrase

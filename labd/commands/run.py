@@ -4,26 +4,26 @@
              [--sandbox docker|bwrap] [--out DIR] [--data DIR] [--json]
 
 It runs the same trial a lab would (the same sandbox, the same recording), prints the
-outcome, the manifest digest and the data digest, and exits 0 when the trial ran to its
-end, 1 when it failed.
+outcome, the manifest digest and the data digest, and exits 0 only when the task was
+achieved (``success``); 1 for ``fail``, 3 for ``error``, 2 for a usage error
+(``labd.commands.common``).
 """
 
 from __future__ import annotations
 
 import argparse
 import asyncio
-import importlib.util
 import json
 import secrets
-import sys
 import time
 from pathlib import Path
 from typing import Any
 
 import sandbox
+from labd.commands.common import assignment, exit_code, fail, json_option
+from labd.config import LabConfig
 from labd.errors import LabError
-from labd.graph.types import TypeRegistry
-from labd.sim.params import parse_assignments
+from labd.trial import LabHost, client_library
 from sandbox.api import Limits, SandboxError
 from scheduler.runner import RunOptions, TrialResult, TrialSpec, run_trial
 
@@ -33,13 +33,14 @@ def add_parser(commands: Any) -> None:
     run.add_argument("source", metavar="PATH|URL", help="the controller's folder or git URL")
     run.add_argument("--ref", help="branch, tag or commit (default: the folder as it is / HEAD)")
     run.add_argument("--task", help="the task (default: the one lab.toml names)")
-    run.add_argument("--seed", type=int, default=0, help="the episode's seed (default 0)")
+    run.add_argument("--seed", type=int, default=0, help="the episode's seed (default: 0)")
     run.add_argument(
         "--param",
         action="append",
         default=[],
+        type=assignment,
         metavar="NAME=VALUE",
-        help="a task parameter (repeatable)",
+        help="a task parameter (repeatable; default: the task's own values)",
     )
     run.add_argument(
         "--sandbox",
@@ -50,27 +51,26 @@ def add_parser(commands: Any) -> None:
     run.add_argument(
         "--data",
         type=Path,
-        default=Path("lab-data"),
-        help="where runs and caches are kept (default ./lab-data)",
+        default=LabConfig().data,
+        help="where runs and caches are kept (default: %(default)s)",
     )
     run.add_argument(
         "--wall",
         type=float,
         default=Limits().wall,
-        help="seconds the controller may run (default %(default)g)",
+        help="seconds the controller may run (default: %(default)g)",
     )
-    run.add_argument("--json", action="store_true", help="print one JSON object")
+    json_option(run)
 
 
 def main(args: argparse.Namespace) -> int:
+    params = dict(args.param)
     try:
-        params = parse_assignments(args.param)
         backend = sandbox.backend(
             args.sandbox, args.data / "cache", extra_packages=[client_library()]
         )
     except (LabError, SandboxError) as err:
-        print(f"labd run: {err}", file=sys.stderr)
-        return 2
+        return fail(args, str(err))
     out = (
         args.out or args.data / "runs" / f"{time.strftime('%Y%m%d-%H%M%S')}-{secrets.token_hex(3)}"
     )
@@ -82,9 +82,9 @@ def main(args: argparse.Namespace) -> int:
         run_trial(
             spec,
             backend=backend,
+            host=LabHost(),
             out=out,
             cache=args.data / "cache",
-            types=TypeRegistry.default(),
             options=options,
         )
     )
@@ -92,19 +92,12 @@ def main(args: argparse.Namespace) -> int:
         print(json.dumps(result.to_json(), indent=2))
     else:
         report(result, spec)
-    return 0 if result.status == "succeeded" else 1
-
-
-def client_library() -> Path:
-    """The folder of the ``controllers`` package, shipped into the controller runtime."""
-    found = importlib.util.find_spec("controllers")
-    if found is None or not found.submodule_search_locations:
-        raise SandboxError("the lab's client library (the controllers package) is missing")
-    return Path(next(iter(found.submodule_search_locations)))
+    return int(exit_code(result.status, result.outcome))
 
 
 def report(result: TrialResult, spec: TrialSpec) -> None:
-    print(f"trial {result.status}: {result.reason}")
+    what = result.outcome.value.upper() if result.outcome else result.status.value
+    print(f"trial {what}: {result.reason}")
     if result.manifest:
         task = result.manifest["task"]["name"]
         print(

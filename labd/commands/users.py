@@ -13,9 +13,13 @@ import sys
 from pathlib import Path
 from typing import Any
 
+from labd.commands.common import fail, json_option
+from labd.config import LabConfig
 from labd.service import ServiceConfig
 from repository.errors import ArchiveError
-from repository.index import Index
+from repository.index import Index, UserLimits
+
+USER = UserLimits()
 
 
 def add_parser(commands: Any) -> None:
@@ -23,14 +27,29 @@ def add_parser(commands: Any) -> None:
     actions = users.add_subparsers(dest="action", required=True)
     add = actions.add_parser("add", help="add a user and print their token")
     add.add_argument("name", help="letters, digits, '-', '_' or '.'")
-    add.add_argument("--data", type=Path, default=Path("lab-data"), help="the lab's data folder")
-    add.add_argument("--database", help="SQLAlchemy URL (default: DATA/index.sqlite)")
-    add.add_argument("--max-running", type=int, default=2, help="trials running at once")
-    add.add_argument("--max-daily", type=int, default=500, help="trials submitted per 24 h")
+    add.add_argument(
+        "--data",
+        type=Path,
+        default=LabConfig().data,
+        help="the lab's data folder (default: %(default)s)",
+    )
+    add.add_argument("--database", help="SQLAlchemy URL (default: sqlite:///DATA/index.sqlite)")
+    add.add_argument(
+        "--max-running",
+        type=int,
+        default=USER.max_running,
+        help="trials running at once (default: %(default)s)",
+    )
+    add.add_argument(
+        "--max-daily",
+        type=int,
+        default=USER.max_daily,
+        help="trials submitted per 24 h (default: %(default)s)",
+    )
     add.add_argument(
         "--worker", action="store_true", help="a worker's token: labd worker --server uses it"
     )
-    add.add_argument("--json", action="store_true")
+    json_option(add)
 
 
 def main(args: argparse.Namespace) -> int:
@@ -48,8 +67,7 @@ def main(args: argparse.Namespace) -> int:
         finally:
             index.close()
     except ArchiveError as err:
-        print(f"labd users add: {err}", file=sys.stderr)
-        return 2
+        return fail(args, str(err))
     if args.json:
         print(json.dumps({"name": args.name, "token": token}))
     else:

@@ -16,54 +16,89 @@ import asyncio
 import os
 import signal
 import socket
-import sys
 from pathlib import Path
 from typing import Any
 
 import sandbox
 from labd.commands import fetching
-from labd.commands.remote import DEFAULT_SERVER
-from labd.commands.run import client_library
-from labd.graph.types import TypeRegistry
+from labd.commands.common import fail
+from labd.config import LabConfig
+from labd.errors import LabError
+from labd.trial import LabHost, client_library
 from sandbox.api import SandboxError
+from scheduler.client import DEFAULT_SERVER
+from scheduler.errors import RemoteError
 from scheduler.remote import RemoteLab
 from scheduler.runner import RunOptions
 from scheduler.worker import Worker, WorkerConfig
 
+DEFAULTS = WorkerConfig(name="", work=Path(), cache=Path())
+
 
 def add_parser(commands: Any) -> None:
     p = commands.add_parser("worker", help="run a lab's queued trials on this machine")
-    p.add_argument("--server", default=os.environ.get("LABD_SERVER", DEFAULT_SERVER))
-    p.add_argument("--token", default=os.environ.get("LABD_TOKEN"), help="a worker's token")
-    p.add_argument("--workers", type=int, default=1, help="trials run at once (default 1)")
-    p.add_argument("--sandbox", choices=["docker", "bwrap"], help="default: docker if up")
-    p.add_argument("--data", type=Path, default=Path("lab-data"), help="cache and work folders")
-    p.add_argument("--heartbeat", type=float, default=10.0, help="seconds between heartbeats")
-    p.add_argument("--poll", type=float, default=2.0, help="seconds between claims when idle")
+    p.add_argument(
+        "--server",
+        default=os.environ.get("LABD_SERVER", DEFAULT_SERVER),
+        help="the lab's HTTP address (default: $LABD_SERVER, else %(default)s)",
+    )
+    p.add_argument(
+        "--token",
+        default=os.environ.get("LABD_TOKEN"),
+        help="a worker's token, from `labd users add NAME --worker` (default: $LABD_TOKEN)",
+    )
+    p.add_argument("--workers", type=int, default=1, help="trials run at once (default: 1)")
+    p.add_argument(
+        "--sandbox",
+        choices=["docker", "bwrap"],
+        help="isolation backend (default: docker if an engine answers, else bwrap)",
+    )
+    p.add_argument(
+        "--data",
+        type=Path,
+        default=LabConfig().data,
+        help="cache and work folders (default: %(default)s)",
+    )
+    p.add_argument(
+        "--heartbeat",
+        type=float,
+        default=DEFAULTS.heartbeat,
+        help="seconds between heartbeats (default: %(default)g)",
+    )
+    p.add_argument(
+        "--poll",
+        type=float,
+        default=DEFAULTS.poll,
+        help="seconds between claims when idle (default: %(default)g)",
+    )
     fetching.add_options(p.add_argument_group("what this worker fetches"))
 
 
 def main(args: argparse.Namespace) -> int:
     if not args.token:
-        print("labd worker: give a worker's token (--token or LABD_TOKEN)", file=sys.stderr)
-        return 2
+        return fail(args, "give a worker's token (--token or LABD_TOKEN)")
     policy = fetching.policy(args, "labd worker")
     cache = (args.data / "cache").resolve()
     work = (args.data / "work").resolve()
     work.mkdir(parents=True, exist_ok=True)
     try:
         backend = sandbox.backend(args.sandbox, cache, [client_library()])
-    except SandboxError as err:
-        print(f"labd worker: {err}", file=sys.stderr)
-        return 2
+    except (SandboxError, LabError) as err:
+        return fail(args, str(err))
     lab = RemoteLab(args.server, args.token)
+    try:
+        lab.hello()
+    except RemoteError as err:
+        lab.close()
+        return fail(args, str(err))
     name = f"{socket.gethostname()}:{os.getpid()}"
+    host = LabHost()
     workers = [
         Worker(
             lab,
             lab,
             backend,
-            TypeRegistry.default(),
+            host,
             WorkerConfig(
                 name=f"{name}/remote-{n + 1}",
                 work=work,

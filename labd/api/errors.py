@@ -1,0 +1,127 @@
+"""How the API turns exceptions into answers: one table, one body.
+
+Each expected error of the lab's packages maps to an HTTP status here, and every error
+body is ``{"error": "..."}`` (``ErrorBody``), so handlers raise what went wrong and never
+build error responses themselves. A 5xx is logged with its traceback; anything not in
+the table is a bug: a 500 whose body says so, logged with its traceback.
+"""
+
+from __future__ import annotations
+
+import logging
+from typing import Any
+
+from fastapi import FastAPI, Request
+from fastapi.exceptions import RequestValidationError
+from fastapi.responses import JSONResponse
+
+from labd.api.models import ErrorBody
+from repository.errors import ArchiveError, BlobError, BlobNotFound, RecordNotFound
+from scheduler.errors import (
+    InvalidRequest,
+    NotYours,
+    QuotaExceeded,
+    RepositoryError,
+    TooLarge,
+    TrialError,
+)
+
+log = logging.getLogger("labd.api")
+
+
+class ApiError(Exception):
+    """An error the API itself decides, with its status."""
+
+    def __init__(self, status: int, message: str) -> None:
+        self.status = status
+        self.message = message
+        super().__init__(message)
+
+
+class Unauthorized(ApiError):
+    def __init__(self, message: str) -> None:
+        super().__init__(401, message)
+
+
+class Forbidden(ApiError):
+    def __init__(self, message: str) -> None:
+        super().__init__(403, message)
+
+
+class Conflict(ApiError):
+    def __init__(self, message: str) -> None:
+        super().__init__(409, message)
+
+
+# The most specific class wins (a TooLarge is a RepositoryError, but a 413).
+STATUS: dict[type[Exception], int] = {
+    RecordNotFound: 404,
+    BlobNotFound: 404,
+    BlobError: 500,  # a blob that no longer matches its digest: the store is damaged
+    ArchiveError: 422,
+    NotYours: 403,
+    QuotaExceeded: 429,
+    InvalidRequest: 422,
+    TooLarge: 413,
+    RepositoryError: 422,
+    TrialError: 422,
+}
+MEANING = {
+    400: "the request body is not valid JSON",
+    401: "no token, or one the lab does not know",
+    403: "the token's user may not do this",
+    404: "no such trial, commit, record or file",
+    409: "the client's version does not match the lab's",
+    413: "too large",
+    422: "the request names something wrong (the message says what)",
+    429: "over a limit the operator set",
+    500: "the lab is at fault (the message says what)",
+}
+
+
+def responses(*statuses: int) -> dict[int | str, dict[str, Any]]:
+    """The ``responses`` of a route: these error statuses, each with ``ErrorBody``."""
+    return {s: {"model": ErrorBody, "description": MEANING[s]} for s in statuses}
+
+
+def status_of(err: Exception) -> int:
+    if isinstance(err, ApiError):
+        return err.status
+    for cls in type(err).__mro__:
+        if cls in STATUS:
+            return STATUS[cls]
+    return 500
+
+
+async def _known(request: Request, err: Exception) -> JSONResponse:
+    status = status_of(err)
+    message = err.message if isinstance(err, ApiError) else str(err)
+    if status >= 500:
+        log.error("%s %s: %s", request.method, request.url.path, message, exc_info=err)
+    return JSONResponse({"error": message}, status_code=status)
+
+
+async def _bug(request: Request, err: Exception) -> JSONResponse:
+    log.error("%s %s failed", request.method, request.url.path, exc_info=err)
+    text = f"the lab failed to answer ({type(err).__name__}); its log has the details"
+    return JSONResponse({"error": text}, status_code=500)
+
+
+async def _invalid(_: Request, err: RequestValidationError) -> JSONResponse:
+    problems = list(err.errors())
+    if any(p.get("type") == "json_invalid" for p in problems):
+        return JSONResponse({"error": MEANING[400]}, status_code=400)
+    parts = []
+    for p in problems:
+        where = ".".join(str(x) for x in p.get("loc", ()) if x not in ("body", "query", "path"))
+        parts.append(f"{where}: {p.get('msg', 'invalid')}" if where else p.get("msg", ""))
+    return JSONResponse({"error": "; ".join(parts)}, status_code=422)
+
+
+def install(app: FastAPI) -> None:
+    """Register the table's handlers on ``app``."""
+    known: list[type[Exception]] = [ApiError, *STATUS]
+    for cls in known:
+        app.add_exception_handler(cls, _known)
+    app.add_exception_handler(RequestValidationError, _invalid)  # type: ignore[arg-type]
+    app.add_exception_handler(Exception, _bug)

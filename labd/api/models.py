@@ -1,0 +1,212 @@
+"""The bodies of the HTTP API: what a person, a script and the ``labd`` CLI read.
+
+Every 2xx body is one of these models (so ``/openapi.json`` describes it), built from
+the archive's typed record (``repository.trial.Trial``); every error is ``ErrorBody``.
+A trial's headline is its outcome: ``success``, ``fail`` or ``error`` once finished.
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+from typing import Any
+
+from pydantic import BaseModel, Field
+
+from labd.sim import registry
+from repository.index import CommitPage
+from repository.trial import Kind, Outcome, Status, Trial, Value
+from scheduler.queue import Cancel
+
+
+class ErrorBody(BaseModel):
+    """Every error the API sends: what went wrong and what to do about it."""
+
+    error: str = Field(description="a sentence a person can act on")
+
+
+class Blob(BaseModel):
+    """A file of the archive: its digest, size and where to download it."""
+
+    digest: str = Field(description="sha256:HEX of its bytes")
+    size: int | None
+    url: str
+
+
+class TrialSummary(BaseModel):
+    """A trial as lists show it: its outcome first, what ran, what came out."""
+
+    id: int
+    kind: Kind
+    status: Status = Field(description="queued, running, finished or cancelled")
+    outcome: Outcome | None = Field(description="success, fail or error, once finished")
+    reason: str = Field(description="why it ended as it did, or where it is")
+    reward: float | None = Field(description="the task's reward metric, if it has one")
+    repository: str
+    ref: str | None
+    commit: str
+    task: str
+    params: dict[str, Value]
+    seed: int
+    submitter: str
+    public: bool
+    rerun_of: int | None
+    verdict: str | None = Field(description="a rerun's: reproduced, or where it diverged")
+    reproduced: bool | None
+    divergence: str | None
+    attempts: int
+    created: dt.datetime
+    started: dt.datetime | None
+    finished: dt.datetime | None
+    manifest_digest: str | None
+    data_digest: str | None
+    metrics: dict[str, Any] | None
+    backend: str | None
+    wall_seconds: float | None
+    url: str
+    mcap: Blob | None = Field(description="the MCAP record")
+    logs: dict[str, str] = Field(description="the controller's stdout and stderr, by URL")
+
+
+class TrialDetail(TrialSummary):
+    """One trial in full: with its manifest and who runs it."""
+
+    manifest: dict[str, Any] | None
+    digest_topics: list[str] | None
+    worker: str | None
+    cancel_requested: bool = Field(description="its worker has been asked to stop it")
+
+
+class CancelView(BaseModel):
+    """What cancelling did, and the trial after it."""
+
+    done: Cancel = Field(description="cancelled (it was queued), stopping (it runs) or ended")
+    trial: TrialDetail
+
+
+class TrialPage(BaseModel):
+    trials: list[TrialSummary]
+    next: int | None = Field(description="pass as `before` for the next page; null at the end")
+
+
+class CommitTrial(TrialSummary):
+    reruns: list[TrialSummary]
+
+
+class CommitView(BaseModel):
+    """A commit's trials, newest first, each with its reruns and their verdicts."""
+
+    commit: str
+    repositories: list[str]
+    trials: list[CommitTrial]
+    rerun_counts: dict[str, int] = Field(description="reproduced, diverged, pending")
+    truncated: bool
+
+
+class Param(BaseModel):
+    type: str
+    default: Value
+    doc: str
+    minimum: float | None
+    maximum: float | None
+    choices: list[Value] | None
+    describe: str
+
+
+class TaskView(BaseModel):
+    name: str
+    version: str
+    doc: str
+    params: dict[str, Param]
+
+
+class TaskList(BaseModel):
+    tasks: list[TaskView]
+
+
+class WorkerView(BaseModel):
+    """A worker with a trial: which, since when, and (for the lab's own) at what stage."""
+
+    worker: str
+    trial: int
+    task: str
+    started: dt.datetime | None
+    running_seconds: float | None
+    stage: str | None = Field(None, description="preparing, running or filing")
+    stage_seconds: float | None = None
+
+
+class LabStatus(BaseModel):
+    """The lab right now: its version, the queue, and what each busy worker runs."""
+
+    version: str
+    queued: int
+    running: list[WorkerView]
+    local_workers: int
+
+
+def summary(trial: Trial, base: str) -> dict[str, Any]:
+    """The fields of ``TrialSummary`` for ``trial``, with links under ``base``."""
+    link = f"{base}/api/trials/{trial.id}"
+    return {
+        **trial.model_dump(exclude={"mcap", "mcap_size", "stdout", "stderr"}),
+        "reward": trial.reward,
+        "verdict": trial.verdict,
+        "url": link,
+        "mcap": (
+            Blob(digest=trial.mcap, size=trial.mcap_size, url=f"{link}/data.mcap")
+            if trial.mcap
+            else None
+        ),
+        "logs": {
+            stream: f"{link}/logs/{stream}"
+            for stream in ("stdout", "stderr")
+            if getattr(trial, stream)
+        },
+    }
+
+
+def trial_summary(trial: Trial, base: str) -> TrialSummary:
+    return TrialSummary.model_validate(summary(trial, base))
+
+
+def trial_detail(trial: Trial, base: str) -> TrialDetail:
+    return TrialDetail.model_validate(summary(trial, base))
+
+
+def commit_view(page: CommitPage, base: str) -> CommitView:
+    return CommitView(
+        commit=page.commit,
+        repositories=page.repositories,
+        trials=[
+            CommitTrial.model_validate(
+                {
+                    **summary(row, base),
+                    "reruns": [trial_summary(r, base) for r in page.reruns.get(row.id, [])],
+                }
+            )
+            for row in page.trials
+        ],
+        rerun_counts=page.rerun_counts,
+        truncated=page.truncated,
+    )
+
+
+def task_view(name: str) -> TaskView:
+    spec = registry.get(name)
+    return TaskView(
+        name=spec.name,
+        version=spec.version,
+        doc=spec.doc,
+        params={
+            p.name: Param(
+                type=p.kind.__name__,
+                default=p.default,
+                doc=p.doc,
+                minimum=p.minimum,
+                maximum=p.maximum,
+                choices=list(p.choices) or None,
+                describe=p.describe(),
+            )
+            for p in spec.params.declared.values()
+        },
+    )

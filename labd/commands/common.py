@@ -1,0 +1,117 @@
+"""What the ``labd`` commands share: exit codes, options, and how they print.
+
+Exit codes (``labd --help`` lists them too):
+
+    0  success: the trial achieved its task (a rerun: it reproduced); or the command did
+       what it was asked
+    1  fail: the trial ran to its end without achieving its task
+    2  usage: a wrong command line, a request the lab refused, or no lab to talk to
+    3  error: the trial broke (crashed, stalled, hit a limit, or the lab failed)
+    4  cancelled: the trial was cancelled
+    5  diverged: a rerun did not reproduce its original's data
+
+With ``--json`` every command prints one JSON value on stdout, errors included
+(``{"error": "..."}``), with the same exit code.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+from collections.abc import Callable, Iterable
+from enum import IntEnum
+from typing import Any
+
+from repository.trial import Outcome, Status
+from scheduler.client import DEFAULT_SERVER
+
+
+class ExitCode(IntEnum):
+    SUCCESS = 0
+    FAIL = 1
+    USAGE = 2
+    ERROR = 3
+    CANCELLED = 4
+    DIVERGED = 5
+
+
+EPILOG = """exit codes: 0 success (a rerun: reproduced); 1 fail (the trial ran to its end
+without achieving its task); 2 usage (a wrong command line, a refused request, no lab);
+3 error (the trial broke); 4 cancelled; 5 a rerun diverged"""
+
+
+def exit_code(status: Status | str, outcome: Outcome | str | None) -> ExitCode:
+    """The exit code of a command that waited for a trial that ended so."""
+    if Status(status) is Status.CANCELLED:
+        return ExitCode.CANCELLED
+    return {
+        Outcome.SUCCESS: ExitCode.SUCCESS,
+        Outcome.FAIL: ExitCode.FAIL,
+        Outcome.ERROR: ExitCode.ERROR,
+    }[Outcome(outcome or Outcome.ERROR)]
+
+
+def worst(codes: Iterable[ExitCode]) -> ExitCode:
+    """One exit code for several trials: the most serious of theirs."""
+    rank = [
+        ExitCode.SUCCESS,
+        ExitCode.FAIL,
+        ExitCode.DIVERGED,
+        ExitCode.CANCELLED,
+        ExitCode.ERROR,
+        ExitCode.USAGE,
+    ]
+    return max(codes, key=rank.index, default=ExitCode.SUCCESS)
+
+
+def assignment(text: str) -> tuple[str, str]:
+    """An argparse type: ``NAME=VALUE`` as a pair (argparse says what is wrong)."""
+    name, sep, value = text.partition("=")
+    if not sep or not name.strip():
+        raise argparse.ArgumentTypeError(f"{text!r}: write NAME=VALUE")
+    return name.strip(), value.strip()
+
+
+def server_options(parser: argparse.ArgumentParser, *, write: bool = False) -> None:
+    """``--server`` and ``--json``; with ``write``, ``--token`` too."""
+    parser.add_argument(
+        "--server",
+        default=os.environ.get("LABD_SERVER", DEFAULT_SERVER),
+        help="the lab's HTTP address (default: $LABD_SERVER, else %(default)s)",
+    )
+    parser.add_argument(
+        "--json", action="store_true", help='print one JSON value, errors as {"error": ...}'
+    )
+    if write:
+        parser.add_argument(
+            "--token",
+            default=os.environ.get("LABD_TOKEN"),
+            help="your token (default: $LABD_TOKEN; the operator makes one with"
+            " `labd users add NAME`)",
+        )
+
+
+def json_option(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "--json", action="store_true", help='print one JSON value, errors as {"error": ...}'
+    )
+
+
+def emit(args: argparse.Namespace, data: Any, lines: Callable[[], Iterable[str]]) -> None:
+    """Print ``data`` as JSON under ``--json``, else the lines a person reads."""
+    if getattr(args, "json", False):
+        print(json.dumps(data, indent=2, default=str))
+    else:
+        for line in lines():
+            print(line)
+
+
+def fail(args: argparse.Namespace, message: str, code: ExitCode = ExitCode.USAGE) -> int:
+    """Report an error as the command's last word; its exit code."""
+    if getattr(args, "json", False):
+        print(json.dumps({"error": message}))
+    else:
+        print(f"labd {args.command}: {message}", file=sys.stderr)
+    return int(code)

@@ -1,0 +1,49 @@
+"""``labd migrate``: upgrade an archive's index in place to this labd's schema.
+
+    labd migrate [--data DIR | --database URL] [--json]
+
+``labd serve`` refuses an index of an older schema and names this command. It keeps
+every row (``repository.migrate`` says how each changes), in one transaction. Stop the
+lab (and its remote workers) first.
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+from typing import Any
+
+from labd.commands.common import emit, fail, json_option
+from labd.config import LabConfig
+from labd.service import ServiceConfig
+from repository.errors import ArchiveError
+from repository.index import connect
+from repository.migrate import upgrade
+
+
+def add_parser(commands: Any) -> None:
+    p = commands.add_parser("migrate", help="upgrade the archive's index to this labd's schema")
+    p.add_argument(
+        "--data",
+        type=Path,
+        default=LabConfig().data,
+        help="the lab's data folder (default: %(default)s)",
+    )
+    p.add_argument("--database", help="SQLAlchemy URL (default: sqlite:///DATA/index.sqlite)")
+    json_option(p)
+
+
+def main(args: argparse.Namespace) -> int:
+    config = ServiceConfig(data=args.data, database=args.database)
+    if args.database is None and not (args.data / "index.sqlite").exists():
+        return fail(args, f"no archive in {args.data} (no index.sqlite); give --data or --database")
+    engine = connect(config.database_url)
+    try:
+        done = upgrade(engine)
+    except ArchiveError as err:
+        return fail(args, str(err))
+    finally:
+        engine.dispose()
+    data = {"before": done.before, "after": done.after, "changed": done.changed}
+    emit(args, data, lambda: [str(done)])
+    return 0

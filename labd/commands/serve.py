@@ -1,0 +1,281 @@
+"""``labd serve``: the lab. The bridge and its robots, the HTTP API, the archive, workers.
+
+    labd serve [--host H] [--bridge-port P] [--http-port P] [--data DIR]
+               [--robot NAME=TASK ... | --no-robots] [--lockstep] [--no-service] ...
+
+Every default comes from the configuration objects (``labd.config``,
+``labd.service``); ``labd serve --help`` shows them. A port in use, a certificate
+that does not load, an index of an older schema: each stops it with one line saying
+what to change.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import ctypes
+import signal
+from pathlib import Path
+from typing import Any
+
+from labd import __version__
+from labd.commands import fetching
+from labd.commands.common import assignment, fail
+from labd.config import DEFAULT_ROBOTS, BridgeConfig, LabConfig, RobotConfig
+from labd.errors import LabError
+from labd.lab import Lab
+from labd.service import ServiceConfig
+from labd.sim import registry
+from repository.errors import ArchiveError, SchemaMismatch
+from scheduler.queue import QueueConfig
+from scheduler.runner import RunOptions
+
+BRIDGE = BridgeConfig()
+LAB = LabConfig()
+SERVICE = ServiceConfig()
+
+
+class Refused(Exception):
+    """A combination of options that cannot run; the message says what to change."""
+
+
+def add_parser(commands: Any) -> None:
+    serve = commands.add_parser(
+        "serve",
+        help="run the lab: the bridge and robots, the HTTP API, the archive and its workers",
+    )
+    serve.add_argument(
+        "--host", default=BRIDGE.host, help="address to listen on (default: %(default)s)"
+    )
+    serve.add_argument(
+        "--bridge-port",
+        type=int,
+        default=BRIDGE.port,
+        help="rosbridge WebSocket port (default: %(default)s; 0: any free port)",
+    )
+    serve.add_argument(
+        "--data", type=Path, default=LAB.data, help="where data is kept (default: %(default)s)"
+    )
+    serve.add_argument(
+        "--protected-prefix",
+        action="append",
+        dest="protected",
+        help="names under this prefix never cross the bridge (repeatable; default: "
+        f"{' '.join(BRIDGE.protected_prefixes)})",
+    )
+    serve.add_argument(
+        "--authorizer",
+        metavar="URL",
+        help='require keys, checked at URL?key=KEY (answers {"seconds": N}; default: none)',
+    )
+    serve.add_argument("--tls-cert", type=Path, help="certificate (PEM) to serve wss://")
+    serve.add_argument("--tls-key", type=Path, help="private key (PEM) of --tls-cert")
+    serve.add_argument(
+        "--max-connections",
+        type=int,
+        default=BRIDGE.max_connections,
+        help="bridge clients at once (default: %(default)s)",
+    )
+    serve.add_argument(
+        "--robot",
+        action="append",
+        type=assignment,
+        metavar="NAME=TASK",
+        dest="robots",
+        help="host a live robot running TASK at /robots/NAME (repeatable; default: "
+        + " and ".join(f"{r.name}={r.task}" for r in DEFAULT_ROBOTS)
+        + ")",
+    )
+    serve.add_argument("--no-robots", action="store_true", help="host no robot")
+    serve.add_argument(
+        "--lockstep",
+        action="store_true",
+        help="robots step only when /lab/step is called, as in trials (default: live)",
+    )
+    serve.add_argument(
+        "--seed", type=int, default=0, help="the robots' first episode seed (default: 0)"
+    )
+    serve.add_argument(
+        "--param",
+        action="append",
+        default=[],
+        type=assignment,
+        metavar="NAME=VALUE",
+        help="a task parameter for every robot (repeatable; default: the tasks' own)",
+    )
+    serve.add_argument("--no-playground", action="store_true", help="host no playground graph")
+    group = serve.add_argument_group("the archive, the queue and its workers")
+    group.add_argument(
+        "--http-port",
+        type=int,
+        default=LAB.http_port,
+        help="HTTP API port (default: %(default)s; 0: any free port)",
+    )
+    group.add_argument("--database", help="SQLAlchemy URL (default: sqlite:///DATA/index.sqlite)")
+    group.add_argument(
+        "--blobs",
+        help="blob store: a folder or an fsspec URL such as s3://bucket/prefix"
+        " (default: DATA/blobs)",
+    )
+    group.add_argument(
+        "--blobs-option",
+        action="append",
+        default=[],
+        type=assignment,
+        metavar="NAME=VALUE",
+        help="an fsspec storage option for --blobs, e.g. endpoint_url=http://127.0.0.1:9000 "
+        "(repeatable; S3 keys come from AWS_ACCESS_KEY_ID and AWS_SECRET_ACCESS_KEY)",
+    )
+    group.add_argument(
+        "--workers",
+        type=int,
+        default=SERVICE.workers,
+        help="trials run at once (default: %(default)s; 0: none)",
+    )
+    group.add_argument(
+        "--sandbox",
+        choices=["docker", "bwrap"],
+        help="isolation backend (default: docker if an engine answers, else bwrap)",
+    )
+    group.add_argument(
+        "--lease",
+        type=float,
+        default=SERVICE.queue.lease,
+        help="seconds before a silent worker's trial is requeued (default: %(default)g)",
+    )
+    fetching.add_options(group)
+    group.add_argument(
+        "--cache", type=Path, help="git mirrors and controller runtimes (default: DATA/cache)"
+    )
+    group.add_argument(
+        "--no-service", action="store_true", help="no HTTP API, no archive, no workers"
+    )
+
+
+def config(args: argparse.Namespace) -> LabConfig:
+    """The lab the options describe (``Refused`` if they make no sense together)."""
+    robots = robot_configs(args)
+    if not robots and args.no_playground:
+        raise Refused("--no-robots with --no-playground leaves the bridge nothing to serve")
+    return LabConfig(
+        data=args.data,
+        bridge=bridge_config(args),
+        robots=robots,
+        playground=not args.no_playground,
+        http_port=args.http_port,
+        service=service_config(args),
+    )
+
+
+def robot_configs(args: argparse.Namespace) -> tuple[RobotConfig, ...]:
+    if args.no_robots:
+        if args.robots:
+            raise Refused("--robot and --no-robots contradict each other; give one")
+        return ()
+    pairs = list(args.robots) if args.robots else [(r.name, r.task) for r in DEFAULT_ROBOTS]
+    names = [name for name, _ in pairs]
+    if len(set(names)) != len(names):
+        raise Refused(f"two robots have the same name: {', '.join(names)}")
+    params = tuple(args.param)
+    robots = []
+    for name, task in pairs:
+        try:
+            registry.validate(task, dict(params))
+        except LabError as err:
+            raise Refused(f"robot {name}: {err}") from None
+        robots.append(RobotConfig(name, task, params, args.seed, live=not args.lockstep))
+    return tuple(robots)
+
+
+def service_config(args: argparse.Namespace) -> ServiceConfig | None:
+    if args.no_service:
+        return None
+    fetch = fetching.policy(args, "labd serve")
+    return ServiceConfig(
+        data=args.data,
+        database=args.database,
+        blobs=args.blobs,
+        blob_options=dict(args.blobs_option),
+        cache=args.cache,
+        workers=args.workers,
+        sandbox=args.sandbox,
+        queue=QueueConfig(lease=args.lease),
+        heartbeat=max(0.5, args.lease / 3),
+        fetch=fetch,
+        run=RunOptions(fetch=fetch),
+    )
+
+
+def bridge_config(args: argparse.Namespace) -> BridgeConfig:
+    if (args.tls_cert is None) != (args.tls_key is None):
+        raise Refused("--tls-cert and --tls-key go together")
+    protected = tuple(args.protected) if args.protected else BRIDGE.protected_prefixes
+    return BridgeConfig(
+        host=args.host,
+        port=args.bridge_port,
+        protected_prefixes=protected,
+        authorizer_url=args.authorizer,
+        tls_cert=args.tls_cert,
+        tls_key=args.tls_key,
+        max_connections=args.max_connections,
+    )
+
+
+def main(args: argparse.Namespace) -> int:
+    return_freed_memory()
+    try:
+        lab_config = config(args)
+        asyncio.run(serve(lab_config))
+    except Refused as err:
+        return fail(args, str(err))
+    except SchemaMismatch as err:
+        where = f"--database {args.database}" if args.database else f"--data {args.data}"
+        return fail(args, f"{err}: labd migrate {where}")
+    except (ArchiveError, LabError, OSError) as err:
+        return fail(args, str(err))
+    return 0
+
+
+async def serve(config: LabConfig) -> None:
+    """Run the lab until SIGINT or SIGTERM."""
+    lab = Lab(config)
+    try:
+        await lab.start()
+    except BaseException:
+        await lab.close()
+        raise
+    bridge = lab.bridge
+    print(f"labd {__version__}: rosbridge v2 on {bridge.url()}", flush=True)
+    for name, robot in lab.robots.items():
+        mode = "live" if robot.live else "lockstep"
+        print(f"  robot {name} ({robot.sim.spec.name}, {mode}): {bridge.url(name)}", flush=True)
+    if config.playground:
+        print(f"  playground (no robot; clients meet here): {bridge.url('playground')}", flush=True)
+    print(f"  {bridge.url()} serves the first of these.", flush=True)
+    if lab.http is not None and lab.service is not None:
+        print(f"HTTP API on {lab.http.url()}/api (OpenAPI: {lab.http.url()}/openapi.json)")
+        print(f"  archive: {lab.service.config.database_url}, blobs {lab.service.store.url}")
+        print(f"  workers: {len(lab.service.workers)}", flush=True)
+    stop = asyncio.Event()
+    loop = asyncio.get_running_loop()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        loop.add_signal_handler(sig, stop.set)
+    try:
+        await stop.wait()
+    finally:
+        await lab.close()
+
+
+def return_freed_memory() -> None:
+    """Have glibc give large freed buffers back to the system at once.
+
+    Camera frames are allocations of about a megabyte; with glibc's default, the
+    arena keeps them after they are freed and the server's footprint only grows
+    (measured in bench/bridge.py: 270 MB instead of 120 MB). Elsewhere this does nothing.
+    """
+    try:
+        libc = ctypes.CDLL("libc.so.6")
+    except OSError:
+        return
+    m_mmap_threshold = -3
+    libc.mallopt(m_mmap_threshold, 128 * 1024)

@@ -1,0 +1,193 @@
+"""The lab side of a batch trial: what ``scheduler.host`` asks of labd.
+
+``LabHost`` is the ``TrialHost`` a runner is given (by ``labd run``, by the service's
+workers, by ``labd worker``): it checks tasks and parameters against the registry,
+opens ``LabTrial``\\ s and compares records. A ``LabTrial`` is one trial's station (the
+robot on a graph of its own, with rosapi), a bridge server for that graph alone on a
+unix socket (which the sandbox relays to ``ws://127.0.0.1:9090``), and a recorder of
+every topic into ``OUT/trial.mcap``. In lockstep the controller advances the task with
+``/lab/step``; with ``realtime = true`` a ``LiveRunner`` steps it on the wall clock.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import importlib.util
+import logging
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+from labd.bridge.server import BridgeServer
+from labd.config import BridgeConfig
+from labd.errors import LabError
+from labd.graph.types import TypeRegistry
+from labd.recorder import Recorder, first_difference
+from labd.sim import registry
+from labd.sim.base import SUCCEEDED
+from labd.sim.robot import LiveRunner
+from labd.station import Station
+from repository.trial import Value
+from scheduler.errors import InvalidRequest, TrialError
+from scheduler.host import Attachments, Episode
+
+log = logging.getLogger("labd.trial")
+MAX_CLIENTS = 16  # bridge connections a trial's controller may open
+
+
+class LabHost:
+    """The lab's tasks, trials and records, for the scheduler (``scheduler.host``)."""
+
+    def __init__(
+        self, types: TypeRegistry | None = None, config: BridgeConfig | None = None
+    ) -> None:
+        self.types = types or TypeRegistry.default()
+        self.config = config or BridgeConfig(port=0, max_connections=MAX_CLIENTS)
+
+    def tasks(self) -> list[str]:
+        return registry.names()
+
+    def check(self, task: str, params: Mapping[str, Any]) -> dict[str, Value]:
+        try:
+            return registry.validate(task, params)
+        except LabError as err:
+            raise InvalidRequest(str(err)) from None
+
+    def open(
+        self,
+        task: str,
+        values: Mapping[str, Value],
+        seed: int,
+        *,
+        realtime: bool,
+        out: Path,
+    ) -> LabTrial:
+        try:
+            return LabTrial(self, task, values, seed, realtime=realtime, out=out)
+        except LabError as err:
+            raise TrialError(f"the task {task} could not be built: {err}") from None
+
+    def first_difference(self, a: Path, b: Path, topics: Sequence[str]) -> str | None:
+        difference = first_difference(a, b, topics)
+        return None if difference is None else str(difference)
+
+
+class LabTrial:
+    """One trial's robot, private bridge and recorder (``scheduler.host.TrialLab``)."""
+
+    def __init__(
+        self,
+        host: LabHost,
+        task: str,
+        values: Mapping[str, Value],
+        seed: int,
+        *,
+        realtime: bool,
+        out: Path,
+    ) -> None:
+        self.realtime = realtime
+        self.out = out
+        limit = float(values["time_limit"]) if realtime and "time_limit" in values else None
+        self.station = Station(
+            host.types,
+            "trial",
+            task,
+            dict(values),
+            seed,
+            live=realtime,
+            protected_prefixes=host.config.protected_prefixes,
+            time_limit=limit,
+        )
+        self.robot = self.station.robot
+        self.robot.on_tick = self._tick
+        self.bridge = BridgeServer({"trial": self.station.graph}, host.config)
+        self.recorder: Recorder | None = None
+        self._waiters: list[asyncio.Future[None]] = []
+        self._live: asyncio.Task[None] | None = None
+        self._finished: str | None = None
+        task_obj = self.robot.sim.task
+        names = {o.name for o in task_obj.observations} | {c.name for c in task_obj.commands}
+        self._digest_topics = sorted(names | {"/clock", "/lab/episode"})
+
+    # -- what the runner reads ----------------------------------------------------------
+
+    @property
+    def task_version(self) -> str:
+        return self.robot.sim.spec.version
+
+    @property
+    def model_sha256(self) -> str:
+        return self.robot.sim.model_digest()
+
+    @property
+    def digest_topics(self) -> Sequence[str]:
+        return self._digest_topics
+
+    def episode(self) -> Episode:
+        sim = self.robot.sim
+        return Episode(
+            tick=sim.tick,
+            running=sim.running,
+            status=sim.status,
+            reason=sim.reason,
+            achieved=sim.status == SUCCEEDED,
+            diverged=sim.diverged,
+        )
+
+    def metrics(self) -> dict[str, Any]:
+        return dict(self.robot.sim.metrics())
+
+    def model_files(self) -> dict[str, tuple[str, bytes]]:
+        sim = self.robot.sim
+        files = {"model.xml": ("application/xml", sim.model_xml().encode())}
+        for name, data in sim.task.model_assets.items():
+            files[f"model/{name}"] = ("application/octet-stream", data)
+        return files
+
+    async def next_tick(self) -> None:
+        waiter = asyncio.get_running_loop().create_future()
+        self._waiters.append(waiter)
+        await waiter
+
+    def _tick(self) -> None:
+        waiters, self._waiters = self._waiters, []
+        for waiter in waiters:
+            if not waiter.done():
+                waiter.set_result(None)
+
+    # -- its life -----------------------------------------------------------------------
+
+    async def start(self, socket: Path, manifest: Mapping[str, Any]) -> None:
+        self.recorder = Recorder(
+            self.station.graph, self.out, digest_topics=self._digest_topics, manifest=manifest
+        )
+        await self.bridge.start(unix_path=socket)
+        self.robot.publish()  # tick 0, now that the recorder listens
+        if self.realtime:
+            self._live = asyncio.create_task(LiveRunner(self.robot).run(), name="trial live")
+
+    async def finish(self, attachments: Attachments) -> str:
+        if self._finished is not None:
+            return self._finished
+        if self._live is not None:
+            self._live.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await self._live
+        await self.bridge.close()
+        digest = ""
+        try:
+            if self.recorder is not None:
+                digest = self.recorder.finish(attachments=dict(attachments)).data_digest
+        finally:
+            self.station.close()
+            self._finished = digest
+        return digest
+
+
+def client_library() -> Path:
+    """The folder of the ``controllers`` package, shipped into the controller runtime."""
+    found = importlib.util.find_spec("controllers")
+    if found is None or not found.submodule_search_locations:
+        raise LabError("the lab's client library (the controllers package) is missing")
+    return Path(next(iter(found.submodule_search_locations)))

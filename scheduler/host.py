@@ -1,0 +1,96 @@
+"""The lab side of a trial, as the scheduler sees it: a small protocol that labd implements.
+
+The scheduler runs controllers in sandboxes and files what came out; it never builds a
+robot, a bridge or a recorder itself. A ``TrialHost`` (``labd.trial.LabHost``) checks
+tasks and their parameters, opens the lab side of one trial, and compares records; a
+``TrialLab`` is that one trial: the task in lockstep (or on the wall clock), a bridge
+session private to the trial on a unix socket, and a recorder, with what the runner
+needs to watch it and judge it. So imports follow the data flow: ``labd`` passes a host
+in, ``scheduler`` never imports ``labd``.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Protocol
+
+from repository.trial import Value
+
+Attachments = Mapping[str, tuple[str, bytes]]  # name -> (media type, bytes)
+
+
+@dataclass(frozen=True)
+class Episode:
+    """The episode of a trial at one moment, as the task tells it."""
+
+    tick: int
+    running: bool
+    status: str  # the task's word: running, succeeded, failed or truncated
+    reason: str
+    achieved: bool  # the task was achieved
+    diverged: bool  # the physics blew up: the lab's model broke, not the controller
+
+
+class TrialLab(Protocol):
+    """The lab side of one trial, from ``TrialHost.open`` to ``finish``."""
+
+    @property
+    def task_version(self) -> str: ...
+
+    @property
+    def model_sha256(self) -> str: ...
+
+    @property
+    def digest_topics(self) -> Sequence[str]:
+        """The topics the data digest covers (the task's observations and commands)."""
+        ...
+
+    async def start(self, socket: Path, manifest: Mapping[str, Any]) -> None:
+        """Listen on ``socket``, record from now on, publish tick 0; on the wall clock,
+        start stepping."""
+        ...
+
+    def episode(self) -> Episode: ...
+
+    async def next_tick(self) -> None:
+        """Return when the task has advanced one more tick."""
+        ...
+
+    def metrics(self) -> dict[str, Any]: ...
+
+    def model_files(self) -> dict[str, tuple[str, bytes]]:
+        """The compiled model and its assets, for the record's attachments."""
+        ...
+
+    async def finish(self, attachments: Attachments) -> str:
+        """Stop serving and stepping, close the record with ``attachments``; the data
+        digest. Safe to call once, whatever happened before."""
+        ...
+
+
+class TrialHost(Protocol):
+    """What the scheduler needs of the lab: tasks, trials, records."""
+
+    def tasks(self) -> list[str]: ...
+
+    def check(self, task: str, params: Mapping[str, Any]) -> dict[str, Value]:
+        """The task's full parameter values (``InvalidRequest`` if any is wrong)."""
+        ...
+
+    def open(
+        self,
+        task: str,
+        values: Mapping[str, Value],
+        seed: int,
+        *,
+        realtime: bool,
+        out: Path,
+    ) -> TrialLab:
+        """Build the lab side of a trial recording into ``out`` (``TrialError``)."""
+        ...
+
+    def first_difference(self, a: Path, b: Path, topics: Sequence[str]) -> str | None:
+        """Where two records part, in words; None if they hold the same data."""
+        ...
