@@ -1,3 +1,3 @@
 """The lab daemon: the rosbridge server, the robot graph, simulated robots, the recorder."""
 
-__version__ = "0.1.0"
+__version__ = "0.2.0"

@@ -2,14 +2,11 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING
-
-if TYPE_CHECKING:
-    from labd.service import ServiceConfig
 
 MiB = 1024 * 1024
+DATA = Path("lab-data")  # where a lab keeps its archive, caches and runs, unless told
 
 
 @dataclass(frozen=True)
@@ -58,17 +55,3 @@ class RobotConfig:
 
 
 DEFAULT_ROBOTS = (RobotConfig("icreate-1", "icreate-maze"), RobotConfig("pr2-1", "pr2-table"))
-
-
-@dataclass(frozen=True)
-class LabConfig:
-    """Everything ``labd serve`` needs."""
-
-    data: Path = Path("lab-data")
-    bridge: BridgeConfig = field(default_factory=BridgeConfig)
-    robots: tuple[RobotConfig, ...] = DEFAULT_ROBOTS
-    # A graph without a robot, where clients reach each other and /rosapi.
-    playground: bool = True
-    http_port: int = 8080  # the HTTP API
-    # The archive, the queue and its workers; None: only the bridge and its robots.
-    service: ServiceConfig | None = None

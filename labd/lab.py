@@ -11,6 +11,8 @@ import contextlib
 import errno
 import logging
 from collections.abc import Coroutine
+from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 from labd.api.app import create_app
@@ -18,15 +20,29 @@ from labd.api.server import HttpServer
 from labd.bridge.auth import Authorizer, HttpAuthorizer
 from labd.bridge.rosapi import Rosapi
 from labd.bridge.server import BridgeServer
-from labd.config import LabConfig
+from labd.config import DATA, DEFAULT_ROBOTS, BridgeConfig, RobotConfig
 from labd.errors import PortInUse
 from labd.graph.graph import Graph
 from labd.graph.types import TypeRegistry
-from labd.service import Service
+from labd.service import Service, ServiceConfig
 from labd.sim.robot import LiveRunner, Robot
 from labd.station import Station
 
 log = logging.getLogger("labd.lab")
+
+
+@dataclass(frozen=True)
+class LabConfig:
+    """Everything ``labd serve`` needs."""
+
+    data: Path = DATA
+    bridge: BridgeConfig = field(default_factory=BridgeConfig)
+    robots: tuple[RobotConfig, ...] = DEFAULT_ROBOTS
+    # A graph without a robot, where clients reach each other and /rosapi.
+    playground: bool = True
+    http_port: int = 8080  # the HTTP API
+    # The archive, the queue and its workers; None: only the bridge and its robots.
+    service: ServiceConfig | None = None
 
 
 class Lab:

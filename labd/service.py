@@ -24,6 +24,7 @@ from pathlib import Path
 from typing import Any
 
 import sandbox
+from labd.config import DATA
 from labd.graph.types import TypeRegistry
 from labd.trial import LabHost, client_library
 from repository.blobs import BlobStore
@@ -39,7 +40,7 @@ log = logging.getLogger("labd.service")
 
 @dataclass(frozen=True)
 class ServiceConfig:
-    data: Path = Path("lab-data")
+    data: Path = DATA
     database: str | None = None  # SQLAlchemy URL; default sqlite:///DATA/index.sqlite
     blobs: str | None = None  # folder or fsspec URL; default DATA/blobs
     blob_options: Mapping[str, Any] = field(default_factory=dict)

@@ -217,7 +217,11 @@ class Index:
     @classmethod
     def open(cls, url: str, **engine_options: Any) -> Index:
         index = cls(connect(url, **engine_options))
-        index.create()
+        try:
+            index.create()
+        except BaseException:
+            index.close()
+            raise
         return index
 
     def create(self) -> None:

@@ -79,7 +79,7 @@ def crash_summary(stderr: bytes) -> str:
     for line in reversed(lines):
         match = _FRAME.match(line)
         if match:
-            where = f" in {match['where']}" if match["where"] else ""
+            where = f", in {match['where']}" if match["where"] else ""
             return f"{last} ({match['file']}, line {match['line']}{where})"
     return last
 

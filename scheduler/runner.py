@@ -66,12 +66,13 @@ class RunOptions:
     first_step: float = 60.0  # seconds to the first /lab/step
     grace: float = 2.0  # after the episode ends, for the controller to exit by itself
     prepare: float = 900.0  # seconds to check out, read lab.toml and install requirements
+    slack: float = 30.0  # seconds past the controller's limits before a trial counts as stuck
     fetch: FetchPolicy | None = None  # the lab's; None: labd run (local folders from disk)
 
     @property
     def run_deadline(self) -> float:
         """The longest a started controller may take before the trial must be over."""
-        return self.limits.wall + self.first_step + self.grace + 30.0
+        return self.limits.wall + self.first_step + self.grace + self.slack
 
 
 class Progress:

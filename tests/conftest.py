@@ -17,10 +17,10 @@ import sqlalchemy as sa
 from labd.bridge.ops import CAPABILITIES
 from labd.bridge.rosapi import Rosapi
 from labd.bridge.session import Session
-from labd.config import BridgeConfig, LabConfig
+from labd.config import BridgeConfig
 from labd.graph.graph import Graph
 from labd.graph.types import TypeRegistry
-from labd.lab import Lab
+from labd.lab import Lab, LabConfig
 from tests.fakes import ManualTimers, RecordingTransport, drain
 
 T = TypeVar("T")

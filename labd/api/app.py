@@ -64,9 +64,8 @@ def create_app(service: Service, *, on_submit: Callable[[], None] | None = None)
     app.state.service = service
     app.state.on_submit = on_submit or service.wake
     errors.install(app)
-    app.include_router(router)
-    app.include_router(workers.router)
-    app.include_router(workers.blobs)
+    for part in (router, workers.router, workers.blobs):
+        app.include_router(errors.declare_validation(part))
     return app
 
 

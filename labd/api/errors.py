@@ -11,9 +11,10 @@ from __future__ import annotations
 import logging
 from typing import Any
 
-from fastapi import FastAPI, Request
+from fastapi import APIRouter, FastAPI, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
+from fastapi.routing import APIRoute
 
 from labd.api.models import ErrorBody
 from repository.errors import ArchiveError, BlobError, BlobNotFound, RecordNotFound
@@ -116,6 +117,29 @@ async def _invalid(_: Request, err: RequestValidationError) -> JSONResponse:
         where = ".".join(str(x) for x in p.get("loc", ()) if x not in ("body", "query", "path"))
         parts.append(f"{where}: {p.get('msg', 'invalid')}" if where else p.get("msg", ""))
     return JSONResponse({"error": "; ".join(parts)}, status_code=422)
+
+
+def declare_validation(router: APIRouter) -> APIRouter:
+    """Say in the OpenAPI document that a route with parameters answers a malformed one
+    with 422 and ``ErrorBody`` (what ``_invalid`` sends), not FastAPI's own shape."""
+    for route in router.routes:
+        if not isinstance(route, APIRoute):
+            continue
+        dependant = route.dependant
+        takes = any(
+            (d.path_params or d.query_params or d.header_params or d.body_params)
+            for d in [dependant, *_all(dependant)]
+        )
+        if takes and 422 not in route.responses:
+            route.responses[422] = responses(422)[422]
+    return router
+
+
+def _all(dependant: Any) -> list[Any]:
+    found = []
+    for sub in dependant.dependencies:
+        found += [sub, *_all(sub)]
+    return found
 
 
 def install(app: FastAPI) -> None:

@@ -14,7 +14,7 @@ from pathlib import Path
 from typing import Any
 
 from labd.commands.common import emit, fail, json_option
-from labd.config import LabConfig
+from labd.config import DATA
 from labd.service import ServiceConfig
 from repository.errors import ArchiveError
 from repository.index import connect
@@ -26,7 +26,7 @@ def add_parser(commands: Any) -> None:
     p.add_argument(
         "--data",
         type=Path,
-        default=LabConfig().data,
+        default=DATA,
         help="the lab's data folder (default: %(default)s)",
     )
     p.add_argument("--database", help="SQLAlchemy URL (default: sqlite:///DATA/index.sqlite)")

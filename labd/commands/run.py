@@ -21,7 +21,7 @@ from typing import Any
 
 import sandbox
 from labd.commands.common import assignment, exit_code, fail, json_option
-from labd.config import LabConfig
+from labd.config import DATA
 from labd.errors import LabError
 from labd.trial import LabHost, client_library
 from sandbox.api import Limits, SandboxError
@@ -51,7 +51,7 @@ def add_parser(commands: Any) -> None:
     run.add_argument(
         "--data",
         type=Path,
-        default=LabConfig().data,
+        default=DATA,
         help="where runs and caches are kept (default: %(default)s)",
     )
     run.add_argument(

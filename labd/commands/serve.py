@@ -21,9 +21,9 @@ from typing import Any
 from labd import __version__
 from labd.commands import fetching
 from labd.commands.common import assignment, fail
-from labd.config import DEFAULT_ROBOTS, BridgeConfig, LabConfig, RobotConfig
+from labd.config import DEFAULT_ROBOTS, BridgeConfig, RobotConfig
 from labd.errors import LabError
-from labd.lab import Lab
+from labd.lab import Lab, LabConfig
 from labd.service import ServiceConfig
 from labd.sim import registry
 from repository.errors import ArchiveError, SchemaMismatch

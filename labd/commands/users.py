@@ -14,7 +14,7 @@ from pathlib import Path
 from typing import Any
 
 from labd.commands.common import fail, json_option
-from labd.config import LabConfig
+from labd.config import DATA
 from labd.service import ServiceConfig
 from repository.errors import ArchiveError
 from repository.index import Index, UserLimits
@@ -30,7 +30,7 @@ def add_parser(commands: Any) -> None:
     add.add_argument(
         "--data",
         type=Path,
-        default=LabConfig().data,
+        default=DATA,
         help="the lab's data folder (default: %(default)s)",
     )
     add.add_argument("--database", help="SQLAlchemy URL (default: sqlite:///DATA/index.sqlite)")

@@ -22,7 +22,7 @@ from typing import Any
 import sandbox
 from labd.commands import fetching
 from labd.commands.common import fail
-from labd.config import LabConfig
+from labd.config import DATA
 from labd.errors import LabError
 from labd.trial import LabHost, client_library
 from sandbox.api import SandboxError
@@ -56,7 +56,7 @@ def add_parser(commands: Any) -> None:
     p.add_argument(
         "--data",
         type=Path,
-        default=LabConfig().data,
+        default=DATA,
         help="cache and work folders (default: %(default)s)",
     )
     p.add_argument(

@@ -8,14 +8,18 @@ worker files them (blobs in the store, columns in the index).
 from __future__ import annotations
 
 import os
+import re
 from pathlib import Path
 
 import httpx
 import pytest
 
+from labd import __version__
 from labd.api.app import create_app
 from labd.service import Service, ServiceConfig
+from repository.trial import Filing
 from scheduler.fetch import FetchPolicy
+from scheduler.remote import PROTOCOL, PROTOCOL_HEADER, VERSION_HEADER
 from tests.helpers.githttp import GitRepo
 
 
@@ -46,12 +50,49 @@ def service(tmp_path, database_url):
 
 @pytest.fixture
 async def api(service):
+    """A client of the API in process; after the test, every answer it got must be one
+    the OpenAPI document declares for that route, with the body it declares."""
     woken = []
     app = create_app(service, on_submit=lambda: woken.append(1))
+    seen: list[httpx.Response] = []
+
+    async def keep(response):
+        await response.aread()
+        seen.append(response)
+
     transport = httpx.ASGITransport(app=app)
-    async with httpx.AsyncClient(transport=transport, base_url="http://lab.test") as client:
+    async with httpx.AsyncClient(
+        transport=transport, base_url="http://lab.test", event_hooks={"response": [keep]}
+    ) as client:
         client.woken = woken
         yield client
+    check_declared(app.openapi(), seen)
+
+
+def check_declared(spec, responses):
+    """Each response's status is declared for its route, errors with ``ErrorBody``."""
+    routes = [
+        (re.compile("^" + re.sub(r"\{[^}]+\}", "[^/]+", path) + "$"), path)
+        for path in spec["paths"]
+    ]
+    for response in responses:
+        method = response.request.method.lower()
+        url = response.request.url.path
+        if url in ("/openapi.json", "/docs", "/redoc"):
+            continue
+        matched = [path for pattern, path in routes if pattern.match(url)]
+        if not matched:
+            assert response.status_code == 404, f"{method} {url} is not in the OpenAPI document"
+            continue
+        operation = spec["paths"][matched[0]].get(method)
+        assert operation is not None, f"{method} {url}: no such operation"
+        declared = operation["responses"]
+        status = str(response.status_code)
+        assert status in declared, f"{method} {matched[0]} answered {status}, not declared"
+        if response.status_code >= 400:
+            schema = declared[status]["content"]["application/json"]["schema"]
+            assert schema == {"$ref": "#/components/schemas/ErrorBody"}
+            assert set(response.json()) == {"error"}
 
 
 @pytest.fixture
@@ -140,18 +181,22 @@ async def test_daily_limit_is_a_429(api, service, repo):
 
 
 def file_record(service, trial_id, data: bytes, **columns):
-    """File a finished trial as a worker does."""
+    """File a finished trial as a worker does: claim it, then finish it with a filing."""
     digest = service.store.put_bytes(data)
-    service.index.update(
-        trial_id,
-        status="succeeded",
-        reason="the episode ended",
+    claim = service.queue.claim("w")
+    assert claim is not None and claim.id == trial_id
+    filing = Filing(
+        status="finished",
+        outcome="success",
+        reason="the task was achieved at tick 9",
         mcap=digest,
         mcap_size=len(data),
         data_digest="d" * 64,
         manifest={"schema": "labd.trial/1"},
+        metrics={"reward": 1.0, "success": True},
         **columns,
     )
+    assert service.queue.finish(trial_id, "w", filing)
     return digest
 
 
@@ -161,7 +206,8 @@ async def test_reading_a_trial_and_its_record(api, service, token, repo):
     data = b"\x89MCAP0\r\n" + bytes(range(256)) * 100
     digest = file_record(service, trial["id"], data)
     shown = (await api.get(f"/api/trials/{trial['id']}")).json()
-    assert shown["status"] == "succeeded"
+    assert (shown["status"], shown["outcome"]) == ("finished", "success")
+    assert shown["reward"] == 1.0
     assert shown["manifest"] == {"schema": "labd.trial/1"}
     assert shown["mcap"]["digest"] == digest and shown["mcap"]["size"] == len(data)
     download = await api.get(f"/api/trials/{trial['id']}/data.mcap")
@@ -199,7 +245,10 @@ async def test_rerun_cancel_and_the_commit_page(api, service, token, repo):
     assert [r["id"] for r in page["trials"][0]["reruns"]] == [again["id"]]
     assert page["rerun_counts"]["pending"] == 1
     cancelled = (await api.post(f"/api/trials/{again['id']}/cancel", headers=auth(token))).json()
-    assert cancelled["status"] == "cancelled"
+    assert cancelled["done"] == "cancelled"
+    assert cancelled["trial"]["status"] == "cancelled" and cancelled["trial"]["outcome"] is None
+    twice = (await api.post(f"/api/trials/{again['id']}/cancel", headers=auth(token))).json()
+    assert twice["done"] == "ended"
     assert (await api.get("/api/commits/zzzz")).status_code == 422
     assert (await api.get("/api/commits/ffffffff")).status_code == 404
 
@@ -212,14 +261,31 @@ async def test_lists_filter_and_page(api, token, repo):
     assert [t["id"] for t in second["trials"]] == ids[-3:-5:-1]
     assert (await api.get("/api/trials", params={"status": "queued"})).json()["trials"]
     assert (await api.get("/api/trials", params={"user": "nobody"})).json()["trials"] == []
-    bad = await api.get("/api/trials", params={"status": "lost"})
+    bad = await api.get("/api/trials", params={"status": "succeeded"})
     assert bad.status_code == 422 and "status" in bad.json()["error"]
+    assert (await api.get("/api/trials", params={"outcome": "success"})).json()["trials"] == []
+    bad = await api.get("/api/trials", params={"outcome": "won"})
+    assert bad.status_code == 422 and "outcome" in bad.json()["error"]
 
 
 async def test_openapi_and_tasks(api):
+    """Every operation documents its success body and its errors, which are all ErrorBody."""
     spec = (await api.get("/openapi.json")).json()
     for path in ("/api/trials", "/api/trials/{trial_id}/data.mcap", "/api/commits/{sha}"):
         assert path in spec["paths"]
+    assert "HTTPValidationError" not in spec["components"]["schemas"]
+    for path, operations in spec["paths"].items():
+        for method, operation in operations.items():
+            for status, answer in operation["responses"].items():
+                content = answer.get("content", {})
+                if status.startswith("2") and status != "204":
+                    assert content, f"{method} {path} {status} has no body schema"
+                    for media in content.values():
+                        assert media.get("schema") or "json" not in str(media), (method, path)
+                if status[0] in "45":
+                    assert content["application/json"]["schema"] == {
+                        "$ref": "#/components/schemas/ErrorBody"
+                    }, (method, path, status)
     tasks = {t["name"]: t for t in (await api.get("/api/tasks")).json()["tasks"]}
     assert set(tasks) == {"icreate-maze", "pr2-table"}
     assert tasks["icreate-maze"]["params"]["maze_size"]["type"] == "int"
@@ -246,3 +312,23 @@ async def test_a_repository_over_the_size_limit_is_a_413(tmp_path, repo):
         assert not mirrors.exists() or not any(mirrors.iterdir())
     finally:
         service.index.close()
+
+
+async def test_a_worker_of_another_version_is_refused_naming_both(api, service):
+    """A worker that speaks no or another worker protocol gets a 409 naming both versions,
+    before it can claim anything; one of this version is let in."""
+    token = service.index.add_user("farm", worker=True)
+    old = await api.post("/api/workers/claim", json={"worker": "w1"}, headers=auth(token))
+    assert old.status_code == 409
+    assert "a labd older than 0.2" in old.json()["error"]
+    assert f"this lab is labd {__version__}" in old.json()["error"]
+    other = await api.post(
+        "/api/workers/claim",
+        json={"worker": "w1"},
+        headers={**auth(token), PROTOCOL_HEADER: "1", VERSION_HEADER: "0.1.0"},
+    )
+    assert other.status_code == 409 and "labd 0.1.0" in other.json()["error"]
+    same = {**auth(token), PROTOCOL_HEADER: str(PROTOCOL), VERSION_HEADER: __version__}
+    hello = await api.get("/api/workers/hello", headers=same)
+    assert hello.json() == {"version": __version__, "protocol": PROTOCOL, "worker": "farm"}
+    assert (await api.post("/api/workers/claim", json={"worker": "w1"}, headers=same)).status_code == 204

@@ -5,8 +5,9 @@ from __future__ import annotations
 import pytest
 import sqlalchemy as sa
 
-from repository.errors import ArchiveError, RecordNotFound
-from repository.index import Index, meta
+from repository.errors import ArchiveError, RecordNotFound, SchemaMismatch
+from repository.index import Filters, Index, meta
+from repository.trial import Kind, Outcome, Status
 
 
 @pytest.fixture
@@ -51,14 +52,14 @@ def test_commit_page_groups_reruns_and_counts_verdicts(index):
     other = trial(index, commit, seed=1)
     good = trial(index, commit, rerun_of=original)
     bad = trial(index, commit, rerun_of=original)
-    index.update(good, reproduced=True, status="succeeded")
+    index.update(good, reproduced=True, status="finished", outcome="success")
     index.update(bad, reproduced=False, divergence="diverged at tick 3 on /odom")
     trial(index, "d" * 40)
     page = index.commit_page("c0ffee")
-    assert page["commit"] == commit
-    assert [t["id"] for t in page["trials"]] == [other, original]
-    assert sorted(r["id"] for r in page["reruns"][original]) == [good, bad]
-    assert page["rerun_counts"] == {"reproduced": 1, "diverged": 1, "pending": 0}
+    assert page.commit == commit
+    assert [t.id for t in page.trials] == [other, original]
+    assert sorted(r.id for r in page.reruns[original]) == [good, bad]
+    assert page.rerun_counts == {"reproduced": 1, "diverged": 1, "pending": 0}
 
 
 def test_commit_prefixes_are_checked(index):
@@ -73,17 +74,32 @@ def test_commit_prefixes_are_checked(index):
         index.commit_page("ffff")
     with pytest.raises(ArchiveError, match="ambiguous"):
         index.commit_page("abcd")
-    assert index.commit_page("abcd1")["commit"] == "abcd" + "1" * 36
+    assert index.commit_page("abcd1").commit == "abcd" + "1" * 36
 
 
 def test_a_database_of_another_schema_is_refused(index):
     """Opening a database written by another schema version fails with a clear error."""
     with index.begin() as db:
         db.execute(sa.update(meta).values(value="99"))
-    with pytest.raises(ArchiveError, match="schema 99"):
+    with pytest.raises(SchemaMismatch, match="schema 99, from a newer labd"):
         index.create()
 
 
 def test_trial_not_found(index):
     with pytest.raises(RecordNotFound, match="no trial '42'"):
         index.trial(42)
+
+
+def test_records_come_back_typed(index):
+    """A trial reads back as the typed record: enums, datetimes, its request as given."""
+    trial_id = trial(index, "e" * 40, seed=5)
+    record = index.trial(trial_id)
+    assert record.status is Status.QUEUED and record.outcome is None
+    assert record.kind is Kind.TRIAL
+    assert record.created.tzinfo is not None
+    assert (record.seed, record.params) == (5, {"maze_size": 7})
+    index.update(trial_id, status="finished", outcome="fail", metrics={"reward": 0.25})
+    done = index.trial(trial_id)
+    assert done.outcome is Outcome.FAIL and done.reward == 0.25
+    assert [t.id for t in index.find(Filters(outcome=Outcome.FAIL)).items] == [trial_id]
+    assert index.find(Filters(outcome=Outcome.SUCCESS)).items == []

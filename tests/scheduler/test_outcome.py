@@ -1,68 +1,103 @@
-"""A trial's outcome in a sentence, from how the controller and the episode ended."""
+"""A trial's ending in a sentence, from how the controller and the episode ended."""
 
 from __future__ import annotations
 
 import pytest
 
-from labd.sim.simulation import Simulation
+from repository.trial import Outcome, Status
 from sandbox.api import Exit, Limits
+from scheduler.host import Episode
 from scheduler.manifest import digest
-from scheduler.outcome import judge
-from tests.labd.sim.pointmass import TASK
+from scheduler.outcome import crash_summary, judge
 
-
-@pytest.fixture
-def sim():
-    s = Simulation(TASK, {}, seed=1)
-    for _ in range(3):
-        s.step()
-    return s
+MID = Episode(tick=3, running=True, status="running", reason="", achieved=False, diverged=False)
+TRACEBACK = b"""Traceback (most recent call last):
+  File "/code/controller.py", line 88, in <module>
+    main()
+  File "/code/controller.py", line 42, in main
+    import foo
+ModuleNotFoundError: No module named 'foo'
+"""
 
 
 @pytest.mark.parametrize(
-    ("exit_", "status", "reason"),
+    ("exit_", "outcome", "reason"),
     [
-        (Exit(0), "succeeded", "the controller exited with 0 at tick 3"),
         (
-            Exit(1, stderr=b"Traceback...\nImportError: No module named 'foo'\n"),
-            "failed",
-            "controller exited with 1 at tick 3: ImportError: No module named 'foo'",
+            Exit(0),
+            Outcome.FAIL,
+            "the controller exited with 0 at tick 3, before the episode ended",
         ),
-        (Exit(None, signal=9), "failed", "the controller was killed by SIGKILL at tick 3"),
+        (
+            Exit(1, stderr=TRACEBACK),
+            Outcome.ERROR,
+            "the controller exited with 1 at tick 3: ModuleNotFoundError: No module named"
+            " 'foo' (/code/controller.py, line 42, in main)",
+        ),
+        (Exit(None, signal=9), Outcome.ERROR, "the controller was killed by SIGKILL at tick 3"),
         (
             Exit(None, signal=9, out_of_memory=True),
-            "failed",
+            Outcome.ERROR,
             "out of memory at tick 3 (the limit is",
         ),
         (
             Exit(None, signal=9, output_exceeded=True),
-            "failed",
+            Outcome.ERROR,
             "the controller printed more than 8 MiB",
         ),
-        (Exit(None, signal=9, wall_exceeded=True), "failed", "time limit: the controller ran for"),
-        (Exit(None, signal=24, cpu_exceeded=True), "failed", "CPU time limit of 3600 s"),
+        (
+            Exit(None, signal=9, wall_exceeded=True),
+            Outcome.ERROR,
+            "time limit: the controller ran for",
+        ),
+        (Exit(None, signal=24, cpu_exceeded=True), Outcome.ERROR, "CPU time limit of 3600 s"),
     ],
 )
-def test_how_the_controller_ended(sim, exit_, status, reason):
-    """Each way a controller ends gives its status and a sentence saying why."""
-    outcome = judge(exit_, sim, ended=False, limits=Limits())
-    assert outcome.status == status and outcome.reason.startswith(reason)
+def test_how_the_controller_ended(exit_, outcome, reason):
+    """Each way a controller ends gives its outcome and a sentence saying why."""
+    ending = judge(exit_, MID, ended=False, limits=Limits())
+    assert ending.status is Status.FINISHED
+    assert ending.outcome is outcome
+    assert ending.reason.startswith(reason), ending.reason
 
 
-def test_the_episode_end_wins(sim):
-    """A controller stopped after its episode ended has done its part: succeeded."""
-    outcome = judge(Exit(None, signal=15), sim, ended=True, limits=Limits())
-    assert outcome.status == "succeeded"
-    assert outcome.reason.startswith("the episode ended at tick 3: running")
+def test_exiting_before_the_first_step_is_an_error():
+    """A controller that exits with 0 having never stepped ran nothing: an error."""
+    start = Episode(0, True, "running", "", achieved=False, diverged=False)
+    ending = judge(Exit(0), start, ended=False, limits=Limits())
+    assert ending.outcome is Outcome.ERROR and "nothing ran" in ending.reason
 
 
-def test_divergence_fails_the_trial():
-    """A diverging physics fails the trial, with the simulation's reason."""
-    s = Simulation(TASK, {}, seed=1)
-    s.task.explode = True
-    s.step()
-    outcome = judge(Exit(0), s, ended=True, limits=Limits())
-    assert outcome.status == "failed" and "physics diverged" in outcome.reason
+@pytest.mark.parametrize(
+    ("status", "achieved", "outcome", "words"),
+    [
+        ("succeeded", True, Outcome.SUCCESS, "the task was achieved at tick 3: reached the goal"),
+        ("truncated", False, Outcome.FAIL, "without success: truncated: reached the goal"),
+        ("failed", False, Outcome.FAIL, "without success: failed: reached the goal"),
+    ],
+)
+def test_the_episode_end_wins_and_says_whether_the_task_was_achieved(
+    status, achieved, outcome, words
+):
+    """A controller stopped after its episode ended has done its part: the task decides."""
+    over = Episode(3, False, status, "reached the goal", achieved=achieved, diverged=False)
+    ending = judge(Exit(None, signal=15), over, ended=True, limits=Limits())
+    assert ending.outcome is outcome
+    assert words in ending.reason
+
+
+def test_divergence_is_an_error():
+    """A diverging physics is an error of the lab, not a failure at the task."""
+    blown = Episode(1, False, "failed", "the physics diverged at tick 1", False, diverged=True)
+    ending = judge(Exit(0), blown, ended=True, limits=Limits())
+    assert ending.outcome is Outcome.ERROR and "physics diverged" in ending.reason
+
+
+def test_a_crash_summary_names_the_last_frame():
+    """The summary of a traceback is its error line and the innermost file and line."""
+    assert crash_summary(TRACEBACK).endswith("(/code/controller.py, line 42, in main)")
+    assert crash_summary(b"segfault\n\n") == "segfault"
+    assert crash_summary(b"") == ""
 
 
 def test_manifest_digest_is_canonical():

@@ -7,8 +7,9 @@ import threading
 import pytest
 
 from repository.index import Filters, Index, connect
-from scheduler.errors import QueueError, QuotaExceeded
-from scheduler.queue import Queue, QueueConfig
+from repository.trial import Filing, Outcome, Status
+from scheduler.errors import NotYours, QuotaExceeded
+from scheduler.queue import Cancel, Queue, QueueConfig
 
 COMMIT = "a" * 40
 
@@ -63,8 +64,8 @@ def test_a_claimed_trial_is_running_and_no_other_worker_gets_it(index, queue):
     first = submit(queue, alice)
     claim = queue.claim("w1")
     assert claim is not None and claim.id == first and claim.attempt == 1
-    assert index.trial(first)["status"] == "running"
-    assert index.trial(first)["worker"] == "w1"
+    assert index.trial(first).status is Status.RUNNING
+    assert index.trial(first).worker == "w1"
     assert queue.claim("w2") is None
 
 
@@ -94,7 +95,7 @@ def test_per_user_running_limit(index, queue):
     second = submit(queue, alice)
     assert queue.claim("w1").id == first
     assert queue.claim("w2") is None
-    assert queue.finish(first, "w1", status="succeeded", reason="done")
+    assert queue.finish(first, "w1", Filing.success("done"))
     assert queue.claim("w2").id == second
 
 
@@ -123,13 +124,14 @@ def test_a_lost_worker_s_trial_goes_back_to_the_queue(index, queue, clock):
     assert claim.id == trial and claim.attempt == 2
     # the dead worker comes back: it may neither renew nor file the trial
     assert not queue.heartbeat(trial, "dead")
-    assert not queue.finish(trial, "dead", status="succeeded", reason="late")
-    assert queue.finish(trial, "other", status="succeeded", reason="ok")
-    assert index.trial(trial)["reason"] == "ok"
+    assert not queue.finish(trial, "dead", Filing.fail("late"))
+    assert queue.finish(trial, "other", Filing.success("ok"))
+    done = index.trial(trial)
+    assert (done.status, done.outcome, done.reason) == (Status.FINISHED, Outcome.SUCCESS, "ok")
 
 
 def test_a_trial_lost_too_often_fails(index, queue, clock):
-    """After max_attempts lost leases the trial fails with the reason, not forever requeued."""
+    """After max_attempts lost leases the trial is an error with the reason, not requeued."""
     alice = make_user(index, "alice")
     trial = submit(queue, alice)
     for _ in range(2):
@@ -137,8 +139,8 @@ def test_a_trial_lost_too_often_fails(index, queue, clock):
         clock.now += 31
     assert queue.claim("w") is None
     row = index.trial(trial)
-    assert row["status"] == "failed"
-    assert "lost 2 times" in row["reason"]
+    assert (row.status, row.outcome) == (Status.FINISHED, Outcome.ERROR)
+    assert "lost 2 times" in row.reason
 
 
 def test_cancel_queued_and_running(index, queue):
@@ -148,13 +150,16 @@ def test_cancel_queued_and_running(index, queue):
     queued = submit(queue, alice)
     running = submit(queue, alice)
     assert queue.claim("w").id == queued  # oldest first
-    assert queue.cancel(running, alice) == "cancelled"
-    assert index.trial(running)["status"] == "cancelled"
-    with pytest.raises(QueueError, match="only they may cancel"):
+    assert queue.cancel(running, alice) is Cancel.CANCELLED
+    assert index.trial(running).status is Status.CANCELLED
+    with pytest.raises(NotYours, match="only they may cancel"):
         queue.cancel(queued, bob)
     assert queue.heartbeat(queued, "w")
-    assert queue.cancel(queued, alice) == "running"
+    assert queue.cancel(queued, alice) is Cancel.STOPPING
     assert not queue.heartbeat(queued, "w")  # the worker is told to stop
+    assert queue.finish(queued, "w", Filing.cancelled("cancelled while it ran"))
+    assert queue.cancel(queued, alice) is Cancel.ENDED  # nothing left to do
+    assert queue.cancel(running, alice) is Cancel.ENDED
 
 
 def test_release_worker_requeues_at_once(index, queue):
@@ -164,8 +169,8 @@ def test_release_worker_requeues_at_once(index, queue):
     queue.claim("host:123/local-1")
     assert queue.running_workers() == {"host:123/local-1"}
     assert queue.release_worker("host:123/") == [trial]
-    assert index.trial(trial)["status"] == "queued"
-    assert "requeued" in index.trial(trial)["reason"]
+    assert index.trial(trial).status is Status.QUEUED
+    assert "requeued" in index.trial(trial).reason
 
 
 def test_concurrent_claims_never_share_a_trial(index, queue):
@@ -197,15 +202,15 @@ def test_lists_filter_and_paginate(index, queue):
     seen, before = [], None
     while True:
         page = index.find(Filters(submitter="alice"), limit=3, before=before)
-        seen += [r["id"] for r in page.items]
+        seen += [r.id for r in page.items]
         if page.next is None:
             break
         before = page.next
     assert seen == sorted(mine, reverse=True)
     odd = index.find(Filters(commit="b" * 39 + "1")).items
-    assert [r["id"] for r in odd] == [m for m in reversed(mine) if (mine.index(m) % 2)]
+    assert [r.id for r in odd] == [m for m in reversed(mine) if (mine.index(m) % 2)]
     assert len(index.find(Filters(commit="bbbb")).items) == 7
-    assert index.find(Filters(status="running")).items == []
+    assert index.find(Filters(status=Status.RUNNING)).items == []
 
 
 def test_concurrent_submissions_and_claims_all_land(index, queue):
@@ -262,7 +267,7 @@ def test_concurrent_claims_keep_the_running_limit(index, queue):
     for t in threads:
         t.join()
     assert len(got) == 2
-    assert len(index.find(Filters(status="running")).items) == 2
+    assert len(index.find(Filters(status=Status.RUNNING)).items) == 2
 
 
 def test_concurrent_submissions_keep_the_daily_limit(index, queue):

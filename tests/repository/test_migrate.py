@@ -1,0 +1,101 @@
+"""Upgrading an archive's index from labd 0.1's schema: refused until asked, nothing lost."""
+
+from __future__ import annotations
+
+import pytest
+import sqlalchemy as sa
+
+from repository import index as current
+from repository.errors import SchemaMismatch
+from repository.index import Index, connect
+from repository.migrate import schema_of, upgrade
+from repository.trial import Outcome, Status
+
+NEW_COLUMNS = {"kind", "outcome"}
+
+
+def schema_1(url: str) -> None:
+    """Write an index as labd 0.1 did: no kind, no outcome; status succeeded or failed."""
+    engine = connect(url)
+    current.metadata.create_all(engine)
+    with engine.begin() as db:  # take away what schema 2 added
+        for index in ("ix_trials_outcome", "ix_trials_task_outcome", "ix_trials_kind"):
+            db.execute(sa.text(f"DROP INDEX {index}"))
+        for column in sorted(NEW_COLUMNS):
+            db.execute(sa.text(f"ALTER TABLE trials DROP COLUMN {column}"))
+    trials = sa.Table("trials", sa.MetaData(), autoload_with=engine)
+    base = {
+        "repository": "https://example.org/r.git",
+        "ref": "main",
+        "commit": "a" * 40,
+        "task": "icreate-maze",
+        "params": {},
+        "seed": 0,
+        "submitter": "alice",
+        "public": True,
+        "created": 1.0,
+        "attempts": 1,
+        "cancel_requested": False,
+    }
+    rows = [
+        {"status": "succeeded", "reason": "reached", "metrics": {"success": True, "reward": 1.0}},
+        {"status": "succeeded", "reason": "timed out", "metrics": {"success": False}},
+        {"status": "succeeded", "reason": "exited with 0", "metrics": None},
+        {"status": "failed", "reason": "controller exited with 1", "metrics": {"success": False}},
+        {"status": "cancelled", "reason": "cancelled by alice", "metrics": None},
+        {"status": "queued", "reason": "waiting for a worker", "metrics": None},
+    ]
+    with engine.begin() as db:
+        db.execute(sa.insert(current.meta).values(key="schema", value="1"))
+        db.execute(sa.insert(trials), [{**base, **row} for row in rows])
+    engine.dispose()
+
+
+def test_an_old_index_is_refused_with_the_command_that_upgrades_it(database_url):
+    """Opening a schema-1 index says what it is and to run `labd migrate`, and changes nothing."""
+    schema_1(database_url)
+    with pytest.raises(SchemaMismatch, match="labd migrate") as caught:
+        Index.open(database_url)
+    assert (caught.value.found, caught.value.expected) == (1, 2)
+    engine = connect(database_url)
+    assert schema_of(engine) == 1
+    columns = {c["name"] for c in sa.inspect(engine).get_columns("trials")}
+    assert not columns & NEW_COLUMNS
+    engine.dispose()
+
+
+def test_the_upgrade_keeps_every_row_and_reads_each_status_anew(database_url):
+    """succeeded becomes success or fail by the task's own verdict; failed becomes error."""
+    schema_1(database_url)
+    engine = connect(database_url)
+    done = upgrade(engine)
+    assert (done.before, done.after) == (1, 2)
+    assert done.changed == {
+        "succeeded -> success": 1,
+        "succeeded -> fail": 2,
+        "failed -> error": 1,
+    }
+    assert "upgraded the index from schema 1 to 2" in str(done)
+    assert upgrade(engine).changed == {}  # a second run does nothing
+    engine.dispose()
+    index = Index.open(database_url)
+    try:
+        got = [index.trial(n) for n in range(1, 7)]
+    finally:
+        index.close()
+    assert [(t.status, t.outcome) for t in got] == [
+        (Status.FINISHED, Outcome.SUCCESS),
+        (Status.FINISHED, Outcome.FAIL),
+        (Status.FINISHED, Outcome.FAIL),
+        (Status.FINISHED, Outcome.ERROR),
+        (Status.CANCELLED, None),
+        (Status.QUEUED, None),
+    ]
+    assert [t.reason for t in got][:4] == [
+        "reached",
+        "timed out",
+        "exited with 0",
+        "controller exited with 1",
+    ]
+    assert got[0].metrics == {"success": True, "reward": 1.0}
+    assert all(t.kind.value == "trial" for t in got)
