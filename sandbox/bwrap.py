@@ -59,6 +59,10 @@ from .jobs import (
 log = logging.getLogger(__name__)
 
 UIDS = range(64100, 64356)  # host uids leased to jobs, one each
+# The uids are the host's, so their locks must be too: every lab on this machine, whatever
+# its data folder, leases from the same folder (a lab killing "leftovers" of a uid that
+# another lab's job holds would kill that job).
+UID_LOCKS = Path("/run/lock/labd-sandbox-uids")
 SHM = 64 * MiB  # /dev/shm, as Docker's default
 SETUP_TIMEOUT = 60.0  # seconds bwrap may take to make a sandbox
 
@@ -82,7 +86,7 @@ class UidPool:
     def __init__(self, folder: Path, uids: range = UIDS) -> None:
         self.folder = folder
         self.uids = uids
-        folder.mkdir(parents=True, exist_ok=True)
+        folder.mkdir(mode=0o700, parents=True, exist_ok=True)
 
     def lease(self) -> UidLease:
         for uid in self.uids:
@@ -162,7 +166,7 @@ class BwrapBackend:
         self.prlimit = prlimit
         self.privileged = os.geteuid() == 0
         state.mkdir(parents=True, exist_ok=True)
-        self.uids = UidPool(state / "uids") if self.privileged else None
+        self.uids = UidPool(UID_LOCKS) if self.privileged else None
         self._probe()
 
     def runtime_digest(self) -> str:

@@ -1,6 +1,6 @@
 """Trials for real: labd run's runner with both sandboxes, the example controllers, attacks.
 
-Every attack ends as a failed trial with the reason, and the next trial is unaffected.
+Every attack ends as an error with the reason, and the next trial is unaffected.
 """
 
 from __future__ import annotations
@@ -19,8 +19,8 @@ from mcap_ros2.decoder import DecoderFactory
 from rosbags.highlevel import AnyReader
 
 import sandbox
-from labd.commands.run import client_library
-from labd.graph.types import TypeRegistry
+from labd.trial import LabHost, client_library
+from repository.trial import Outcome
 from sandbox.api import Limits, MiB
 from scheduler.runner import RunOptions, TrialSpec, run_trial
 
@@ -57,48 +57,48 @@ def backend(request, cache):
 
 
 @pytest.fixture(scope="session")
-def types():
-    return TypeRegistry.default()
+def host():
+    return LabHost()
 
 
-def run(backend, cache, types, tmp_path, source, **kwargs):
+def run(backend, cache, host, tmp_path, source, **kwargs):
     options = kwargs.pop("options", RunOptions())
     spec = TrialSpec(source=str(source), **kwargs)
     out = tmp_path / f"run-{len(list(tmp_path.glob('run-*')))}"
     return asyncio.run(
-        run_trial(spec, backend=backend, out=out, cache=cache, types=types, options=options)
+        run_trial(spec, backend=backend, host=host, out=out, cache=cache, options=options)
     )
 
 
 @pytest.mark.parametrize("example", ["icreate-maze", "pr2-pick-place"])
-def test_examples_succeed_and_reproduce(backend, cache, types, tmp_path, example):
+def test_examples_succeed_and_reproduce(backend, cache, host, tmp_path, example):
     """Each example controller succeeds at its task, and a second run gives the same data."""
-    first = run(backend, cache, types, tmp_path, EXAMPLES / example, seed=1)
-    assert first.status == "succeeded", first.reason
+    first = run(backend, cache, host, tmp_path, EXAMPLES / example, seed=1)
+    assert first.outcome is Outcome.SUCCESS, first.reason
     assert first.metrics["success"] is True
-    second = run(backend, cache, types, tmp_path, EXAMPLES / example, seed=1)
+    second = run(backend, cache, host, tmp_path, EXAMPLES / example, seed=1)
     assert (second.data_digest, second.manifest_digest) == (
         first.data_digest,
         first.manifest_digest,
     )
-    other_seed = run(backend, cache, types, tmp_path, EXAMPLES / example, seed=2)
+    other_seed = run(backend, cache, host, tmp_path, EXAMPLES / example, seed=2)
     assert other_seed.data_digest != first.data_digest
 
 
-def test_both_backends_give_the_same_data(cache, types, tmp_path):
+def test_both_backends_give_the_same_data(cache, host, tmp_path):
     """The same trial under bubblewrap and under Docker records the same data digest."""
     digests = set()
     for name in BACKENDS:
         backend = make_backend(name, cache)
-        result = run(backend, cache, types, tmp_path, EXAMPLES / "icreate-maze", seed=4)
-        assert result.status == "succeeded", result.reason
+        result = run(backend, cache, host, tmp_path, EXAMPLES / "icreate-maze", seed=4)
+        assert result.outcome is Outcome.SUCCESS, result.reason
         digests.add(result.data_digest)
     assert len(digests) == 1
 
 
-def test_the_record_opens_with_rosbags_and_the_mcap_decoder(backend, cache, types, tmp_path):
+def test_the_record_opens_with_rosbags_and_the_mcap_decoder(backend, cache, host, tmp_path):
     """The MCAP holds every topic of the trial and opens with rosbags and with mcap_ros2."""
-    result = run(backend, cache, types, tmp_path, EXAMPLES / "icreate-maze", seed=1)
+    result = run(backend, cache, host, tmp_path, EXAMPLES / "icreate-maze", seed=1)
     with result.mcap.open("rb") as stream:
         reader = make_reader(stream, decoder_factories=[DecoderFactory()])
         topics = {channel.topic for _, channel, _, _ in reader.iter_decoded_messages()}
@@ -160,9 +160,12 @@ LIMITS = Limits(memory=256 * MiB, processes=32, output=2 * MiB, wall=60.0)
     [
         ("no-lab-toml", ["has no lab.toml"]),
         ("broken-lab-toml", ["not valid TOML"]),
-        ("exits-at-once", ["controller exited with 2 at tick 0"]),
+        ("exits-at-once", ["the controller exited with 2 at tick 0"]),
         ("exits-zero-at-once", ["exited with 0 before its first /lab/step"]),
-        ("raises", ["exited with 1 at tick 0: ValueError: the controller has a bug"]),
+        (
+            "raises",
+            ["exited with 1 at tick 0: ValueError: the controller has a bug (/code/controller.py"],
+        ),
         ("hangs", ["stalled at tick 0: no /lab/step for 3 s"]),
         ("prints-gigabytes", ["printed more than 2 MiB"]),
         (
@@ -174,8 +177,8 @@ LIMITS = Limits(memory=256 * MiB, processes=32, output=2 * MiB, wall=60.0)
         ("writes-outside", ["Read-only file system", "Permission denied"]),
     ],
 )
-def test_attacks_fail_with_a_reason(backend, cache, types, tmp_path, name, reasons):
-    """Each misbehaving controller ends as a failed trial saying why."""
+def test_attacks_end_as_errors_with_a_reason(backend, cache, host, tmp_path, name, reasons):
+    """Each misbehaving controller ends as an error saying why."""
     limits = Limits(
         memory=256 * MiB,
         processes=32,
@@ -183,36 +186,54 @@ def test_attacks_fail_with_a_reason(backend, cache, types, tmp_path, name, reaso
         wall=20.0 if name == "forks-without-end" else 60.0,
     )
     options = RunOptions(limits=limits, first_step=3.0, stall=3.0)
-    result = run(backend, cache, types, tmp_path, attack(name, tmp_path), options=options)
-    assert result.status == "failed"
+    result = run(backend, cache, host, tmp_path, attack(name, tmp_path), options=options)
+    assert result.outcome is Outcome.ERROR
     assert any(reason in result.reason for reason in reasons), result.reason
 
 
-def test_no_connection_leaves_the_sandbox(backend, cache, types, tmp_path, host_listener):
+def test_no_connection_leaves_the_sandbox(backend, cache, host, tmp_path, host_listener):
     """TCP to the host's loopback or its own address fails inside the sandbox."""
     folder = attack("opens-tcp", tmp_path, target=host_listener)
-    result = run(backend, cache, types, tmp_path, folder)
-    assert result.status == "failed"
+    result = run(backend, cache, host, tmp_path, folder)
+    assert result.outcome is Outcome.ERROR
     assert "refused" in result.reason or "unreachable" in result.reason, result.reason
 
 
-def test_the_labs_files_cannot_be_read(backend, cache, types, tmp_path):
+def test_the_labs_files_cannot_be_read(backend, cache, host, tmp_path):
     """A file of the lab's on the host does not exist inside the sandbox."""
     secret = tmp_path / "secret" / "lab-token.txt"
     secret.parent.mkdir()
     secret.write_text("the lab's secret\n")
     folder = attack("reads-lab-files", tmp_path, target=[str(secret), str(ROOT / "pyproject.toml")])
-    result = run(backend, cache, types, tmp_path, folder)
-    assert result.status == "failed" and "FileNotFoundError" in result.reason, result.reason
+    result = run(backend, cache, host, tmp_path, folder)
+    assert result.outcome is Outcome.ERROR and "FileNotFoundError" in result.reason, result.reason
     assert "secret" not in (result.folder / "controller.stdout.log").read_text()
 
 
-def test_the_lab_carries_on_after_attacks(backend, cache, types, tmp_path):
+def test_the_lab_carries_on_after_attacks(backend, cache, host, tmp_path):
     """After a controller that forks without end, the next trial runs and succeeds."""
     options = RunOptions(limits=Limits(processes=32, wall=10.0), first_step=3.0, stall=3.0)
     bad = run(
-        backend, cache, types, tmp_path, attack("forks-without-end", tmp_path), options=options
+        backend, cache, host, tmp_path, attack("forks-without-end", tmp_path), options=options
     )
-    assert bad.status == "failed"
-    good = run(backend, cache, types, tmp_path, EXAMPLES / "icreate-maze", seed=1)
-    assert good.status == "succeeded", good.reason
+    assert bad.outcome is Outcome.ERROR
+    good = run(backend, cache, host, tmp_path, EXAMPLES / "icreate-maze", seed=1)
+    assert good.outcome is Outcome.SUCCESS, good.reason
+
+
+def test_a_maze_run_out_of_time_is_a_fail(backend, cache, host, tmp_path):
+    """The maze example given too little time runs to its end without reaching the goal:
+    a fail, never a success, with the task's reason."""
+    result = run(
+        backend,
+        cache,
+        host,
+        tmp_path,
+        EXAMPLES / "icreate-maze",
+        seed=1,
+        params={"time_limit": 2.0},
+    )
+    assert result.outcome is Outcome.FAIL, result.reason
+    assert result.reason.startswith("the episode ended at tick 20 without success: truncated")
+    assert result.metrics["success"] is False
+    assert result.mcap is not None and result.data_digest
