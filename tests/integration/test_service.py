@@ -144,8 +144,11 @@ class Lab:
             pytest.fail(f"labd {' '.join(args)} exited {done.returncode}:\n{done.stderr}")
         return done
 
-    def json(self, *args: str) -> object:
-        return json.loads(self.labd(*args, "--json").stdout)
+    def json(self, *args: str, code: int = 0) -> object:
+        """Run a command with --json; it must exit with ``code`` (1: a trial's fail)."""
+        done = self.labd(*args, "--json", check=code == 0)
+        assert done.returncode == code, done.stdout + done.stderr
+        return json.loads(done.stdout)
 
 
 @pytest.fixture
@@ -175,7 +178,7 @@ def test_submit_list_download_and_rerun_by_commit(lab, tmp_path):
     repo = make_repo(tmp_path / "maze", copy=EXAMPLES / "icreate-maze")
     commit = GitRepo(repo).rev()
     trial = lab.json("submit", str(repo), "--ref", "main", "--task", "icreate-maze", "--wait")
-    assert trial["status"] == "succeeded", trial
+    assert (trial["status"], trial["outcome"]) == ("finished", "success"), trial
     assert trial["commit"] == commit
     assert trial["metrics"]["success"] is True
     listed = lab.json("trials", "--commit", commit[:8])
@@ -188,7 +191,9 @@ def test_submit_list_download_and_rerun_by_commit(lab, tmp_path):
     text = lab.labd("rerun", commit[:10], "--wait").stdout
     assert re.search(r"trial \d+ \(rerun of \d+\): reproduced", text), text
     page = lab.json("show", str(trial["id"]))
-    assert page["status"] == "succeeded"
+    assert page["outcome"] == "success"
+    table = lab.labd("trials").stdout
+    assert re.search(rf"^\s*{trial['id']}\s+success\s+\S+\s+icreate-maze", table, re.M), table
     out = tmp_path / "lerobot"
     exported = lab.json("export", str(trial["id"]), "--format", "lerobot", "-o", str(out))
     assert exported["frames"] > 100
@@ -218,11 +223,14 @@ def test_a_sigkill_mid_trial_loses_nothing(lab, tmp_path):
     deadline = time.monotonic() + 180
     while True:
         rows = [lab.json("show", str(t["id"])) for t in (first, second)]
-        if all(r["status"] in ("succeeded", "failed", "cancelled") for r in rows):
+        if all(r["status"] in ("finished", "cancelled") for r in rows):
             break
         assert time.monotonic() < deadline, rows
         time.sleep(0.5)
-    assert [r["status"] for r in rows] == ["succeeded", "succeeded"], rows
+    # each ran its 200 slow steps to the end and exited, short of the goal: a fail
+    assert [(r["status"], r["outcome"]) for r in rows] == [("finished", "fail")] * 2, [
+        r["reason"] for r in rows
+    ]
     assert rows[0]["attempts"] == 2
     assert rows[1]["attempts"] == 1
     assert all(r["mcap"] for r in rows)
@@ -257,8 +265,8 @@ def test_public_and_private_repositories_over_smart_http(make_lab, tmp_path):
         shown = {}
         for name, repo in (("open-bot", public), ("secret-bot", private)):
             trial = lab.json("submit", git_server.url(name), "--ref", "main", "--task",
-                             "icreate-maze", "--wait")  # fmt: skip
-            assert trial["status"] == "succeeded", trial
+                             "icreate-maze", "--wait", code=1)  # fmt: skip
+            assert (trial["status"], trial["outcome"]) == ("finished", "fail"), trial
             assert trial["commit"] == repo.rev("main")
             shown[name] = trial
         assert shown["open-bot"]["public"] is True
@@ -303,7 +311,7 @@ def test_a_worker_on_another_machine(make_lab, tmp_path, cache):
     finally:
         worker.send_signal(signal.SIGTERM)
         output, _ = worker.communicate(timeout=60)
-    assert done["status"] == "succeeded", output
+    assert done["outcome"] == "success", output
     assert done["worker"].startswith("w1@")
     assert "reproduced" in text, output
 
@@ -323,18 +331,21 @@ def test_cancel_a_running_trial(lab, tmp_path):
     while not record.exists():
         assert time.monotonic() < deadline, "".join(lab.output)
         time.sleep(0.05)
-    assert lab.json("cancel", str(first["id"]))["status"] == "running"
+    asked = lab.json("cancel", str(first["id"]))
+    assert asked["status"] == "running" and asked["cancel_requested"] is True
     [cancelled, after] = lab_wait(lab, [first["id"], second["id"]])
-    assert cancelled["status"] == "cancelled"
+    assert (cancelled["status"], cancelled["outcome"]) == ("cancelled", None)
     assert "cancelled while it ran" in cancelled["reason"]
-    assert after["status"] == "succeeded"
+    assert after["status"] == "finished"
+    again = lab.labd("cancel", str(first["id"]), check=False)
+    assert again.returncode == 2 and "had already ended" in again.stderr
 
 
 def lab_wait(lab, ids, timeout=180):
     deadline = time.monotonic() + timeout
     while True:
         rows = [httpx.get(f"{lab.server}/api/trials/{i}").json() for i in ids]
-        if all(r["status"] in ("succeeded", "failed", "cancelled") for r in rows):
+        if all(r["status"] in ("finished", "cancelled") for r in rows):
             return rows
         assert time.monotonic() < deadline, rows
         time.sleep(0.2)
@@ -365,8 +376,8 @@ def test_the_archive_in_an_s3_bucket(make_lab, s3, tmp_path):
         "--blobs", "s3://lab-archive/records", "--blobs-option", f"endpoint_url={endpoint}"
     )
     repo = make_repo(tmp_path / "quick", {"lab.toml": TELLTALE_TOML, "c.py": TELLTALE})
-    trial = lab.json("submit", str(repo), "--task", "icreate-maze", "--wait")
-    assert trial["status"] == "succeeded", trial
+    trial = lab.json("submit", str(repo), "--task", "icreate-maze", "--wait", code=1)
+    assert trial["outcome"] == "fail", trial  # five steps, then it stops: not the goal
     digest = trial["mcap"]["digest"]
     fs.invalidate_cache()
     key = f"lab-archive/records/sha256/{digest[7:9]}/{digest[7:]}"
