@@ -80,7 +80,7 @@ def record(
     options = {} if chunk_size is None else {"chunk_size": chunk_size}
     recorder = Recorder(graph, folder, digest_topics=topics, **options)
     run = Run(RecordSummary(folder, {}, "", None, None, 0), robot, topics)
-    graph.taps.append(lambda topic, message: run.delivered.append((topic.name, message)))
+    graph.taps.append(lambda topic, message, side: run.delivered.append((topic.name, message)))
     client = graph.create_node("/controller")
     if camera:
         client.subscribe("/camera/image/compressed", None, run.images.append)
