@@ -13,7 +13,7 @@ import pyarrow.parquet as pq
 import pytest
 from mcap_ros2.writer import Writer as Ros2Writer
 
-from labd.graph.graph import Graph
+from labd.graph.graph import Graph, Side
 from labd.graph.types import TypeRegistry
 from labd.recorder import Recorder
 from labd.sim.robot import Robot
@@ -69,14 +69,14 @@ def drive(
     run = Drive(folder / "trial.mcap")
     latest: dict[str, Any] = {}
 
-    def tap(topic: Any, message: Any) -> None:
+    def tap(topic: Any, message: Any, side: Side) -> None:
         latest[topic.name] = message.data
         if topic.name == "/lab/episode":
             run.observed.append(dict(latest))
             run.episodes.append(message.data)
 
     graph.taps.append(tap)
-    client = graph.create_node("/controller")
+    client = graph.create_node("/controller", side=Side.CLIENT)
     if camera:
         client.subscribe(CAMERA, None, lambda message: None)
     cmd_vel = client.advertise("/cmd_vel", "geometry_msgs/msg/Twist")
@@ -395,7 +395,7 @@ def test_a_record_without_the_named_topics_is_refused(trial, tmp_path):
 def test_a_failed_export_leaves_no_folder(trial, tmp_path):
     """An export that fails while writing removes what it wrote."""
     with pytest.raises(ExportError, match="no fixed-length numeric field"):
-        run_export(trial, tmp_path / "out", "lerobot", actions=[CAMERA])
+        run_export(trial, tmp_path / "out", "lerobot", observations=[CAMERA])
     assert list(tmp_path.iterdir()) == []
 
 
