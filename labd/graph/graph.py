@@ -308,21 +308,19 @@ class Node:
             if owner is not None:
                 raise OwnedError("topic", absolute, owner=owner.name)
             _refuse_lab_namespace("topic", absolute)
-        elif own:
-            self._own(absolute, type_name)
         t = self.graph.topic(absolute, type_name)
         pub = Publisher(self, t, latch)
         t.publishers.append(pub)
         self.publishers.append(pub)
+        if own:  # after joining, so the topic outlives the publishers it revokes
+            self._own(t)
         return pub
 
-    def _own(self, name: str, type_name: str | None) -> None:
-        topic = self.graph.topic(name, type_name)
-        if topic.owner is None:
-            topic.owner = self
+    def _own(self, topic: Topic) -> None:
+        owner = topic.owner = topic.owner or self
         for pub in tuple(topic.publishers):
             if pub.side is Side.CLIENT:
-                pub.revoke(OwnedError("topic", name, owner=topic.owner.name))
+                pub.revoke(OwnedError("topic", topic.name, owner=owner.name))
 
     def subscribe(
         self,

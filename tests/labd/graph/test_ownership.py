@@ -52,6 +52,16 @@ def test_a_claim_revokes_publishers_clients_made_before(world):
         client.advertise("/odom", ODOM)
 
 
+def test_a_claim_holds_when_it_revokes_the_topics_only_other_user(world):
+    """A topic whose sole user was a revoked client publisher stays the lab's."""
+    graph, robot, client = world
+    early = client.advertise("/odom", ODOM)
+    robot.advertise("/odom", ODOM, own=True)
+    assert early.closed and graph.topics["/odom"].owner is robot
+    with pytest.raises(OwnedError):
+        client.advertise("/odom", ODOM)
+
+
 def test_lab_nodes_share_owned_topics_and_ownership_ends_with_the_owner(world):
     """Other lab nodes may publish an owned topic; once the owner stops, clients may again."""
     graph, robot, client = world
