@@ -99,22 +99,13 @@ class RecordSummary:
 class _Channel:
     """A topic as one side published it: its MCAP channel, count, and what the bag says."""
 
-    __slots__ = ("count", "id", "latched", "prefix", "side", "topic", "type_hash", "type_name")
+    __slots__ = ("count", "id", "latched", "prefix", "topic", "type_hash", "type_name")
 
     def __init__(
-        self,
-        id_: int,
-        topic: str,
-        side: Side,
-        *,
-        type_name: str,
-        type_hash: str,
-        latched: bool,
-        digest: bool,
+        self, id_: int, topic: str, *, type_name: str, type_hash: str, latched: bool, digest: bool
     ) -> None:
         self.id = id_
         self.topic = topic
-        self.side = side
         self.type_name = type_name
         self.type_hash = type_hash
         self.latched = latched
@@ -201,7 +192,6 @@ class Recorder:
             channel = _Channel(
                 channel_id,
                 topic.name,
-                side,
                 type_name=type_name,
                 type_hash=type_hash,
                 latched=latched,
