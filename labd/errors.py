@@ -10,7 +10,8 @@ formats itself, so a handler turns it into a protocol reply without string surge
     │   ├── NameError_             a topic, service or action name is malformed
     │   ├── TypeMismatchError      a name is already used with another type
     │   ├── NotFoundError          no such topic, service or action
-    │   └── ConflictError          the name is already provided by someone else
+    │   ├── ConflictError          the name is already provided by someone else
+    │   └── OwnedError             the name is the lab's: a client may not publish or provide it
     ├── BridgeError                the bridge refused a frame from a client
     │   ├── FrameError             a frame is not a well-formed rosbridge operation
     │   ├── ProtectedError         the name is protected and never crosses the bridge
@@ -110,6 +111,30 @@ class ConflictError(GraphError):
         self.name = name
         self.owner = owner
         super().__init__(f"{kind} {name} is already provided by {owner}")
+
+
+class OwnedError(GraphError):
+    """A client tried to publish on, or provide, a name that belongs to the lab.
+
+    ``kind`` is ``topic``, ``service`` or ``action``; ``owner`` the lab node that
+    publishes or provides it, or None when the name lies in one of the lab's own
+    namespaces (``namespace``), which clients may not use whoever holds it now.
+    """
+
+    def __init__(
+        self, kind: str, name: str, *, owner: str | None = None, namespace: str | None = None
+    ) -> None:
+        self.kind = kind
+        self.name = name
+        self.owner = owner
+        self.namespace = namespace
+        verb = "advertise or publish on" if kind == "topic" else "provide"
+        does = "publishes" if kind == "topic" else "provides"
+        if owner is not None:
+            why = f" ({owner} {does} it)"
+        else:
+            why = f", as every name under {namespace} does"
+        super().__init__(f"{kind} {name} belongs to the lab{why}; clients cannot {verb} it")
 
 
 class BridgeError(LabError):

@@ -17,6 +17,11 @@ a tick's commands share its time). Frame k pairs:
 - *next*: what that step produced, from ``/lab/episode`` tick k+1: ``next.reward``,
   ``next.done`` (the episode ended with it), ``next.success``.
 
+Observations are what the lab published, actions what a client (the controller, a
+person's page) published: the recorder names the side of each channel in its metadata
+(``labd.side``: ``lab`` or ``client``), and a channel of the other side on a named topic
+is not read. Records made before sides were kept are read by topic alone.
+
 An observation with no step after it (an episode's last, or where the record stops)
 makes no frame, as no action followed it. Neither do the first ticks, before every
 action topic has had a message: the robot then acted on its task's initial state (at
@@ -79,6 +84,7 @@ from repository.errors import ExportError
 FORMATS = ("parquet", "lerobot")
 EPISODE = "/lab/episode"  # lab_msgs/msg/Episode, after each tick's observations
 PROVENANCE_KEY = "labd.provenance"
+SIDE_KEY = "labd.side"  # channel metadata: which side published (labd.recorder.reader)
 PARQUET_NAME = "data.parquet"
 MAX_FLATTENED = 256  # longer lists stay whole (JSON), however constant their length
 TIME_TYPES = frozenset({"builtin_interfaces/Time", "builtin_interfaces/Duration"})
@@ -279,16 +285,26 @@ def read_frames(path: Path, observations: Sequence[str], actions: Sequence[str])
     wanted = pairing.observation_topics | pairing.action_topics | {EPISODE}
     recorded: set[str] = set()
     decoders: dict[int, Callable[[bytes], Any] | None] = {}
+    ignored: set[int] = set()  # channels of the wrong side for their topic
     factory = DecoderFactory()
     try:
         with path.open("rb") as stream:
             reader = NonSeekingReader(stream)
             for schema, channel, message in reader.iter_messages(log_time_order=False):
+                if channel.id in ignored:
+                    continue
+                if channel.id not in decoders:
+                    if _wrong_side(channel.topic, channel.metadata.get(SIDE_KEY), pairing):
+                        ignored.add(channel.id)
+                        continue
+                    decoders[channel.id] = (
+                        factory.decoder_for(channel.message_encoding, schema)
+                        if channel.topic in wanted
+                        else None
+                    )
                 recorded.add(channel.topic)
                 if channel.topic not in wanted:
                     continue
-                if channel.id not in decoders:
-                    decoders[channel.id] = factory.decoder_for(channel.message_encoding, schema)
                 decode = decoders[channel.id]
                 if decode is None:
                     raise ExportError(f"{path}: {channel.topic} is not CDR with a ros2msg schema")
@@ -324,6 +340,15 @@ def read_frames(path: Path, observations: Sequence[str], actions: Sequence[str])
             f"step with a message known on every topic of {', '.join([*present_obs, *present_act])}"
         )
     return Frames(frames, present_obs, present_act, missing, pairing.ticks, pairing.task)
+
+
+def _wrong_side(topic: str, side: str | None, pairing: _Pairing) -> bool:
+    """Whether a channel's side rules it out for its topic's role (None: not recorded)."""
+    if side == "client":
+        return topic in pairing.observation_topics or topic == EPISODE
+    if side == "lab":
+        return topic in pairing.action_topics
+    return False
 
 
 # -- flattening --------------------------------------------------------------------------

@@ -29,7 +29,7 @@ from labd.clock import TimerHandle, Timers
 from labd.config import BridgeConfig
 from labd.errors import FrameError, LabError, NameError_
 from labd.graph.codec import dumps
-from labd.graph.graph import Graph
+from labd.graph.graph import Graph, Side
 from labd.graph.names import is_protected, resolve
 
 LEVELS = {"none": 0, "error": 1, "warning": 2, "info": 3}
@@ -95,7 +95,7 @@ class Session:
         self.log = logging.LoggerAdapter(
             logging.getLogger("labd.bridge.session"), {"client": client_id}
         )
-        self.node = graph.create_node(f"/bridge/client_{client_id}")
+        self.node = graph.create_node(f"/bridge/client_{client_id}", side=Side.CLIENT)
         self.outbox = Outbox(config.max_queue_bytes, transport.wake)
         self.status_level: int | None = None  # None until the client sends set_level
         self.closed = False

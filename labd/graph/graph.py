@@ -7,18 +7,38 @@ goals. Delivery is synchronous and in-process: ``publish`` returns after every
 subscriber's callback has run, so the order of events is the order of calls, which is
 what makes lockstep trials reproducible.
 
+**Whose names.** Every node is on one side of the bridge (``Side``): the lab's own
+nodes (the robot, rosapi, the recorder) or a client's (one per bridge session). A lab
+node that advertises a topic with ``own=True`` makes it the lab's: the robot does so
+for everything it publishes (observations, ``/tf``, ``/clock``, ``/lab/episode``, the
+cameras), so that what the archive records there is the robot's, never a client's
+word. A client node may not advertise (so not publish on) a topic the lab owns, nor
+any topic, service or action under the lab's namespaces (``/lab/``, ``/rosapi/``), nor
+provide a service or action a lab node provides: each is an ``OwnedError``. The check
+is made once, when a publisher or provider is made, so publishing stays a plain
+delivery; a claim made after a client advertised revokes the client's publisher.
+Taps (the recorder) hear, with each message, the side of its publisher.
+
 A graph is not thread-safe; it lives on one event loop.
 """
 
 from __future__ import annotations
 
+import enum
 import itertools
 import logging
 import time
 from collections.abc import Callable, Iterator, Mapping
 from typing import Any
 
-from labd.errors import ConflictError, NameError_, NotFoundError, TypeMismatchError
+from labd.errors import (
+    ConflictError,
+    GraphError,
+    NameError_,
+    NotFoundError,
+    OwnedError,
+    TypeMismatchError,
+)
 from labd.graph.actions import (
     Action,
     ActionHandler,
@@ -28,13 +48,22 @@ from labd.graph.actions import (
 )
 from labd.graph.codec import Codec, codec_for
 from labd.graph.message import Message
-from labd.graph.names import resolve
+from labd.graph.names import lab_namespace, resolve
 from labd.graph.services import Service, ServiceCall, ServiceHandler, ServiceResultCallback
 from labd.graph.types import TypeRegistry
 
 Clock = Callable[[], int]  # graph time in nanoseconds
 MessageCallback = Callable[[Message], None]
-Tap = Callable[["Topic", Message], None]
+
+
+class Side(enum.Enum):
+    """Which side of the bridge a node is on; a record keeps it for every message."""
+
+    LAB = "lab"  # the lab's own nodes: the robot, rosapi, the log
+    CLIENT = "client"  # a bridge client: a trial's controller, a browser, a ROS user
+
+
+Tap = Callable[["Topic", Message, Side], None]  # a message, and its publisher's side
 
 
 def wall_clock() -> int:
@@ -90,13 +119,17 @@ class Graph:
 
     # -- nodes --------------------------------------------------------------------------
 
-    def create_node(self, name: str) -> Node:
-        """A new node; a taken name gets a numeric suffix (``/bridge/client_2``)."""
+    def create_node(self, name: str, *, side: Side = Side.LAB) -> Node:
+        """A new node; a taken name gets a numeric suffix (``/bridge/client_2``).
+
+        Bridge sessions make theirs with ``side=Side.CLIENT``; everything else in the
+        lab's process is the lab.
+        """
         base = resolve(name)
         unique = base
         while unique in self.nodes:
             unique = f"{base}_{next(self._node_ids)}"
-        node = Node(self, unique)
+        node = Node(self, unique, side)
         self.nodes[unique] = node
         return node
 
@@ -145,6 +178,7 @@ class Topic:
         self.publishers: list[Publisher] = []
         self.subscriptions: list[Subscription] = []
         self.latched: Message | None = None
+        self.owner: Node | None = None  # the lab node that made it the lab's (advertise own=True)
         # Called before a new subscriber joins, so a publisher that skips messages no
         # one hears (a robot's idle topics) can bring the latched one up to date.
         self.refresh: Callable[[], None] | None = None
@@ -153,8 +187,11 @@ class Topic:
     def type_name(self) -> str:
         return self.codec.type.name
 
-    def deliver(self, message: Message, latch: bool) -> None:
-        """Hand a message to everyone: gatekeepers first, who may still refuse it."""
+    def deliver(self, message: Message, latch: bool, side: Side) -> None:
+        """Hand a message to everyone: gatekeepers first, who may still refuse it.
+
+        ``side`` is its publisher's, for the taps.
+        """
         subs = tuple(self.subscriptions)
         for sub in subs:
             if sub.gatekeeper and not sub.closed:
@@ -162,7 +199,7 @@ class Topic:
         if latch:
             self.latched = message
         for tap in self.graph.taps:
-            tap(self, message)
+            tap(self, message, side)
         for sub in subs:
             if not sub.gatekeeper and not sub.closed:
                 sub.callback(message)
@@ -175,32 +212,42 @@ class Publisher:
         self.node = node
         self.topic = topic
         self.latch = latch
+        self.side = node.side
         self.closed = False
+        self.revoked: GraphError | None = None  # why the graph took this publisher back
 
     def publish(self, value: Mapping[str, Any] | Message, *, latch: bool | None = None) -> Message:
         """Validate and deliver one message; returns it as delivered."""
         if self.closed:
-            raise NotFoundError("publisher", self.topic.name, "it was closed")
+            raise self.revoked or NotFoundError("publisher", self.topic.name, "it was closed")
         topic = self.topic
         if isinstance(value, Message):
             message = self.node.graph.message(topic.type_name, value)
         else:
             graph = self.node.graph
             message = Message(topic.codec, topic.codec.normalize(value, graph.now), graph.clock())
-        topic.deliver(message, self.latch if latch is None else latch)
+        topic.deliver(message, self.latch if latch is None else latch, self.side)
         return message
+
+    def revoke(self, reason: GraphError) -> None:
+        """Close this publisher for ``reason``, which every later ``publish`` raises."""
+        self.revoked = reason
+        self.close()
 
     def close(self) -> None:
         if self.closed:
             return
         self.closed = True
-        self.topic.publishers.remove(self)
+        topic = self.topic
+        topic.publishers.remove(self)
         self.node.publishers.remove(self)
-        if not self.topic.publishers:
+        if not topic.publishers:
             # As with ROS 2's transient-local durability, the latched message lives
             # with its publishers.
-            self.topic.latched = None
-        self.node.graph._forget_topic_if_unused(self.topic)
+            topic.latched = None
+        if topic.owner is self.node and all(p.node is not self.node for p in topic.publishers):
+            topic.owner = None  # the lab no longer publishes it
+        self.node.graph._forget_topic_if_unused(topic)
 
 
 class Subscription:
@@ -230,9 +277,10 @@ class Subscription:
 class Node:
     """A participant in the graph; destroying it releases all it holds."""
 
-    def __init__(self, graph: Graph, name: str) -> None:
+    def __init__(self, graph: Graph, name: str, side: Side = Side.LAB) -> None:
         self.graph = graph
         self.name = name
+        self.side = side
         self.publishers: list[Publisher] = []
         self.subscriptions: list[Subscription] = []
         self.services: list[Service] = []
@@ -241,12 +289,38 @@ class Node:
         self.goals: list[ClientGoal] = []  # goals this node sent that are not finished
         self.destroyed = False
 
-    def advertise(self, topic: str, type_name: str | None, *, latch: bool = False) -> Publisher:
-        t = self.graph.topic(topic, type_name)
+    def advertise(
+        self, topic: str, type_name: str | None, *, latch: bool = False, own: bool = False
+    ) -> Publisher:
+        """A publisher on ``topic``, which is made with ``type_name`` if it is new.
+
+        ``own``: the topic becomes the lab's (only a lab node may ask): from now on no
+        client may advertise it, and the publishers clients already have on it are
+        revoked. A client is refused (OwnedError) a topic the lab owns or one under
+        the lab's namespaces.
+        """
+        absolute = resolve(topic)
+        if own and self.side is not Side.LAB:
+            raise ValueError(f"{self.name} is a client's node: only the lab owns topics")
+        if self.side is Side.CLIENT:
+            existing = self.graph.topics.get(absolute)
+            owner = existing.owner if existing is not None else None
+            if owner is not None:
+                raise OwnedError("topic", absolute, owner=owner.name)
+            _refuse_lab_namespace("topic", absolute)
+        t = self.graph.topic(absolute, type_name)
         pub = Publisher(self, t, latch)
         t.publishers.append(pub)
         self.publishers.append(pub)
+        if own:  # after joining, so the topic outlives the publishers it revokes
+            self._own(t)
         return pub
+
+    def _own(self, topic: Topic) -> None:
+        owner = topic.owner = topic.owner or self
+        for pub in tuple(topic.publishers):
+            if pub.side is Side.CLIENT:
+                pub.revoke(OwnedError("topic", topic.name, owner=owner.name))
 
     def subscribe(
         self,
@@ -270,8 +344,16 @@ class Node:
         return sub
 
     def _claim(self, registry: Mapping[str, Service | Action], kind: str, name: str) -> None:
-        """Make ``name`` free for this node: refuse if another node provides it."""
+        """Make ``name`` free for this node: refuse if another node provides it.
+
+        A client may not provide what the lab provides, nor anything under its
+        namespaces (OwnedError); two clients, or two lab nodes, conflict.
+        """
         existing = registry.get(name)
+        if self.side is Side.CLIENT:
+            if existing is not None and existing.node.side is Side.LAB:
+                raise OwnedError(kind, name, owner=existing.node.name)
+            _refuse_lab_namespace(kind, name)
         if existing is not None:
             if existing.node is not self:
                 raise ConflictError(kind, name, existing.node.name)
@@ -350,12 +432,19 @@ class Node:
         return f"Node({self.name})"
 
 
+def _refuse_lab_namespace(kind: str, name: str) -> None:
+    namespace = lab_namespace(name)
+    if namespace is not None:
+        raise OwnedError(kind, name, namespace=namespace)
+
+
 __all__ = [
     "Clock",
     "Graph",
     "NameError_",
     "Node",
     "Publisher",
+    "Side",
     "Subscription",
     "Topic",
     "wall_clock",

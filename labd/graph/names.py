@@ -1,8 +1,13 @@
-"""Graph names: resolution of relative names, validation, protected prefixes.
+"""Graph names: resolution of relative names, validation, protected prefixes, the lab's own.
 
 The lab's graphs have a single namespace, the root, so ``chatter`` and ``/chatter``
 name the same topic. A name is a ``/``-separated list of tokens of letters, digits
 and underscores, each not starting with a digit (the ROS 2 rules).
+
+Names under ``LAB_NAMESPACES`` (``/lab/step``, ``/lab/episode``, ``/rosapi/topics``)
+are the lab's, on every graph: a client may not advertise a topic or provide a
+service or action there, even where the lab has none of that name (``/lab/step`` on a
+live robot), so a client can never pass for the lab.
 """
 
 from __future__ import annotations
@@ -15,6 +20,7 @@ from labd.errors import NameError_
 
 _TOKEN = re.compile(r"[A-Za-z_][A-Za-z0-9_]*")
 MAX_NAME = 255
+LAB_NAMESPACES = ("/lab/", "/rosapi/")
 
 
 def resolve(name: object) -> str:
@@ -45,3 +51,11 @@ def is_protected(name: str, prefixes: Iterable[str]) -> bool:
     matches the longer names is the safe reading.
     """
     return any(name.startswith(p) for p in prefixes)
+
+
+def lab_namespace(name: str) -> str | None:
+    """The lab namespace the absolute ``name`` lies in (``/lab/``), or None."""
+    for namespace in LAB_NAMESPACES:
+        if name.startswith(namespace):
+            return namespace
+    return None

@@ -6,11 +6,14 @@ topic, in delivery order, to ``FOLDER/trial.mcap`` in MCAP's ROS 2 profile, so t
 attachments, completes the file and writes ``FOLDER/metadata.yaml`` (``bag``), which
 makes the folder a rosbag2 bag. The data digest over the observation and action stream
 decides whether a rerun reproduced a trial; ``first_difference`` says where two records
-part (``digest``).
+part (``digest``). Each channel says which side of the bridge published on it (``lab``
+or ``client``), so ``read_messages`` picks a record's observations or actions without
+knowing its task (``reader``).
 
     FOLDER/
-    ├── trial.mcap       schemas (ros2msg), channels (cdr), messages at simulation time,
-    │                    zstd chunks; metadata "manifest" and "rosbag2"; attachments
+    ├── trial.mcap       schemas (ros2msg), channels (cdr) per topic and side, messages
+    │                    at simulation time, zstd chunks; metadata "manifest" and
+    │                    "rosbag2"; attachments
     └── metadata.yaml    rosbag2 bag metadata, format 9, storage mcap
 
 The modules import nothing from the rest of the lab but the graph, and the graph nothing
@@ -21,6 +24,13 @@ from __future__ import annotations
 
 from labd.recorder.bag import BAG_METADATA, MCAP_NAME, write_bag_metadata
 from labd.recorder.digest import Difference, Entry, data_digest, first_difference
+from labd.recorder.reader import (
+    SIDE_KEY,
+    RecordedChannel,
+    RecordedMessage,
+    read_channels,
+    read_messages,
+)
 from labd.recorder.record import (
     MANIFEST,
     MANIFEST_KEY,
@@ -35,13 +45,18 @@ __all__ = [
     "MANIFEST",
     "MANIFEST_KEY",
     "MCAP_NAME",
+    "SIDE_KEY",
     "Difference",
     "Entry",
     "RecordSummary",
+    "RecordedChannel",
+    "RecordedMessage",
     "Recorder",
     "canonical_json",
     "data_digest",
     "first_difference",
+    "read_channels",
     "read_manifest",
+    "read_messages",
     "write_bag_metadata",
 ]

@@ -11,6 +11,11 @@ to the same bytes; the tag names this framing should it ever change. Log times a
 simulation times and the data are CDR bytes, so a rerun of the same commit, task,
 parameters and seed gives the same digest, bit for bit.
 
+The side that published a message is not part of the framing: on the digest topics it
+follows from the topic (the lab publishes the observations, ``/clock`` and
+``/lab/episode``, which the graph refuses to clients; clients publish the commands),
+and leaving it out keeps the digests of records made before sides were recorded.
+
 ``data_digest`` recomputes it from a file; ``first_difference`` walks two records side by
 side and returns the first message that differs, with the control tick it belongs to, so
 a rerun can report "diverged at tick k on topic t".
@@ -21,24 +26,20 @@ from __future__ import annotations
 import hashlib
 import itertools
 import struct
-from collections.abc import Collection, Generator, Iterator
+from collections.abc import Collection, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
-from mcap.reader import NonSeekingReader
-from mcap.records import Schema
 from mcap.well_known import MessageEncoding
 from mcap_ros2.decoder import DecoderFactory
 
-from labd.recorder.bag import mcap_path
+from labd.recorder.reader import RecordedMessage, read_messages
 
 DIGEST_TAG = b"labd data digest 1\n"
 EPISODE = "/lab/episode"  # lab_msgs/msg/Episode, with the tick, published after each one
 
 _TOPIC = struct.Struct("<I")  # topic name length
 _FRAME = struct.Struct("<QQ")  # log time, data length
-
-Message = tuple[str, int, bytes, Schema | None]  # topic, log time, data, schema
 
 
 def topic_frame(topic: str) -> bytes:
@@ -52,19 +53,11 @@ def time_frame(log_time: int, size: int) -> bytes:
     return _FRAME.pack(log_time, size)
 
 
-def read(path: str | Path, topics: Collection[str]) -> Generator[Message, None, None]:
-    """Messages on ``topics`` in the order they were written (which needs no summary)."""
-    with mcap_path(path).open("rb") as stream:
-        reader = NonSeekingReader(stream)
-        for schema, channel, message in reader.iter_messages(topics, log_time_order=False):
-            yield channel.topic, message.log_time, message.data, schema
-
-
 def data_digest(path: str | Path, digest_topics: Collection[str]) -> str:
     """The data digest of a record (its folder or MCAP file), as its Recorder computed it."""
     digest = hashlib.sha256(DIGEST_TAG)
     prefixes: dict[str, bytes] = {}
-    for topic, time, data, _ in read(path, frozenset(digest_topics)):
+    for topic, _, time, data, _ in read_messages(path, topics=frozenset(digest_topics)):
         prefix = prefixes.get(topic)
         if prefix is None:
             prefix = prefixes[topic] = topic_frame(topic)
@@ -121,34 +114,32 @@ class _Stream:
     """A record's digest stream in recording order, keeping track of its episode ticks."""
 
     def __init__(self, path: str | Path, topics: frozenset[str]) -> None:
-        self._messages = read(path, topics | {EPISODE})
+        self._messages = read_messages(path, topics=topics | {EPISODE})
         self._topics = topics
-        self._episode: Message | None = None  # the latest /lab/episode read
+        self._episode: RecordedMessage | None = None  # the latest /lab/episode read
 
     def __iter__(self) -> Iterator[Entry]:
         for message in self._messages:
-            topic, time, data, _ = message
-            if topic == EPISODE:
+            if message.topic == EPISODE:
                 self._episode = message
-            if topic in self._topics:
-                yield Entry(topic, time, data)
+            if message.topic in self._topics:
+                yield Entry(message.topic, message.log_time, message.data)
 
     def tick_at(self, time: int) -> int | None:
         """The tick of the episode message logged at ``time``, reading on if need be.
 
         A tick's observations come before its ``/lab/episode``, which may lie ahead.
         """
-        while self._episode is None or self._episode[1] < time:
+        while self._episode is None or self._episode.log_time < time:
             message = next(self._messages, None)
             if message is None:
                 break
-            if message[0] == EPISODE:
+            if message.topic == EPISODE:
                 self._episode = message
-        if self._episode is None or self._episode[1] != time:
+        if self._episode is None or self._episode.log_time != time:
             return None
-        _, _, data, schema = self._episode
-        decoder = DecoderFactory().decoder_for(MessageEncoding.CDR, schema)
-        return None if decoder is None else int(decoder(data).tick)
+        decoder = DecoderFactory().decoder_for(MessageEncoding.CDR, self._episode.schema)
+        return None if decoder is None else int(decoder(self._episode.data).tick)
 
     def close(self) -> None:
         self._messages.close()

@@ -4,8 +4,12 @@ The ``Recorder`` is a graph tap, so it sees each message delivered on any topic,
 delivery order, and writes it at once:
 
 - one schema per message type (``ros2msg``: the full definition text with its
-  dependencies, as rosbag2 writes it) and one channel per topic (``cdr``, with the QoS
-  and type hash rosbag2 puts in its metadata), registered at their first message;
+  dependencies, as rosbag2 writes it) and one channel per topic and side of the bridge
+  that published on it (``cdr``, with the QoS and type hash rosbag2 puts in its
+  metadata, and the side under ``labd.side``: ``lab`` or ``client``), registered at
+  their first message. A topic has two channels only where both sides published
+  (``/rosout``); the robot's topics are the lab's alone (the graph refuses clients
+  there), so a reader tells observations from actions by the side (``reader``);
 - each message is its CDR bytes (``Message.cdr()``, encoded once and shared with whoever
   else needs them); log time = publish time = the message's graph stamp, which in trials
   is simulation time; sequence numbers count per channel;
@@ -20,7 +24,10 @@ delivery order, and writes it at once:
 
 It runs on every control tick in the lab's event loop, so the per-message work is a
 dictionary look-up, the library's ``add_message`` and, for digest topics, two hash
-updates; compression happens once a chunk is full.
+updates; compression happens once a chunk is full. The data digest is over topics, not
+sides, as it was before records kept sides, so earlier records still compare with
+their reruns: a client's message can reach a digest topic only where the lab does not
+publish (a command), since the graph refuses clients the lab's topics.
 """
 
 from __future__ import annotations
@@ -38,10 +45,11 @@ from mcap.reader import make_reader
 from mcap.well_known import MessageEncoding, Profile, SchemaEncoding
 from mcap.writer import CompressionType, Writer
 
-from labd.graph.graph import Graph, Topic
+from labd.graph.graph import Graph, Side, Topic
 from labd.graph.message import Message
 from labd.recorder import bag
 from labd.recorder.digest import DIGEST_TAG, time_frame, topic_frame
+from labd.recorder.reader import SIDE_KEY
 
 MANIFEST = "manifest"  # the metadata record holding the manifest ...
 MANIFEST_KEY = "json"  # ... as canonical JSON under this key
@@ -89,7 +97,7 @@ class RecordSummary:
 
 
 class _Channel:
-    """A topic as recorded: its MCAP channel, its count, and what the bag says of it."""
+    """A topic as one side published it: its MCAP channel, count, and what the bag says."""
 
     __slots__ = ("count", "id", "latched", "prefix", "topic", "type_hash", "type_name")
 
@@ -134,8 +142,10 @@ class Recorder:
         self._writer = Writer(self._file, chunk_size=chunk_size, compression=CompressionType.ZSTD)
         self._writer.start(profile=Profile.ROS2)
         self._schemas: dict[str, int] = {}
-        self._channels: dict[Topic, _Channel] = {}
-        self._by_key: dict[tuple[str, str], _Channel] = {}  # a topic made anew keeps its channel
+        self._lab_channels: dict[Topic, _Channel] = {}  # by side: no enum hash per message
+        self._client_channels: dict[Topic, _Channel] = {}
+        # A topic made anew keeps its channels: by name, type and side.
+        self._by_key: dict[tuple[str, str, Side], _Channel] = {}
         self._digest = hashlib.sha256(DIGEST_TAG)
         self._start = 1 << 64
         self._end = -1
@@ -147,10 +157,11 @@ class Recorder:
 
     # -- recording ---------------------------------------------------------------------
 
-    def _tap(self, topic: Topic, message: Message) -> None:
-        channel = self._channels.get(topic)
+    def _tap(self, topic: Topic, message: Message, side: Side) -> None:
+        channels = self._lab_channels if side is Side.LAB else self._client_channels
+        channel = channels.get(topic)
         if channel is None:
-            channel = self._channel(topic)
+            channel = self._channel(topic, side)
         data = message.cdr()
         time = message.stamp_ns
         self._writer.add_message(channel.id, time, data, time, channel.count & _SEQUENCE)
@@ -161,8 +172,8 @@ class Recorder:
         self._end = max(self._end, time)
         self._start = min(self._start, time)
 
-    def _channel(self, topic: Topic) -> _Channel:
-        key = (topic.name, topic.type_name)
+    def _channel(self, topic: Topic, side: Side) -> _Channel:
+        key = (topic.name, topic.type_name, side)
         channel = self._by_key.get(key)
         if channel is None:
             types = self.graph.types
@@ -172,10 +183,11 @@ class Recorder:
                 text = types.definition_text(type_name).encode()
                 schema = self._writer.register_schema(type_name, SchemaEncoding.ROS2, text)
                 self._schemas[type_name] = schema
-            latched = any(p.latch for p in topic.publishers)
+            latched = any(p.latch for p in topic.publishers if p.side is side)
             type_hash = types.typestore.hash_rihs01(type_name)
+            metadata = {**bag.channel_metadata(type_hash, latched), SIDE_KEY: side.value}
             channel_id = self._writer.register_channel(
-                topic.name, MessageEncoding.CDR, schema, bag.channel_metadata(type_hash, latched)
+                topic.name, MessageEncoding.CDR, schema, metadata
             )
             channel = _Channel(
                 channel_id,
@@ -186,7 +198,8 @@ class Recorder:
                 digest=topic.name in self.digest_topics,
             )
             self._by_key[key] = channel
-        self._channels[topic] = channel
+        channels = self._lab_channels if side is Side.LAB else self._client_channels
+        channels[topic] = channel
         return channel
 
     def _write_manifest(self, text: str) -> None:
@@ -238,10 +251,14 @@ class Recorder:
 
     def _complete(self) -> RecordSummary:
         """Write the bag record and the summary section, close the file, write the bag."""
-        topics = [
-            bag.BagTopic(c.topic, c.type_name, c.type_hash, c.latched, c.count)
-            for c in self._by_key.values()
-        ]
+        # rosbag2 knows topics, not sides: the bag lists each topic once (per type and
+        # QoS, which rosbags matches channels by), with both sides' messages.
+        merged: dict[tuple[str, str, bool], bag.BagTopic] = {}
+        for c in self._by_key.values():
+            key = (c.topic, c.type_name, c.latched)
+            count = c.count + (merged[key].message_count if key in merged else 0)
+            merged[key] = bag.BagTopic(c.topic, c.type_name, c.type_hash, c.latched, count)
+        topics = list(merged.values())
         info = bag.to_yaml(bag.bag_info(topics, self._start, self._end))  # YAML is slow: once
         try:
             self._writer.add_metadata(bag.BAG_RECORD, {bag.BAG_RECORD_KEY: info})

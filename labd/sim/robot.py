@@ -20,6 +20,10 @@ Two ways to run:
 
 Commands are checked before anyone receives them (a gatekeeper subscription): a NaN
 is refused with an error to the client that sent it, and never recorded.
+
+Every topic the robot publishes is the lab's (``advertise(own=True)``): clients cannot
+advertise or publish on an observation, ``/clock`` or ``/lab/episode``, so the record of
+a trial or a demonstration holds the robot's observations and nobody else's.
 """
 
 from __future__ import annotations
@@ -128,7 +132,7 @@ class Robot:
             self.on_tick()
 
     def _advertise(self, topic: str, type_name: str, latched: bool) -> None:
-        publisher = self.node.advertise(topic, type_name, latch=latched)
+        publisher = self.node.advertise(topic, type_name, latch=latched, own=True)
         publisher.topic.refresh = self._refresher(topic)
         self.publishers[topic] = publisher
 

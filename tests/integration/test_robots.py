@@ -12,6 +12,7 @@ from pathlib import Path
 import pytest
 import roslibpy
 from PIL import Image
+from websockets.sync.client import connect
 
 from labd.config import BridgeConfig, RobotConfig
 
@@ -111,3 +112,69 @@ def test_roslibjs_receives_live_camera_frames(live_maze):
         assert frame["format"] == "jpeg"
         with Image.open(io.BytesIO(base64.b64decode(frame["data"]))) as image:
             assert image.format == "JPEG" and image.size == (320, 240)
+
+
+def test_a_client_cannot_publish_the_live_robots_odometry(live_maze):
+    """On a live robot, roslibpy publishing /odom (x = 42) is refused, the lab's log names the
+    topic, another roslibpy subscriber never receives it; a raw client gets the status."""
+    url = live_maze.url + "/robots/icreate-1"
+    graph = live_maze.lab.graphs["icreate-1"]
+    watcher = roslibpy.Ros(host=url)
+    forger = roslibpy.Ros(host=url)
+    watcher.run(timeout=WAIT)
+    forger.run(timeout=WAIT)
+    seen, log = [], []
+    arrived = threading.Condition()
+
+    def keep(into):
+        def take(message):
+            with arrived:
+                into.append(message)
+                arrived.notify_all()
+
+        return take
+
+    try:
+        roslibpy.Topic(watcher, "/odom", "nav_msgs/msg/Odometry").subscribe(keep(seen))
+        roslibpy.Topic(watcher, "/rosout", "rcl_interfaces/msg/Log").subscribe(keep(log))
+        live_maze.wait_until(
+            lambda: (
+                "/rosout" in graph.topics
+                and len(graph.topics["/odom"].subscriptions) == 1
+                and len(graph.topics["/rosout"].subscriptions) == 1
+            )
+        )
+        forged = roslibpy.Topic(forger, "/odom", "nav_msgs/msg/Odometry")
+        for _ in range(3):
+            forged.publish(roslibpy.Message({"pose": {"pose": {"position": {"x": 42.0}}}}))
+        after = forger.get_time()  # a round trip: the publishes before it have been handled
+        after_ns = after.secs * 10**9 + after.nsecs
+
+        def stamp(message):
+            return message["header"]["stamp"]["sec"] * 10**9 + message["header"]["stamp"]["nanosec"]
+
+        def refusals():
+            return [m["msg"] for m in log if "/odom belongs to the lab" in m["msg"]]
+
+        with arrived:
+            assert arrived.wait_for(lambda: any(stamp(m) > after_ns for m in seen), WAIT)
+            assert arrived.wait_for(lambda: len(refusals()) == 4, WAIT), (
+                log
+            )  # advertise, 3 publishes
+        assert all(m["pose"]["pose"]["position"]["x"] != 42.0 for m in seen)
+        assert [p.node.name for p in graph.topics["/odom"].publishers] == ["/icreate_1"]
+    finally:
+        watcher.close()
+        forger.close()
+
+    with connect(url) as raw:
+        raw.send(json.dumps({"op": "set_level", "level": "error"}))
+        raw.send(json.dumps({"op": "publish", "topic": "/odom", "msg": {}, "id": "forge"}))
+        status = json.loads(raw.recv(timeout=WAIT))
+    assert status == {
+        "op": "status",
+        "level": "error",
+        "msg": "publish: topic /odom belongs to the lab (/icreate_1 publishes it); "
+        "clients cannot advertise or publish on it",
+        "id": "forge",
+    }

@@ -14,21 +14,26 @@ import pytest
 from mcap.reader import make_reader
 from mcap.writer import Writer
 from mcap_ros2.decoder import DecoderFactory
+from mcap_ros2.writer import Writer as Ros2Writer
 from rosbags.highlevel import AnyReader
 from rosbags.rosbag2 import Reader as BagReader
+from ruamel.yaml import YAML
 
-from labd.graph.graph import Graph
+from labd.graph.graph import Graph, Side
 from labd.graph.message import Message
 from labd.graph.types import TypeRegistry
 from labd.recorder import (
     MANIFEST,
     MANIFEST_KEY,
+    SIDE_KEY,
     Recorder,
     RecordSummary,
     canonical_json,
     data_digest,
     first_difference,
+    read_channels,
     read_manifest,
+    read_messages,
     write_bag_metadata,
 )
 from labd.sim.registry import TaskSpec
@@ -80,8 +85,8 @@ def record(
     options = {} if chunk_size is None else {"chunk_size": chunk_size}
     recorder = Recorder(graph, folder, digest_topics=topics, **options)
     run = Run(RecordSummary(folder, {}, "", None, None, 0), robot, topics)
-    graph.taps.append(lambda topic, message: run.delivered.append((topic.name, message)))
-    client = graph.create_node("/controller")
+    graph.taps.append(lambda topic, message, side: run.delivered.append((topic.name, message)))
+    client = graph.create_node("/controller", side=Side.CLIENT)
     if camera:
         client.subscribe("/camera/image/compressed", None, run.images.append)
     commands = [
@@ -339,6 +344,85 @@ def test_a_topic_made_anew_keeps_its_channel(registry, tmp_path):
             node.destroy()
     assert recorder.finish().counts == {"/chatter": 2}
     assert len(summary_of(tmp_path / "trial.mcap").channels) == 1
+
+
+# -- sides ------------------------------------------------------------------------------------
+
+
+def record_both_sides(registry: TypeRegistry, folder: Path) -> tuple[Robot, RecordSummary]:
+    """A lockstep tick with a client's command and /rosout lines from the lab and a client."""
+    graph = Graph(registry, name="sides")
+    robot = Robot(graph, POINTMASS, {}, seed=5)
+    recorder = Recorder(graph, folder, digest_topics=digest_topics(robot))
+    client = graph.create_node("/bridge/client_1", side=Side.CLIENT)
+    try:
+        robot.publish()
+        client.advertise("/cmd_vel", TWIST).publish({"linear": {"x": 0.1}})
+        graph.rosout(20, "labd", "from the lab")
+        client.advertise("/rosout", "rcl_interfaces/msg/Log").publish({"msg": "from a client"})
+        step(client)
+    finally:
+        summary = recorder.finish()
+        robot.close()
+    return robot, summary
+
+
+def test_each_channel_names_the_side_that_published_on_it(registry, tmp_path):
+    """One channel per topic and side, labd.side in its metadata; /rosout has one of each."""
+    robot, summary = record_both_sides(registry, tmp_path)
+    channels = read_channels(tmp_path)
+    lab = {c.topic for c in channels if c.side is Side.LAB}
+    observed = {o.name for o in robot.sim.task.observations if not o.on_demand}
+    assert lab == observed | {"/clock", "/lab/episode", "/rosout"}
+    assert {c.topic for c in channels if c.side is Side.CLIENT} == {"/cmd_vel", "/rosout"}
+    assert len(channels) == len(lab) + 2
+    with (tmp_path / "trial.mcap").open("rb") as stream:
+        metadata = [c.metadata for c in make_reader(stream).get_summary().channels.values()]
+    assert all(m[SIDE_KEY] in ("lab", "client") and "offered_qos_profiles" in m for m in metadata)
+    assert summary.counts["/rosout"] == 2
+
+
+def test_read_messages_picks_observations_or_actions_by_side(registry, tmp_path):
+    """A reader that knows no task gets the client's messages, or the lab's, in recording order."""
+    record_both_sides(registry, tmp_path)
+    client = [(m.topic, m.side) for m in read_messages(tmp_path, side=Side.CLIENT)]
+    assert client == [("/cmd_vel", Side.CLIENT), ("/rosout", Side.CLIENT)]
+    lab = list(read_messages(tmp_path, side=Side.LAB))
+    assert {m.topic for m in lab} >= {"/pose", "/clock", "/lab/episode", "/rosout"}
+    assert all(m.side is Side.LAB for m in lab)
+    rosout = [m.side for m in read_messages(tmp_path, topics=["/rosout"])]
+    assert rosout == [Side.LAB, Side.CLIENT]
+
+
+def test_a_topic_of_both_sides_is_one_topic_of_the_bag(registry, tmp_path):
+    """rosbag2 knows topics: /rosout is listed once with both sides' messages, and rosbags reads them."""
+    _, summary = record_both_sides(registry, tmp_path)
+    bag_topics = [
+        t["topic_metadata"]["name"]
+        for t in YAML(typ="safe").load((tmp_path / "metadata.yaml").read_text())[
+            "rosbag2_bagfile_information"
+        ]["topics_with_message_count"]
+    ]
+    assert sorted(bag_topics) == sorted(summary.counts)
+    with AnyReader([tmp_path]) as reader:
+        connections = [c for c in reader.connections if c.topic == "/rosout"]
+        lines = [
+            reader.deserialize(raw, c.msgtype).msg for c, _, raw in reader.messages(connections)
+        ]
+    assert lines == ["from the lab", "from a client"]
+
+
+def test_a_record_without_sides_reads_as_unknown(tmp_path):
+    """Channels of records made before sides were kept have side None; a side filter skips them."""
+    path = tmp_path / "old.mcap"
+    with path.open("wb") as stream:
+        writer = Ros2Writer(stream)
+        schema = writer.register_msgdef("std_msgs/msg/String", "string data")
+        writer.write_message("/chatter", schema, {"data": "hi"}, 0)
+        writer.finish()
+    assert [(m.topic, m.side) for m in read_messages(path)] == [("/chatter", None)]
+    assert list(read_messages(path, side=Side.LAB)) == []
+    assert [c.side for c in read_channels(path)] == [None]
 
 
 # -- the bag folder ---------------------------------------------------------------------------

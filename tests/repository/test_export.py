@@ -11,9 +11,10 @@ import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
 import pytest
+from mcap.writer import Writer as McapWriter
 from mcap_ros2.writer import Writer as Ros2Writer
 
-from labd.graph.graph import Graph
+from labd.graph.graph import Graph, Side
 from labd.graph.types import TypeRegistry
 from labd.recorder import Recorder
 from labd.sim.robot import Robot
@@ -69,14 +70,14 @@ def drive(
     run = Drive(folder / "trial.mcap")
     latest: dict[str, Any] = {}
 
-    def tap(topic: Any, message: Any) -> None:
+    def tap(topic: Any, message: Any, side: Side) -> None:
         latest[topic.name] = message.data
         if topic.name == "/lab/episode":
             run.observed.append(dict(latest))
             run.episodes.append(message.data)
 
     graph.taps.append(tap)
-    client = graph.create_node("/controller")
+    client = graph.create_node("/controller", side=Side.CLIENT)
     if camera:
         client.subscribe(CAMERA, None, lambda message: None)
     cmd_vel = client.advertise("/cmd_vel", "geometry_msgs/msg/Twist")
@@ -395,7 +396,7 @@ def test_a_record_without_the_named_topics_is_refused(trial, tmp_path):
 def test_a_failed_export_leaves_no_folder(trial, tmp_path):
     """An export that fails while writing removes what it wrote."""
     with pytest.raises(ExportError, match="no fixed-length numeric field"):
-        run_export(trial, tmp_path / "out", "lerobot", actions=[CAMERA])
+        run_export(trial, tmp_path / "out", "lerobot", observations=[CAMERA])
     assert list(tmp_path.iterdir()) == []
 
 
@@ -432,3 +433,83 @@ def test_a_record_without_episodes_is_refused(tmp_path):
             actions=["/speed"],
             provenance={},
         )
+
+
+def handmade_record(path: Path, entries: list[tuple[str, str, str | None, int, dict]]) -> Path:
+    """An MCAP record of (topic, type, side, log time, value), with labd.side where side is given."""
+    types = TypeRegistry.default()
+    graph = Graph(types)
+    schemas: dict[str, int] = {}
+    channels: dict[tuple[str, str | None], int] = {}
+    with path.open("wb") as stream:
+        writer = McapWriter(stream)
+        writer.start(profile="ros2")
+        for topic, type_name, side, time, value in entries:
+            if type_name not in schemas:
+                text = types.definition_text(type_name).encode()
+                schemas[type_name] = writer.register_schema(type_name, "ros2msg", text)
+            if (topic, side) not in channels:
+                metadata = {} if side is None else {"labd.side": side}
+                channels[topic, side] = writer.register_channel(
+                    topic, "cdr", schemas[type_name], metadata
+                )
+            data = graph.message(type_name, value).cdr()
+            writer.add_message(channels[topic, side], time, data, time)
+        writer.finish()
+    return path
+
+
+def sided_entries(
+    lab: str | None, client: str | None
+) -> list[tuple[str, str, str | None, int, dict]]:
+    """Tick 0 and 1 of a drive where a client wrote on /odom and the lab on /cmd_vel."""
+    odom, twist, episode = (
+        "nav_msgs/msg/Odometry",
+        "geometry_msgs/msg/Twist",
+        "lab_msgs/msg/Episode",
+    )
+
+    def at(x: float) -> dict:
+        return {"pose": {"pose": {"position": {"x": x}}}}
+
+    return [
+        ("/odom", odom, lab, 0, at(1.0)),
+        ("/odom", odom, client, 0, at(42.0)),
+        ("/lab/episode", episode, lab, 0, {"task": TASK, "tick": 0, "status": "running"}),
+        ("/cmd_vel", twist, client, 0, {"linear": {"x": 0.5}}),
+        ("/cmd_vel", twist, lab, 0, {"linear": {"x": 9.0}}),
+        ("/odom", odom, lab, 100_000_000, at(2.0)),
+        ("/lab/episode", episode, lab, 100_000_000, {"task": TASK, "tick": 1, "status": "running"}),
+    ]
+
+
+def test_observations_are_the_labs_and_actions_the_clients(tmp_path):
+    """Channels of the other side on a named topic are not read: no client observation, no lab action."""
+    sided = handmade_record(tmp_path / "sided.mcap", sided_entries("lab", "client"))
+    rows = pq.read_table(
+        export(
+            sided,
+            tmp_path / "a",
+            "parquet",
+            observations=["/odom"],
+            actions=["/cmd_vel"],
+            provenance={},
+        ).files[0]
+    ).to_pylist()
+    assert [
+        (r["observation./odom.pose.pose.position.x"], r["action./cmd_vel.linear.x"]) for r in rows
+    ] == [(1.0, 0.5)]
+    old = handmade_record(tmp_path / "old.mcap", sided_entries(None, None))
+    rows = pq.read_table(
+        export(
+            old,
+            tmp_path / "b",
+            "parquet",
+            observations=["/odom"],
+            actions=["/cmd_vel"],
+            provenance={},
+        ).files[0]
+    ).to_pylist()
+    assert [
+        (r["observation./odom.pose.pose.position.x"], r["action./cmd_vel.linear.x"]) for r in rows
+    ] == [(42.0, 9.0)]  # a record without sides is read by topic alone

@@ -19,6 +19,8 @@ from mcap_ros2.decoder import DecoderFactory
 from rosbags.highlevel import AnyReader
 
 import sandbox
+from labd.graph.graph import Side
+from labd.recorder import data_digest, read_channels, read_messages
 from labd.trial import LabHost, client_library
 from repository.trial import Outcome
 from sandbox.api import Limits, MiB
@@ -132,6 +134,7 @@ def test_the_record_opens_with_rosbags_and_the_mcap_decoder(backend, cache, host
 
 def attack(name, tmp_path, target=None):
     folder = tmp_path / name
+    folder.parent.mkdir(exist_ok=True)
     shutil.copytree(ATTACKS / name, folder)
     if target is not None:
         (folder / "target.json").write_text(json.dumps(target))
@@ -237,3 +240,53 @@ def test_a_maze_run_out_of_time_is_a_fail(backend, cache, host, tmp_path):
     assert result.reason.startswith("the episode ended at tick 20 without success: truncated")
     assert result.metrics["success"] is False
     assert result.mcap is not None and result.data_digest
+
+
+def test_a_controller_cannot_forge_the_robots_data(backend, cache, host, tmp_path):
+    """Forged /odom and /clock and an advertised /lab/step are refused with statuses naming them;
+    the record holds none of it, and its data digest equals an honest run's."""
+    forged = run(
+        backend,
+        cache,
+        host,
+        tmp_path,
+        attack("forges-observations", tmp_path / "forge", {"forge": True}),
+        seed=3,
+    )
+    honest = run(
+        backend,
+        cache,
+        host,
+        tmp_path,
+        attack("forges-observations", tmp_path / "honest", {"forge": False}),
+        seed=3,
+    )
+    # each steps five times and exits: the goal is not reached, a fail either way
+    assert forged.outcome is honest.outcome is Outcome.FAIL, (forged.reason, honest.reason)
+    assert forged.metrics["ticks"] == honest.metrics["ticks"] == 5
+    assert forged.data_digest == honest.data_digest
+    assert forged.data_digest == data_digest(forged.folder, forged.digest_topics)
+
+    statuses = json.loads((forged.folder / "controller.stdout.log").read_text())["statuses"]
+    refused = {s["id"]: s["msg"] for s in statuses}
+    assert refused["adv-odom"].startswith("advertise: topic /odom belongs to the lab")
+    for n in range(3):
+        assert refused[f"odom-{n}"].startswith("publish: topic /odom belongs to the lab")
+        assert refused[f"clock-{n}"].startswith("publish: topic /clock belongs to the lab")
+    assert refused["adv-step"].startswith("advertise_service: service /lab/step belongs to the lab")
+    assert json.loads((honest.folder / "controller.stdout.log").read_text())["statuses"] == []
+
+    assert {c.topic for c in read_channels(forged.folder) if c.side is Side.CLIENT} == {"/cmd_vel"}
+    decode = DecoderFactory().decoder_for
+    odom = [
+        decode("cdr", m.schema)(m.data).pose.pose.position.x
+        for m in read_messages(forged.folder, topics=["/odom"])
+    ]
+    clocks = [m.log_time for m in read_messages(forged.folder, topics=["/clock"])]
+    assert len(odom) == len(clocks) == 6 and 42.0 not in odom  # ticks 0 to 5, the robot's only
+    assert clocks == [tick * 100_000_000 for tick in range(6)]
+    lab_log = [
+        decode("cdr", m.schema)(m.data).msg
+        for m in read_messages(forged.folder, topics=["/rosout"], side=Side.LAB)
+    ]
+    assert sum("/odom belongs to the lab" in line for line in lab_log) == 4  # the attempts, as logs

@@ -12,6 +12,12 @@ and no ``queue_length``, a message that arrives too early waits for the end of t
 interval and is replaced by any newer one, so the last state is never lost (rosbridge
 drops it). With a ``queue_length`` of N, up to N messages wait and one leaves per
 interval.
+
+Whether a client may publish on a topic is the graph's decision, made once when its
+publisher is made (``advertise``, or the automatic advertise of a first ``publish``):
+the topics a robot publishes are the lab's, and refused with ``OwnedError``. A
+publisher the graph takes back later (the lab claimed the topic after the client
+advertised it) is forgotten at the next ``publish``, which reports why.
 """
 
 from __future__ import annotations
@@ -24,7 +30,7 @@ from labd.bridge.outbox import _Entry
 from labd.bridge.render import COMPRESSIONS, OutFrame, TopicRenderer
 from labd.bridge.session import Capability, Session
 from labd.clock import TimerHandle
-from labd.errors import LimitError, MessageError, NotFoundError
+from labd.errors import LimitError, MessageError, NotFoundError, OwnedError
 from labd.graph.graph import Publisher, Subscription, Topic
 from labd.graph.message import Message
 from labd.graph.names import resolve
@@ -136,6 +142,9 @@ class Topics(Capability):
     def advertise(self, op: Advertise) -> None:
         name = resolve(op.topic)
         pub = self.publishers.get(name)
+        if pub is not None and pub.closed:  # revoked by the graph: ask it again
+            self._forget(pub)
+            pub = None
         if pub is not None:
             self.session.graph.topic(name, op.type)  # same type, or TypeMismatchError
             pub.latch = op.latch
@@ -147,12 +156,17 @@ class Topics(Capability):
 
     def unadvertise(self, op: Unadvertise) -> None:
         name = resolve(op.topic)
-        pub = self.publishers.pop(name, None)
+        pub = self.publishers.get(name)
         if pub is None:
             self.session.report("warning", f"unadvertise: {op.topic} is not advertised", op.id)
             return
-        self._by_spelling = {k: v for k, v in self._by_spelling.items() if v is not pub}
+        self._forget(pub)
         pub.close()
+
+    def _forget(self, pub: Publisher) -> None:
+        if self.publishers.get(pub.topic.name) is pub:
+            del self.publishers[pub.topic.name]
+        self._by_spelling = {k: v for k, v in self._by_spelling.items() if v is not pub}
 
     def publish(self, op: Publish) -> None:
         pub = self._by_spelling.get(op.topic)
@@ -162,11 +176,14 @@ class Topics(Capability):
             pub.publish(op.msg, latch=op.latch)
         except MessageError as err:
             raise err.prefixed("msg") from None
+        except OwnedError:
+            self._forget(pub)  # revoked: the next publish asks the graph again
+            raise
 
     def _publisher_for(self, op: Publish) -> Publisher:
         name = resolve(op.topic)
         pub = self.publishers.get(name)
-        if pub is None:
+        if pub is None or pub.closed:
             # Auto-advertise with the type the topic already has.
             if name not in self.session.graph.topics:
                 raise NotFoundError("topic", name, "advertise it with its type before publishing")

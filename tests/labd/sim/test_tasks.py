@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -17,11 +18,13 @@ from typing import Any
 import numpy as np
 import pytest
 
-from labd.errors import MessageError, ParamError, UnknownTaskError
+from labd.errors import MessageError, OwnedError, ParamError, UnknownTaskError
 from labd.graph.codec import codec_for
+from labd.graph.graph import Graph, Side
 from labd.graph.types import FLOATS, Kind
 from labd.sim import registry
 from labd.sim.base import stamp_of
+from labd.sim.robot import Robot
 from labd.sim.simulation import Simulation
 from tests.labd.sim.drive import drive
 
@@ -159,3 +162,38 @@ def test_model_is_a_function_of_the_seed(task):
         Simulation(task, {}, seed=9).model_digest() == Simulation(task, {}, seed=9).model_digest()
     )
     assert Simulation(task, {}, seed=9).model_xml
+
+
+def test_every_topic_the_robot_publishes_is_the_labs(task, registry):
+    """Observations (cameras included), /clock and /lab/episode are the lab's; commands are open."""
+    graph = Graph(registry, name="ownership")
+    robot = Robot(graph, task, {}, seed=1)
+    try:
+        published = {o.name for o in robot.sim.task.observations} | {"/clock", "/lab/episode"}
+        assert set(robot.publishers) == published
+        assert {n for n, t in graph.topics.items() if t.owner is robot.node} == published
+        client = graph.create_node("/bridge/client_1", side=Side.CLIENT)
+        for name in sorted(published):
+            with pytest.raises(OwnedError, match=name):
+                client.advertise(name, None)
+        for command in robot.sim.task.commands:
+            client.advertise(command.name, command.type)
+    finally:
+        robot.close()
+
+
+def _documented_topics(task: str, section: str) -> set[str]:
+    """The topics in the first column of a task's table in docs/tasks.md."""
+    text = (ROOT / "docs" / "tasks.md").read_text()
+    task_part = re.split(r"^## ", text, flags=re.M)
+    (body,) = [p for p in task_part if p.startswith(f"`{task}`")]
+    (table,) = [p for p in re.split(r"^### ", body, flags=re.M) if p.startswith(section)]
+    rows = [line.split("|")[1] for line in table.splitlines() if line.startswith("| `/")]
+    return {name for row in rows for name in re.findall(r"`(/[^`]*)`", row)}
+
+
+def test_docs_list_the_tasks_topics(task, sim):
+    """docs/tasks.md names each task's observation (lab-owned) and command topics exactly."""
+    spec = registry.get(task)
+    assert _documented_topics(spec.name, "Observations") == {o.name for o in sim.task.observations}
+    assert _documented_topics(spec.name, "Commands") == {c.name for c in sim.task.commands}
