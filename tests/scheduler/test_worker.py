@@ -8,9 +8,9 @@ import errno
 
 import pytest
 
+from labd.trial import LabHost
 from repository.blobs import BlobStore
 from repository.index import Index
-from labd.trial import LabHost
 from repository.trial import Ending, Outcome, Status
 from sandbox.api import Limits
 from scheduler.host import Episode
