@@ -47,13 +47,13 @@ from .jobs import (
     Plan,
     Stream,
     Supervised,
-    check_requirements,
     chown_tree,
     drain_within,
     install_failure,
     install_plan,
     job_plan,
     open_socket,
+    stage_requirements,
 )
 
 log = logging.getLogger(__name__)
@@ -172,13 +172,13 @@ class BwrapBackend:
         return await self._start(job_plan(self.runtime, job))
 
     async def install(self, requirements: Path, target: Path) -> None:
-        check_requirements(requirements.read_text())
-        target.mkdir(parents=True, exist_ok=True)
         staging = Path(tempfile.mkdtemp(prefix="install-", dir=self.state))
-        staged = staging / "requirements.txt"
-        shutil.copyfile(requirements, staged)
-        staging.chmod(0o755)
-        staged.chmod(0o644)
+        try:
+            staged = stage_requirements(requirements, staging)
+        except BaseException:
+            shutil.rmtree(staging, ignore_errors=True)
+            raise
+        target.mkdir(parents=True, exist_ok=True)
         lease = self._lease()
         try:
             chown_tree(target, lease.uid)
