@@ -7,7 +7,6 @@ from __future__ import annotations
 
 import asyncio
 import json
-import os
 import shutil
 import socket
 import threading
@@ -18,47 +17,14 @@ from mcap.reader import make_reader
 from mcap_ros2.decoder import DecoderFactory
 from rosbags.highlevel import AnyReader
 
-import sandbox
-from labd.commands.run import client_library
-from labd.graph.types import TypeRegistry
 from sandbox.api import Limits, MiB
 from scheduler.runner import RunOptions, TrialSpec, run_trial
+from tests.scheduler.conftest import BACKENDS, make_backend
 
 pytestmark = pytest.mark.integration
 ROOT = Path(__file__).resolve().parents[2]
 EXAMPLES = ROOT / "controllers" / "examples"
 ATTACKS = Path(__file__).resolve().parent / "attacks"
-BACKENDS = ["bwrap", "docker"]
-
-
-@pytest.fixture(scope="session")
-def cache(request) -> Path:
-    """pytest's cache folder, so later sessions reuse the runtime (bwrap needs o+x on it)."""
-    folder = request.config.cache.mkdir("labd-trials")
-    for path in (folder, *folder.parents):
-        if not path.stat().st_mode & 0o001:
-            pytest.fail(f"{path} must be searchable by others for the sandbox's user")
-    folder.chmod(0o755)
-    return folder
-
-
-def make_backend(name, cache):
-    try:
-        return sandbox.backend(name, cache, extra_packages=[client_library()])
-    except sandbox.BackendUnavailable as err:
-        if os.environ.get("CI"):
-            pytest.fail(str(err))
-        pytest.skip(str(err))
-
-
-@pytest.fixture(scope="session", params=BACKENDS)
-def backend(request, cache):
-    return make_backend(request.param, cache)
-
-
-@pytest.fixture(scope="session")
-def types():
-    return TypeRegistry.default()
 
 
 def run(backend, cache, types, tmp_path, source, **kwargs):
