@@ -63,6 +63,10 @@ from .views import Views, refusal, unreachable
 log = logging.getLogger(__name__)
 
 UIDS = range(64100, 64356)  # host uids leased to jobs, one each
+# The uids' locks, one folder for the whole machine: a lab that leases a uid kills what
+# still runs as it, so two labs (labd serve, and labd run with another --data) must
+# never lease the same uid. /run is root's alone, and only a lab run as root leases.
+UID_LOCKS = Path("/run/labd/sandbox-uids")
 SHM = 64 * MiB  # /dev/shm, as Docker's default
 SETUP_TIMEOUT = 60.0  # seconds bwrap may take to make a sandbox
 
@@ -169,7 +173,9 @@ class BwrapBackend:
 
     name = "bwrap"
 
-    def __init__(self, runtime: rt.Runtime, state: Path, bwrap: str = "bwrap") -> None:
+    def __init__(
+        self, runtime: rt.Runtime, state: Path, bwrap: str = "bwrap", uid_locks: Path = UID_LOCKS
+    ) -> None:
         self.runtime = runtime
         self.state = state
         found = shutil.which(bwrap)
@@ -182,7 +188,7 @@ class BwrapBackend:
         self.prlimit = prlimit
         self.privileged = os.geteuid() == 0
         state.mkdir(parents=True, exist_ok=True)
-        self.uids = UidPool(state / "uids") if self.privileged else None
+        self.uids = UidPool(uid_locks) if self.privileged else None
         self._probe()
 
     def runtime_digest(self) -> str:

@@ -134,3 +134,21 @@ def test_without_the_tools_to_bind_the_refusal_says_what_to_change(
     assert f"{private} is not searchable by others; chmod o+x {private}" in message
     assert "keep the lab's data folder elsewhere" in message
     assert views_left() == before
+
+
+@pytest.mark.integration
+def test_two_labs_never_lease_the_same_uid(runtime: Runtime, workdir: Path) -> None:
+    """Backends with different state folders (two labs, two --data) lease apart: each
+    kills what runs as the uid it leases, so sharing one would kill the other's job."""
+    if shutil.which("bwrap") is None:
+        pytest.skip("no bwrap on this machine")
+    one = BwrapBackend(runtime, workdir / "lab-one")
+    two = BwrapBackend(runtime, workdir / "lab-two")
+    first = one.uids.lease() if one.uids else None
+    second = two.uids.lease() if two.uids else None
+    assert first is not None and second is not None
+    try:
+        assert first.uid != second.uid
+    finally:
+        first.release()
+        second.release()
