@@ -201,16 +201,7 @@ class RepositoryFiles:
         it); subfolders and other entries are left out.
         """
         parts = self._parts(folder, "folder") if folder not in ("", ".") else ()
-        root = self._root()
-        try:
-            try:
-                fd = _open_folder(root, parts)
-            except _Blocked as blocked:
-                if blocked.kind == "file" and blocked.index == len(parts) - 1:
-                    raise RepositoryFileError(folder, "it is a file, not a folder") from None
-                raise _refusal(folder, parts, blocked, "folder") from None
-        finally:
-            os.close(root)
+        fd = self._folder(folder, parts, len(parts), "folder")
         try:
             with os.scandir(fd) as entries:
                 found = []
@@ -235,31 +226,35 @@ class RepositoryFiles:
             raise RepositoryFileError(name, f"it is not the path of a {what} inside the repository")
         return parts
 
-    def _root(self) -> int:
-        return os.open(self.root, os.O_RDONLY | os.O_DIRECTORY | os.O_CLOEXEC)
+    def _folder(self, name: str, parts: tuple[str, ...], depth: int, what: str) -> int:
+        """An open descriptor of the folder ``parts[:depth]``, on the way to ``name``."""
+        try:
+            root = os.open(self.root, os.O_RDONLY | os.O_DIRECTORY | os.O_CLOEXEC)
+            try:
+                return _open_folder(root, parts[:depth])
+            finally:
+                os.close(root)
+        except _Blocked as blocked:
+            if what == "folder" and blocked.kind == "file" and blocked.index == len(parts) - 1:
+                raise RepositoryFileError(name, "it is a file, not a folder") from None
+            raise _refusal(name, parts, blocked, what) from None
+        except OSError as err:
+            raise RepositoryFileError(name, f"it could not be read ({err.strerror})") from None
 
     def _open(self, name: str) -> int:
         """An open descriptor of the regular file ``name``, reached through no link."""
         parts = self._parts(name)
-        root = self._root()
+        folder = self._folder(name, parts, len(parts) - 1, "file")
         try:
-            folder = _open_folder(root, parts[:-1])
-        except _Blocked as blocked:
-            raise _refusal(name, parts, blocked, "file") from None
-        finally:
-            os.close(root)
-        try:
+            fd = os.open(parts[-1], _FILE, dir_fd=folder)
+        except OSError as err:
             try:
-                fd = os.open(parts[-1], _FILE, dir_fd=folder)
-            except OSError as err:
-                if err.errno not in (errno.ENOENT, errno.ELOOP, errno.ENXIO):
-                    raise RepositoryFileError(
-                        name, f"it could not be read ({err.strerror})"
-                    ) from None
                 kind, target = _kind(folder, parts[-1])
-                raise _refusal(
-                    name, parts, _Blocked(len(parts) - 1, kind, target), "file"
-                ) from None
+            except OSError:
+                kind, target = "other", ""
+            if err.errno not in (errno.ENOENT, errno.ELOOP, errno.ENXIO) or kind == "file":
+                raise RepositoryFileError(name, f"it could not be read ({err.strerror})") from None
+            raise _refusal(name, parts, _Blocked(len(parts) - 1, kind, target), "file") from None
         finally:
             os.close(folder)
         mode = os.fstat(fd).st_mode
