@@ -37,7 +37,7 @@ import re
 import stat
 import tarfile
 from dataclasses import dataclass
-from pathlib import Path
+from pathlib import Path, PurePosixPath
 
 import git
 
@@ -105,8 +105,9 @@ def tree_digest(folder: Path) -> str:
 
 
 def _names(folder: Path) -> list[str]:
-    """Every file and link below ``folder`` (not .git's), relative, sorted; links to
-    folders are entries too, not followed."""
+    """Every file and link below ``folder`` (not .git's), relative, in the order of
+    their paths' components (as the tree digest always had them); links to folders are
+    entries too, not followed."""
     found = []
     for root, dirs, names in os.walk(folder):
         base = Path(root)
@@ -115,7 +116,7 @@ def _names(folder: Path) -> list[str]:
         ]
         dirs[:] = [d for d in dirs if d not in SKIP and not (base / d).is_symlink()]
         found += [(base / name).relative_to(folder).as_posix() for name in names]
-    return sorted(found)
+    return sorted(found, key=lambda name: PurePosixPath(name).parts)  # "a/b" before "a-c"
 
 
 def _sha256(path: Path) -> str:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import hashlib
 import os
 import shutil
 import subprocess
@@ -206,3 +207,16 @@ def test_every_failure_while_checking_out_is_a_repository_error(repo, tmp_path):
     (tmp_path / "a-file").write_text("")
     with pytest.raises(RepositoryError, match="could not be checked out: Not a directory"):
         checkout(str(repo), None, tmp_path / "a-file" / "out", tmp_path / "cache")
+
+
+def test_the_tree_digest_orders_paths_by_their_components(tmp_path):
+    """Entries sort folder by folder ("a/b" before "a-c"), so digests stay as recorded."""
+    (tmp_path / "a").mkdir()
+    (tmp_path / "a" / "b").write_text("1\n")
+    (tmp_path / "a-c").write_text("2\n")
+    entries = [
+        f"{name}\0-\0{hashlib.sha256(content).hexdigest()}\n"
+        for name, content in (("a/b", b"1\n"), ("a-c", b"2\n"))
+    ]
+    expected = "sha256:" + hashlib.sha256("".join(entries).encode()).hexdigest()
+    assert tree_digest(tmp_path) == expected
