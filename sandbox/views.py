@@ -10,8 +10,8 @@ undumpable and that folder root's.
 
 So, where some path is out of the uid's reach, bwrap starts in a mount namespace of its
 own (``unshare --mount``), in which root bind-mounts each such path on an empty folder
-(or file) under a fresh folder of the system's temporary folder, which every uid may
-traverse; then ``setpriv`` becomes the job's uid and bwrap mounts from there. The binds
+(or file) under a fresh folder of ``/run/labd/views``, which every uid may traverse and
+only root may write; then ``setpriv`` becomes the job's uid and bwrap mounts from there. The binds
 live only in that namespace and end with the job; on the host there are only the empty
 mount points, removed at the end. Nothing's permissions change.
 
@@ -32,6 +32,7 @@ from pathlib import Path
 from .api import SandboxError
 
 TOOLS = ("unshare", "mount", "setpriv", "sh")  # util-linux, and a shell to chain them
+VIEWS = Path("/run/labd/views")  # root's, searchable by all: the jobs' mount points
 
 
 def unreachable(path: Path, uid: int) -> Path | None:
@@ -135,10 +136,16 @@ class Views:
                 raise refusal(path, blocked, uid, hint)
             self.tools = {name: str(where) for name, where in found.items()}
         if self.folder is None:
-            self.folder = Path(tempfile.mkdtemp(prefix="labd-views-"))
-            self.folder.chmod(0o755)
+            try:
+                VIEWS.mkdir(parents=True, exist_ok=True)
+                for folder in (VIEWS.parent, VIEWS):  # whatever the umask made them
+                    folder.chmod(0o755)
+                self.folder = Path(tempfile.mkdtemp(prefix="job-", dir=VIEWS))
+                self.folder.chmod(0o755)
+            except OSError as err:
+                raise refusal(path, blocked, uid, f" (binding it needs {VIEWS}: {err})") from None
             if (outer := unreachable(self.folder, uid)) is not None:
-                raise refusal(path, blocked, uid, f" ({outer} hides the temporary folder too)")
+                raise refusal(path, blocked, uid, f" (and {outer}, on the way to {VIEWS})")
         view = self.folder / str(len(self.binds))
         if path.is_dir():
             view.mkdir(mode=0o755)

@@ -22,7 +22,7 @@ from sandbox.api import Backend, BackendUnavailable, Job, Limits, SandboxError
 from sandbox.bwrap import UIDS, BwrapBackend
 from sandbox.docker import DockerBackend
 from sandbox.runtime import Runtime
-from sandbox.views import Views
+from sandbox.views import VIEWS, Views
 from tests.sandbox.conftest import assert_nothing_left
 
 pytestmark = pytest.mark.timeout(300)
@@ -42,7 +42,7 @@ def private(workdir: Path) -> Iterator[Path]:
 
 
 def views_left() -> set[Path]:
-    return set(Path(tempfile.gettempdir()).glob("labd-views-*"))
+    return set(VIEWS.glob("job-*"))
 
 
 def backend_in(name: str, runtime: Runtime, private: Path) -> Backend:
