@@ -9,7 +9,6 @@ import asyncio
 import json
 import shutil
 import socket
-import threading
 from pathlib import Path
 
 import pytest
@@ -107,12 +106,15 @@ def attack(name, tmp_path, target=None):
 
 @pytest.fixture
 def host_listener():
-    """A TCP server on the host, on loopback and on the host's own address."""
+    """A TCP server on the host, on loopback and on the host's own address.
+
+    Listening is enough: the kernel completes a connection into the backlog unasked.
+    (A thread blocked in accept() raised EINVAL when the socket closed, failing
+    whichever test ran next.)
+    """
     servers = []
     for host in ("127.0.0.1", socket.gethostbyname(socket.gethostname())):
-        server = socket.create_server((host, 0))
-        threading.Thread(target=lambda s=server: s.accept(), daemon=True).start()
-        servers.append(server)
+        servers.append(socket.create_server((host, 0)))
     yield [s.getsockname() for s in servers]
     for server in servers:
         server.close()
