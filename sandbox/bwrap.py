@@ -18,8 +18,10 @@ while the backend moves the launcher into the job's cgroup (memory, pids, CPU qu
 ``cgroups.py``). At the end the backend kills whatever still runs as the job's uid,
 removes the cgroup and gives the uid back.
 
-bwrap opens the mounted paths as the job's uid, so each must be reachable by others
-(``o+x`` on its folders): ``start()`` says which one is not.
+bwrap opens the mounted paths as the job's uid. Where one of them is out of that uid's
+reach (under a 0700 home folder, say), a lab run as root binds it where the uid can reach
+it, in a mount namespace of the job's own (``views.py``); a lab run as another user runs
+bwrap as itself, and ``start()`` says which folder it cannot search.
 """
 
 from __future__ import annotations
@@ -32,11 +34,12 @@ import logging
 import os
 import shutil
 import signal
-import stat
 import subprocess
 import tempfile
 import time
 import uuid
+from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
 
 from . import runtime as rt
@@ -47,22 +50,23 @@ from .jobs import (
     Plan,
     Stream,
     Supervised,
-    check_requirements,
     chown_tree,
     drain_within,
     install_failure,
     install_plan,
     job_plan,
     open_socket,
+    stage_requirements,
 )
+from .views import Views, refusal, unreachable
 
 log = logging.getLogger(__name__)
 
 UIDS = range(64100, 64356)  # host uids leased to jobs, one each
-# The uids are the host's, so their locks must be too: every lab on this machine, whatever
-# its data folder, leases from the same folder (a lab killing "leftovers" of a uid that
-# another lab's job holds would kill that job).
-UID_LOCKS = Path("/run/lock/labd-sandbox-uids")
+# The uids' locks, one folder for the whole machine: a lab that leases a uid kills what
+# still runs as it, so two labs (labd serve, and labd run with another --data) must
+# never lease the same uid. /run is root's alone, and only a lab run as root leases.
+UID_LOCKS = Path("/run/labd/sandbox-uids")
 SHM = 64 * MiB  # /dev/shm, as Docker's default
 SETUP_TIMEOUT = 60.0  # seconds bwrap may take to make a sandbox
 
@@ -86,7 +90,7 @@ class UidPool:
     def __init__(self, folder: Path, uids: range = UIDS) -> None:
         self.folder = folder
         self.uids = uids
-        folder.mkdir(mode=0o700, parents=True, exist_ok=True)
+        folder.mkdir(parents=True, exist_ok=True)
 
     def lease(self) -> UidLease:
         for uid in self.uids:
@@ -133,19 +137,35 @@ def kill_uid(uid: int, timeout: float = 5.0) -> None:
         time.sleep(0.005)
 
 
-def unreachable(path: Path, uid: int) -> Path | None:
-    """The first folder on the way to ``path`` that ``uid`` may not search, if any."""
-    for folder in reversed(path.parents):
-        st = folder.stat()
-        if st.st_uid == uid:
-            ok = st.st_mode & stat.S_IXUSR
-        elif st.st_gid == uid:
-            ok = st.st_mode & stat.S_IXGRP
-        else:
-            ok = st.st_mode & stat.S_IXOTH
-        if not ok:
-            return folder
-    return None
+def sources(rootfs: Path, plan: Plan) -> list[Path]:
+    """Every host path bwrap mounts for ``plan``, the runtime ``rootfs`` first."""
+    paths = [rootfs, *(m.source for m in plan.mounts)]
+    if plan.bridge_socket is not None:
+        paths.append(plan.bridge_socket)
+    if plan.network and os.path.exists("/etc/resolv.conf"):
+        paths.append(Path(os.path.realpath("/etc/resolv.conf")))
+    return paths
+
+
+@dataclass(frozen=True)
+class Start:
+    """How to start bwrap's command line: the argv, and whom the child becomes."""
+
+    argv: list[str]
+    user: int | None = None  # None: stay who the lab is
+    extra_groups: list[int] | None = None
+
+    @classmethod
+    def as_job(cls, argv: list[str], uid: int, privileged: bool, views: Views) -> Start:
+        """Start ``argv`` as the job's ``uid`` and group alone, when the lab is root:
+        through the views' mount namespace when there are binds (``setpriv`` becomes
+        ``uid`` once they are made), else by the subprocess itself. Otherwise bwrap
+        runs as the lab's own uid."""
+        if privileged and views.binds:
+            return cls(views.command(argv, uid))
+        if privileged:
+            return cls(argv, uid, [])
+        return cls(argv)
 
 
 class BwrapBackend:
@@ -153,7 +173,9 @@ class BwrapBackend:
 
     name = "bwrap"
 
-    def __init__(self, runtime: rt.Runtime, state: Path, bwrap: str = "bwrap") -> None:
+    def __init__(
+        self, runtime: rt.Runtime, state: Path, bwrap: str = "bwrap", uid_locks: Path = UID_LOCKS
+    ) -> None:
         self.runtime = runtime
         self.state = state
         found = shutil.which(bwrap)
@@ -166,7 +188,7 @@ class BwrapBackend:
         self.prlimit = prlimit
         self.privileged = os.geteuid() == 0
         state.mkdir(parents=True, exist_ok=True)
-        self.uids = UidPool(UID_LOCKS) if self.privileged else None
+        self.uids = UidPool(uid_locks) if self.privileged else None
         self._probe()
 
     def runtime_digest(self) -> str:
@@ -176,13 +198,13 @@ class BwrapBackend:
         return await self._start(job_plan(self.runtime, job))
 
     async def install(self, requirements: Path, target: Path) -> None:
-        check_requirements(requirements.read_text())
-        target.mkdir(parents=True, exist_ok=True)
         staging = Path(tempfile.mkdtemp(prefix="install-", dir=self.state))
-        staged = staging / "requirements.txt"
-        shutil.copyfile(requirements, staged)
-        staging.chmod(0o755)
-        staged.chmod(0o644)
+        try:
+            staged = stage_requirements(requirements, staging)
+        except BaseException:
+            shutil.rmtree(staging, ignore_errors=True)
+            raise
+        target.mkdir(parents=True, exist_ok=True)
         lease = self._lease()
         try:
             chown_tree(target, lease.uid)
@@ -205,12 +227,7 @@ class BwrapBackend:
         job_id = f"bwrap-{uuid.uuid4().hex[:12]}"
         run = BwrapRun(job_id, plan, lease, own_lease)
         try:
-            for path in (self.runtime.root, *(m.source for m in plan.mounts), plan.bridge_socket):
-                if path is not None and (blocked := unreachable(path, lease.uid)):
-                    raise SandboxError(
-                        f"the sandbox's uid {lease.uid} cannot reach {path}: "
-                        f"{blocked} is not searchable by others (chmod o+x)"
-                    )
+            run.views = await asyncio.to_thread(self._views, plan, lease.uid)
             if plan.bridge_socket is not None:
                 open_socket(plan.bridge_socket)
             await run.launch(self.bwrap, self.prlimit, self.runtime.root, self.privileged)
@@ -219,23 +236,41 @@ class BwrapBackend:
             raise
         return run
 
+    def _views(self, plan: Plan, uid: int) -> Views:
+        """Where bwrap, run as ``uid``, finds the paths of ``plan`` (see ``views.py``)."""
+        paths = sources(self.runtime.root, plan)
+        if self.privileged:
+            return Views.make(paths, uid)
+        for path in paths:  # bwrap runs as the lab's own uid: nothing to bind with
+            if (blocked := unreachable(path, uid)) is not None:
+                raise refusal(path, blocked, uid)
+        return Views()
+
     def _probe(self) -> None:
         """Run ``true`` in a sandbox, so a machine that cannot says why now."""
         lease = self._lease()
+        plan = _probe_plan()
         try:
-            argv = bwrap_argv(self.bwrap, self.runtime.root, _probe_plan())
+            views = self._views(plan, lease.uid)
+        except SandboxError as err:
+            lease.release()
+            raise BackendUnavailable("bwrap", str(err)) from None
+        try:
+            argv = bwrap_argv(self.bwrap, self.runtime.root, plan, where=views.path)
+            start = Start.as_job(argv, lease.uid, self.privileged, views)
             done = subprocess.run(  # noqa: S603 - our own command line
-                argv,
+                start.argv,
                 capture_output=True,
                 text=True,
                 env={},
                 timeout=30,
                 check=False,
-                user=lease.uid if self.privileged else None,
-                group=lease.uid if self.privileged else None,
-                extra_groups=[] if self.privileged else None,
+                user=start.user,
+                group=start.user,
+                extra_groups=start.extra_groups,
             )
         finally:
+            views.remove()
             lease.release()
         if done.returncode != 0:
             raise BackendUnavailable("bwrap", done.stderr.strip() or f"exit {done.returncode}")
@@ -255,6 +290,7 @@ class BwrapRun(Supervised):
         self._child: int | None = None  # the launcher's host pid
         self._cgroup: JobCgroup | None = None
         self._readers: list[asyncio.Task[None]] = []
+        self.views = Views()  # the backend sets them before launching
 
     async def launch(self, bwrap: str, prlimit: str, rootfs: Path, privileged: bool) -> None:
         limits = self.plan.limits
@@ -264,9 +300,13 @@ class BwrapRun(Supervised):
         block_r, block_w = os.pipe()
         try:
             argv = prlimit_argv(prlimit, limits, memory=self._cgroup is None)
-            argv += bwrap_argv(bwrap, rootfs, self.plan, info_fd=info_w, block_fd=block_r)
+            argv += bwrap_argv(
+                bwrap, rootfs, self.plan, info_fd=info_w, block_fd=block_r, where=self.views.path
+            )
+            # bwrap runs as the job's uid and group alone, unprivileged
+            start = Start.as_job(argv, self.host_uid, privileged, self.views)
             self._proc = await asyncio.create_subprocess_exec(
-                *argv,
+                *start.argv,
                 stdin=subprocess.DEVNULL,
                 stdout=subprocess.PIPE,
                 stderr=subprocess.PIPE,
@@ -274,10 +314,9 @@ class BwrapRun(Supervised):
                 pass_fds=(info_w, block_r),
                 start_new_session=True,
                 cwd="/",
-                # bwrap runs as the job's uid and group alone, unprivileged
-                user=self.host_uid if privileged else None,
-                group=self.host_uid if privileged else None,
-                extra_groups=[] if privileged else None,
+                user=start.user,
+                group=start.user,
+                extra_groups=start.extra_groups,
             )
             os.close(info_w)
             os.close(block_r)
@@ -359,6 +398,7 @@ class BwrapRun(Supervised):
             if self._lease.uid != os.getuid():
                 await asyncio.to_thread(kill_uid, self._lease.uid)
         finally:
+            self.views.remove()
             if self._cgroup is not None:
                 await asyncio.to_thread(self._cgroup.remove)
             if self._own_lease:
@@ -366,16 +406,23 @@ class BwrapRun(Supervised):
 
 
 def bwrap_argv(
-    bwrap: str, rootfs: Path, plan: Plan, info_fd: int | None = None, block_fd: int | None = None
+    bwrap: str,
+    rootfs: Path,
+    plan: Plan,
+    *,
+    info_fd: int | None = None,
+    block_fd: int | None = None,
+    where: Callable[[Path], str] = str,
 ) -> list[str]:
-    """bwrap's command line for ``plan`` with ``rootfs`` as /."""
+    """bwrap's command line for ``plan`` with ``rootfs`` as /; ``where`` says where
+    bwrap finds a host path (``Views.path``)."""
     limits = plan.limits
     uid = str(rt.SANDBOX_UID)
     argv = [bwrap, "--unshare-all", "--unshare-user", "--disable-userns"]
     if plan.network:
         argv.append("--share-net")
     argv += ["--die-with-parent", "--as-pid-1", "--new-session", "--hostname", "sandbox"]
-    argv += ["--uid", uid, "--gid", uid, "--ro-bind", str(rootfs), "/"]
+    argv += ["--uid", uid, "--gid", uid, "--ro-bind", where(rootfs), "/"]
     argv += ["--proc", "/proc", "--dev", "/dev"]
     shm = str(min(SHM, limits.scratch))
     argv += ["--size", shm, "--tmpfs", "/dev/shm", "--remount-ro", "/dev"]  # noqa: S108
@@ -384,18 +431,19 @@ def bwrap_argv(
     if under_mnt:
         argv += ["--tmpfs", rt.MNT]
     for mount in plan.mounts:
-        argv += ["--bind" if mount.writable else "--ro-bind", str(mount.source), mount.target]
+        argv += ["--bind" if mount.writable else "--ro-bind", where(mount.source), mount.target]
     if under_mnt:
         argv += ["--remount-ro", rt.MNT]
     if plan.bridge_socket is not None:
         argv += ["--tmpfs", "/run", "--dir", rt.RUN_DIR]
-        argv += ["--ro-bind", str(plan.bridge_socket), rt.BRIDGE_SOCKET, "--remount-ro", "/run"]
+        argv += ["--ro-bind", where(plan.bridge_socket), rt.BRIDGE_SOCKET, "--remount-ro", "/run"]
     if plan.network:  # the runtime's /etc and the host's resolv.conf, for pip alone
         argv += ["--tmpfs", "/etc"]
         for name in sorted(os.listdir(rootfs / "etc")):
-            argv += ["--ro-bind", str(rootfs / "etc" / name), f"/etc/{name}"]
+            argv += ["--ro-bind", where(rootfs / "etc" / name), f"/etc/{name}"]
         if os.path.exists("/etc/resolv.conf"):
-            argv += ["--ro-bind", os.path.realpath("/etc/resolv.conf"), "/etc/resolv.conf"]
+            resolv = Path(os.path.realpath("/etc/resolv.conf"))
+            argv += ["--ro-bind", where(resolv), "/etc/resolv.conf"]
         argv += ["--remount-ro", "/etc"]
     argv += ["--chdir", "/"]
     if info_fd is not None:

@@ -47,12 +47,12 @@ from .jobs import (
     JobLog,
     Plan,
     Supervised,
-    check_requirements,
     chown_tree,
     install_failure,
     install_plan,
     job_plan,
     open_socket,
+    stage_requirements,
 )
 
 log = logging.getLogger(__name__)
@@ -103,13 +103,13 @@ class DockerBackend:
         return await self._start(job_plan(self.runtime, job))
 
     async def install(self, requirements: Path, target: Path) -> None:
-        check_requirements(requirements.read_text())
-        target.mkdir(parents=True, exist_ok=True)
         staging = Path(tempfile.mkdtemp(prefix="labd-install-"))
-        staged = staging / "requirements.txt"
-        shutil.copyfile(requirements, staged)
-        staging.chmod(0o755)
-        staged.chmod(0o644)
+        try:
+            staged = stage_requirements(requirements, staging)
+        except BaseException:
+            shutil.rmtree(staging, ignore_errors=True)
+            raise
+        target.mkdir(parents=True, exist_ok=True)
         try:
             chown_tree(target, rt.SANDBOX_UID)
             run = await self._start(install_plan(self.runtime, staged, target))

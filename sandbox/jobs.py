@@ -12,6 +12,7 @@ from __future__ import annotations
 import abc
 import asyncio
 import contextlib
+import errno
 import logging
 import os
 import signal
@@ -203,6 +204,33 @@ def check_requirements(text: str) -> None:
         direct = "://" in reference or reference.startswith((".", "/", "~", "file:"))
         if direct and not reference.endswith(".whl"):
             raise InstallError(f"only wheels may be named by URL or path: {raw.strip()}")
+
+
+def stage_requirements(requirements: Path, staging: Path) -> Path:
+    """Check a requirements file and copy it into ``staging`` for the install step.
+
+    ``requirements`` is read only if it is itself a regular file (``O_NOFOLLOW``: a
+    symbolic link is refused, never read through), as UTF-8 text; the copy is what the
+    sandbox sees, so it is the file that was checked.
+    """
+    try:
+        fd = os.open(requirements, os.O_RDONLY | os.O_NOFOLLOW | os.O_NONBLOCK | os.O_CLOEXEC)
+    except OSError as err:
+        reason = "it is a symbolic link" if err.errno == errno.ELOOP else err.strerror
+        raise InstallError(f"the requirements file cannot be read: {reason}") from None
+    with os.fdopen(fd, "rb") as f:
+        if not stat.S_ISREG(os.fstat(f.fileno()).st_mode):
+            raise InstallError("the requirements file is not a regular file")
+        data = f.read()
+    try:
+        check_requirements(data.decode("utf-8"))
+    except UnicodeDecodeError:
+        raise InstallError("the requirements file is not UTF-8 text") from None
+    staged = staging / "requirements.txt"
+    staged.write_bytes(data)
+    staging.chmod(0o755)
+    staged.chmod(0o644)
+    return staged
 
 
 def install_failure(ended: Exit) -> InstallError:

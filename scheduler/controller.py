@@ -5,6 +5,9 @@ command = ["python", "controller.py"]   # run from the repository root
 task = "icreate-maze"                    # default task
 requirements = "requirements.txt"        # optional: installed in the build step
 realtime = false                         # optional: true = wall clock, no lockstep
+
+Both files are read through ``scheduler.files.RepositoryFiles``: as regular files of
+the repository, never through a symbolic link (which would be read on the lab's host).
 """
 
 from __future__ import annotations
@@ -14,7 +17,8 @@ from dataclasses import dataclass
 from pathlib import Path, PurePosixPath
 from typing import Any
 
-from scheduler.errors import ControllerConfigError
+from scheduler.errors import ControllerConfigError, RepositoryFileError
+from scheduler.files import RepositoryFiles
 
 FILE = "lab.toml"
 KEYS = ("command", "task", "requirements", "realtime")
@@ -29,20 +33,23 @@ class ControllerConfig:
     text: str  # the file as written, for the trial record
 
 
-def load(code: Path) -> ControllerConfig:
-    """Read and check ``lab.toml`` at the root of ``code``."""
-    path = code / FILE
-    if not path.is_file():
+def load(code: Path | RepositoryFiles) -> ControllerConfig:
+    """Read and check ``lab.toml`` at the root of the checkout ``code``.
+
+    ``RepositoryFileError`` when lab.toml or the requirements file is a symbolic link
+    (or passes through one), ``ControllerConfigError`` for anything else amiss.
+    """
+    files = code if isinstance(code, RepositoryFiles) else RepositoryFiles(code)
+    if not files.is_file(FILE):
         raise ControllerConfigError(
             f"the repository has no {FILE} at its root; add one with a [controller] table "
             'naming the command, e.g. command = ["python", "controller.py"]'
         )
-    raw = path.read_bytes()
     try:
-        text = raw.decode("utf-8")
+        text = files.read_text(FILE)
         data = tomllib.loads(text)
-    except UnicodeDecodeError:
-        raise ControllerConfigError("it is not UTF-8 text") from None
+    except RepositoryFileError as err:
+        raise ControllerConfigError(err.reason) from None
     except tomllib.TOMLDecodeError as err:
         raise ControllerConfigError(f"it is not valid TOML: {err}") from None
     table = data.get("controller")
@@ -56,7 +63,7 @@ def load(code: Path) -> ControllerConfig:
     return ControllerConfig(
         command=_command(table.get("command")),
         task=_optional_str(table, "task"),
-        requirements=_requirements(code, table),
+        requirements=_requirements(files, table),
         realtime=_bool(table, "realtime"),
         text=text,
     )
@@ -90,13 +97,16 @@ def _bool(table: dict[str, Any], key: str) -> bool:
     return value
 
 
-def _requirements(code: Path, table: dict[str, Any]) -> str | None:
+def _requirements(files: RepositoryFiles, table: dict[str, Any]) -> str | None:
+    """The requirements file's name, once it is known to be a regular UTF-8 file of
+    the repository (so the install step may be handed it, and its hash taken)."""
     name = _optional_str(table, "requirements")
     if name is None:
         return None
     relative = PurePosixPath(name)
     if relative.is_absolute() or ".." in relative.parts:
         raise ControllerConfigError(f"requirements must be a path inside the repository: {name!r}")
-    if not (code / relative).is_file():
+    if not files.is_file(name):
         raise ControllerConfigError(f"requirements names {name!r}, which is not in the repository")
+    files.read_text(name)  # refused here if it is not text, before anything is installed
     return name

@@ -8,6 +8,8 @@ TrialError                      a trial could not be prepared or run
 │   ├── TooLarge                it is over the lab's size limit
 │   ├── FetchTimeout            fetching it took longer than the lab's time limit
 │   └── SubmoduleNotAllowed     a submodule's URL is outside the lab's allow-list
+├── RepositoryFileError         a file the lab reads from a checkout is a link, or no file
+│   └── FileNotInRepository     there is nothing at that name
 ├── ControllerConfigError       lab.toml is missing or does not say what the lab needs
 └── RequirementsError           the repository's requirements could not be installed
 QueueError                      a queue operation was refused
@@ -130,6 +132,22 @@ class SubmoduleNotAllowed(RepositoryError):
             f"submodule {path!r} ({url}) is not allowed here; this lab {where}. Copy that"
             " code into the repository instead, or ask the lab's operator",
         )
+
+
+class RepositoryFileError(TrialError):
+    """A file the lab reads from a checkout (``lab.toml``, the requirements...) is a
+    symbolic link, passes through one, or is no regular file; ``name`` is its path in
+    the repository. The message tells nothing of what a link points at on the host."""
+
+    def __init__(self, name: str, reason: str) -> None:
+        self.name = name
+        self.reason = reason
+        super().__init__(f"{name}: {reason}")
+
+
+class FileNotInRepository(RepositoryFileError):
+    def __init__(self, name: str, reason: str = "it is not in the repository") -> None:
+        super().__init__(name, reason)
 
 
 class ControllerConfigError(TrialError):

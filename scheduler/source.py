@@ -18,25 +18,34 @@ files themselves that names the code whatever its origin.
   ``commit`` is HEAD only when the folder has no uncommitted changes, otherwise None
   and ``dirty`` is set. With ``ref`` given, that commit's files are exported instead.
 - A plain folder is copied as it is; it has no commit.
+
+The repository's symbolic links are kept as they are: they are the controller's
+business inside its sandbox. The lab itself follows none of them on the host: files
+are written with ``scheduler.files.TreeWriter`` and copied with ``copy_files``, and
+``tree_digest`` records a link's target, never what it points at. Whatever goes wrong
+while checking out is a ``RepositoryError`` saying what, never another exception.
 """
 
 from __future__ import annotations
 
 import hashlib
 import io
+import logging
 import os
+import posixpath
 import re
-import shutil
 import stat
 import tarfile
 from dataclasses import dataclass
-from pathlib import Path
+from pathlib import Path, PurePosixPath
 
 import git
 
-from scheduler.errors import RefNotFound, RepositoryError
+from scheduler.errors import RefNotFound, RepositoryError, TrialError
 from scheduler.fetch import PREFLIGHT, FetchPolicy, fetch_commit
+from scheduler.files import TreeWriter, copy_files
 
+log = logging.getLogger("scheduler.source")
 URL = re.compile(r"^(?:[a-z][a-z0-9+.-]*://|[\w.-]+@[\w.-]+:)")
 SKIP = {".git", "__pycache__"}
 
@@ -63,31 +72,59 @@ def checkout(
     """Put the files of ``source`` at ``ref`` into ``dest`` (which must not exist).
 
     ``policy`` is the lab's fetch policy; None for ``labd run`` (see the module's doc).
+    Every failure is a ``TrialError`` (a ``RepositoryError`` with the reason).
     """
-    if policy is not None or is_url(source):
-        return _from_mirror(source, ref, dest, cache, policy or PREFLIGHT)
-    return _from_folder(Path(source), ref, dest)
+    try:
+        if policy is not None or is_url(source):
+            return _from_mirror(source, ref, dest, cache, policy or PREFLIGHT)
+        return _from_folder(Path(source), ref, dest)
+    except TrialError:
+        raise
+    except (OSError, git.GitError, tarfile.TarError, UnicodeError) as err:
+        # Not the repository's doing (a full disk, git broken...): say so, keep the trace.
+        log.warning("checking out %s failed", source, exc_info=True)
+        raise RepositoryError(source, f"could not be checked out: {_describe(err)}") from None
 
 
 def tree_digest(folder: Path) -> str:
-    """A digest of a folder's files: relative paths, executable bits and contents."""
+    """A digest of a folder's files: relative paths, executable bits and contents.
+
+    A symbolic link counts as its target's text (to a file or a folder alike); no link
+    is followed.
+    """
     entries = []
-    for path in sorted(_files(folder)):
-        relative = path.relative_to(folder).as_posix()
-        if path.is_symlink():
+    for relative in _names(folder):
+        path = folder / relative
+        st = path.lstat()
+        if stat.S_ISLNK(st.st_mode):
             entries.append(f"{relative}\0link\0{os.readlink(path)}\n")
-            continue
-        mode = "x" if path.stat().st_mode & stat.S_IXUSR else "-"
-        entries.append(f"{relative}\0{mode}\0{hashlib.sha256(path.read_bytes()).hexdigest()}\n")
+        elif stat.S_ISREG(st.st_mode):
+            mode = "x" if st.st_mode & stat.S_IXUSR else "-"
+            entries.append(f"{relative}\0{mode}\0{_sha256(path)}\n")
     return "sha256:" + hashlib.sha256("".join(entries).encode()).hexdigest()
 
 
-def _files(folder: Path) -> list[Path]:
+def _names(folder: Path) -> list[str]:
+    """Every file and link below ``folder`` (not .git's), relative, in the order of
+    their paths' components (as the tree digest always had them); links to folders are
+    entries too, not followed."""
     found = []
     for root, dirs, names in os.walk(folder):
-        dirs[:] = [d for d in dirs if d not in SKIP]
-        found += [Path(root) / name for name in names]
-    return found
+        base = Path(root)
+        found += [
+            (base / d).relative_to(folder).as_posix() for d in dirs if (base / d).is_symlink()
+        ]
+        dirs[:] = [d for d in dirs if d not in SKIP and not (base / d).is_symlink()]
+        found += [(base / name).relative_to(folder).as_posix() for name in names]
+    return sorted(found, key=lambda name: PurePosixPath(name).parts)  # "a/b" before "a-c"
+
+
+def _sha256(path: Path) -> str:
+    digest = hashlib.sha256()
+    with open(os.open(path, os.O_RDONLY | os.O_NOFOLLOW | os.O_CLOEXEC), "rb") as f:
+        while block := f.read(1 << 20):
+            digest.update(block)
+    return digest.hexdigest()
 
 
 def _from_folder(folder: Path, ref: str | None, dest: Path) -> Source:
@@ -101,14 +138,18 @@ def _from_folder(folder: Path, ref: str | None, dest: Path) -> Source:
             raise RepositoryError(
                 str(folder), "is not in a git repository, so --ref means nothing here"
             ) from None
-        _copy(folder, dest, sorted(_files(folder)))
+        dest.mkdir(parents=True)
+        with TreeWriter(dest, str(folder)) as writer:
+            copy_files(folder, _names(folder), writer)
         return Source(str(folder), None, tree_digest(dest), None, "", dirty=False)
     with repo:
         root = Path(repo.working_tree_dir or folder).resolve()
         subdir = folder.relative_to(root).as_posix() if folder != root else ""
         if ref is not None:
             commit = _resolve(repo, str(folder), ref)
-            _export(repo, commit, subdir, dest, str(folder))
+            dest.mkdir(parents=True)
+            with TreeWriter(dest, str(folder)) as writer:
+                _export(repo, commit, subdir, writer, str(folder))
             return Source(
                 str(folder),
                 commit,
@@ -120,8 +161,11 @@ def _from_folder(folder: Path, ref: str | None, dest: Path) -> Source:
         listed = repo.git.ls_files(
             "--cached", "--others", "--exclude-standard", "-z", "--", subdir or "."
         ).split("\0")
-        paths = sorted(root / p for p in listed if p and (root / p).exists())
-        _copy(root / subdir if subdir else root, dest, paths)
+        prefix = f"{subdir}/" if subdir else ""
+        names = sorted(p.removeprefix(prefix) for p in listed if p and p.startswith(prefix))
+        dest.mkdir(parents=True)
+        with TreeWriter(dest, str(folder)) as writer:
+            copy_files(folder, names, writer)
         dirty = bool(repo.git.status("--porcelain", "--", subdir or "."))
         head = None if dirty or not repo.head.is_valid() else repo.head.commit.hexsha
         return Source(
@@ -138,14 +182,14 @@ def _from_mirror(
     source: str, ref: str | None, dest: Path, cache: Path, policy: FetchPolicy
 ) -> Source:
     fetched = fetch_commit(source, ref, cache, policy)
-    with git.Repo(fetched.mirror) as repo:
-        _export(repo, fetched.commit, "", dest, fetched.repository)
-        git_tree = _git_tree(repo, fetched.commit, "")
-    for sub in fetched.submodules:
-        if not (dest / sub.path).resolve().is_relative_to(dest.resolve()):
-            raise RepositoryError(fetched.repository, f"submodule path {sub.path!r} leaves it")
-        with git.Repo(sub.mirror) as repo:
-            _export(repo, sub.commit, "", dest / sub.path, sub.repository, into=True)
+    dest.mkdir(parents=True)
+    with TreeWriter(dest, fetched.repository) as writer:
+        with git.Repo(fetched.mirror) as repo:
+            _export(repo, fetched.commit, "", writer, fetched.repository)
+            git_tree = _git_tree(repo, fetched.commit, "")
+        for sub in fetched.submodules:  # outer first: a submodule's folder exists by now
+            with git.Repo(sub.mirror) as repo:
+                _export(repo, sub.commit, "", writer, sub.repository, into=sub.path)
     return Source(fetched.repository, fetched.commit, tree_digest(dest), git_tree, "", False)
 
 
@@ -165,10 +209,19 @@ def _git_tree(repo: git.Repo, commit: str, subdir: str) -> str | None:
 
 
 def _export(
-    repo: git.Repo, commit: str, subdir: str, dest: Path, source: str, *, into: bool = False
+    repo: git.Repo,
+    commit: str,
+    subdir: str,
+    writer: TreeWriter,
+    source: str,
+    *,
+    into: str = "",
 ) -> None:
-    """Extract ``commit``'s files (of ``subdir``) into ``dest``: a new folder, or with
-    ``into`` an existing one (a submodule's path, which the superproject's export made).
+    """Write ``commit``'s files (of ``subdir``) through ``writer``, below its folder
+    ``into`` (a submodule's path; "" for the root).
+
+    Regular files, folders and symbolic links are written, the links as they are;
+    nothing else of a tree is (git has nothing else but submodules, exported apart).
     """
     buffer = io.BytesIO()
     try:
@@ -178,26 +231,35 @@ def _export(
             source, f"could not export {commit[:12]}: {_git_reason(err)}"
         ) from None
     buffer.seek(0)
-    dest.mkdir(parents=True, exist_ok=into)
     prefix = f"{subdir}/" if subdir else ""
-    with tarfile.open(fileobj=buffer) as archive:
-        for member in archive.getmembers():
-            if not member.name.startswith(prefix) or member.name == subdir:
-                continue
-            member.name = member.name[len(prefix) :]
-            if member.isfile() or member.isdir() or member.issym():
-                archive.extract(member, dest, filter="data")
+    try:
+        with tarfile.open(fileobj=buffer) as archive:
+            for member in archive:
+                name = member.name.rstrip("/")
+                if not name.startswith(prefix) or name == prefix:
+                    continue
+                name = (
+                    posixpath.join(into, name.removeprefix(prefix)) if into else name[len(prefix) :]
+                )
+                if member.isdir():
+                    writer.directory(name)
+                elif member.issym():
+                    writer.symlink(name, member.linkname)
+                elif member.isfile():
+                    data = archive.extractfile(member)
+                    assert data is not None  # a regular file's member has data
+                    writer.file(name, data, executable=bool(member.mode & 0o111))
+    except tarfile.TarError as err:
+        raise RepositoryError(source, f"could not export {commit[:12]}: {err}") from None
 
 
-def _copy(base: Path, dest: Path, paths: list[Path]) -> None:
-    dest.mkdir(parents=True)
-    for path in paths:
-        target = dest / path.relative_to(base)
-        target.parent.mkdir(parents=True, exist_ok=True)
-        if path.is_symlink():
-            target.symlink_to(os.readlink(path))
-        elif path.is_file():
-            shutil.copy2(path, target)
+def _describe(err: BaseException) -> str:
+    """What went wrong, without the host paths an OSError carries."""
+    if isinstance(err, git.GitCommandError):
+        return _git_reason(err)
+    if isinstance(err, OSError) and err.strerror:
+        return err.strerror
+    return type(err).__name__
 
 
 def _git_reason(err: git.GitCommandError) -> str:

@@ -7,9 +7,10 @@ Make a repository (a real ``git init``, real commits with a fixed author):
     repo.tag("v1")                   # at HEAD, or tag("v1", at=first)
     repo.branch("dev", at=first)     # force=True to move an existing branch
     repo.commit({"c.py": None})      # None deletes a file; bytes are written as they are
+    repo.commit({"data": Link("/mnt/x")})   # a symbolic link, committed as git keeps one
     repo.add_submodule("lib", "../lib", commit)   # a gitlink and .gitmodules, no clone
     repo.rev("v1"), repo.path, repo.url  # full commit id; the folder; a file:// URL
-    repo.git("log", "--oneline")     # any git command in it; returns stdout
+    repo.git("log", "--oneline")     # any git command in it (input= its stdin); returns stdout
 
 Serve a folder of repositories over HTTP (``git http-backend`` as CGI, protocol v2,
 on 127.0.0.1 and a free port):
@@ -53,6 +54,13 @@ GIT_ENV = {
 }
 
 
+@dataclass(frozen=True)
+class Link:
+    """A symbolic link for ``GitRepo.commit`` to make: ``{"data": Link("/mnt/x")}``."""
+
+    target: str
+
+
 class GitRepo:
     """A git work tree made for a test."""
 
@@ -63,7 +71,7 @@ class GitRepo:
     def create(
         cls,
         path: Path,
-        files: Mapping[str, str | bytes | None] | None = None,
+        files: Mapping[str, str | bytes | Link | None] | None = None,
         message: str = "first",
         *,
         branch: str = "main",
@@ -80,7 +88,7 @@ class GitRepo:
     def url(self) -> str:
         return f"file://{self.path.resolve()}"
 
-    def git(self, *args: str) -> str:
+    def git(self, *args: str, input: str | None = None) -> str:
         env = {k: v for k, v in os.environ.items() if not k.startswith("GIT_")} | GIT_ENV
         done = subprocess.run(
             ["git", "-C", str(self.path), *args],
@@ -88,18 +96,25 @@ class GitRepo:
             capture_output=True,
             text=True,
             env=env,
+            input=input,
         )
         return done.stdout.strip()
 
-    def commit(self, files: Mapping[str, str | bytes | None], message: str = "change") -> str:
-        """Write (str or bytes) or delete (None) files, commit all, return the commit id."""
+    def commit(
+        self, files: Mapping[str, str | bytes | Link | None], message: str = "change"
+    ) -> str:
+        """Write (str or bytes), link (Link) or delete (None) files, commit all, return
+        the commit id."""
         for name, content in files.items():
             target = self.path / name
             if content is None:
                 target.unlink()
                 continue
             target.parent.mkdir(parents=True, exist_ok=True)
-            if isinstance(content, bytes):
+            if isinstance(content, Link):
+                target.unlink(missing_ok=True)
+                target.symlink_to(content.target)
+            elif isinstance(content, bytes):
                 target.write_bytes(content)
             else:
                 target.write_text(content)

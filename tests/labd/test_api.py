@@ -331,4 +331,6 @@ async def test_a_worker_of_another_version_is_refused_naming_both(api, service):
     same = {**auth(token), PROTOCOL_HEADER: str(PROTOCOL), VERSION_HEADER: __version__}
     hello = await api.get("/api/workers/hello", headers=same)
     assert hello.json() == {"version": __version__, "protocol": PROTOCOL, "worker": "farm"}
-    assert (await api.post("/api/workers/claim", json={"worker": "w1"}, headers=same)).status_code == 204
+    assert (
+        await api.post("/api/workers/claim", json={"worker": "w1"}, headers=same)
+    ).status_code == 204

@@ -58,3 +58,19 @@ async def test_options_that_would_build_are_refused(
     with pytest.raises(InstallError, match="not allowed"):
         await backend.install(requirements(workdir, f"six\n{line}\n"), workdir / "never")
     assert not (workdir / "never").exists()
+
+
+async def test_a_linked_or_binary_requirements_file_is_refused(
+    backend: Backend, workdir: Path
+) -> None:
+    """The install step reads the file itself, never through a link, and only as text."""
+    secret = requirements(workdir, "six==1.17.0  # the host's file\n")
+    link = secret.with_name("linked.txt")
+    link.symlink_to(secret)
+    with pytest.raises(InstallError, match="it is a symbolic link"):
+        await backend.install(link, workdir / "never")
+    binary = requirements(workdir, "")
+    binary.write_bytes(b"\xff\xfesix\n")
+    with pytest.raises(InstallError, match="not UTF-8 text"):
+        await backend.install(binary, workdir / "never")
+    assert not (workdir / "never").exists()

@@ -2,12 +2,16 @@
 
 from __future__ import annotations
 
+import hashlib
+import os
+import shutil
 import subprocess
 
 import pytest
 
 from scheduler.errors import RepositoryError
 from scheduler.source import checkout, tree_digest
+from tests.helpers.githttp import GitRepo, Link
 
 
 def git(cwd, *args):
@@ -102,3 +106,117 @@ def test_tree_digest_names_content(tmp_path):
     assert tree_digest(a) == tree_digest(b)
     (b / "f.py").chmod(0o755)
     assert tree_digest(a) != tree_digest(b)
+
+
+LINKS = {
+    "lab.toml": Link("/etc/passwd"),  # the lab refuses to read it, later (test_files.py)
+    "data": Link("/mnt/x"),  # the controller's business, inside its sandbox
+    "lib": Link("sub"),
+    "up": Link("../../.."),
+    "sub/x.txt": "x\n",
+}
+
+
+def linked(tmp_path):
+    return GitRepo.create(tmp_path / "linked", LINKS)
+
+
+def assert_links_kept(dest):
+    for name, link in LINKS.items():
+        if isinstance(link, Link):
+            assert os.readlink(dest / name) == link.target, name
+    assert (dest / "sub" / "x.txt").read_text() == "x\n"
+
+
+def test_a_repositorys_links_are_checked_out_as_they_are(tmp_path):
+    """Every way of taking code keeps its links, named by their text, and agrees on the tree."""
+    repo = linked(tmp_path)
+    plain = tmp_path / "plain"
+    shutil.copytree(repo.path, plain, symlinks=True, ignore=shutil.ignore_patterns(".git"))
+    ways = {
+        "url": (repo.url, None),
+        "work tree": (str(repo.path), None),
+        "ref": (str(repo.path), "main"),
+        "plain folder": (str(plain), None),
+    }
+    trees = set()
+    for way, (source, ref) in ways.items():
+        dest = tmp_path / "out" / way
+        trees.add(checkout(source, ref, dest, tmp_path / "cache").tree)
+        assert_links_kept(dest)
+    assert len(trees) == 1
+
+
+def crafted(tmp_path, outside):
+    """A repository whose one commit has a link ``a`` and a file ``a/b`` (git fsck would
+    complain; git archive writes both), to make an export write through the link."""
+    repo = GitRepo.create(tmp_path / "crafted")
+    target = repo.git("hash-object", "-w", "--stdin", input=str(outside))
+    blob = repo.git("hash-object", "-w", "--stdin", input="pwned\n")
+    inner = repo.git("mktree", input=f"100644 blob {blob}\tb\n")
+    tree = repo.git("mktree", input=f"120000 blob {target}\ta\n040000 tree {inner}\ta\n")
+    commit = repo.git("commit-tree", tree, "-m", "crafted")
+    repo.git("update-ref", "refs/heads/main", commit)
+    return repo
+
+
+def test_an_export_never_writes_through_a_link(tmp_path):
+    """A tree that would write a file through its own link is a RepositoryError; nothing
+    lands outside the checkout."""
+    outside = tmp_path / "outside"
+    outside.mkdir()
+    repo = crafted(tmp_path, outside)
+    for n, (source, ref) in enumerate([(repo.url, None), (str(repo.path), "main")]):
+        with pytest.raises(RepositoryError, match="a is both a symbolic link and a folder"):
+            checkout(source, ref, tmp_path / f"out-{n}", tmp_path / "cache")
+    assert list(outside.iterdir()) == []
+
+
+def test_a_work_tree_is_copied_without_following_its_links(repo, tmp_path):
+    """A tracked folder replaced by a link: what lies behind the link is not copied."""
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    (elsewhere / "x.txt").write_text("the host's\n")
+    shutil.rmtree(repo / "sub")
+    (repo / "sub").symlink_to(elsewhere)
+    source = checkout(str(repo), None, tmp_path / "out", tmp_path / "cache")
+    assert source.dirty
+    assert os.readlink(tmp_path / "out" / "sub") == str(elsewhere)
+    (elsewhere / "x.txt").write_text("changed\n")
+    again = checkout(str(repo), None, tmp_path / "again", tmp_path / "cache")
+    assert again.tree == source.tree  # what the link points at is no part of the code
+
+
+def test_the_tree_digest_counts_links_by_their_text(tmp_path):
+    """A link (to a file or a folder) counts as its target's text, never what it points at."""
+    a, b = tmp_path / "a", tmp_path / "b"
+    for folder, content in ((a, "one\n"), (b, "two\n")):
+        (folder / "real").mkdir(parents=True)
+        (folder / "real" / "f").write_text(content)
+    for folder in (a, b):
+        (folder / "tree").mkdir()
+        (folder / "tree" / "link").symlink_to("../real")
+    assert tree_digest(a / "tree") == tree_digest(b / "tree")
+    (b / "tree" / "link").unlink()
+    (b / "tree" / "link").symlink_to("elsewhere")
+    assert tree_digest(a / "tree") != tree_digest(b / "tree")
+
+
+def test_every_failure_while_checking_out_is_a_repository_error(repo, tmp_path):
+    """A checkout that fails on the lab's side (here: no folder to write into) says so."""
+    (tmp_path / "a-file").write_text("")
+    with pytest.raises(RepositoryError, match="could not be checked out: Not a directory"):
+        checkout(str(repo), None, tmp_path / "a-file" / "out", tmp_path / "cache")
+
+
+def test_the_tree_digest_orders_paths_by_their_components(tmp_path):
+    """Entries sort folder by folder ("a/b" before "a-c"), so digests stay as recorded."""
+    (tmp_path / "a").mkdir()
+    (tmp_path / "a" / "b").write_text("1\n")
+    (tmp_path / "a-c").write_text("2\n")
+    entries = [
+        f"{name}\0-\0{hashlib.sha256(content).hexdigest()}\n"
+        for name, content in (("a/b", b"1\n"), ("a-c", b"2\n"))
+    ]
+    expected = "sha256:" + hashlib.sha256("".join(entries).encode()).hexdigest()
+    assert tree_digest(tmp_path) == expected

@@ -7,10 +7,8 @@ from __future__ import annotations
 
 import asyncio
 import json
-import os
 import shutil
 import socket
-import threading
 from pathlib import Path
 
 import pytest
@@ -18,49 +16,17 @@ from mcap.reader import make_reader
 from mcap_ros2.decoder import DecoderFactory
 from rosbags.highlevel import AnyReader
 
-import sandbox
 from labd.graph.graph import Side
 from labd.recorder import data_digest, read_channels, read_messages
-from labd.trial import LabHost, client_library
 from repository.trial import Outcome
 from sandbox.api import Limits, MiB
 from scheduler.runner import RunOptions, TrialSpec, run_trial
+from tests.scheduler.conftest import BACKENDS, make_backend
 
 pytestmark = pytest.mark.integration
 ROOT = Path(__file__).resolve().parents[2]
 EXAMPLES = ROOT / "controllers" / "examples"
 ATTACKS = Path(__file__).resolve().parent / "attacks"
-BACKENDS = ["bwrap", "docker"]
-
-
-@pytest.fixture(scope="session")
-def cache(request) -> Path:
-    """pytest's cache folder, so later sessions reuse the runtime (bwrap needs o+x on it)."""
-    folder = request.config.cache.mkdir("labd-trials")
-    for path in (folder, *folder.parents):
-        if not path.stat().st_mode & 0o001:
-            pytest.fail(f"{path} must be searchable by others for the sandbox's user")
-    folder.chmod(0o755)
-    return folder
-
-
-def make_backend(name, cache):
-    try:
-        return sandbox.backend(name, cache, extra_packages=[client_library()])
-    except sandbox.BackendUnavailable as err:
-        if os.environ.get("CI"):
-            pytest.fail(str(err))
-        pytest.skip(str(err))
-
-
-@pytest.fixture(scope="session", params=BACKENDS)
-def backend(request, cache):
-    return make_backend(request.param, cache)
-
-
-@pytest.fixture(scope="session")
-def host():
-    return LabHost()
 
 
 def run(backend, cache, host, tmp_path, source, **kwargs):
@@ -144,12 +110,15 @@ def attack(name, tmp_path, target=None):
 
 @pytest.fixture
 def host_listener():
-    """A TCP server on the host, on loopback and on the host's own address."""
+    """A TCP server on the host, on loopback and on the host's own address.
+
+    Listening is enough: the kernel completes a connection into the backlog unasked.
+    (A thread blocked in accept() raised EINVAL when the socket closed, failing
+    whichever test ran next.)
+    """
     servers = []
     for host in ("127.0.0.1", socket.gethostbyname(socket.gethostname())):
-        server = socket.create_server((host, 0))
-        threading.Thread(target=lambda s=server: s.accept(), daemon=True).start()
-        servers.append(server)
+        servers.append(socket.create_server((host, 0)))
     yield [s.getsockname() for s in servers]
     for server in servers:
         server.close()

@@ -213,7 +213,10 @@ async def test_an_exception_in_a_trial_is_an_error_and_the_worker_goes_on(queue,
     for trial_id in ids:
         trial = queue.trial(trial_id)
         assert trial.outcome is Outcome.ERROR
-        assert trial.reason == "the lab failed while running the trial (RuntimeError: a bug in the lab)"
+        assert (
+            trial.reason
+            == "the lab failed while running the trial (RuntimeError: a bug in the lab)"
+        )
 
 
 async def test_a_stuck_trial_is_stopped_at_its_deadline_and_filed(queue, tmp_path):
