@@ -109,8 +109,15 @@ class Service:
                 ),
             )
             self.workers.append(worker)
-            self._tasks.append(asyncio.create_task(worker.run(self._stop), name=worker.config.name))
+            task = asyncio.create_task(worker.run(self._stop), name=worker.config.name)
+            task.add_done_callback(self._worker_ended)
+            self._tasks.append(task)
         log.info("%d worker(s) on %s", len(self.workers), backend.name)
+
+    def _worker_ended(self, task: asyncio.Task[None]) -> None:
+        """A worker's loop ends only when the service stops; anything else is a bug, logged."""
+        if not task.cancelled() and task.exception() is not None:
+            log.error("worker %s died", task.get_name(), exc_info=task.exception())
 
     def _release_dead_workers(self) -> list[int]:
         """Requeue trials held by workers of this host whose process is gone."""

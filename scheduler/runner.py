@@ -41,6 +41,7 @@ from scheduler import controller as controller_config
 from scheduler import manifest as manifests
 from scheduler.errors import ControllerConfigError, RequirementsError, TrialError
 from scheduler.fetch import FetchPolicy
+from scheduler.files import RepositoryFiles
 from scheduler.host import TrialHost, TrialLab
 from scheduler.outcome import judge
 from scheduler.source import Source, checkout
@@ -232,15 +233,19 @@ async def _prepare(
     python_paths, requirements_sha = [], None
     if config.requirements:
         target, requirements_sha = await install_requirements(
-            backend, code / config.requirements, cache
+            backend, code, config.requirements, cache
         )
         python_paths.append(target)
     return _Prepared(spec, source, config, task, values, host, python_paths, requirements_sha)
 
 
-async def install_requirements(backend: Backend, file: Path, cache: Path) -> tuple[Path, str]:
-    """Install a requirements file into a folder cached by its hash and the runtime's."""
-    sha = hashlib.sha256(file.read_bytes()).hexdigest()
+async def install_requirements(
+    backend: Backend, code: Path, name: str, cache: Path
+) -> tuple[Path, str]:
+    """Install the checkout's requirements file ``name`` into a folder cached by its hash
+    and the runtime's (the file is read as the repository's own, never through a link)."""
+    file = code / name
+    sha = hashlib.sha256(RepositoryFiles(code).read_bytes(name)).hexdigest()
     key = hashlib.sha256(f"{sha}:{backend.runtime_digest()}".encode()).hexdigest()[:32]
     target = cache / "requirements" / key
     if target.is_dir():
