@@ -24,6 +24,7 @@ import s3fs
 from mcap.reader import make_reader
 from moto.server import ThreadedMotoServer
 
+from scheduler.remote import PROTOCOL, PROTOCOL_HEADER
 from tests.helpers.githttp import GitHttpServer, GitRepo
 
 pytestmark = pytest.mark.integration
@@ -291,7 +292,7 @@ def test_a_worker_on_another_machine(make_lab, tmp_path, cache):
     denied = httpx.post(
         f"{lab.server}/api/workers/claim",
         json={"worker": "x"},
-        headers={"Authorization": f"Bearer {lab.token}"},
+        headers={"Authorization": f"Bearer {lab.token}", PROTOCOL_HEADER: str(PROTOCOL)},
     )
     assert denied.status_code == 403
     assert "not a worker" in denied.json()["error"]
