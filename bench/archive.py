@@ -39,11 +39,18 @@ from labd.api.app import create_app
 from labd.api.server import HttpServer
 from labd.service import Service, ServiceConfig
 from repository.index import Filters, Index, connect
+from repository.trial import Outcome, Status
 from scheduler.fetch import FetchPolicy, resolve
 
 ROOT = Path(__file__).resolve().parent.parent
 TASKS = ("icreate-maze", "pr2-table")
-STATUSES = ("succeeded",) * 6 + ("failed", "failed", "cancelled", "queued")
+# (status, outcome): mostly finished, some of each outcome, a few cancelled or waiting
+ENDINGS = (
+    [("finished", "success")] * 4
+    + [("finished", "fail")] * 2
+    + [("finished", "error")] * 2
+    + [("cancelled", None), ("queued", None)]
+)
 CONTROLLER = """\
 from controllers.client import Lab, EpisodeOver
 with Lab.connect() as lab:
@@ -69,7 +76,7 @@ def synthetic(n: int, rng: random.Random) -> list[dict[str, Any]]:
     rows = []
     for i in range(n):
         c = rng.randrange(len(commits))
-        status = rng.choice(STATUSES)
+        status, outcome = rng.choice(ENDINGS)
         rows.append(
             {
                 "repository": repos[c % len(repos)],
@@ -81,8 +88,10 @@ def synthetic(n: int, rng: random.Random) -> list[dict[str, Any]]:
                 "submitter": users[c % len(users)],
                 "public": rng.random() < 0.8,
                 "rerun_of": (i - rng.randrange(1, 50)) if i > 50 and rng.random() < 0.1 else None,
+                "kind": "trial",
                 "status": status,
-                "reason": "the episode ended at tick 900: succeeded",
+                "outcome": outcome,
+                "reason": "the task was achieved at tick 900: reached the goal",
                 "created": start + i * 30.0,
                 "started": start + i * 30.0 + 1,
                 "finished": start + i * 30.0 + 20,
@@ -125,21 +134,23 @@ def bench_index(url: str, n: int, repeat: int, rng: random.Random) -> dict[str, 
     commits = [r["commit"] for r in rows]
     users = sorted({r["submitter"] for r in rows})
     repos = sorted({r["repository"] for r in rows})
-    page2 = index.find(Filters(status="succeeded"), limit=50).next
+    page2 = index.find(Filters(outcome=Outcome.SUCCESS), limit=50).next
     queries: dict[str, Callable[[], Any]] = {
         "baseline: one trial by id": lambda: index.trial(rng.randrange(1, n)),
         "commit page": lambda: index.commit_page(rng.choice(commits)),
         "commit page by 8-digit prefix": lambda: index.commit_page(rng.choice(commits)[:8]),
-        "list: status + task": lambda: index.find(Filters(status="failed", task=rng.choice(TASKS))),
+        "list: outcome + task": lambda: index.find(
+            Filters(outcome=Outcome.ERROR, task=rng.choice(TASKS))
+        ),
         "list: user": lambda: index.find(Filters(submitter=rng.choice(users))),
         "list: repository": lambda: index.find(Filters(repository=rng.choice(repos))),
         "list: user + time range": lambda: index.find(
             Filters(submitter=rng.choice(users), since=1.7e9 + n * 10, until=1.7e9 + n * 20)
         ),
         "list: second page": lambda: index.find(
-            Filters(status="succeeded"), limit=50, before=page2
+            Filters(outcome=Outcome.SUCCESS), limit=50, before=page2
         ),
-        "list: queued (the queue's view)": lambda: index.find(Filters(status="queued")),
+        "list: queued (the queue's view)": lambda: index.find(Filters(status=Status.QUEUED)),
     }
     results = {}
     for name, fn in queries.items():
@@ -218,9 +229,10 @@ async def bench_service(folder: Path, trials: int, sandbox: str | None) -> dict[
             await wait_idle(service)
             elapsed = time.perf_counter() - t
             rows = [service.index.trial(i) for i in ids]
-            bad = [r for r in rows if r["status"] != "succeeded"]
+            # 2 s of maze: each runs to its end short of the goal, a fail; an error is a bug
+            bad = [r for r in rows if r.outcome is not Outcome.FAIL]
             if bad:
-                raise SystemExit(f"trials failed: {[(r['id'], r['reason']) for r in bad]}")
+                raise SystemExit(f"trials broke: {[(r.id, r.reason) for r in bad]}")
             out[f"trials_per_minute_{workers}_workers"] = trials / elapsed * 60
         await http.close()
         await service.close()
@@ -233,15 +245,15 @@ async def bench_service(folder: Path, trials: int, sandbox: str | None) -> dict[
 async def wait_started(service: Service, trial_id: int) -> float:
     while True:
         row = service.index.trial(trial_id)
-        if row["started"] is not None:
-            return float(row["started"])
+        if row.started is not None:
+            return row.started.timestamp()
         await asyncio.sleep(0.01)
 
 
 async def wait_idle(service: Service) -> None:
     while True:
-        page = service.index.find(Filters(status="queued"), limit=1).items
-        page += service.index.find(Filters(status="running"), limit=1).items
+        page = service.index.find(Filters(status=Status.QUEUED), limit=1).items
+        page += service.index.find(Filters(status=Status.RUNNING), limit=1).items
         if not page:
             return
         await asyncio.sleep(0.05)

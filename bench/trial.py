@@ -35,9 +35,9 @@ from pathlib import Path
 from typing import Any
 
 import sandbox
-from labd.commands.run import client_library
-from labd.graph.types import TypeRegistry
 from labd.sim.simulation import Simulation
+from labd.trial import LabHost, client_library
+from repository.trial import Outcome
 from sandbox.api import Exit, Job
 from scheduler.runner import RunOptions, TrialSpec, run_trial
 
@@ -114,7 +114,7 @@ async def _relay(socket: Path) -> asyncio.Server:
 
 
 def trials(backend: Any, seeds: Sequence[int], cache: Path) -> list[dict[str, float]]:
-    types = TypeRegistry.default()
+    host = LabHost()
     out = []
     with tempfile.TemporaryDirectory(prefix="labd-bench-") as folder:
         for seed in seeds:
@@ -124,12 +124,12 @@ def trials(backend: Any, seeds: Sequence[int], cache: Path) -> list[dict[str, fl
                     backend=backend,
                     out=Path(folder) / f"{backend.name}-{seed}",
                     cache=cache,
-                    types=types,
+                    host=host,
                     options=RunOptions(),
                 )
             )
-            if result.status != "succeeded":
-                raise SystemExit(f"{backend.name} seed {seed}: {result.status}: {result.reason}")
+            if result.outcome is not Outcome.SUCCESS:
+                raise SystemExit(f"{backend.name} seed {seed}: {result.outcome}: {result.reason}")
             ticks = int(result.metrics["ticks"])
             assert result.start_seconds is not None and result.run_seconds is not None
             out.append(

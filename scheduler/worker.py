@@ -115,14 +115,16 @@ class Worker:
                 if claim is None:
                     self.wake.clear()
                     waker = asyncio.create_task(self.wake.wait())
-                    await asyncio.wait(
-                        {waker, stopping},
-                        timeout=self.config.poll,
-                        return_when=asyncio.FIRST_COMPLETED,
-                    )
-                    waker.cancel()
-                    with contextlib.suppress(asyncio.CancelledError):
-                        await waker
+                    try:
+                        await asyncio.wait(
+                            {waker, stopping},
+                            timeout=self.config.poll,
+                            return_when=asyncio.FIRST_COMPLETED,
+                        )
+                    finally:
+                        waker.cancel()
+                        with contextlib.suppress(asyncio.CancelledError):
+                            await waker
                     continue
                 try:
                     await self.execute(claim)
