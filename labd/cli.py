@@ -15,10 +15,12 @@ Exit codes are listed in ``labd.commands.common`` and at the end of ``labd --hel
 from __future__ import annotations
 
 import argparse
+import json
 import logging
 import os
 import sys
 from collections.abc import Callable, Sequence
+from typing import NoReturn
 
 from labd import __version__
 from labd.commands import demo, migrate, remote, run, serve, users, worker
@@ -27,8 +29,18 @@ from labd.commands.common import EPILOG
 log = logging.getLogger("labd")
 
 
+class Parser(argparse.ArgumentParser):
+    """argparse's parser, whose usage errors are JSON when ``--json`` was asked for."""
+
+    def error(self, message: str) -> NoReturn:
+        if "--json" in sys.argv[1:]:
+            print(json.dumps({"error": f"{self.prog}: {message}"}))
+            sys.exit(2)
+        super().error(message)
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = Parser(
         prog="labd",
         description="The remote robot lab daemon.",
         epilog=EPILOG,
@@ -64,14 +76,9 @@ MAINS: dict[str, Callable[[argparse.Namespace], int]] = {
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
-    logging.basicConfig(
-        level=args.log_level,
-        stream=sys.stderr,
-        format="%(asctime)s %(levelname)s %(name)s: %(message)s",
-    )
     try:
-        return MAINS[args.command](args)
+        code = _main(argv)
+        sys.stdout.flush()  # here, so a reader that left is noticed here
     except BrokenPipeError:
         # The reader went away (`labd trials | head`): stop quietly, as other tools do.
         devnull = os.open(os.devnull, os.O_WRONLY)
@@ -79,6 +86,17 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 1
     except KeyboardInterrupt:
         return 130
+    return code
+
+
+def _main(argv: Sequence[str] | None) -> int:
+    args = build_parser().parse_args(argv)
+    logging.basicConfig(
+        level=args.log_level,
+        stream=sys.stderr,
+        format="%(asctime)s %(levelname)s %(name)s: %(message)s",
+    )
+    return MAINS[args.command](args)
 
 
 if __name__ == "__main__":

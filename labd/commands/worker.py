@@ -21,7 +21,7 @@ from typing import Any
 
 import sandbox
 from labd.commands import fetching
-from labd.commands.common import fail
+from labd.commands.common import fail, json_option
 from labd.config import DATA
 from labd.errors import LabError
 from labd.trial import LabHost, client_library
@@ -71,6 +71,7 @@ def add_parser(commands: Any) -> None:
         default=DEFAULTS.poll,
         help="seconds between claims when idle (default: %(default)g)",
     )
+    json_option(p)
     fetching.add_options(p.add_argument_group("what this worker fetches"))
 
 

@@ -54,14 +54,6 @@ def make_repo(path: Path, files: dict[str, str] | None = None, copy: Path | None
     return GitRepo.create(path, files, "a controller").path
 
 
-@pytest.fixture(scope="module")
-def cache(request) -> Path:
-    """The runtime cache the trial tests use, so the runtime is built once per session."""
-    folder = request.config.cache.mkdir("labd-trials")
-    folder.chmod(0o755)
-    return folder
-
-
 class Lab:
     """A `labd serve` process and the `labd` command pointed at it."""
 
