@@ -360,7 +360,7 @@ class Index:
         c = trials.c
         conditions: list[sa.ColumnElement[bool]] = []
         if f.repository is not None:
-            conditions.append(c.repository == f.repository)
+            conditions.append(c.repository.in_(spellings(f.repository)))
         if f.commit is not None:
             conditions.append(commit_condition(f.commit))
         if f.task is not None:
@@ -451,6 +451,13 @@ class Index:
         """Insert finished records as they are (benchmarks, imports)."""
         with self.begin() as db:
             db.execute(sa.insert(trials), [dict(r) for r in rows])
+
+
+def spellings(repository: str) -> list[str]:
+    """The ways one repository's URL is written: with and without a trailing ``.git`` or
+    ``/`` (``https://host/x``, ``https://host/x.git``), so the archive finds it by either."""
+    base = repository.rstrip("/").removesuffix(".git")
+    return sorted({repository, base, base + ".git"})
 
 
 def commit_condition(commit: str) -> sa.ColumnElement[bool]:

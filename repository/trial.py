@@ -67,7 +67,12 @@ class TrialRequest(BaseModel):
 
     repository: str = Field(min_length=1, max_length=2048, description="a git URL or path")
     ref: str | None = Field(None, max_length=256, description="branch, tag or commit")
-    task: str = Field(min_length=1, max_length=64, description="a task from /api/tasks")
+    task: str | None = Field(
+        None,
+        min_length=1,
+        max_length=64,
+        description="a task from /api/tasks; by default the one the repository's lab.toml names",
+    )
     params: dict[str, Value] = Field(default_factory=dict, description="task parameters")
     seed: Seed = 0
 

@@ -55,7 +55,7 @@ import time
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
-from urllib.parse import urljoin, urlsplit
+from urllib.parse import unquote, urljoin, urlsplit
 
 import git
 
@@ -227,6 +227,9 @@ def locate(repository: str, policy: FetchPolicy) -> Location:
             )
         if scheme not in policy.schemes:
             raise SchemeNotAllowed(url, scheme, policy.schemes)
+        if scheme == "file" and parts.netloc in ("", "localhost"):
+            # file:///home/me/ctl is the folder /home/me/ctl: one repository, one name
+            return Location(str(Path(unquote(parts.path)).resolve()), "file")
         return Location(url, scheme)
     if SCP.match(text):
         if "ssh" not in policy.schemes:
@@ -234,7 +237,7 @@ def locate(repository: str, policy: FetchPolicy) -> Location:
         return Location(text.rstrip("/"), "ssh")
     if "file" not in policy.schemes:
         raise SchemeNotAllowed(text, "file", policy.schemes)
-    return Location(str(Path(text).resolve()), "file")
+    return Location(str(Path(text).expanduser().resolve()), "file")
 
 
 def _check_folder(location: Location) -> None:

@@ -4,8 +4,10 @@ A submission (``repository.trial.TrialRequest``) names a repository, a ref, a ta
 parameters and a seed; the request model has checked their shapes. Everything else is
 checked before anything is written: the task and its parameters by the lab
 (``TrialHost.check``), the repository against the fetch policy (scheme, size, time),
-the ref resolved to a commit in the mirror cache. Only then is the trial queued,
-pinned to that commit; so a request that fails leaves nothing behind.
+the ref resolved to a commit in the mirror cache, and that commit's ``lab.toml``, read
+as ``labd run`` reads it (a missing or broken one is refused with the same message; the
+task, when the request names none, is the one it names). Only then is the trial
+queued, pinned to that commit; so a request that fails leaves nothing behind.
 
 A rerun queues the same repository, commit, task, parameters and seed as an earlier
 trial, linked to it, so its record can say whether it reproduced.
@@ -14,13 +16,17 @@ trial, linked to it, so its record can say whether it reproduced.
 from __future__ import annotations
 
 import logging
+import tempfile
 from pathlib import Path
 
 from repository.index import Index, User
 from repository.trial import TrialRequest
-from scheduler.fetch import FetchPolicy, resolve
+from scheduler import controller
+from scheduler.errors import InvalidRequest
+from scheduler.fetch import FetchPolicy, Resolved, resolve
 from scheduler.host import TrialHost
 from scheduler.queue import Queue
+from scheduler.source import checkout
 
 log = logging.getLogger("scheduler.submit")
 
@@ -38,15 +44,25 @@ class Submissions:
 
         Raises InvalidRequest, RepositoryError or QuotaExceeded, having written nothing.
         """
-        values = self.host.check(request.task, request.params)
-        params = {name: values[name] for name in sorted(request.params)}  # as normalized
+        if request.task is not None:  # a wrong task or parameter is refused before fetching
+            self.host.check(request.task, request.params)
         resolved = resolve(request.repository, request.ref, self.cache, self.policy)
+        config = self.lab_toml(resolved)
+        task = request.task or config.task
+        if task is None:
+            tasks = ", ".join(self.host.tasks())
+            raise InvalidRequest(
+                f"{controller.FILE} names no task, and the request gives none: name one"
+                f" (--task, or task in {controller.FILE}); the tasks are {tasks}"
+            )
+        values = self.host.check(task, request.params)
+        params = {name: values[name] for name in sorted(request.params)}  # as normalized
         trial_id = self.queue.submit(
             user,
             repository=resolved.repository,
             ref=request.ref,
             commit=resolved.commit,
-            task=request.task,
+            task=task,
             params=params,
             seed=request.seed,
             public=resolved.public,
@@ -58,9 +74,16 @@ class Submissions:
             resolved.repository,
             resolved.commit[:12],
             request.ref or "HEAD",
-            request.task,
+            task,
         )
         return trial_id
+
+    def lab_toml(self, resolved: Resolved) -> controller.ControllerConfig:
+        """The commit's ``lab.toml``, checked as a trial checks it (``TrialError``)."""
+        with tempfile.TemporaryDirectory(prefix="labd-submit-") as folder:
+            code = Path(folder) / "code"
+            checkout(resolved.repository, resolved.commit, code, self.cache, self.policy)
+            return controller.load(code)
 
     def rerun(self, user: User, trial_id: int) -> int:
         """Queue a rerun of trial ``trial_id``; its id (RecordNotFound, QuotaExceeded).

@@ -1,6 +1,6 @@
 """The commands that talk to a running lab over its HTTP API.
 
-    labd submit REPO_URL [--ref REF] --task TASK [--seed N] [--param NAME=VALUE] [--wait]
+    labd submit REPO_URL [--ref REF] [--task TASK] [--seed N] [--param NAME=VALUE] [--wait]
     labd trials [--repo URL] [--commit SHA] [--task T] [--status S] [--outcome O]
                 [--kind K] [--user U] [--limit N] [--before ID]
     labd show TRIAL
@@ -56,7 +56,11 @@ def add_parsers(commands: Any) -> None:
     p = commands.add_parser("submit", help="queue a trial of a repository at a ref")
     p.add_argument("repository", metavar="REPO_URL", help="a git URL, or a local repository")
     p.add_argument("--ref", help="branch, tag or commit (default: the repository's HEAD)")
-    p.add_argument("--task", required=True, help="the task to run (`labd tasks` lists them)")
+    p.add_argument(
+        "--task",
+        help="the task to run (default: the one the repository's lab.toml names;"
+        " `labd tasks` lists them)",
+    )
     p.add_argument("--seed", type=int, default=0, help="the episode's seed (default: 0)")
     p.add_argument(
         "--param",

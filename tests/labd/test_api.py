@@ -334,3 +334,39 @@ async def test_a_worker_of_another_version_is_refused_naming_both(api, service):
     assert (
         await api.post("/api/workers/claim", json={"worker": "w1"}, headers=same)
     ).status_code == 204
+
+
+async def test_lab_toml_is_checked_at_submit_time_and_names_the_task(api, token, tmp_path):
+    """Without a task the submission takes lab.toml's; a missing or broken lab.toml, or one
+    that names no task when none is given, is refused as labd run refuses it, and nothing
+    is queued."""
+    named = GitRepo.create(
+        tmp_path / "named",
+        {"lab.toml": '[controller]\ncommand = ["python", "c.py"]\ntask = "pr2-table"\n'},
+    )
+    reply = await api.post("/api/trials", json={"repository": str(named.path)}, headers=auth(token))
+    assert reply.status_code == 201, reply.text
+    assert reply.json()["task"] == "pr2-table"
+    cases = {
+        "none": ({"c.py": "print()\n"}, "the repository has no lab.toml at its root"),
+        "broken": ({"lab.toml": "[controller\n"}, "lab.toml: it is not valid TOML"),
+        "taskless": ({"lab.toml": '[controller]\ncommand = ["python", "c.py"]\n'}, "names no task"),
+    }
+    for name, (files, words) in cases.items():
+        repo = GitRepo.create(tmp_path / name, files)
+        reply = await api.post(
+            "/api/trials", json={"repository": str(repo.path)}, headers=auth(token)
+        )
+        assert reply.status_code == 422, reply.text
+        assert words in reply.json()["error"]
+    assert len((await api.get("/api/trials")).json()["trials"]) == 1
+
+
+async def test_a_repository_written_two_ways_is_one(api, token, repo):
+    """A folder and its file:// URL are recorded alike; a trailing .git finds it too."""
+    by_path = (await submit(api, token, repo)).json()
+    by_url = (await submit(api, token, f"file://{repo}/")).json()
+    assert by_url["repository"] == by_path["repository"] == str(repo)
+    for spelling in (str(repo), f"{repo}.git", f"{repo}/"):
+        found = (await api.get("/api/trials", params={"repository": spelling})).json()
+        assert [t["id"] for t in found["trials"]] == [by_url["id"], by_path["id"]]
