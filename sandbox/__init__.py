@@ -42,6 +42,7 @@ def backend(name: str | None, cache: Path, extra_packages: Sequence[Path] = ()) 
     """
     if name is not None and name not in BACKENDS:
         raise BackendUnavailable(name, f"no such backend; choose one of {', '.join(BACKENDS)}")
+    cache = Path(cache).resolve()  # engines mount absolute paths only
     runtime = build_runtime(cache, extra_packages)
     if name in (None, "docker"):
         try:
@@ -50,7 +51,7 @@ def backend(name: str | None, cache: Path, extra_packages: Sequence[Path] = ()) 
             if name == "docker":
                 raise
             logging.getLogger(__name__).info("%s; using bubblewrap", err)
-    return BwrapBackend(runtime, Path(cache).resolve() / "bwrap")
+    return BwrapBackend(runtime, cache / "bwrap")
 
 
 __all__ = [

@@ -99,6 +99,9 @@ def environment(
     }
     if bridge:
         env["LAB_BRIDGE_URL"] = f"ws://127.0.0.1:{BRIDGE_PORT}"
+        # The same, in the two parts roslibpy.Ros(host=..., port=...) takes.
+        env["LAB_BRIDGE_HOST"] = "127.0.0.1"
+        env["LAB_BRIDGE_PORT"] = str(BRIDGE_PORT)
     env.update(extra)
     return env
 

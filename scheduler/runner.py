@@ -171,6 +171,7 @@ async def run_trial(
     """
     options = options or RunOptions()
     progress = progress or Progress()
+    out, cache = out.resolve(), cache.resolve()  # a sandbox engine mounts absolute paths
     loop = asyncio.get_running_loop()
     started = loop.time()
     work = Path(tempfile.mkdtemp(prefix="labd-trial-"))

@@ -181,3 +181,34 @@ def test_a_reader_that_goes_away_is_not_a_traceback(tmp_path):
         os.close(write)
     assert done.returncode == 1
     assert done.stderr == b"", done.stderr.decode()
+
+
+def test_labd_run_with_requirements_on_docker_from_a_relative_data_folder(cache, tmp_path):
+    """The default --data (./lab-data, relative) works on Docker with a requirements file:
+    every path is made absolute before it reaches the engine."""
+    make_backend("docker", cache)
+    shared_cache(tmp_path / "lab-data", cache)
+    robot = tmp_path / "robot"
+    robot.mkdir()
+    (robot / "lab.toml").write_text(
+        '[controller]\ncommand = ["python", "c.py"]\ntask = "icreate-maze"\n'
+        'requirements = "requirements.txt"\n'
+    )
+    (robot / "requirements.txt").write_text("six==1.17.0\n")
+    (robot / "c.py").write_text(
+        "import six\nfrom controllers.client import Lab\nprint('six', six.__version__)\n"
+        "with Lab.connect() as lab:\n    lab.step()\n"
+    )
+    done = subprocess.run(
+        [sys.executable, "-m", "labd", "run", "robot", "--sandbox", "docker", "--json"],
+        cwd=tmp_path,
+        capture_output=True,
+        text=True,
+        timeout=240,
+        check=False,
+    )
+    result = json.loads(done.stdout)
+    assert "exited with 0 at tick 1" in result["reason"], result["reason"]
+    assert result["backend"] == "docker"
+    assert Path(result["folder"]).is_relative_to(tmp_path / "lab-data")
+    assert (Path(result["folder"]) / "controller.stdout.log").read_text() == "six 1.17.0\n"

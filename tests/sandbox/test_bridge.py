@@ -21,7 +21,8 @@ ROUND_TRIPS = 300
 
 
 async def test_the_bridge_is_reached(controllers: Controllers, bridge: Bridge) -> None:
-    """A controller reaches the host's bridge socket at LAB_BRIDGE_URL, both ways."""
+    """A controller reaches the host's bridge socket at LAB_BRIDGE_URL, both ways, and at
+    LAB_BRIDGE_HOST and LAB_BRIDGE_PORT, the same in two parts."""
     ended = await controllers.run(
         """
         import os
@@ -30,11 +31,15 @@ async def test_the_bridge_is_reached(controllers: Controllers, bridge: Bridge) -
         with connect(os.environ["LAB_BRIDGE_URL"]) as ws:
             ws.send("ping")
             print(ws.recv())
+        host, port = os.environ["LAB_BRIDGE_HOST"], os.environ["LAB_BRIDGE_PORT"]
+        with connect(f"ws://{host}:{port}") as ws:
+            ws.send("pong")
+            print(ws.recv())
         """,
         bridge=bridge,
     )
     assert ended.code == 0, ended.stderr
-    assert ended.stdout == b"ws://127.0.0.1:9090\necho:ping\n"
+    assert ended.stdout == b"ws://127.0.0.1:9090\necho:ping\necho:pong\n"
     assert bridge.received.get_nowait() == "ping"
 
 
