@@ -23,8 +23,10 @@ $(JSSTAMP): $(JS)/package.json $(JS)/package-lock.json
 	cd $(JS) && npm ci --no-audit --no-fund --loglevel=error
 	touch $@
 
+# make demo BRIDGE_PORT=9191 HTTP_PORT=8181 to choose the ports (default: 9090 and
+# 8080 if free, else free ones the demo prints).
 demo: $(STAMP)
-	$(VENV)/bin/labd demo
+	$(VENV)/bin/labd demo $(if $(BRIDGE_PORT),--bridge-port $(BRIDGE_PORT)) $(if $(HTTP_PORT),--http-port $(HTTP_PORT))
 
 lint: $(STAMP)
 	$(VENV)/bin/ruff check .

@@ -3,10 +3,13 @@
 1. The example controllers (``controllers/examples/*``) are made into git repositories
    under ``DATA/demo/``, as a user's would be.
 2. A user ``demo`` is made; its token is kept in ``DATA/demo/token`` for later runs.
-3. ``labd serve`` starts (the bridge, the robots, the HTTP API, one worker).
+3. ``labd serve`` starts (the bridge, the robots, the HTTP API, one worker), on the
+   default ports if they are free and on free ones if not (or on those given), and the
+   lab's address and the token go into ``DATA/demo/env``, a file to ``source``.
 4. Each example is submitted by its repository's path and branch, like any other
    repository, and the demo waits for the trials to end and prints their outcomes.
-5. It prints where to look and what to try, and keeps the lab running until Ctrl-C.
+5. It prints where to look and what to try, every command as it works once the env
+   file is sourced, and keeps the lab running until Ctrl-C.
 """
 
 from __future__ import annotations
@@ -16,6 +19,7 @@ import os
 import secrets
 import shutil
 import signal
+import socket
 import subprocess
 import sys
 import time
@@ -25,6 +29,8 @@ from typing import Any
 from labd.api.models import TrialDetail
 from labd.commands.common import ExitCode, exit_code, worst
 from labd.commands.remote import headline, wait
+from labd.config import DATA, BridgeConfig
+from labd.lab import LabConfig
 from labd.service import ServiceConfig
 from labd.trial import client_library
 from repository.errors import RecordNotFound
@@ -33,15 +39,43 @@ from scheduler.client import ApiClient
 from scheduler.errors import RemoteError
 
 EXAMPLES = {"icreate-maze": "icreate-maze", "pr2-pick-place": "pr2-table"}
+BRIDGE = BridgeConfig()
+LAB = LabConfig()
 
 
 def add_parser(commands: Any) -> None:
     demo = commands.add_parser("demo", help="serve the lab, submit the examples, show results")
-    demo.add_argument("--data", type=Path, default=Path("lab-data"))
-    demo.add_argument("--http-port", type=int, default=8080)
-    demo.add_argument("--bridge-port", type=int, default=9090)
-    demo.add_argument("--sandbox", choices=["docker", "bwrap"])
+    demo.add_argument(
+        "--data", type=Path, default=DATA, help="the lab's data folder (default: %(default)s)"
+    )
+    demo.add_argument(
+        "--http-port",
+        type=int,
+        help=f"HTTP port (default: {LAB.http_port} if free, else any free port)",
+    )
+    demo.add_argument(
+        "--bridge-port",
+        type=int,
+        help=f"rosbridge port (default: {BRIDGE.port} if free, else any free port)",
+    )
+    demo.add_argument(
+        "--sandbox",
+        choices=["docker", "bwrap"],
+        help="isolation backend (default: docker if an engine answers, else bwrap)",
+    )
     demo.add_argument("--exit", action="store_true", help="stop the lab when the trials end")
+
+
+def free_port(preferred: int, host: str = "127.0.0.1") -> int:
+    """``preferred`` if nothing listens there, else a port the system picks."""
+    for port in (preferred, 0):
+        with socket.socket() as probe:
+            try:
+                probe.bind((host, port))
+            except OSError:
+                continue
+            return int(probe.getsockname()[1])
+    raise OSError("no free port")
 
 
 def main(args: argparse.Namespace) -> int:
@@ -49,7 +83,12 @@ def main(args: argparse.Namespace) -> int:
     folder.mkdir(parents=True, exist_ok=True)
     repos = {name: make_repository(name, folder / name) for name in EXAMPLES}
     token = demo_token(args.data, folder)
-    server = f"http://127.0.0.1:{args.http_port}"
+    http_port = args.http_port if args.http_port is not None else free_port(LAB.http_port)
+    bridge_port = args.bridge_port if args.bridge_port is not None else free_port(BRIDGE.port)
+    server = f"http://127.0.0.1:{http_port}"
+    env_file = folder / "env"
+    env_file.write_text(f"export LABD_SERVER={server}\nexport LABD_TOKEN={token}\n")
+    env_file.chmod(0o600)
     command = [
         sys.executable,
         "-m",
@@ -58,9 +97,9 @@ def main(args: argparse.Namespace) -> int:
         "--data",
         str(args.data),
         "--http-port",
-        str(args.http_port),
+        str(http_port),
         "--bridge-port",
-        str(args.bridge_port),
+        str(bridge_port),
     ]
     if args.sandbox:
         command += ["--sandbox", args.sandbox]
@@ -69,6 +108,7 @@ def main(args: argparse.Namespace) -> int:
     client = ApiClient(server, token, connect_attempts=1)
     try:
         wait_for(client, lab)
+        print(f"the lab: HTTP {server}, rosbridge ws://127.0.0.1:{bridge_port}", flush=True)
         submitted = []
         for name, repo in repos.items():
             row = client.post(
@@ -87,28 +127,30 @@ def main(args: argparse.Namespace) -> int:
             if row.mcap:
                 print(f"  record {row.mcap.url}")
         first = done[0]
+        labd = Path(sys.executable).parent / "labd"
         print(
             f"""
 Where to look:
   {server}/docs                      the API, to try in a browser
   {server}/api/trials                the archive
   {server}/api/commits/{first.commit[:12]}   a commit, its trials and reruns
+  ws://127.0.0.1:{bridge_port}/robots/icreate-1   a live robot, for roslibpy or roslibjs
 
-Try (in another terminal, in this folder):
-  export LABD_TOKEN=$(cat {folder / "token"})
-  .venv/bin/labd trials
-  .venv/bin/labd show {first.id}
-  .venv/bin/labd download {first.id} -o trial.mcap
-  .venv/bin/labd rerun {first.commit[:12]} --wait
-  .venv/bin/labd export {first.id} --format lerobot
-  .venv/bin/labd submit {repos["icreate-maze"]} --ref main --task icreate-maze --seed 3 --wait
+Try (in another terminal; the env file carries the lab's address and your token):
+  source {env_file}
+  {labd} trials
+  {labd} show {first.id}
+  {labd} logs {first.id}
+  {labd} download {first.id} -o trial.mcap
+  {labd} rerun {first.commit[:12]} --wait
+  {labd} export {first.id} --format lerobot
+  {labd} submit {repos["icreate-maze"]} --ref main --seed 3 --wait
 """,
             flush=True,
         )
-        if not args.exit:
-            print("The lab keeps running; Ctrl-C stops it.", flush=True)
         if args.exit:
             return int(worst(exit_code(r.status, r.outcome) for r in done))
+        print("The lab keeps running; Ctrl-C stops it.", flush=True)
         return lab.wait()
     except RemoteError as err:
         print(f"labd demo: {err}", file=sys.stderr)
@@ -172,7 +214,7 @@ def wait_for(client: ApiClient, lab: subprocess.Popen[bytes]) -> None:
     deadline = time.monotonic() + 600  # the first start builds the controller runtime
     while time.monotonic() < deadline:
         if lab.poll() is not None:
-            raise RemoteError(f"labd serve exited with {lab.returncode}")
+            raise RemoteError(f"labd serve stopped (exit {lab.returncode}); its message is above")
         try:
             client.request("GET", "/api/tasks")
             return
