@@ -7,10 +7,12 @@ PY      := $(VENV)/bin/python
 STAMP   := $(VENV)/.installed-$(shell cksum < pyproject.toml | cut -d' ' -f1)
 JS      := tests/js
 JSSTAMP := $(JS)/node_modules/.installed
+WEB     := web
+WEBSTAMP := labd/web/static/vendor/.built
 
 .PHONY: setup demo test lint unit bench clean
 
-setup: $(STAMP) $(JSSTAMP)
+setup: $(STAMP) $(JSSTAMP) $(WEBSTAMP)
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -23,9 +25,15 @@ $(JSSTAMP): $(JS)/package.json $(JS)/package-lock.json
 	cd $(JS) && npm ci --no-audit --no-fund --loglevel=error
 	touch $@
 
+# The pages' scripts and styles (Swagger UI, ReDoc, uPlot, three.js), from npm, served
+# by the lab itself: see web/build.mjs.
+$(WEBSTAMP): $(WEB)/package.json $(WEB)/package-lock.json $(WEB)/build.mjs
+	cd $(WEB) && npm ci --no-audit --no-fund --loglevel=error && node build.mjs
+	touch $@
+
 # make demo BRIDGE_PORT=9191 HTTP_PORT=8181 to choose the ports (default: 9090 and
 # 8080 if free, else free ones the demo prints).
-demo: $(STAMP)
+demo: $(STAMP) $(WEBSTAMP)
 	$(VENV)/bin/labd demo $(if $(BRIDGE_PORT),--bridge-port $(BRIDGE_PORT)) $(if $(HTTP_PORT),--http-port $(HTTP_PORT))
 
 lint: $(STAMP)
@@ -36,7 +44,7 @@ lint: $(STAMP)
 unit: $(STAMP)
 	$(PY) -m pytest -m "not integration"
 
-test: lint $(JSSTAMP)
+test: lint $(JSSTAMP) $(WEBSTAMP)
 	$(PY) -m pytest
 
 bench: $(STAMP)
@@ -46,4 +54,4 @@ bench: $(STAMP)
 	$(PY) bench/archive.py
 
 clean:
-	rm -rf $(VENV) $(JS)/node_modules .mypy_cache .ruff_cache .pytest_cache
+	rm -rf $(VENV) $(JS)/node_modules $(WEB)/node_modules labd/web/static/vendor .mypy_cache .ruff_cache .pytest_cache

@@ -16,12 +16,13 @@ from __future__ import annotations
 
 import datetime as dt
 import hashlib
+import math
 import secrets
 import time
 from collections.abc import Iterator, Mapping, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, Literal
 
 import sqlalchemy as sa
 from sqlalchemy.engine import Connection, Engine
@@ -84,6 +85,7 @@ trials = sa.Table(
     sa.Column("data_digest", sa.String(64)),
     sa.Column("digest_topics", sa.JSON),
     sa.Column("metrics", sa.JSON),
+    sa.Column("reward", sa.Float),  # metrics' reward, as a column to sort and rank by
     sa.Column("backend", sa.String(16)),
     sa.Column("wall_seconds", sa.Float),
     sa.Column("mcap", sa.String(71)),  # blob digests, "sha256:..."
@@ -103,6 +105,8 @@ sa.Index("ix_trials_status", trials.c.status, trials.c.id)
 sa.Index("ix_trials_outcome", trials.c.outcome, trials.c.id)
 sa.Index("ix_trials_task_outcome", trials.c.task, trials.c.outcome, trials.c.id)
 sa.Index("ix_trials_kind", trials.c.kind, trials.c.id)
+sa.Index("ix_trials_task_reward", trials.c.task, trials.c.reward, trials.c.id)
+sa.Index("ix_trials_reward", trials.c.reward, trials.c.id)
 sa.Index("ix_trials_submitter", trials.c.submitter, trials.c.id)
 sa.Index("ix_trials_created", trials.c.created)
 sa.Index("ix_trials_rerun_of", trials.c.rerun_of)
@@ -136,6 +140,27 @@ class Page:
 
     items: list[Trial]
     next: int | None
+
+
+Order = Literal["time", "reward"]
+
+
+@dataclass(frozen=True)
+class Standing:
+    """A commit's place on a task's leaderboard, over its trials and seeds."""
+
+    repository: str
+    commit: str
+    trials: int
+    successes: int
+    mean_reward: float | None
+    best_reward: float | None
+    seeds: int
+    latest: int  # its newest trial's id
+
+    @property
+    def success_rate(self) -> float:
+        return self.successes / self.trials if self.trials else 0.0
 
 
 @dataclass(frozen=True)
@@ -344,17 +369,79 @@ class Index:
             raise RecordNotFound("trial", str(trial_id))
         return to_trial(row)
 
-    def find(self, filters: Filters, *, limit: int = 50, before: int | None = None) -> Page:
-        """Trials matching ``filters``, newest first; ``before`` is a page's cursor."""
+    def find(
+        self,
+        filters: Filters,
+        *,
+        limit: int = 50,
+        before: int | None = None,
+        order: Order = "time",
+        offset: int = 0,
+    ) -> Page:
+        """Trials matching ``filters``, a page at a time.
+
+        By ``time``, newest first, and ``before`` is a page's cursor (the id to go below);
+        by ``reward``, best first (trials without one last), a page at ``offset``.
+        """
         query = sa.select(trials).where(*self._conditions(filters))
-        if before is not None:
-            query = query.where(trials.c.id < before)
-        query = query.order_by(trials.c.id.desc()).limit(limit + 1)
+        if order == "reward":
+            query = query.order_by(trials.c.reward.desc().nulls_last(), trials.c.id.desc())
+            query = query.offset(offset)
+        else:
+            if before is not None:
+                query = query.where(trials.c.id < before)
+            query = query.order_by(trials.c.id.desc())
+        query = query.limit(limit + 1)
         with self.engine.connect() as db:
             rows = [to_trial(r) for r in db.execute(query)]
         more = len(rows) > limit
         rows = rows[:limit]
         return Page(rows, rows[-1].id if more and rows else None)
+
+    def leaderboard(self, task: str, *, limit: int = 20) -> list[Standing]:
+        """A task's commits ranked over their trials (reruns left out): success rate first,
+        then mean reward; each with its best trial."""
+        c = trials.c
+        finished = sa.and_(
+            c.task == task,
+            c.status == Status.FINISHED.value,
+            c.kind == Kind.TRIAL.value,
+            c.rerun_of.is_(None),
+        )
+        success = sa.func.sum(sa.case((c.outcome == Outcome.SUCCESS.value, 1), else_=0))
+        rate = sa.cast(success, sa.Float) / sa.func.count()
+        mean = sa.func.avg(c.reward)
+        query = (
+            sa.select(
+                c.repository,
+                c.commit,
+                sa.func.count().label("trials"),
+                success.label("successes"),
+                mean.label("mean_reward"),
+                sa.func.max(c.reward).label("best_reward"),
+                sa.func.count(sa.distinct(c.seed)).label("seeds"),
+                sa.func.max(c.id).label("latest"),
+            )
+            .where(finished)
+            .group_by(c.repository, c.commit)
+            .order_by(rate.desc(), mean.desc().nulls_last(), sa.func.max(c.id).desc())
+            .limit(limit)
+        )
+        with self.engine.connect() as db:
+            rows = db.execute(query).all()
+        return [
+            Standing(
+                repository=r.repository,
+                commit=r.commit,
+                trials=int(r.trials),
+                successes=int(r.successes or 0),
+                mean_reward=None if r.mean_reward is None else float(r.mean_reward),
+                best_reward=None if r.best_reward is None else float(r.best_reward),
+                seeds=int(r.seeds),
+                latest=int(r.latest),
+            )
+            for r in rows
+        ]
 
     def _conditions(self, f: Filters) -> list[sa.ColumnElement[bool]]:
         c = trials.c
@@ -453,6 +540,14 @@ class Index:
             db.execute(sa.insert(trials), [dict(r) for r in rows])
 
 
+def reward_of(metrics: Mapping[str, Any] | None) -> float | None:
+    """The reward metric of a trial, for the ``reward`` column (None if it has none)."""
+    value = (metrics or {}).get("reward")
+    if isinstance(value, bool) or not isinstance(value, int | float):
+        return None
+    return float(value) if math.isfinite(value) else None
+
+
 def spellings(repository: str) -> list[str]:
     """The ways one repository's URL is written: with and without a trailing ``.git`` or
     ``/`` (``https://host/x``, ``https://host/x.git``), so the archive finds it by either."""
@@ -476,6 +571,7 @@ def to_trial(row: Any) -> Trial:
     for name in ("created", "started", "finished"):
         values[name] = _moment(values[name])
     values.pop("lease_until", None)
+    values.pop("reward", None)  # the record's reward is its metrics'
     return Trial.model_validate(values)
 
 

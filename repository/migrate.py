@@ -1,5 +1,7 @@
 """Upgrading an archive's index in place, from an older schema to this labd's.
 
+Schema 2 also keeps the reward metric as a column (``reward``), to sort and rank by.
+
 Schema 1 (labd 0.1) kept one ``status`` for both the lifecycle and the result:
 ``succeeded`` meant the trial ran to its end, whether or not the robot achieved its
 task, and ``failed`` meant it broke. Schema 2 keeps them apart (``repository.trial``):
@@ -19,7 +21,7 @@ import sqlalchemy as sa
 from sqlalchemy.engine import Connection, Engine
 
 from repository.errors import ArchiveError
-from repository.index import SCHEMA_VERSION, meta, metadata, trials
+from repository.index import SCHEMA_VERSION, meta, metadata, reward_of, trials
 from repository.trial import Outcome, Status
 
 log = logging.getLogger("repository.migrate")
@@ -78,6 +80,7 @@ def _from_1(db: Connection, result: Upgrade) -> None:
     """Schema 1 → 2: add ``kind`` and ``outcome``; split the old statuses."""
     db.execute(sa.text("ALTER TABLE trials ADD COLUMN kind VARCHAR(16) NOT NULL DEFAULT 'trial'"))
     db.execute(sa.text("ALTER TABLE trials ADD COLUMN outcome VARCHAR(16)"))
+    db.execute(sa.text("ALTER TABLE trials ADD COLUMN reward FLOAT"))
     c = trials.c
     rows = db.execute(
         sa.select(c.id, c.status, c.metrics).where(c.status.in_(("succeeded", "failed")))
@@ -88,6 +91,18 @@ def _from_1(db: Connection, result: Upgrade) -> None:
         changes.append({"row": trial_id, "new": outcome.value})
         key = f"{old} -> {outcome.value}"
         result.changed[key] = result.changed.get(key, 0) + 1
+    rewards = [
+        {"row": trial_id, "new": reward}
+        for trial_id, metrics in db.execute(
+            sa.select(c.id, c.metrics).where(c.metrics.is_not(None))
+        )
+        if (reward := reward_of(metrics)) is not None
+    ]
+    if rewards:
+        db.execute(
+            sa.update(trials).where(c.id == sa.bindparam("row")).values(reward=sa.bindparam("new")),
+            rewards,
+        )
     if changes:
         db.execute(
             sa.update(trials)

@@ -31,7 +31,7 @@ from typing import Any
 import sqlalchemy as sa
 from sqlalchemy.engine import Connection
 
-from repository.index import Index, User, to_trial
+from repository.index import Index, User, reward_of, to_trial
 from repository.index import trials as T
 from repository.trial import Claim, Filing, Outcome, Status, Trial
 from scheduler.errors import NotYours, QuotaExceeded
@@ -233,6 +233,7 @@ class Queue:
         """Store the ending of a trial this worker holds; False if it lost the lease."""
         values = filing.model_dump(mode="json")
         values["finished"] = self.clock()
+        values["reward"] = reward_of(filing.metrics)
         with self.index.begin() as db:
             done = db.execute(
                 sa.update(T)

@@ -103,3 +103,43 @@ def test_records_come_back_typed(index):
     assert done.outcome is Outcome.FAIL and done.reward == 0.25
     assert [t.id for t in index.find(Filters(outcome=Outcome.FAIL)).items] == [trial_id]
     assert index.find(Filters(outcome=Outcome.SUCCESS)).items == []
+
+
+def finish(index, trial_id, outcome, reward):
+    index.update(
+        trial_id,
+        status="finished",
+        outcome=outcome,
+        reward=reward,
+        metrics=None if reward is None else {"reward": reward},
+    )
+
+
+def test_sorting_by_reward_and_the_leaderboard(index):
+    """Lists sort by reward, best first and none last; the leaderboard ranks each commit
+    by success rate over its trials (not its reruns), then mean reward."""
+    a, b = "a" * 40, "b" * 40
+    ids = {
+        (a, 0): trial(index, a, seed=0),
+        (a, 1): trial(index, a, seed=1),
+        (b, 0): trial(index, b, seed=0),
+        (b, 1): trial(index, b, seed=1),
+    }
+    finish(index, ids[a, 0], "success", 0.9)
+    finish(index, ids[a, 1], "fail", 0.1)
+    finish(index, ids[b, 0], "success", 0.5)
+    finish(index, ids[b, 1], "success", None)
+    rerun = trial(index, b, rerun_of=ids[b, 0])
+    finish(index, rerun, "fail", 0.0)
+    best = index.find(Filters(task="icreate-maze"), order="reward", limit=3)
+    assert [t.id for t in best.items] == [ids[a, 0], ids[b, 0], ids[a, 1]]
+    rest = index.find(Filters(task="icreate-maze"), order="reward", limit=3, offset=3)
+    assert [t.id for t in rest.items] == [rerun, ids[b, 1]]
+    board = index.leaderboard("icreate-maze")
+    assert [(s.commit, s.trials, s.successes, s.seeds) for s in board] == [
+        (b, 2, 2, 2),
+        (a, 2, 1, 2),
+    ]
+    assert board[0].success_rate == 1.0 and board[0].mean_reward == 0.5
+    assert board[1].best_reward == 0.9 and board[1].latest == ids[a, 1]
+    assert index.leaderboard("pr2-table") == []

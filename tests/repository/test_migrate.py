@@ -11,7 +11,7 @@ from repository.index import Index, connect
 from repository.migrate import schema_of, upgrade
 from repository.trial import Outcome, Status
 
-NEW_COLUMNS = {"kind", "outcome"}
+NEW_COLUMNS = {"kind", "outcome", "reward"}
 
 
 def schema_1(url: str) -> None:
@@ -19,7 +19,13 @@ def schema_1(url: str) -> None:
     engine = connect(url)
     current.metadata.create_all(engine)
     with engine.begin() as db:  # take away what schema 2 added
-        for index in ("ix_trials_outcome", "ix_trials_task_outcome", "ix_trials_kind"):
+        for index in (
+            "ix_trials_outcome",
+            "ix_trials_task_outcome",
+            "ix_trials_kind",
+            "ix_trials_task_reward",
+            "ix_trials_reward",
+        ):
             db.execute(sa.text(f"DROP INDEX {index}"))
         for column in sorted(NEW_COLUMNS):
             db.execute(sa.text(f"ALTER TABLE trials DROP COLUMN {column}"))
@@ -98,4 +104,9 @@ def test_the_upgrade_keeps_every_row_and_reads_each_status_anew(database_url):
         "controller exited with 1",
     ]
     assert got[0].metrics == {"success": True, "reward": 1.0}
+    engine = connect(database_url)
+    with engine.connect() as db:
+        rewards = db.execute(sa.text("SELECT reward FROM trials ORDER BY id")).scalars().all()
+    engine.dispose()
+    assert rewards == [1.0, None, None, None, None, None]
     assert all(t.kind.value == "trial" for t in got)

@@ -1,0 +1,35 @@
+// Copies the browser files the lab's pages use from node_modules into
+// labd/web/static/vendor/, which `labd serve` serves: nothing is fetched from a CDN.
+// Run by `make setup` (npm ci, then this); the vendor folder is not committed.
+import { cpSync, mkdirSync, rmSync, writeFileSync } from "node:fs";
+import { dirname, join } from "node:path";
+import { fileURLToPath } from "node:url";
+
+const here = dirname(fileURLToPath(import.meta.url));
+const modules = join(here, "node_modules");
+const vendor = join(here, "..", "labd", "web", "static", "vendor");
+
+// destination (under vendor/) -> source (under node_modules/)
+const FILES = {
+  "swagger-ui/swagger-ui-bundle.js": "swagger-ui-dist/swagger-ui-bundle.js",
+  "swagger-ui/swagger-ui.css": "swagger-ui-dist/swagger-ui.css",
+  "swagger-ui/LICENSE": "swagger-ui-dist/LICENSE",
+  "redoc/redoc.standalone.js": "redoc/bundles/redoc.standalone.js",
+  "redoc/LICENSE": "redoc/LICENSE",
+  "uplot/uPlot.iife.min.js": "uplot/dist/uPlot.iife.min.js",
+  "uplot/uPlot.min.css": "uplot/dist/uPlot.min.css",
+  "uplot/LICENSE": "uplot/LICENSE",
+  "three/three.module.js": "three/build/three.module.js",
+  "three/three.core.js": "three/build/three.core.js",
+  "three/addons/controls/OrbitControls.js": "three/examples/jsm/controls/OrbitControls.js",
+  "three/LICENSE": "three/LICENSE",
+};
+
+rmSync(vendor, { recursive: true, force: true });
+for (const [to, from] of Object.entries(FILES)) {
+  const target = join(vendor, to);
+  mkdirSync(dirname(target), { recursive: true });
+  cpSync(join(modules, from), target);
+}
+writeFileSync(join(vendor, "README"), "Built by web/build.mjs from npm packages; do not edit.\n");
+console.log(`vendor: ${Object.keys(FILES).length} files in ${vendor}`);
