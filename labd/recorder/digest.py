@@ -25,17 +25,21 @@ from __future__ import annotations
 
 import hashlib
 import itertools
+import logging
 import struct
 from collections.abc import Collection, Iterator
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
+from mcap.records import Schema
 from mcap.well_known import MessageEncoding
 from mcap_ros2.decoder import DecoderFactory
 
 from labd.recorder.reader import RecordedMessage, read_messages
 
 DIGEST_TAG = b"labd data digest 1\n"
+log = logging.getLogger("labd.recorder.digest")
 EPISODE = "/lab/episode"  # lab_msgs/msg/Episode, with the tick, published after each one
 
 _TOPIC = struct.Struct("<I")  # topic name length
@@ -68,11 +72,13 @@ def data_digest(path: str | Path, digest_topics: Collection[str]) -> str:
 
 @dataclass(frozen=True)
 class Entry:
-    """One message of a digest stream."""
+    """One message of a digest stream (its schema, to decode it, takes no part in
+    comparisons: two records may number the same schema differently)."""
 
     topic: str
     log_time: int
     data: bytes
+    schema: Schema | None = field(default=None, compare=False)
 
 
 @dataclass(frozen=True)
@@ -103,7 +109,7 @@ class Difference:
             return f"record b has {self.b.topic} there"
         if self.a.log_time != self.b.log_time:
             return f"record b logged it at {self.b.log_time / 1e9:.9f} s"
-        return "the messages differ"
+        return field_difference(self.a, self.b) or "the messages differ"
 
     def __str__(self) -> str:
         at = f"tick {self.tick}" if self.tick is not None else f"{self.log_time / 1e9:.9f} s"
@@ -123,7 +129,7 @@ class _Stream:
             if message.topic == EPISODE:
                 self._episode = message
             if message.topic in self._topics:
-                yield Entry(message.topic, message.log_time, message.data)
+                yield Entry(message.topic, message.log_time, message.data, message.schema)
 
     def tick_at(self, time: int) -> int | None:
         """The tick of the episode message logged at ``time``, reading on if need be.
@@ -143,6 +149,54 @@ class _Stream:
 
     def close(self) -> None:
         self._messages.close()
+
+
+def field_difference(a: Entry, b: Entry) -> str | None:
+    """The first field where two messages of one topic differ, with both values:
+    ``pose.pose.position.x is 1.25 in a, 1.2500001 in b``; None if they cannot be read."""
+    if a.schema is None or b.schema is None:
+        return None
+    factory = DecoderFactory()
+    decode_a = factory.decoder_for(MessageEncoding.CDR, a.schema)
+    decode_b = factory.decoder_for(MessageEncoding.CDR, b.schema)
+    if decode_a is None or decode_b is None:
+        return None
+    try:
+        found = _first_field(decode_a(a.data), decode_b(b.data), "")
+    except Exception:  # a message that does not decode: say less, never fail the verdict
+        log.debug("could not decode %s to compare it", a.topic, exc_info=True)
+        return None
+    if found is None:
+        return None
+    path, x, y = found
+    return f"{path or 'the message'} is {_show(x)} in a, {_show(y)} in b"
+
+
+def _first_field(x: Any, y: Any, path: str) -> tuple[str, Any, Any] | None:
+    if hasattr(x, "__slots__") and type(x) is type(y):
+        for name in x.__slots__:
+            found = _first_field(getattr(x, name), getattr(y, name), f"{path}.{name}".lstrip("."))
+            if found:
+                return found
+        return None
+    if isinstance(x, list | tuple) and isinstance(y, list | tuple):
+        if len(x) != len(y):
+            return (f"{path} (length)", len(x), len(y))
+        for i, (u, v) in enumerate(zip(x, y, strict=True)):
+            found = _first_field(u, v, f"{path}[{i}]")
+            if found:
+                return found
+        return None
+    if isinstance(x, bytes | bytearray) and isinstance(y, bytes | bytearray):
+        if x == y:
+            return None
+        at = next((i for i, (u, v) in enumerate(zip(x, y, strict=False)) if u != v), None)
+        return (f"{path} (byte {at if at is not None else min(len(x), len(y))})", len(x), len(y))
+    return None if x == y else (path, x, y)
+
+
+def _show(value: Any) -> str:
+    return repr(value) if not isinstance(value, float) else f"{value!r}"
 
 
 def first_difference(

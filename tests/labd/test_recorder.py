@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import hashlib
+import re
 import shutil
 import struct
 from dataclasses import dataclass, field
@@ -539,10 +540,13 @@ def test_a_changed_command_is_found_at_its_tick(registry, tmp_path):
     stream = [(n, m) for n, m in a.delivered if n in a.topics]
     assert stream[difference.index][1].cdr() == difference.a.data
     assert difference.b is not None and difference.b.data != difference.a.data
-    assert (
-        str(difference)
-        == f"diverged at tick 6 on /cmd_vel (message {difference.index}): the messages differ"
+    said = re.fullmatch(
+        rf"diverged at tick 6 on /cmd_vel \(message {difference.index}\): "
+        r"linear\.x is (\S+) in a, (\S+) in b",
+        str(difference),
     )
+    assert said, str(difference)  # the field that differs, and both its values
+    assert float(said[2]) == float(said[1]) / 2 + 0.25
 
 
 def test_an_observation_difference_finds_its_tick_ahead(registry, tmp_path):
