@@ -96,6 +96,19 @@ trials = sa.Table(
     sa.Column("divergence", sa.Text),  # reruns that did not reproduce: where they parted
 )
 
+# Derived artifacts of a record (a summary for its page, an export, a rendered video):
+# blobs beside the record, never part of its digests, made again at will.
+derived = sa.Table(
+    "derived",
+    metadata,
+    sa.Column("trial_id", sa.Integer, sa.ForeignKey("trials.id"), primary_key=True),
+    sa.Column("name", sa.String(64), primary_key=True),  # e.g. summary.json, export.parquet
+    sa.Column("digest", sa.String(71), nullable=False),
+    sa.Column("size", sa.BigInteger, nullable=False),
+    sa.Column("media_type", sa.String(128), nullable=False),
+    sa.Column("created", sa.Float, nullable=False),
+)
+
 # Every list is newest first, so each filter has an index ending in id.
 sa.Index("ix_trials_repository", trials.c.repository, trials.c.id)
 sa.Index("ix_trials_commit", trials.c.commit, trials.c.id)
@@ -161,6 +174,16 @@ class Standing:
     @property
     def success_rate(self) -> float:
         return self.successes / self.trials if self.trials else 0.0
+
+
+@dataclass(frozen=True)
+class Derived:
+    """A derived artifact of a trial's record: a blob of the store, and what it is."""
+
+    name: str
+    digest: str
+    size: int
+    media_type: str
 
 
 @dataclass(frozen=True)
@@ -533,6 +556,31 @@ class Index:
             return int(db.execute(statement).rowcount)
         with self.begin() as own:
             return int(own.execute(statement).rowcount)
+
+    def put_derived(self, trial_id: int, item: Derived) -> None:
+        """Keep ``item`` as the trial's artifact of that name (replacing an older one)."""
+        with self.begin() as db:
+            db.execute(
+                sa.delete(derived).where(
+                    derived.c.trial_id == trial_id, derived.c.name == item.name
+                )
+            )
+            db.execute(
+                sa.insert(derived).values(
+                    trial_id=trial_id,
+                    name=item.name,
+                    digest=item.digest,
+                    size=item.size,
+                    media_type=item.media_type,
+                    created=self.clock(),
+                )
+            )
+
+    def derived(self, trial_id: int) -> dict[str, Derived]:
+        """The trial's derived artifacts, by name."""
+        with self.engine.connect() as db:
+            rows = db.execute(sa.select(derived).where(derived.c.trial_id == trial_id)).all()
+        return {r.name: Derived(r.name, r.digest, r.size, r.media_type) for r in rows}
 
     def bulk_insert(self, rows: Sequence[Mapping[str, Any]]) -> None:
         """Insert finished records as they are (benchmarks, imports)."""

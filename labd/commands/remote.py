@@ -20,11 +20,16 @@ the server are printed as it words them. Exit codes are in ``labd.commands.commo
 from __future__ import annotations
 
 import argparse
+import json
+import shutil
 import tempfile
 import time
+import zipfile
 from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
+
+import pyarrow.parquet as pq  # type: ignore[import-untyped]
 
 from labd.api.models import (
     CancelView,
@@ -43,9 +48,7 @@ from labd.commands.common import (
     server_options,
     worst,
 )
-from labd.sim import registry
 from repository.errors import ArchiveError
-from repository.export import export
 from repository.trial import Kind, Outcome, Status
 from scheduler.client import ApiClient
 from scheduler.errors import RemoteError
@@ -253,35 +256,30 @@ def _cancel(client: ApiClient, args: argparse.Namespace) -> int:
 
 
 def _export(client: ApiClient, args: argparse.Namespace) -> int:
-    row = client.get(f"/api/trials/{args.trial}", TrialDetail)
-    if not row.mcap:
-        return fail(args, f"trial {args.trial} has no record to export ({_state(row)})")
-    observations, actions = registry.get(row.task).topics()
+    """The lab makes the export (once; it keeps it beside the record); this downloads it."""
     out = args.output or Path(f"trial-{args.trial}-{args.format}")
+    if out.exists() and (not out.is_dir() or any(out.iterdir())):
+        return fail(args, f"{out} already exists: give a new or empty folder (-o)")
     with tempfile.TemporaryDirectory(prefix="labd-export-") as folder:
-        mcap = Path(folder) / "trial.mcap"
-        client.download(f"/api/trials/{args.trial}/data.mcap", mcap, digest=row.mcap.digest)
-        summary = export(
-            mcap,
-            out,
-            args.format,
-            observations=observations,
-            actions=actions,
-            provenance={
-                "trial": row.id,
-                "url": row.url,
-                "repository": row.repository,
-                "commit": row.commit,
-                "task": row.task,
-                "outcome": row.outcome.value if row.outcome else None,
-                "manifest_digest": row.manifest_digest,
-                "data_digest": row.data_digest,
-                "manifest": row.manifest,
-            },
-        )
-    info = {"path": str(out), "format": args.format, "frames": summary.frames}
-    emit(args, info, lambda: [f"{out}: {summary.frames} frames ({args.format})"])
+        got = Path(folder) / "export"
+        size = client.download(f"/api/trials/{args.trial}/export/{args.format}", got)
+        out.mkdir(parents=True, exist_ok=True)
+        if args.format == "parquet":
+            shutil.move(got, out / "data.parquet")
+        else:
+            with zipfile.ZipFile(got) as archive:
+                archive.extractall(out)
+    frames = _frames(out, args.format)
+    info = {"path": str(out), "format": args.format, "frames": frames, "bytes": size}
+    emit(args, info, lambda: [f"{out}: {frames} frames ({args.format}, {size:,} bytes)"])
     return ExitCode.SUCCESS
+
+
+def _frames(out: Path, fmt: str) -> int:
+    if fmt == "parquet":
+        return int(pq.ParquetFile(out / "data.parquet").metadata.num_rows)
+    info = json.loads((out / "meta" / "info.json").read_text())
+    return int(info["total_frames"])
 
 
 def _tasks(client: ApiClient, args: argparse.Namespace) -> int:
