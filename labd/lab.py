@@ -11,11 +11,12 @@ import contextlib
 import errno
 import logging
 from collections.abc import Coroutine
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
-from labd.api.app import create_app
+from fastapi import FastAPI
+
 from labd.api.server import HttpServer
 from labd.bridge.auth import Authorizer, HttpAuthorizer
 from labd.bridge.rosapi import Rosapi
@@ -27,6 +28,7 @@ from labd.graph.types import TypeRegistry
 from labd.service import Service, ServiceConfig
 from labd.sim.robot import LiveRunner, Robot
 from labd.station import Station
+from labd.web import RobotLink, Site, create_app
 
 log = logging.getLogger("labd.lab")
 
@@ -86,9 +88,12 @@ class Lab:
         self.bridge = BridgeServer(self.graphs, config.bridge, authorizer)
         self.service: Service | None = None
         self.http: HttpServer | None = None
+        self.site = Site(tuple(RobotLink(r.name, r.task, r.live) for r in config.robots))
+        self.app: FastAPI | None = None
         if config.service is not None:
             self.service = Service(config.service, self.types)
-            self.http = HttpServer(create_app(self.service), config.bridge.host, config.http_port)
+            self.app = create_app(self.service, self.site)
+            self.http = HttpServer(self.app, config.bridge.host, config.http_port)
 
     async def start(self) -> None:
         for name, robot in self.robots.items():
@@ -98,6 +103,8 @@ class Lab:
         await _listen(
             self.bridge.start(), self.config.bridge.host, self.config.bridge.port, "--bridge-port"
         )
+        if self.app is not None:  # the pages link to the robots on the port now known
+            self.app.state.site = replace(self.site, bridge_port=self.bridge.port)
         if self.service is not None and self.http is not None:
             await _listen(
                 self.http.start(), self.config.bridge.host, self.config.http_port, "--http-port"

@@ -35,6 +35,7 @@ LAYERS = [
     {"labd.trial"},
     {"labd.service"},
     {"labd.api"},
+    {"labd.web"},
     {"labd.lab"},
     {"labd.commands", "labd.cli", "labd.__main__"},
 ]

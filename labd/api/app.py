@@ -55,11 +55,14 @@ from repository.trial import Kind, Outcome, Status, TrialRequest
 
 
 def create_app(service: Service, *, on_submit: Callable[[], None] | None = None) -> FastAPI:
-    """The API over ``service``; ``on_submit`` is called after a trial is queued."""
+    """The API over ``service``; ``on_submit`` is called after a trial is queued. The
+    pages and ``/docs`` are added by ``labd.web.create_app``."""
     app = FastAPI(
         title="labd",
         version=__version__,
         description="A remote robot lab: submit controllers by git URL, browse the archive.",
+        docs_url=None,  # served offline by labd.web, from the lab's own files (no CDN)
+        redoc_url=None,
     )
     app.state.service = service
     app.state.on_submit = on_submit or service.wake

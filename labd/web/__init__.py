@@ -1,0 +1,56 @@
+"""The lab's web pages, served beside the HTTP API: the archive to browse (``pages``),
+forms to sign in, submit and rerun (``forms``), and the API's own documentation
+(``/docs``, ``/redoc``), every script and style served by the lab (``render``)."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+from fastapi import FastAPI
+from fastapi.openapi.docs import get_redoc_html, get_swagger_ui_html
+from fastapi.responses import HTMLResponse
+from fastapi.staticfiles import StaticFiles
+
+from labd.api.app import create_app as create_api
+from labd.service import Service
+from labd.web import forms, pages
+from labd.web.render import STATIC, RobotLink, Site
+
+__all__ = ["RobotLink", "Site", "create_app", "install"]
+
+
+def create_app(
+    service: Service, site: Site | None = None, *, on_submit: Callable[[], None] | None = None
+) -> FastAPI:
+    """The lab's whole HTTP face: the API over ``service`` and the pages."""
+    app = create_api(service, on_submit=on_submit)
+    install(app, site or Site())
+    return app
+
+
+def install(app: FastAPI, site: Site) -> None:
+    """Add the pages, the static files and offline API docs to ``app``."""
+    app.state.site = site
+    app.mount("/static", StaticFiles(directory=STATIC), name="static")
+    app.include_router(pages.router)
+    app.include_router(forms.router)
+
+    @app.get("/docs", include_in_schema=False)
+    def swagger() -> HTMLResponse:
+        return get_swagger_ui_html(
+            openapi_url="/openapi.json",
+            title="labd API",
+            swagger_js_url="/static/vendor/swagger-ui/swagger-ui-bundle.js",
+            swagger_css_url="/static/vendor/swagger-ui/swagger-ui.css",
+            swagger_favicon_url="/static/favicon.svg",
+        )
+
+    @app.get("/redoc", include_in_schema=False)
+    def redoc() -> HTMLResponse:
+        return get_redoc_html(
+            openapi_url="/openapi.json",
+            title="labd API",
+            redoc_js_url="/static/vendor/redoc/redoc.standalone.js",
+            redoc_favicon_url="/static/favicon.svg",
+            with_google_fonts=False,
+        )

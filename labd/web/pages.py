@@ -1,0 +1,261 @@
+"""The archive's pages: the lab, trials, one trial, a commit, a task.
+
+    GET /                   the lab: its tasks, live robots, recent trials, the queue now
+    GET /trials             filters (repository, commit, task, outcome, user, time),
+                            sorted by time (pages by cursor) or reward (pages by number)
+    GET /trials/{id}        outcome and reason, what ran, metrics, logs, downloads, the
+                            record's plots and camera, the rerun verdict, a rerun button
+    GET /commits/{sha}      every trial of a commit with its reruns and verdicts
+    GET /tasks/{name}       the task's documentation, parameters and leaderboard
+
+They read the same typed records as the API (``repository.trial.Trial``), server-side;
+an unknown id or sha is a page saying so, with a way back, never JSON.
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+from dataclasses import dataclass
+from typing import Annotated, Any
+
+from fastapi import APIRouter, Depends, Query, Request
+from fastapi.responses import HTMLResponse
+
+from labd.api.common import Lab
+from labd.api.models import trial_detail
+from labd.sim import registry
+from labd.web.render import Site, page
+from labd.web.session import Viewer
+from repository.errors import ArchiveError, BlobError, RecordNotFound
+from repository.index import Filters
+from repository.trial import Kind, Outcome, Status, Trial
+
+router = APIRouter(include_in_schema=False)
+PAGE = 50
+LOG_SHOWN = 64 * 1024  # bytes of a log shown on its trial's page (the end of it)
+
+
+def site(request: Request) -> Site:
+    found: Site = getattr(request.app.state, "site", Site())
+    return found
+
+
+def missing(request: Request, viewer: Viewer, title: str, message: str) -> HTMLResponse:
+    return page(
+        request,
+        "error.html",
+        {
+            "title": title,
+            "message": message,
+            "back": "/trials",
+            "back_text": "Find it among the trials",
+        },
+        user=viewer,
+        status_code=404,
+    )
+
+
+@router.get("/", response_class=HTMLResponse)
+def home(request: Request, service: Lab, viewer: Viewer) -> HTMLResponse:
+    tasks = [registry.get(name) for name in registry.names()]
+    recent = service.index.find(Filters(), limit=10).items
+    running = service.queue.running()
+    return page(
+        request,
+        "home.html",
+        {
+            "tasks": tasks,
+            "site": site(request),
+            "recent": recent,
+            "running": running,
+            "queued": service.queue.queued(),
+            "now": dt.datetime.now(dt.UTC),
+        },
+        user=viewer,
+    )
+
+
+@dataclass(frozen=True)
+class TrialsQuery:
+    """The form of /trials: filters, the order, and where the page starts."""
+
+    repository: str = ""
+    commit: str = ""
+    task: str = ""
+    outcome: str = ""
+    user: str = ""
+    since: str = ""
+    until: str = ""
+    kind: str = ""
+    order: str = "time"
+    before: int | None = None
+    page: Annotated[int, Query(ge=1)] = 1
+
+
+@router.get("/trials", response_class=HTMLResponse)
+def trials(
+    request: Request, service: Lab, viewer: Viewer, q: Annotated[TrialsQuery, Depends()]
+) -> HTMLResponse:
+    form = {
+        "repository": q.repository,
+        "commit": q.commit,
+        "task": q.task,
+        "outcome": q.outcome,
+        "user": q.user,
+        "since": q.since,
+        "until": q.until,
+        "kind": q.kind,
+        "order": q.order if q.order in ("time", "reward") else "time",
+    }
+    repository, commit, task, outcome, user = q.repository, q.commit, q.task, q.outcome, q.user
+    since, until, kind, before, page_number = q.since, q.until, q.kind, q.before, q.page
+    problem = None
+    items: list[Trial] = []
+    next_cursor = None
+    try:
+        filters = Filters(
+            repository=repository or None,
+            commit=commit or None,
+            task=task or None,
+            outcome=_enum(Outcome, outcome, "outcome"),
+            status=_status(outcome),
+            kind=_enum(Kind, kind, "kind"),
+            submitter=user or None,
+            since=_day(since, "since"),
+            until=_day(until, "until", end=True),
+        )
+        if form["order"] == "reward":
+            found = service.index.find(
+                filters, limit=PAGE, order="reward", offset=(page_number - 1) * PAGE
+            )
+        else:
+            found = service.index.find(filters, limit=PAGE, before=before)
+        items, next_cursor = found.items, found.next
+    except (ArchiveError, ValueError) as err:
+        problem = str(err)
+    query = {k: v for k, v in form.items() if v and not (k == "order" and v == "time")}
+    return page(
+        request,
+        "trials.html",
+        {
+            "trials": items,
+            "form": form,
+            "problem": problem,
+            "tasks": registry.names(),
+            "outcomes": [o.value for o in Outcome] + ["queued", "running", "cancelled"],
+            "next_cursor": next_cursor,
+            "page_number": page_number,
+            "query": query,
+        },
+        user=viewer,
+        status_code=422 if problem else 200,
+    )
+
+
+def _enum(kind: Any, value: str | None, name: str) -> Any:
+    if not value or (kind is Outcome and value in ("queued", "running", "cancelled")):
+        return None
+    try:
+        return kind(value)
+    except ValueError:
+        raise ValueError(f"{name} {value!r}: choose one of the list") from None
+
+
+def _status(outcome: str | None) -> Status | None:
+    """The outcome menu also offers the states a trial without one is in."""
+    return Status(outcome) if outcome in ("queued", "running", "cancelled") else None
+
+
+def _day(text: str | None, name: str, *, end: bool = False) -> float | None:
+    if not text:
+        return None
+    try:
+        day = dt.date.fromisoformat(text)
+    except ValueError:
+        raise ValueError(f"{name} {text!r}: give a date as YYYY-MM-DD") from None
+    moment = dt.datetime.combine(day, dt.time(), dt.UTC)
+    return (moment + dt.timedelta(days=1 if end else 0)).timestamp()
+
+
+@router.get("/trials/{trial_id}", response_class=HTMLResponse)
+def trial(request: Request, trial_id: int, service: Lab, viewer: Viewer) -> HTMLResponse:
+    try:
+        record = service.index.trial(trial_id)
+    except RecordNotFound:
+        return missing(
+            request, viewer, f"No trial {trial_id}", "The archive has no trial by that number."
+        )
+    base = str(request.base_url).rstrip("/")
+    reruns = service.index.find(Filters(rerun_of=trial_id), limit=20).items
+    logs = {stream: _log(service, getattr(record, stream)) for stream in ("stdout", "stderr")}
+    derived = service.index.derived(trial_id)
+    return page(
+        request,
+        "trial.html",
+        {
+            "t": record,
+            "view": trial_detail(record, base),
+            "reruns": reruns,
+            "logs": logs,
+            "summary": derived.get("summary.json"),
+            "ended": record.status.ended,
+        },
+        user=viewer,
+    )
+
+
+def _log(service: Lab, digest: str | None) -> dict[str, Any] | None:
+    """A log for the page: its end, if it is long, and its size (None: there is none)."""
+    if not digest:
+        return None
+    try:
+        data = service.store.read_bytes(digest)
+    except BlobError as err:
+        return {"text": "", "size": 0, "cut": False, "problem": str(err)}
+    cut = len(data) > LOG_SHOWN
+    shown = data[-LOG_SHOWN:] if cut else data
+    return {
+        "text": shown.decode("utf-8", "replace"),
+        "size": len(data),
+        "cut": cut,
+        "problem": None,
+    }
+
+
+@router.get("/commits/{sha}", response_class=HTMLResponse)
+def commit(request: Request, sha: str, service: Lab, viewer: Viewer) -> HTMLResponse:
+    try:
+        found = service.index.commit_page(sha)
+    except RecordNotFound:
+        return missing(
+            request,
+            viewer,
+            "No such commit",
+            f"No trial in the archive ran a commit starting {sha}.",
+        )
+    except ArchiveError as err:
+        return missing(request, viewer, "Not a commit", str(err))
+    return page(request, "commit.html", {"c": found}, user=viewer)
+
+
+@router.get("/tasks/{name}", response_class=HTMLResponse)
+def task(request: Request, name: str, service: Lab, viewer: Viewer) -> HTMLResponse:
+    if name not in registry.names():
+        return missing(
+            request, viewer, f"No task {name}", f"The tasks are {', '.join(registry.names())}."
+        )
+    spec = registry.get(name)
+    observations, commands = spec.topics()
+    return page(
+        request,
+        "task.html",
+        {
+            "spec": spec,
+            "params": list(spec.params.declared.values()),
+            "observations": observations,
+            "commands": commands,
+            "board": service.index.leaderboard(name),
+            "recent": service.index.find(Filters(task=name), limit=10).items,
+        },
+        user=viewer,
+    )

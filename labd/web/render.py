@@ -1,0 +1,95 @@
+"""Rendering the lab's pages: one Jinja2 environment, its filters, and the page shell.
+
+Every value a user controls (repository URLs, refs, parameters, a controller's output)
+reaches a page through Jinja2 with autoescaping on, so what a controller prints is
+shown, never run. Scripts and styles come from ``/static`` only (``web/build.mjs`` puts
+the npm packages there at set-up), so the pages work with no internet.
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+import json
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from fastapi import Request
+from fastapi.templating import Jinja2Templates
+from starlette.responses import HTMLResponse
+
+from labd import __version__
+from repository.index import User
+from repository.trial import Outcome, Status
+
+HERE = Path(__file__).resolve().parent
+STATIC = HERE / "static"
+VENDOR = STATIC / "vendor"
+
+
+@dataclass(frozen=True)
+class RobotLink:
+    """A live robot ``labd serve`` hosts, as the pages list it."""
+
+    name: str
+    task: str
+    live: bool
+
+
+@dataclass(frozen=True)
+class Site:
+    """What the pages know of the lab beyond its archive: its live robots, its bridge."""
+
+    robots: tuple[RobotLink, ...] = ()
+    bridge_port: int | None = None
+    extra: dict[str, Any] = field(default_factory=dict)
+
+
+def when(moment: dt.datetime | None) -> str:
+    return moment.strftime("%Y-%m-%d %H:%M:%S UTC") if moment else "-"
+
+
+def number(value: Any) -> str:
+    if isinstance(value, bool):
+        return "yes" if value else "no"
+    if isinstance(value, float):
+        return f"{value:.4g}" if math.isfinite(value) else str(value)
+    return str(value) if value is not None else "-"
+
+
+def seconds(value: float | None) -> str:
+    if value is None:
+        return "-"
+    return f"{value:.1f} s" if value < 120 else f"{value / 60:.1f} min"
+
+
+def state(status: Status, outcome: Outcome | None) -> str:
+    """The word a trial's badge shows: its outcome once finished, else its status."""
+    return outcome.value if outcome is not None else status.value
+
+
+def pretty(value: Any) -> str:
+    return json.dumps(value, indent=2, sort_keys=True, ensure_ascii=False)
+
+
+templates = Jinja2Templates(directory=str(HERE / "templates"))
+templates.env.filters.update(when=when, number=number, seconds=seconds, pretty=pretty)
+templates.env.globals.update(state=state, version=__version__)
+
+
+def page(
+    request: Request,
+    name: str,
+    context: dict[str, Any],
+    *,
+    user: User | None = None,
+    status_code: int = 200,
+) -> HTMLResponse:
+    """Render template ``name`` with the page shell's context."""
+    return templates.TemplateResponse(
+        request,
+        name,
+        {"user": user, "vendor_ready": (VENDOR / "README").exists(), **context},
+        status_code=status_code,
+    )

@@ -1,0 +1,182 @@
+"""The pages in process: each renders, unknown things are pages that say so, and what a
+user controls is escaped. (tests/integration/test_browser.py drives them in Chromium.)"""
+
+from __future__ import annotations
+
+import re
+
+import httpx
+import pytest
+
+from labd.service import Service, ServiceConfig
+from labd.web import RobotLink, Site, create_app
+from repository.trial import Filing
+from scheduler.fetch import FetchPolicy
+from tests.helpers.githttp import GitRepo
+
+SCRIPT = "<script>alert('owned')</script>"
+
+
+@pytest.fixture
+def service(tmp_path):
+    config = ServiceConfig(
+        data=tmp_path / "data", workers=0, fetch=FetchPolicy(schemes=frozenset({"file"}))
+    )
+    service = Service(config)
+    yield service
+    service.index.close()
+
+
+@pytest.fixture
+async def web(service):
+    site = Site((RobotLink("icreate-1", "icreate-maze", True),), bridge_port=9999)
+    app = create_app(service, site, on_submit=lambda: None)
+    transport = httpx.ASGITransport(app=app)
+    async with httpx.AsyncClient(transport=transport, base_url="http://lab.test") as client:
+        yield client
+
+
+@pytest.fixture
+def token(service):
+    return service.index.add_user("alice")
+
+
+@pytest.fixture
+def repo(tmp_path):
+    toml = '[controller]\ncommand = ["python", "c.py"]\ntask = "icreate-maze"\n'
+    return GitRepo.create(tmp_path / "ctl", {"lab.toml": toml, "c.py": "pass\n"})
+
+
+def queue(service, repo, **kwargs):
+    alice = service.index.user("alice")
+    return service.queue.submit(
+        alice,
+        repository=str(repo.path),
+        ref=kwargs.pop("ref", "main"),
+        commit=repo.rev(),
+        task="icreate-maze",
+        params=kwargs.pop("params", {}),
+        seed=kwargs.pop("seed", 0),
+        public=True,
+        **kwargs,
+    )
+
+
+def finish(service, trial_id, filing):
+    claim = service.queue.claim("w")
+    assert claim is not None and claim.id == trial_id
+    assert service.queue.finish(trial_id, "w", filing)
+
+
+async def test_every_page_renders(web, service, token, repo):
+    """The lab, the trial list, a trial, its commit, a task, the forms and the API docs
+    all answer HTML (the docs from the lab's own files)."""
+    trial_id = queue(service, repo)
+    for path in (
+        "/",
+        "/trials",
+        f"/trials/{trial_id}",
+        f"/commits/{repo.rev()}",
+        "/tasks/icreate-maze",
+        "/submit",
+        "/session",
+        "/docs",
+        "/redoc",
+    ):
+        reply = await web.get(path)
+        assert reply.status_code == 200, (path, reply.text[:300])
+        assert reply.headers["content-type"].startswith("text/html")
+        links = re.findall(r'(?:src|href)="([^"]*)"', reply.text)
+        outside = [u for u in links if "://" in u and not u.startswith("http://lab.test")]
+        assert outside == [], (path, outside)  # every script, style and link is the lab's
+    docs = (await web.get("/docs")).text
+    assert "/static/vendor/swagger-ui/swagger-ui-bundle.js" in docs and "cdn" not in docs
+    redoc = (await web.get("/redoc")).text
+    assert "/static/vendor/redoc/redoc.standalone.js" in redoc and "googleapis" not in redoc
+    home = (await web.get("/")).text
+    assert "ws://lab.test:9999/robots/icreate-1" in home
+
+
+async def test_unknown_things_are_pages_with_a_way_back(web):
+    """An unknown trial, commit or task is a 404 page a person can act on, not JSON."""
+    for path, words in (
+        ("/trials/999", "No trial 999"),
+        ("/commits/abcdef12", "No such commit"),
+        ("/commits/zz", "Not a commit"),
+        ("/tasks/juggling", "No task juggling"),
+    ):
+        reply = await web.get(path)
+        assert reply.status_code == 404
+        assert reply.headers["content-type"].startswith("text/html")
+        assert words in reply.text and 'href="/trials"' in reply.text
+
+
+async def test_what_users_control_is_escaped(web, service, token, repo):
+    """A controller printing <script>, and a ref or parameter holding one, run nothing."""
+    trial_id = queue(service, repo, ref=SCRIPT, params={"note": SCRIPT})
+    log = service.store.put_bytes(f"hello\n{SCRIPT}\n".encode())
+    finish(
+        service,
+        trial_id,
+        Filing.error(f"the controller exited with 1 at tick 0: {SCRIPT}").model_copy(
+            update={"stdout": log, "stderr": log}
+        ),
+    )
+    for path in (f"/trials/{trial_id}", "/trials", f"/commits/{repo.rev()}", "/"):
+        text = (await web.get(path)).text
+        assert SCRIPT not in text, path
+    page = (await web.get(f"/trials/{trial_id}")).text
+    assert "&lt;script&gt;alert(&#39;owned&#39;)&lt;/script&gt;" in page
+
+
+async def test_a_huge_log_is_shown_in_part_with_a_link(web, service, token, repo):
+    """A log longer than the page shows is cut to its end, with a link to the whole."""
+    trial_id = queue(service, repo)
+    log = service.store.put_bytes(b"x" * 200_000 + b"\nTraceback: the end\n")
+    finish(service, trial_id, Filing.error("crashed").model_copy(update={"stderr": log}))
+    page = (await web.get(f"/trials/{trial_id}")).text
+    assert "Traceback: the end" in page
+    assert f'href="/api/trials/{trial_id}/logs/stderr"' in page
+    assert "x" * 70_000 not in page
+
+
+async def test_filters_pages_and_order(web, service, token, repo):
+    """The list filters by outcome and pages by cursor; by reward it pages by number."""
+    ids = [queue(service, repo, seed=s) for s in range(3)]
+    for n, trial_id in enumerate(ids):
+        filing = Filing.success("done") if n != 1 else Filing.fail("timed out")
+        finish(service, trial_id, filing.model_copy(update={"metrics": {"reward": float(n)}}))
+    fails = (await web.get("/trials", params={"outcome": "fail"})).text
+    assert f'href="/trials/{ids[1]}"' in fails and f'href="/trials/{ids[0]}"' not in fails
+    bad = await web.get("/trials", params={"since": "yesterday"})
+    assert bad.status_code == 422 and "YYYY-MM-DD" in bad.text
+    by_reward = (await web.get("/trials", params={"order": "reward"})).text
+    assert by_reward.index(f"#{ids[2]}<") < by_reward.index(f"#{ids[0]}<")
+
+
+async def test_submitting_and_rerunning_from_the_pages(web, service, token, repo):
+    """Signed in with a token, a person submits from the form (lab.toml's task by default)
+    and reruns from a trial's page; a bad request comes back on the form, kept."""
+    anonymous = await web.post("/submit", data={"repository": str(repo.path)})
+    assert anonymous.status_code == 401 and "sign in first" in anonymous.text
+    wrong = await web.post("/session", data={"token": "labd_nope"})
+    assert wrong.status_code == 401
+    signed = await web.post("/session", data={"token": token, "then": "/submit"})
+    assert signed.status_code == 303 and signed.headers["location"] == "/submit"
+    cookie = signed.headers["set-cookie"]
+    assert "httponly" in cookie.lower() and "samesite=strict" in cookie.lower()
+    made = await web.post("/submit", data={"repository": str(repo.path), "seed": "4"})
+    assert made.status_code == 303
+    trial_id = int(made.headers["location"].rsplit("/", 1)[1])
+    assert service.index.trial(trial_id).task == "icreate-maze"
+    refused = await web.post(
+        "/submit", data={"repository": str(repo.path), "params": "maze_size=8"}
+    )
+    assert refused.status_code == 422 and "must be odd" in refused.text
+    assert 'value="maze_size=8"' in refused.text
+    again = await web.post(f"/trials/{trial_id}/rerun")
+    assert again.status_code == 303
+    rerun = service.index.trial(int(again.headers["location"].rsplit("/", 1)[1]))
+    assert rerun.rerun_of == trial_id
+    forged = await web.post(f"/trials/{trial_id}/rerun", headers={"Origin": "http://evil.example"})
+    assert forged.status_code == 403
