@@ -1,7 +1,7 @@
 // Copies the browser files the lab's pages use from node_modules into
 // labd/web/static/vendor/, which `labd serve` serves: nothing is fetched from a CDN.
 // Run by `make setup` (npm ci, then this); the vendor folder is not committed.
-import { cpSync, mkdirSync, rmSync, writeFileSync } from "node:fs";
+import { cpSync, mkdirSync, readFileSync, rmSync, writeFileSync } from "node:fs";
 import { dirname, join } from "node:path";
 import { fileURLToPath } from "node:url";
 
@@ -31,5 +31,12 @@ for (const [to, from] of Object.entries(FILES)) {
   mkdirSync(dirname(target), { recursive: true });
   cpSync(join(modules, from), target);
 }
+// ReDoc's sidebar shows a small logo it loads from its CDN: serve it from here instead.
+const LOGO = "https://cdn.redoc.ly/redoc/logo-mini.svg";
+const redoc = join(vendor, "redoc", "redoc.standalone.js");
+const text = readFileSync(redoc, "utf8");
+if (!text.includes(LOGO)) throw new Error(`${redoc}: no ${LOGO} to replace; check the ReDoc version`);
+writeFileSync(redoc, text.replaceAll(LOGO, "/static/redoc-logo.svg"));
+
 writeFileSync(join(vendor, "README"), "Built by web/build.mjs from npm packages; do not edit.\n");
 console.log(`vendor: ${Object.keys(FILES).length} files in ${vendor}`);

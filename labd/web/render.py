@@ -90,6 +90,11 @@ def page(
     return templates.TemplateResponse(
         request,
         name,
-        {"user": user, "vendor_ready": (VENDOR / "README").exists(), **context},
+        {
+            "user": user,
+            "vendor_ready": (VENDOR / "README").exists(),
+            "viewer_ready": (STATIC / "record.js").exists(),
+            **context,
+        },
         status_code=status_code,
     )

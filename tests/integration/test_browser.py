@@ -1,0 +1,146 @@
+"""The archive's pages in a real browser, against a real lab with real trials.
+
+Every page renders with no console error and no request leaving 127.0.0.1; the list
+filters and pages; a crash's traceback reads on its trial's page; a rerun made with the
+page's button shows its verdict; what a controller prints runs nothing.
+"""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import pytest
+
+from labd.config import BridgeConfig
+from labd.lab import LabConfig
+from labd.service import ServiceConfig
+from scheduler.fetch import FetchPolicy
+from tests.conftest import ServerThread
+from tests.helpers.githttp import GitRepo
+from tests.integration.browser import Watched, browser, watched
+from tests.integration.test_commands import shared_cache
+from tests.scheduler.conftest import make_backend
+
+__all__ = ["browser", "watched"]
+pytestmark = [pytest.mark.integration, pytest.mark.timeout(300)]
+SHOTS = Path(__file__).resolve().parents[2] / "build" / "screenshots"
+
+STEPS = """\
+import sys
+from controllers.client import Lab
+print("<script>document.title='owned'</script>")
+with Lab.connect() as lab:
+    for _ in range(5):
+        lab.step()
+if len(sys.argv) > 1:
+    raise RuntimeError("the controller has a bug")
+"""
+
+
+@pytest.fixture
+def lab(tmp_path, cache):
+    """A lab with one worker (bubblewrap) and no robots, its HTTP port chosen freely."""
+    make_backend("bwrap", cache)
+    data = tmp_path / "data"
+    shared_cache(data, cache)
+    config = LabConfig(
+        data=data,
+        bridge=BridgeConfig(port=0),
+        robots=(),
+        http_port=0,
+        service=ServiceConfig(
+            data=data, workers=1, sandbox="bwrap", fetch=FetchPolicy(schemes=frozenset({"file"}))
+        ),
+    )
+    server = ServerThread(config).start()
+    yield server
+    server.stop()
+
+
+def url(lab: ServerThread, path: str = "") -> str:
+    assert lab.lab is not None and lab.lab.http is not None
+    return lab.lab.http.url() + path
+
+
+def wait_ended(lab: ServerThread, trial_id: int, timeout: float = 120):
+    service = lab.lab.service
+    deadline = time.monotonic() + timeout
+    while not (trial := service.index.trial(trial_id)).status.ended:
+        assert time.monotonic() < deadline, trial
+        time.sleep(0.2)
+    return trial
+
+
+def shot(watched: Watched, name: str) -> None:
+    SHOTS.mkdir(parents=True, exist_ok=True)
+    watched.page.screenshot(path=str(SHOTS / f"{name}.png"), full_page=True)
+
+
+def test_the_archive_in_a_browser(lab, watched, tmp_path):
+    """A person signs in, submits a controller that crashes and one that runs, reads the
+    traceback, filters the list, reruns from the page and sees the verdict; every page
+    renders cleanly and nothing leaves the machine."""
+    service = lab.lab.service
+    token = service.index.add_user("alice")
+    toml = '[controller]\ncommand = ["python", "c.py"{extra}]\ntask = "icreate-maze"\n'
+    good = GitRepo.create(tmp_path / "good", {"lab.toml": toml.format(extra=""), "c.py": STEPS})
+    bad = GitRepo.create(
+        tmp_path / "bad", {"lab.toml": toml.format(extra=', "crash"'), "c.py": STEPS}
+    )
+    page = watched.page
+    page.goto(url(lab, "/"))
+    assert page.locator("h1").first.inner_text() == "A remote robot lab"
+    page.goto(url(lab, "/session?then=/submit"))
+    page.fill("input[name=token]", token)
+    page.click("form.card button[type=submit]")
+    page.wait_for_url("**/submit")
+    made = {}
+    for name, repo in (("bad", bad), ("good", good)):
+        page.goto(url(lab, "/submit"))
+        page.fill("#repository", str(repo.path))
+        page.click("form.card button[type=submit]")
+        page.wait_for_url("**/trials/*")
+        made[name] = int(page.url.rsplit("/", 1)[1])
+    for name in made:
+        wait_ended(lab, made[name])
+
+    page.goto(url(lab, f"/trials/{made['bad']}"))
+    assert page.locator(".headline .badge").inner_text().lower() == "error"
+    assert "RuntimeError: the controller has a bug" in page.locator("#reason").inner_text()
+    traceback = page.locator("#stderr pre").inner_text()
+    assert 'File "/code/c.py", line 8' in traceback and "RuntimeError" in traceback
+    assert page.title() != "owned"  # what the controller printed was shown, not run
+    assert "<script>document.title='owned'</script>" in page.locator("#stdout pre").inner_text()
+    shot(watched, "trial-error")
+
+    page.goto(url(lab, "/trials"))
+    page.select_option("select[name=outcome]", "fail")
+    page.click("form.filters button[type=submit]")
+    page.wait_for_url("**outcome=fail**")
+    rows = page.locator("table.trials tbody tr")
+    assert rows.count() == 1 and f"#{made['good']}" in rows.first.inner_text()
+    shot(watched, "trials")
+
+    page.goto(url(lab, f"/trials/{made['good']}"))
+    page.click("#rerun")
+    page.wait_for_url("**/trials/*")
+    rerun = int(page.url.rsplit("/", 1)[1])
+    assert rerun != made["good"]
+    wait_ended(lab, rerun)
+    page.reload()
+    assert page.locator(".reproduced").first.inner_text() == "reproduced"
+    assert f"trial #{made['good']}" in page.locator(".card").first.inner_text()
+    page.goto(url(lab, f"/commits/{good.rev()}"))
+    assert "1 reproduced" in page.locator("main").inner_text()
+    shot(watched, "commit")
+
+    for path in ("/", "/tasks/icreate-maze", "/docs", "/redoc", "/trials/424242"):
+        page.goto(url(lab, path))
+        page.wait_for_load_state("networkidle")
+    assert page.locator("h1").inner_text() == "No trial 424242"
+    watched.expected.add(f"404 {url(lab, '/trials/424242')}")
+    page.goto(url(lab, "/docs"))
+    page.wait_for_selector(".swagger-ui .opblock", timeout=20_000)
+    shot(watched, "docs")
+    watched.check()
