@@ -62,7 +62,8 @@ class TrialSummary(BaseModel):
     metrics: dict[str, Any] | None
     backend: str | None
     wall_seconds: float | None
-    url: str
+    url: str = Field(description="this record in the API")
+    page: str = Field(description="this trial's web page")
     mcap: Blob | None = Field(description="the MCAP record")
     logs: dict[str, str] = Field(description="the controller's stdout and stderr, by URL")
 
@@ -152,6 +153,7 @@ def summary(trial: Trial, base: str) -> dict[str, Any]:
         "reward": trial.reward,
         "verdict": trial.verdict,
         "url": link,
+        "page": f"{base}/trials/{trial.id}",
         "mcap": (
             Blob(digest=trial.mcap, size=trial.mcap_size, url=f"{link}/data.mcap")
             if trial.mcap

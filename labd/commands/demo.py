@@ -130,7 +130,8 @@ def main(args: argparse.Namespace) -> int:
         labd = Path(sys.executable).parent / "labd"
         print(
             f"""
-Where to look:
+Open the lab in a browser: {server}/
+  {server}/trials/{first.id}               a trial: its outcome, plots, camera, logs, downloads
   {server}/docs                      the API, to try in a browser
   {server}/api/trials                the archive
   {server}/api/commits/{first.commit[:12]}   a commit, its trials and reruns

@@ -363,11 +363,12 @@ def _queued_lines(row: TrialDetail) -> Iterator[str]:
     yield f"trial {row.id} queued: {what}"
     yield f"  {row.repository} @ {row.commit}{ref}"
     yield f"  seed {row.seed}" + (f", params {_params(row.params)}" if row.params else "")
-    yield f"  follow it: labd show {row.id}   ({row.url})"
+    yield f"  follow it: labd show {row.id}, or {row.page}"
 
 
 def _trial_lines(row: TrialDetail, full: bool = False) -> Iterator[str]:
     yield headline(row)
+    yield f"  page       {row.page}"
     ref = f" ({row.ref})" if row.ref and row.ref != row.commit else ""
     yield f"  repository {row.repository}"
     yield f"  commit     {row.commit}{ref}"
