@@ -57,8 +57,10 @@ def chromium_or_skip() -> str:
     pytest.skip(f"no Chromium at {CHROMIUM}")
 
 
-@pytest.fixture(scope="session")
+@pytest.fixture(scope="module")
 def browser() -> Iterator[Any]:
+    """Chromium, for one test module: Playwright's sync API keeps an event loop running
+    while it is open, which the asyncio tests of later modules must not find."""
     from playwright.sync_api import sync_playwright
 
     executable = chromium_or_skip()
