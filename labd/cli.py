@@ -6,6 +6,8 @@
                                    a running lab, through its HTTP API
     labd users add NAME            the operator's: a user and their token
     labd migrate                   the operator's: upgrade an archive's index in place
+    labd verify FILE|DIR           check a record or an export against its signature, offline
+    labd keys rotate               the operator's: sign with a new key
     labd worker --server URL       run a lab's trials on this machine
     labd demo                      what `make demo` runs
 
@@ -23,7 +25,7 @@ from collections.abc import Callable, Sequence
 from typing import NoReturn
 
 from labd import __version__
-from labd.commands import demo, migrate, remote, run, serve, users, worker
+from labd.commands import demo, migrate, remote, run, serve, users, verify, worker
 from labd.commands.common import EPILOG
 
 log = logging.getLogger("labd")
@@ -59,6 +61,7 @@ def build_parser() -> argparse.ArgumentParser:
     remote.add_parsers(commands)
     users.add_parser(commands)
     migrate.add_parser(commands)
+    verify.add_parser(commands)
     demo.add_parser(commands)
     worker.add_parser(commands)
     return parser
@@ -69,6 +72,8 @@ MAINS: dict[str, Callable[[argparse.Namespace], int]] = {
     "run": run.main,
     "users": users.main,
     "migrate": migrate.main,
+    "verify": verify.main,
+    "keys": verify.main,
     "demo": demo.main,
     "worker": worker.main,
     **dict.fromkeys(remote.COMMANDS, remote.main),

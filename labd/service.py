@@ -29,6 +29,7 @@ from labd.graph.types import TypeRegistry
 from labd.trial import LabHost, client_library
 from repository.blobs import BlobStore
 from repository.index import Index
+from repository.signing import Keyring
 from scheduler.fetch import FetchPolicy
 from scheduler.queue import Queue, QueueConfig
 from scheduler.runner import RunOptions
@@ -45,6 +46,7 @@ class ServiceConfig:
     blobs: str | None = None  # folder or fsspec URL; default DATA/blobs
     blob_options: Mapping[str, Any] = field(default_factory=dict)
     cache: Path | None = None  # mirrors and runtimes; default DATA/cache
+    keys: Path | None = None  # the keys the lab signs records with; default DATA/keys
     workers: int = 1
     sandbox: str | None = None  # docker, bwrap, or None: docker if it answers
     queue: QueueConfig = field(default_factory=QueueConfig)
@@ -75,7 +77,8 @@ class Service:
         self.cache = (config.cache or config.data / "cache").resolve()
         self.index = Index.open(config.database_url)
         self.store = BlobStore(config.blobs_url, dict(config.blob_options) or None)
-        self.queue = Queue(self.index, config.queue)
+        self.keyring = Keyring((config.keys or config.data / "keys").resolve())
+        self.queue = Queue(self.index, config.queue, self.keyring)
         self.submissions = Submissions(self.queue, self.host, self.cache, config.fetch)
         self.workers: list[Worker] = []
         self._tasks: list[asyncio.Task[None]] = []

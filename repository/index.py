@@ -94,6 +94,7 @@ trials = sa.Table(
     sa.Column("stderr", sa.String(71)),
     sa.Column("reproduced", sa.Boolean),  # reruns only: identical data digest
     sa.Column("divergence", sa.Text),  # reruns that did not reproduce: where they parted
+    sa.Column("signature", sa.JSON),  # the lab's signature of the filed record (signing.py)
 )
 
 # Derived artifacts of a record (a summary for its page, an export, a rendered video):

@@ -1,6 +1,8 @@
 """Upgrading an archive's index in place, from an older schema to this labd's.
 
-Schema 2 also keeps the reward metric as a column (``reward``), to sort and rank by.
+Schema 2 also keeps the reward metric as a column (``reward``), to sort and rank by, and
+the lab's signature of each record filed from then on (``signature``; records filed
+before have none).
 
 Schema 1 (labd 0.1) kept one ``status`` for both the lifecycle and the result:
 ``succeeded`` meant the trial ran to its end, whether or not the robot achieved its
@@ -81,6 +83,7 @@ def _from_1(db: Connection, result: Upgrade) -> None:
     db.execute(sa.text("ALTER TABLE trials ADD COLUMN kind VARCHAR(16) NOT NULL DEFAULT 'trial'"))
     db.execute(sa.text("ALTER TABLE trials ADD COLUMN outcome VARCHAR(16)"))
     db.execute(sa.text("ALTER TABLE trials ADD COLUMN reward FLOAT"))
+    db.execute(sa.text("ALTER TABLE trials ADD COLUMN signature JSON"))
     c = trials.c
     rows = db.execute(
         sa.select(c.id, c.status, c.metrics).where(c.status.in_(("succeeded", "failed")))

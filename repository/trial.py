@@ -177,6 +177,7 @@ class Trial(BaseModel):
     stderr: str | None
     reproduced: bool | None
     divergence: str | None
+    signature: dict[str, Any] | None = None  # the lab's, over the filed record
 
     @property
     def original(self) -> int:

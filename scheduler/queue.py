@@ -33,6 +33,7 @@ from sqlalchemy.engine import Connection
 
 from repository.index import Index, User, reward_of, to_trial
 from repository.index import trials as T
+from repository.signing import Keyring, record_statement
 from repository.trial import Claim, Filing, Outcome, Status, Trial
 from scheduler.errors import NotYours, QuotaExceeded
 
@@ -58,9 +59,14 @@ class Cancel(StrEnum):
 
 
 class Queue:
-    def __init__(self, index: Index, config: QueueConfig | None = None) -> None:
+    """The queue over ``index``; with a ``keyring``, every filed record is signed."""
+
+    def __init__(
+        self, index: Index, config: QueueConfig | None = None, keyring: Keyring | None = None
+    ) -> None:
         self.index = index
         self.config = config or QueueConfig()
+        self.keyring = keyring
         self.clock = index.clock
 
     # -- submitting ---------------------------------------------------------------------
@@ -240,6 +246,28 @@ class Queue:
                 .where(T.c.id == trial_id, T.c.worker == worker, T.c.status == RUNNING)
                 .values(lease_until=None, **values)
             ).rowcount
+            if done == 1 and self.keyring is not None:
+                row = db.execute(sa.select(T).where(T.c.id == trial_id)).one()
+                signed = self.keyring.sign(
+                    record_statement(
+                        trial=trial_id,
+                        kind=row.kind,
+                        repository=row.repository,
+                        commit=row.commit,
+                        task=row.task,
+                        seed=row.seed,
+                        status=row.status,
+                        outcome=row.outcome,
+                        manifest_digest=row.manifest_digest,
+                        data_digest=row.data_digest,
+                        digest_topics=row.digest_topics,
+                        mcap=row.mcap,
+                        finished=row.finished,
+                    )
+                )
+                db.execute(
+                    sa.update(T).where(T.c.id == trial_id).values(signature=signed.to_json())
+                )
         if done != 1:
             log.warning("worker %s finished trial %d after losing it; dropped", worker, trial_id)
         return done == 1

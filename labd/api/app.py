@@ -38,6 +38,7 @@ from labd.api.errors import ApiError, responses
 from labd.api.models import (
     CancelView,
     CommitView,
+    Keys,
     LabStatus,
     TaskList,
     TrialDetail,
@@ -123,6 +124,12 @@ def status(service: Lab) -> LabStatus:
         running=running,
         local_workers=len(service.workers),
     )
+
+
+@router.get("/api/keys", tags=["lab"])
+def keys(service: Lab) -> Keys:
+    """The public keys the lab signs records and exports with (``labd verify --key``)."""
+    return Keys(current=service.keyring.current, keys=service.keyring.public_keys())
 
 
 @router.get("/api/tasks", tags=["tasks"])

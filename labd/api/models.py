@@ -75,6 +75,9 @@ class TrialDetail(TrialSummary):
     digest_topics: list[str] | None
     worker: str | None
     cancel_requested: bool = Field(description="its worker has been asked to stop it")
+    signature: dict[str, Any] | None = Field(
+        description="the lab's signature of the filed record: statement, key id, signature"
+    )
 
 
 class CancelView(BaseModel):
@@ -82,6 +85,13 @@ class CancelView(BaseModel):
 
     done: Cancel = Field(description="cancelled (it was queued), stopping (it runs) or ended")
     trial: TrialDetail
+
+
+class Keys(BaseModel):
+    """The lab's public keys (PEM) by id; ``current`` signs new records."""
+
+    current: str
+    keys: dict[str, str]
 
 
 class TrialPage(BaseModel):

@@ -1,15 +1,22 @@
 """What the API makes from a record: exports for learning, kept as derived artifacts.
 
-    GET /api/trials/{id}/export/parquet        one Parquet file of observation-action pairs
-    GET /api/trials/{id}/export/lerobot        a LeRobot v3.0 dataset, as a zip of its folder
+    GET /api/trials/{id}/export/parquet             one Parquet file of observation-action pairs
+    GET /api/trials/{id}/export/lerobot             a LeRobot v3.0 dataset, as a zip of its folder
+    GET /api/trials/{id}/export/{format}/signature  the lab's signature of that export
 
 An export is made the first time it is asked for, from the record checked against its
 digest, and kept in the blob store beside the record (``repository.index.Derived``): it
 never changes the record or its digests, and later requests are served from the store.
+
+Each export carries the record's signature in its provenance, and is signed itself: the
+lab signs the digests of its files (``repository.signing``), kept in the export as
+``labd-signature.json`` (in the LeRobot zip; served beside the Parquet file), so that
+``labd verify DIR`` tells whether any file of it was changed.
 """
 
 from __future__ import annotations
 
+import json
 import shutil
 import tempfile
 from pathlib import Path
@@ -23,6 +30,7 @@ from labd.api.errors import ApiError, responses
 from labd.sim import registry
 from repository.export import export
 from repository.index import Derived
+from repository.signing import EXPORT, file_digests
 from repository.trial import Trial
 
 router = APIRouter(tags=["data"])
@@ -31,6 +39,7 @@ ARTIFACT: dict[str, tuple[str, str]] = {  # format -> (derived name, media type)
     "parquet": ("export.parquet", "application/vnd.apache.parquet"),
     "lerobot": ("export-lerobot.zip", "application/zip"),
 }
+SIGNATURE = "labd-signature.json"  # an export's own signature, in its folder
 
 
 def provenance(trial: Trial, url: str) -> dict[str, Any]:
@@ -45,6 +54,7 @@ def provenance(trial: Trial, url: str) -> dict[str, Any]:
         "manifest_digest": trial.manifest_digest,
         "data_digest": trial.data_digest,
         "manifest": trial.manifest,
+        "signature": trial.signature,
     }
 
 
@@ -61,15 +71,29 @@ def provenance(trial: Trial, url: str) -> dict[str, Any]:
 )
 def export_record(trial_id: int, fmt: Format, service: Lab) -> StreamingResponse:
     """The trial's observation-action pairs as Parquet, or as a LeRobot dataset (zip)."""
+    item = _artifact(service, trial_id, fmt)
+    filename = f"trial-{trial_id}.parquet" if fmt == "parquet" else f"trial-{trial_id}-lerobot.zip"
+    return blob_response(service, item.digest, item.media_type, filename)
+
+
+@router.get("/api/trials/{trial_id}/export/{fmt}/signature", responses=responses(404, 422, 500))
+def export_signature(trial_id: int, fmt: Format, service: Lab) -> dict[str, Any]:
+    """The lab's signature of the export: the digests of its files, signed."""
+    _artifact(service, trial_id, fmt)
+    signed = service.index.derived(trial_id)[ARTIFACT[fmt][0] + ".sig"]
+    data: dict[str, Any] = json.loads(service.store.read_bytes(signed.digest))
+    return data
+
+
+def _artifact(service: Lab, trial_id: int, fmt: Format) -> Derived:
     trial = service.index.trial(trial_id)
     if not trial.mcap:
         raise ApiError(404, f"trial {trial_id} has no record to export")
-    name, media = ARTIFACT[fmt]
-    item = service.index.derived(trial_id).get(name)
-    if item is None:
-        item = _make(service, trial, fmt)
-    filename = f"trial-{trial_id}.parquet" if fmt == "parquet" else f"trial-{trial_id}-lerobot.zip"
-    return blob_response(service, item.digest, media, filename)
+    made = service.index.derived(trial_id)
+    name = ARTIFACT[fmt][0]
+    if name in made and name + ".sig" in made:
+        return made[name]
+    return _make(service, trial, fmt)
 
 
 def _make(service: Lab, trial: Trial, fmt: Format) -> Derived:
@@ -89,11 +113,26 @@ def _make(service: Lab, trial: Trial, fmt: Format) -> Derived:
             actions=actions,
             provenance=provenance(trial, f"/api/trials/{trial.id}"),
         )
+        signed = service.keyring.sign(
+            {
+                "schema": EXPORT,
+                "trial": trial.id,
+                "format": fmt,
+                "data_digest": trial.data_digest,
+                "files": file_digests(out),
+            }
+        )
+        sig_bytes = (json.dumps(signed.to_json(), indent=2, sort_keys=True) + "\n").encode()
+        (out / SIGNATURE).write_bytes(sig_bytes)
         if fmt == "parquet":
             artifact = out / "data.parquet"
         else:
             artifact = Path(shutil.make_archive(str(work / "lerobot"), "zip", out))
         digest = service.store.put_file(artifact)
         item = Derived(name, digest, artifact.stat().st_size, media)
+        sig_digest = service.store.put_bytes(sig_bytes)
     service.index.put_derived(trial.id, item)
+    service.index.put_derived(
+        trial.id, Derived(name + ".sig", sig_digest, len(sig_bytes), "application/json")
+    )
     return item

@@ -9,6 +9,7 @@ Exit codes (``labd --help`` lists them too):
     3  error: the trial broke (crashed, stalled, hit a limit, or the lab failed)
     4  cancelled: the trial was cancelled
     5  diverged: a rerun did not reproduce its original's data
+    6  invalid: a record or an export does not match the lab's signature (labd verify)
 
 With ``--json`` every command prints one JSON value on stdout, errors included
 (``{"error": "..."}``), with the same exit code.
@@ -35,11 +36,13 @@ class ExitCode(IntEnum):
     ERROR = 3
     CANCELLED = 4
     DIVERGED = 5
+    INVALID = 6
 
 
 EPILOG = """exit codes: 0 success (a rerun: reproduced); 1 fail (the trial ran to its end
 without achieving its task); 2 usage (a wrong command line, a refused request, no lab);
-3 error (the trial broke); 4 cancelled; 5 a rerun diverged"""
+3 error (the trial broke); 4 cancelled; 5 a rerun diverged; 6 a record or export does not
+match its signature (verify)"""
 
 
 def exit_code(status: Status | str, outcome: Outcome | str | None) -> ExitCode:

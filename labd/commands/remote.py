@@ -205,9 +205,18 @@ def _logs(client: ApiClient, args: argparse.Namespace) -> int:
 
 
 def _download(client: ApiClient, args: argparse.Namespace) -> int:
+    """The record, and beside it the lab's signature of it (for ``labd verify``)."""
+    row = client.get(f"/api/trials/{args.trial}", TrialDetail)
     dest = args.output or Path(f"trial-{args.trial}.mcap")
-    size = client.download(f"/api/trials/{args.trial}/data.mcap", dest)
-    emit(args, {"path": str(dest), "size": size}, lambda: [f"{dest} ({size:,} bytes)"])
+    digest = row.mcap.digest if row.mcap else None
+    size = client.download(f"/api/trials/{args.trial}/data.mcap", dest, digest=digest)
+    signed = None
+    if row.signature is not None:
+        signed = dest.with_name(dest.name + ".sig.json")
+        signed.write_text(json.dumps(row.signature, indent=2, sort_keys=True) + "\n")
+    info = {"path": str(dest), "size": size, "signature": str(signed) if signed else None}
+    said = [f"{dest} ({size:,} bytes)"] + ([f"{signed} (the lab's signature)"] if signed else [])
+    emit(args, info, lambda: said)
     return ExitCode.SUCCESS
 
 
@@ -266,6 +275,12 @@ def _export(client: ApiClient, args: argparse.Namespace) -> int:
         out.mkdir(parents=True, exist_ok=True)
         if args.format == "parquet":
             shutil.move(got, out / "data.parquet")
+            signature = client.request(
+                "GET", f"/api/trials/{args.trial}/export/parquet/signature"
+            ).json()
+            (out / "labd-signature.json").write_text(
+                json.dumps(signature, indent=2, sort_keys=True) + "\n"
+            )
         else:
             with zipfile.ZipFile(got) as archive:
                 archive.extractall(out)

@@ -256,6 +256,11 @@ async def serve(config: LabConfig) -> None:
         print(f"HTTP API on {lab.http.url()}/api (OpenAPI: {lab.http.url()}/openapi.json)")
         print(f"  archive: {lab.service.config.database_url}, blobs {lab.service.store.url}")
         print(f"  workers: {len(lab.service.workers)}", flush=True)
+        print(
+            f"  records are signed with {lab.service.keyring.current}"
+            f" (public keys: {lab.http.url()}/api/keys)",
+            flush=True,
+        )
     stop = asyncio.Event()
     loop = asyncio.get_running_loop()
     for sig in (signal.SIGINT, signal.SIGTERM):

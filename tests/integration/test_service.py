@@ -195,6 +195,23 @@ def test_submit_list_download_and_rerun_by_commit(lab, tmp_path):
     assert provenance["commit"] == commit
     assert provenance["manifest"] == page["manifest"]
     assert provenance["data_digest"] == trial["data_digest"]
+    assert provenance["signature"] == page["signature"]
+
+    # the three ways to check a record: rerun (above), and the lab's signature, offline
+    keys = tmp_path / "lab-keys.json"
+    keys.write_text(httpx.get(f"{lab.server}/api/keys").text)
+    verified = lab.labd("verify", str(mcap), "--key", str(keys)).stdout
+    assert f"verified: trial {trial['id']} (icreate-maze, success)" in verified
+    assert lab.labd("verify", str(out), "--key", str(keys)).returncode == 0
+    data = bytearray(mcap.read_bytes())
+    data[len(data) // 2] ^= 0x01  # one bit, in the middle of the messages
+    mcap.write_bytes(bytes(data))
+    broken = lab.labd("verify", str(mcap), "--key", str(keys), check=False)
+    assert broken.returncode == 6 and "was changed after the lab signed it" in broken.stderr
+    info_file = out / "meta" / "info.json"
+    info_file.write_text(info_file.read_text().replace('"total_frames"', '"total_frames" '))
+    edited = lab.labd("verify", str(out), "--key", str(keys), check=False)
+    assert edited.returncode == 6 and "changed: meta/info.json" in edited.stderr
 
 
 def test_a_sigkill_mid_trial_loses_nothing(lab, tmp_path):

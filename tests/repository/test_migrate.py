@@ -11,7 +11,7 @@ from repository.index import Index, connect
 from repository.migrate import schema_of, upgrade
 from repository.trial import Outcome, Status
 
-NEW_COLUMNS = {"kind", "outcome", "reward"}
+NEW_COLUMNS = {"kind", "outcome", "reward", "signature"}
 
 
 def schema_1(url: str) -> None:

@@ -1,0 +1,206 @@
+"""The lab's signatures: a filed record, or an export, checkable offline with a public key.
+
+The lab signs a **statement**, a small JSON object saying what it vouches for: for a
+record, the trial, its commit and task, how it ended, the manifest digest and the data
+digest (which names every observation and action the record holds, so a changed message
+changes it); for an export, the digests of its files. Statements are signed with
+Ed25519 (``cryptography``) over their canonical JSON (sorted keys, no spaces, UTF-8), so
+anyone with the lab's public key can check one, with no server.
+
+Keys live in a folder (``DATA/keys``): the signing key (``signing.pem``, readable by the
+lab only) and every public key the lab ever used (``ed25519-<id>.pub.pem``). Rotating
+makes a new signing key and keeps the old public keys, so old signatures still check.
+A key's id is ``ed25519:`` and the first 16 hex digits of the sha256 of its raw bytes.
+"""
+
+from __future__ import annotations
+
+import base64
+import datetime as dt
+import hashlib
+import json
+import os
+from collections.abc import Mapping
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from cryptography.exceptions import InvalidSignature
+from cryptography.hazmat.primitives import serialization
+from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PrivateKey, Ed25519PublicKey
+
+from repository.errors import ArchiveError
+
+RECORD = "labd.record/1"  # what a record's statement says it is
+EXPORT = "labd.export/1"
+SIGNING = "signing.pem"
+
+
+class SignatureError(ArchiveError):
+    """A signature does not check: the message says what differs, or which key is missing."""
+
+
+def canonical(value: Mapping[str, Any]) -> bytes:
+    return json.dumps(value, sort_keys=True, separators=(",", ":"), ensure_ascii=False).encode()
+
+
+def key_id(public: Ed25519PublicKey) -> str:
+    raw = public.public_bytes(serialization.Encoding.Raw, serialization.PublicFormat.Raw)
+    return "ed25519:" + hashlib.sha256(raw).hexdigest()[:16]
+
+
+def public_pem(public: Ed25519PublicKey) -> str:
+    return public.public_bytes(
+        serialization.Encoding.PEM, serialization.PublicFormat.SubjectPublicKeyInfo
+    ).decode()
+
+
+def load_public(pem: str | bytes) -> Ed25519PublicKey:
+    key = serialization.load_pem_public_key(pem.encode() if isinstance(pem, str) else pem)
+    if not isinstance(key, Ed25519PublicKey):
+        raise SignatureError("the key is not an Ed25519 public key")
+    return key
+
+
+@dataclass(frozen=True)
+class Signature:
+    """A statement, the id of the key that signed it, and the signature (base64)."""
+
+    statement: dict[str, Any]
+    key: str
+    value: str
+
+    def to_json(self) -> dict[str, Any]:
+        return {"statement": self.statement, "key": self.key, "signature": self.value}
+
+    @classmethod
+    def from_json(cls, data: Mapping[str, Any]) -> Signature:
+        try:
+            return cls(dict(data["statement"]), str(data["key"]), str(data["signature"]))
+        except (KeyError, TypeError, ValueError) as err:
+            raise SignatureError(f"not a labd signature ({err!r} missing or wrong)") from None
+
+
+class Keyring:
+    """The lab's keys in ``folder``: one to sign with, and every public key it used."""
+
+    def __init__(self, folder: Path) -> None:
+        self.folder = folder
+        folder.mkdir(parents=True, exist_ok=True)
+        path = folder / SIGNING
+        if not path.exists():
+            self._write_new()
+        loaded = serialization.load_pem_private_key(path.read_bytes(), password=None)
+        if not isinstance(loaded, Ed25519PrivateKey):
+            raise SignatureError(f"{path} is not an Ed25519 private key")
+        self._private: Ed25519PrivateKey = loaded
+        self.current = key_id(loaded.public_key())
+
+    def _write_new(self) -> Ed25519PrivateKey:
+        private = Ed25519PrivateKey.generate()
+        pem = private.private_bytes(
+            serialization.Encoding.PEM,
+            serialization.PrivateFormat.PKCS8,
+            serialization.NoEncryption(),
+        )
+        tmp = self.folder / f".{SIGNING}.{os.getpid()}"
+        fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
+        with os.fdopen(fd, "wb") as out:
+            out.write(pem)
+        public = private.public_key()
+        (self.folder / _public_name(key_id(public))).write_text(public_pem(public))
+        tmp.replace(self.folder / SIGNING)
+        return private
+
+    def rotate(self) -> str:
+        """Sign with a new key from now on; the old public keys stay. The new key's id."""
+        self._private = self._write_new()
+        self.current = key_id(self._private.public_key())
+        return self.current
+
+    def public_keys(self) -> dict[str, str]:
+        """Every public key the lab used, by id (PEM)."""
+        keys = {}
+        for path in sorted(self.folder.glob("ed25519-*.pub.pem")):
+            key = load_public(path.read_text())
+            keys[key_id(key)] = path.read_text()
+        return keys
+
+    def sign(self, statement: Mapping[str, Any]) -> Signature:
+        body = {**statement, "key": self.current}
+        value = base64.b64encode(self._private.sign(canonical(body))).decode()
+        return Signature(body, self.current, value)
+
+
+def _public_name(kid: str) -> str:
+    return f"ed25519-{kid.split(':', 1)[1]}.pub.pem"
+
+
+def verify(signature: Signature, keys: Mapping[str, str | Ed25519PublicKey]) -> None:
+    """Check ``signature`` against the public keys (by id); ``SignatureError`` if not."""
+    key = keys.get(signature.key)
+    if key is None:
+        raise SignatureError(
+            f"signed with key {signature.key}, which is not among the keys given"
+            f" ({', '.join(keys) or 'none'}); get the lab's keys from its /api/keys"
+        )
+    public = load_public(key) if isinstance(key, str) else key
+    if signature.statement.get("key") != signature.key:
+        raise SignatureError("the statement names another key than the signature's")
+    try:
+        public.verify(base64.b64decode(signature.value), canonical(signature.statement))
+    except (InvalidSignature, ValueError):
+        raise SignatureError(
+            "the signature does not match its statement: the statement was changed, or"
+            " another key made it"
+        ) from None
+
+
+def record_statement(
+    *,
+    trial: int,
+    kind: str,
+    repository: str,
+    commit: str | None,
+    task: str,
+    seed: int,
+    status: str,
+    outcome: str | None,
+    manifest_digest: str | None,
+    data_digest: str | None,
+    digest_topics: list[str] | None,
+    mcap: str | None,
+    finished: float,
+) -> dict[str, Any]:
+    """What the lab vouches for when it files a trial's record."""
+    return {
+        "schema": RECORD,
+        "trial": trial,
+        "kind": kind,
+        "repository": repository,
+        "commit": commit,
+        "task": task,
+        "seed": seed,
+        "status": status,
+        "outcome": outcome,
+        "manifest_digest": manifest_digest,
+        "data_digest": data_digest,
+        "digest_topics": digest_topics,
+        "mcap": mcap,
+        "finished": dt.datetime.fromtimestamp(finished, dt.UTC).isoformat(),
+    }
+
+
+def file_digests(folder: Path, *, skip: frozenset[str] = frozenset()) -> dict[str, str]:
+    """``sha256:HEX`` of every file under ``folder``, by relative path (``skip`` aside)."""
+    digests = {}
+    for path in sorted(p for p in folder.rglob("*") if p.is_file()):
+        name = path.relative_to(folder).as_posix()
+        if name in skip:
+            continue
+        sha = hashlib.sha256()
+        with path.open("rb") as stream:
+            while chunk := stream.read(1 << 20):
+                sha.update(chunk)
+        digests[name] = f"sha256:{sha.hexdigest()}"
+    return digests
