@@ -6,6 +6,7 @@
                                    a running lab, through its HTTP API
     labd users add NAME            the operator's: a user and their token
     labd migrate                   the operator's: upgrade an archive's index in place
+    labd replay TRIAL|RECORD       re-simulate a record from its actions; render its cameras
     labd verify FILE|DIR           check a record or an export against its signature, offline
     labd keys rotate               the operator's: sign with a new key
     labd worker --server URL       run a lab's trials on this machine
@@ -25,7 +26,7 @@ from collections.abc import Callable, Sequence
 from typing import NoReturn
 
 from labd import __version__
-from labd.commands import demo, migrate, remote, run, serve, users, verify, worker
+from labd.commands import demo, migrate, remote, replay, run, serve, users, verify, worker
 from labd.commands.common import EPILOG
 
 log = logging.getLogger("labd")
@@ -62,6 +63,7 @@ def build_parser() -> argparse.ArgumentParser:
     users.add_parser(commands)
     migrate.add_parser(commands)
     verify.add_parser(commands)
+    replay.add_parser(commands)
     demo.add_parser(commands)
     worker.add_parser(commands)
     return parser
@@ -73,6 +75,7 @@ MAINS: dict[str, Callable[[argparse.Namespace], int]] = {
     "users": users.main,
     "migrate": migrate.main,
     "verify": verify.main,
+    "replay": replay.main,
     "keys": verify.main,
     "demo": demo.main,
     "worker": worker.main,

@@ -41,7 +41,8 @@ from pathlib import Path
 from types import TracebackType
 from typing import Any, Self
 
-from mcap.reader import make_reader
+from mcap.records import Metadata
+from mcap.stream_reader import StreamReader
 from mcap.well_known import MessageEncoding, Profile, SchemaEncoding
 from mcap.writer import CompressionType, Writer
 
@@ -63,10 +64,14 @@ def canonical_json(value: Mapping[str, Any]) -> str:
 
 
 def read_manifest(path: str | Path) -> dict[str, Any] | None:
-    """The manifest stored in a record (its folder or MCAP file); None if it has none."""
+    """The manifest stored in a record (its folder or MCAP file); None if it has none.
+
+    The recorder writes it first, so the file is read from its start only as far as the
+    manifest: a record cut short later still names what it was.
+    """
     with bag.mcap_path(path).open("rb") as stream:
-        for record in make_reader(stream).iter_metadata():
-            if record.name == MANIFEST:
+        for record in StreamReader(stream, skip_magic=False).records:
+            if isinstance(record, Metadata) and record.name == MANIFEST:
                 value: dict[str, Any] = json.loads(record.metadata[MANIFEST_KEY])
                 return value
     return None

@@ -17,6 +17,7 @@ from typing import Any
 from urllib.parse import urlsplit
 
 import pytest
+from playwright.sync_api import sync_playwright
 
 CHROMIUM = os.environ.get("LABD_CHROMIUM", "/usr/bin/chromium")
 FLAGS = [
@@ -61,8 +62,6 @@ def chromium_or_skip() -> str:
 def browser() -> Iterator[Any]:
     """Chromium, for one test module: Playwright's sync API keeps an event loop running
     while it is open, which the asyncio tests of later modules must not find."""
-    from playwright.sync_api import sync_playwright
-
     executable = chromium_or_skip()
     with sync_playwright() as playwright:
         launched = playwright.chromium.launch(executable_path=executable, args=FLAGS)

@@ -102,8 +102,8 @@ def test_the_archive_in_a_browser(lab, watched, tmp_path):
         page.click("form.card button[type=submit]")
         page.wait_for_url("**/trials/*")
         made[name] = int(page.url.rsplit("/", 1)[1])
-    for name in made:
-        wait_ended(lab, made[name])
+    for trial_id in made.values():
+        wait_ended(lab, trial_id)
 
     page.goto(url(lab, f"/trials/{made['bad']}"))
     assert page.locator(".headline .badge").inner_text().lower() == "error"

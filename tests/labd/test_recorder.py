@@ -39,6 +39,7 @@ from labd.recorder import (
 )
 from labd.sim.registry import TaskSpec
 from labd.sim.robot import TWIST, Robot
+from scheduler.manifest import versions
 from tests.labd.sim.drive import random_value
 from tests.labd.sim.pointmass import TASK as POINTMASS
 
@@ -74,6 +75,7 @@ def record(
     change_at: int | None = None,
     camera: bool = False,
     chunk_size: int | None = None,
+    manifest: bool = False,
 ) -> Run:
     """Drive ``task`` in lockstep with seeded random Twist commands, recording it all.
 
@@ -83,7 +85,16 @@ def record(
     graph = Graph(registry, name="recorder-test")
     robot = Robot(graph, task, {}, seed)
     topics = digest_topics(robot)
-    options = {} if chunk_size is None else {"chunk_size": chunk_size}
+    options: dict[str, Any] = {} if chunk_size is None else {"chunk_size": chunk_size}
+    if manifest:  # what a replay needs of a trial's manifest
+        options["manifest"] = {
+            "task": {"name": robot.sim.spec.name, "version": robot.sim.spec.version},
+            "parameters": robot.values,
+            "seed": seed,
+            "model_sha256": robot.sim.model_digest(),
+            "versions": versions(),
+            "controller": {"realtime": False},
+        }
     recorder = Recorder(graph, folder, digest_topics=topics, **options)
     run = Run(RecordSummary(folder, {}, "", None, None, 0), robot, topics)
     graph.taps.append(lambda topic, message, side: run.delivered.append((topic.name, message)))
