@@ -43,6 +43,8 @@ from labd.errors import (
     TypeMismatchError,
 )
 from labd.graph.actions import (
+    CANCEL_GOAL,
+    CANCEL_SERVICE,
     Action,
     ActionHandler,
     ClientGoal,
@@ -385,12 +387,20 @@ class Node:
         return service.call(self, request, on_result)
 
     def provide_action(self, name: str, type_name: str, handler: ActionHandler) -> Action:
+        """Serve an action, with its ``<action>/_action/cancel_goal`` service (as ROS 2)."""
         absolute = resolve(name)
         atype = self.graph.types.action(type_name)
+        cancel_name = absolute + CANCEL_SERVICE
         self._claim(self.graph.actions, "action", absolute)
+        self._claim(self.graph.services, "service", cancel_name)
         action = Action(self, absolute, atype, handler)
         self.graph.actions[absolute] = action
         self.actions.append(action)
+
+        def cancel(call: ServiceCall) -> None:
+            call.reply(action.cancel_goals(call.request.data))
+
+        action.cancel_service = self.provide_service(cancel_name, CANCEL_GOAL, cancel)
         return action
 
     def send_goal(

@@ -65,7 +65,7 @@ def test_nodes_and_node_details(busy):
     assert call(busy, "/rosapi/node_details", {"node": "/robot"}) == {
         "subscribing": ["/cmd_vel"],
         "publishing": ["/odom"],
-        "services": ["/reset"],
+        "services": ["/fib/_action/cancel_goal", "/reset"],  # an action's, as in ROS 2
     }
 
 
