@@ -16,8 +16,8 @@ the file, and the line where there is one:
   a repository adds types of its own, it never redefines one;
 - the same type defined twice;
 - a line that does not parse; a field or constant name ROS 2 does not allow, or given
-  twice; a fixed array of no elements; a ``.srv`` not in two parts or an ``.action``
-  not in three (``---`` between them);
+  twice; a constant whose value does not fit its type; a fixed array of no elements;
+  a ``.srv`` not in two parts or an ``.action`` not in three (``---`` between them);
 - a field whose type is neither the lab's nor the repository's, or a type that
   contains itself.
 
@@ -39,7 +39,7 @@ from rosbags.typesys.base import TypesysError
 
 from labd.errors import InterfaceError
 from labd.graph.codec import codec_for
-from labd.graph.types import TypeRegistry
+from labd.graph.types import FLOATS, INTEGER_RANGES, TypeRegistry
 
 PARTS = {
     "msg": ("",),
@@ -188,6 +188,9 @@ def _parse_line(message: _Message, scope: str, number: int, line: str) -> None:
             raise InterfaceError(
                 path, f"{cname!r} is not a constant name (capitals, digits and _)", number
             )
+        fault = _constant_fault(ctype, value)
+        if fault:
+            raise InterfaceError(path, f"the constant {cname} {fault}", number)
         _claim(message, cname, number)
         message.constants.append((cname, ctype, value))
     for fname, desc in fields:
@@ -204,6 +207,25 @@ def _parse_line(message: _Message, scope: str, number: int, line: str) -> None:
             raise InterfaceError(path, f"{fname} is a fixed array of {length} elements", number)
         _claim(message, fname, number)
         message.fields.append((fname, desc))
+
+
+def _constant_fault(ctype: str, value: Any) -> str:
+    """What is wrong with a constant's value for its type ("" if nothing)."""
+    if ctype in INTEGER_RANGES:
+        low, high = INTEGER_RANGES[ctype]
+        if isinstance(value, bool) or not isinstance(value, int):
+            return f"must be an integer ({ctype}), not {value!r}"
+        if not low <= value <= high:
+            return f"is out of the range of {ctype} ({low} to {high})"
+    elif ctype in FLOATS:
+        if isinstance(value, bool) or not isinstance(value, int | float):
+            return f"must be a number ({ctype}), not {value!r}"
+    elif ctype == "bool":
+        if value not in (True, False, 0, 1):
+            return f"must be true or false, not {value!r}"
+    elif ctype != "string" and not ctype.startswith("string<="):
+        return f"has the type {ctype}; constants are of primitive types"
+    return ""
 
 
 def _claim(message: _Message, name: str, number: int) -> None:

@@ -130,6 +130,14 @@ def test_a_graph_with_own_types_publishes_them_as_cdr(registry: TypeRegistry):
         ),
         ("x/mine/msg/Bad.msg", "int32[0] a\n", "x/mine/msg/Bad.msg, line 1", "fixed array of 0"),
         (
+            "x/mine/msg/Bad.msg",
+            "uint8 A=1\nuint8 B=one\n",
+            "x/mine/msg/Bad.msg, line 2",
+            "the constant B must be an integer (uint8), not 'one'",
+        ),
+        ("x/mine/msg/Bad.msg", "int8 A=300\n", "x/mine/msg/Bad.msg, line 1", "out of the range"),
+        ("x/mine/msg/Bad.msg", "float64 F=x\n", "x/mine/msg/Bad.msg, line 1", "must be a number"),
+        (
             "x/mine/msg/Loop.msg",
             "int32 a\nLoop[] next\n",
             "x/mine/msg/Loop.msg, line 2",
