@@ -46,6 +46,7 @@ SUITE_TIMEOUT = 600.0
 LABD_SERVE = [sys.executable, "-m", "labd", "serve", "--no-robots", "--no-service"]
 FIXTURES = [sys.executable, "-m", "tests.clients.fixtures"]
 PIP_DOWNLOAD = [sys.executable, "-m", "pip", "download", "--quiet", "--no-deps"]
+VITEST = ["npx", "vitest", "run", "--reporter=default", "--reporter=junit"]
 PYTEST = [sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider"]
 
 
@@ -187,16 +188,16 @@ def run_roslibpy(suite: Path, transports: list[str]) -> dict[str, Any]:
     return results
 
 
-def run_roslibjs(tests: Path) -> dict[str, Any]:
+def run_roslibjs(tests: Path, distro: str) -> dict[str, Any]:
     results: dict[str, Any] = {}
     with (
         tempfile.TemporaryDirectory() as work,
         lab("action_tutorials_interfaces/action/Fibonacci", Path(work) / "data"),
     ):
         report = Path(work) / "vitest.xml"
-        env = {**os.environ, "ROS_DISTRO": "humble", "ROS_VERSION": "2"}
+        env = {**os.environ, "ROS_DISTRO": distro, "ROS_VERSION": "2"}
         subprocess.run(
-            ["npx", "vitest", "run", "--reporter=junit", f"--outputFile={report}"],
+            [*VITEST, f"--outputFile.junit={report}"],
             cwd=tests,
             env=env,
             timeout=SUITE_TIMEOUT,
@@ -219,12 +220,17 @@ def main(argv: list[str] | None = None) -> int:
     )
     js = sub.add_parser("roslibjs", help="roslibjs' vitest files in --tests")
     js.add_argument("--tests", type=Path, required=True)
+    js.add_argument(
+        "--ros-distro",
+        default="humble",
+        help="ROS_DISTRO for their skipIf (humble: their ROS 2 action tests run)",
+    )
     args = parser.parse_args(argv)
     transports = args.transports or ["twisted", "asyncio"] if args.suite == "roslibpy" else []
     if args.inside and args.suite == "roslibpy":
         results = run_roslibpy(args.tests, transports)
     elif args.inside:
-        results = run_roslibjs(args.tests)
+        results = run_roslibjs(args.tests, args.ros_distro)
     elif args.suite == "roslibpy":
         if args.cache is None:
             parser.error("roslibpy needs --cache")
@@ -232,7 +238,8 @@ def main(argv: list[str] | None = None) -> int:
         flags = [f"--transport={t}" for t in transports]
         results = in_namespace("roslibpy", f"--tests={tests}", *flags)
     else:
-        results = in_namespace("roslibjs", f"--tests={args.tests.resolve()}")
+        tests = args.tests.resolve()
+        results = in_namespace("roslibjs", f"--tests={tests}", f"--ros-distro={args.ros_distro}")
     print(json.dumps(results, indent=2, sort_keys=True))
     return 0
 
