@@ -129,6 +129,12 @@ class Action:
             "goals_canceling": canceling,
         }
 
+    def ended(self, goal: Goal) -> None:
+        """Remember that ``goal`` ended (the last ``FINISHED_KEPT`` of them)."""
+        self._finished_uuids[goal.uuid] = None
+        if len(self._finished_uuids) > FINISHED_KEPT:
+            self._finished_uuids.popitem(last=False)
+
     def close(self) -> None:
         """Withdraw the action; goals in progress are aborted."""
         if self.closed:
@@ -253,10 +259,7 @@ class Goal:
 
     def _forget(self) -> None:
         if self.action.goals.pop(self.id, None) is not None:
-            finished = self.action._finished_uuids
-            finished[self.uuid] = None
-            if len(finished) > FINISHED_KEPT:
-                finished.popitem(last=False)
+            self.action.ended(self)
         if self in self.client.goals:
             self.client.goals.remove(self)
 
