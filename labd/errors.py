@@ -11,7 +11,8 @@ formats itself, so a handler turns it into a protocol reply without string surge
     │   ├── TypeMismatchError      a name is already used with another type
     │   ├── NotFoundError          no such topic, service or action
     │   ├── ConflictError          the name is already provided by someone else
-    │   └── OwnedError             the name is the lab's: a client may not publish or provide it
+    │   ├── OwnedError             the name is the lab's: a client may not publish or provide it
+    │   └── InterfaceError         a repository's own interface definition is malformed or conflicts
     ├── BridgeError                the bridge refused a frame from a client
     │   ├── FrameError             a frame is not a well-formed rosbridge operation
     │   ├── ProtectedError         the name is protected and never crosses the bridge
@@ -135,6 +136,21 @@ class OwnedError(GraphError):
         else:
             why = f", as every name under {namespace} does"
         super().__init__(f"{kind} {name} belongs to the lab{why}; clients cannot {verb} it")
+
+
+class InterfaceError(GraphError):
+    """A repository's own ``.msg``, ``.srv`` or ``.action`` file cannot be registered.
+
+    ``path`` is the file in the repository, ``line`` (from 1) the line at fault, or None
+    when the file as a whole is (its name, its package).
+    """
+
+    def __init__(self, path: str, reason: str, line: int | None = None) -> None:
+        self.path = path
+        self.line = line
+        self.reason = reason
+        where = f"{path}, line {line}" if line is not None else path
+        super().__init__(f"{where}: {reason}")
 
 
 class BridgeError(LabError):

@@ -5,8 +5,11 @@ workers, by ``labd worker``): it checks tasks and parameters against the registr
 opens ``LabTrial``\\ s and compares records. A ``LabTrial`` is one trial's station (the
 robot on a graph of its own, with rosapi), a bridge server for that graph alone on a
 unix socket (which the sandbox relays to ``ws://127.0.0.1:9090``), and a recorder of
-every topic into ``OUT/trial.mcap``. In lockstep the controller advances the task with
-``/lab/step``; with ``realtime = true`` a ``LiveRunner`` steps it on the wall clock.
+every topic into ``OUT/trial.mcap``. A trial whose repository brings its own interface
+definitions has a type registry of its own (``labd.graph.definitions``), so its types
+reach no other trial and no live robot, and the record holds their schemas. In
+lockstep the controller advances the task with ``/lab/step``; with ``realtime = true``
+a ``LiveRunner`` steps it on the wall clock.
 """
 
 from __future__ import annotations
@@ -21,7 +24,8 @@ from typing import Any
 
 from labd.bridge.server import BridgeServer
 from labd.config import BridgeConfig
-from labd.errors import LabError
+from labd.errors import InterfaceError, LabError
+from labd.graph.definitions import trial_types
 from labd.graph.types import TypeRegistry
 from labd.recorder import Recorder, first_difference
 from labd.sim import registry
@@ -62,9 +66,16 @@ class LabHost:
         *,
         realtime: bool,
         out: Path,
+        interfaces: Mapping[str, str] | None = None,
     ) -> LabTrial:
+        types = self.types
+        if interfaces:
+            try:
+                types = trial_types(self.types, interfaces)
+            except InterfaceError as err:
+                raise TrialError(f"the repository's interfaces: {err}") from None
         try:
-            return LabTrial(self, task, values, seed, realtime=realtime, out=out)
+            return LabTrial(self, task, values, seed, realtime=realtime, out=out, types=types)
         except LabError as err:
             raise TrialError(f"the task {task} could not be built: {err}") from None
 
@@ -85,12 +96,13 @@ class LabTrial:
         *,
         realtime: bool,
         out: Path,
+        types: TypeRegistry | None = None,
     ) -> None:
         self.realtime = realtime
         self.out = out
         limit = float(values["time_limit"]) if realtime and "time_limit" in values else None
         self.station = Station(
-            host.types,
+            types or host.types,  # with the repository's own types, if it has any
             "trial",
             task,
             dict(values),

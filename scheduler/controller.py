@@ -5,23 +5,36 @@ command = ["python", "controller.py"]   # run from the repository root
 task = "icreate-maze"                    # default task
 requirements = "requirements.txt"        # optional: installed in the build step
 realtime = false                         # optional: true = wall clock, no lockstep
+interfaces = "my_msgs"                   # optional: a ROS package's folder (or a list)
 
-Both files are read through ``scheduler.files.RepositoryFiles``: as regular files of
+``interfaces`` names the folders of the repository's own interface packages, each laid
+out as a ROS 2 package's: ``msg/*.msg``, ``srv/*.srv``, ``action/*.action``, the
+folder's name being the package's (``my_msgs/msg/Debug.msg`` is ``my_msgs/msg/Debug``).
+Their texts go to the lab side of the trial (``TrialHost.open``), which registers them
+for that trial alone and refuses a malformed or conflicting one with its file and line.
+
+Every file is read through ``scheduler.files.RepositoryFiles``: as regular files of
 the repository, never through a symbolic link (which would be read on the lab's host).
 """
 
 from __future__ import annotations
 
+import hashlib
+import json
 import tomllib
-from dataclasses import dataclass
+from collections.abc import Mapping
+from dataclasses import dataclass, field
 from pathlib import Path, PurePosixPath
 from typing import Any
 
-from scheduler.errors import ControllerConfigError, RepositoryFileError
-from scheduler.files import RepositoryFiles
+from scheduler.errors import ControllerConfigError, FileNotInRepository, RepositoryFileError
+from scheduler.files import RepositoryFiles, parts_of
 
 FILE = "lab.toml"
-KEYS = ("command", "task", "requirements", "realtime")
+KEYS = ("command", "task", "requirements", "realtime", "interfaces")
+INTERFACE_KINDS = ("msg", "srv", "action")
+MAX_INTERFACE_FILES = 1000
+MAX_INTERFACE_BYTES = 4 * 1024 * 1024  # all of them together
 
 
 @dataclass(frozen=True)
@@ -31,6 +44,17 @@ class ControllerConfig:
     requirements: str | None
     realtime: bool
     text: str  # the file as written, for the trial record
+    interfaces: tuple[str, ...] = ()  # the interface packages' folders lab.toml names
+    # their .msg, .srv and .action files: path in the repository -> text
+    interface_files: Mapping[str, str] = field(default_factory=dict)
+
+    @property
+    def interfaces_sha256(self) -> str | None:
+        """sha256 of the interface files (paths and texts), for the manifest; None without."""
+        if not self.interfaces:
+            return None
+        text = json.dumps(dict(self.interface_files), sort_keys=True, separators=(",", ":"))
+        return hashlib.sha256(text.encode()).hexdigest()
 
 
 def load(code: Path | RepositoryFiles) -> ControllerConfig:
@@ -60,12 +84,15 @@ def load(code: Path | RepositoryFiles) -> ControllerConfig:
         raise ControllerConfigError(
             f"[controller] has no key {unknown[0]!r}; the keys are {', '.join(KEYS)}"
         )
+    folders, interface_files = _interfaces(files, table.get("interfaces"))
     return ControllerConfig(
         command=_command(table.get("command")),
         task=_optional_str(table, "task"),
         requirements=_requirements(files, table),
         realtime=_bool(table, "realtime"),
         text=text,
+        interfaces=folders,
+        interface_files=interface_files,
     )
 
 
@@ -110,3 +137,57 @@ def _requirements(files: RepositoryFiles, table: dict[str, Any]) -> str | None:
         raise ControllerConfigError(f"requirements names {name!r}, which is not in the repository")
     files.read_text(name)  # refused here if it is not text, before anything is installed
     return name
+
+
+def _interfaces(files: RepositoryFiles, value: Any) -> tuple[tuple[str, ...], dict[str, str]]:
+    """The folders ``interfaces`` names, and the texts of their interface files.
+
+    A link on the way to any of them is a ``RepositoryFileError`` naming it; the texts
+    are checked by the lab side (``TrialHost.open``), which knows the types.
+    """
+    if value is None:
+        return (), {}
+    folders = [value] if isinstance(value, str) else value
+    if not isinstance(folders, list) or not folders or not all(isinstance(f, str) for f in folders):
+        raise ControllerConfigError(
+            f'interfaces must name a folder, e.g. "my_msgs", or a list of folders, not {value!r}'
+        )
+    texts: dict[str, str] = {}
+    size = 0
+    for folder in folders:
+        parts = parts_of(folder)
+        if parts is None or parts == (".",):
+            raise ControllerConfigError(
+                f"interfaces must be folders inside the repository, not {folder!r}"
+            )
+        clean = "/".join(parts)
+        try:
+            files.listdir(clean)  # the folder itself, reached through no link
+        except FileNotInRepository:
+            raise ControllerConfigError(
+                f"interfaces names {folder!r}, which is not a folder of the repository"
+            ) from None
+        found = 0
+        for kind in INTERFACE_KINDS:
+            try:
+                names = files.listdir(f"{clean}/{kind}", f".{kind}")
+            except FileNotInRepository:
+                continue
+            for name in names:
+                if len(texts) >= MAX_INTERFACE_FILES:
+                    raise ControllerConfigError(
+                        f"interfaces hold more than {MAX_INTERFACE_FILES} files"
+                    )
+                texts[name] = files.read_text(name)
+                size += len(texts[name])
+                found += 1
+        if size > MAX_INTERFACE_BYTES:
+            raise ControllerConfigError(
+                f"interfaces hold more than {MAX_INTERFACE_BYTES // (1024 * 1024)} MiB of text"
+            )
+        if not found:
+            raise ControllerConfigError(
+                f"interfaces names {folder!r}, which has no msg/*.msg, srv/*.srv or"
+                " action/*.action file (it is laid out as a ROS package)"
+            )
+    return tuple("/".join(parts_of(f) or ()) for f in folders), texts

@@ -87,8 +87,15 @@ class TrialHost(Protocol):
         *,
         realtime: bool,
         out: Path,
+        interfaces: Mapping[str, str] | None = None,
     ) -> TrialLab:
-        """Build the lab side of a trial recording into ``out`` (``TrialError``)."""
+        """Build the lab side of a trial recording into ``out`` (``TrialError``).
+
+        ``interfaces`` are the repository's own interface files (path in the repository
+        -> text, ``.../PKG/msg/Name.msg`` and the like): their types exist in this
+        trial's graph alone; a malformed or conflicting one is a ``TrialError`` naming
+        its file and line.
+        """
         ...
 
     def first_difference(self, a: Path, b: Path, topics: Sequence[str]) -> str | None:

@@ -32,7 +32,7 @@ def build(
     requirements_sha256: str | None,
     model_sha256: str,
 ) -> dict[str, Any]:
-    return {
+    manifest: dict[str, Any] = {
         "schema": SCHEMA,
         "repository": source.repository,
         "commit": source.commit,
@@ -53,6 +53,10 @@ def build(
         "versions": versions(),
         "model_sha256": model_sha256,
     }
+    if controller.interfaces:  # only then, so manifests without keep their digests
+        manifest["controller"]["interfaces"] = list(controller.interfaces)
+        manifest["controller"]["interfaces_sha256"] = controller.interfaces_sha256
+    return manifest
 
 
 def versions() -> dict[str, str]:

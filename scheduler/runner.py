@@ -280,6 +280,7 @@ class _Trial:
             prepared.spec.seed,
             realtime=prepared.config.realtime,
             out=out,
+            interfaces=prepared.config.interface_files,
         )
         self.launched: float | None = None  # loop time the sandbox was started
         self.first_step: float | None = None

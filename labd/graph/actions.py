@@ -5,10 +5,17 @@ feedback and finishes the goal with a status (``action_msgs/msg/GoalStatus``
 numbering). The client's callbacks see the feedback and, exactly once, the result.
 A client that cancels moves the goal to CANCELING and the server's ``on_cancel``
 decides; a server without one is cancelled at once.
+
+As in ROS 2, every action also has the service ``<action>/_action/cancel_goal``
+(``action_msgs/srv/CancelGoal``), which anyone may call: ``Action.cancel_goals``
+answers it with ROS 2's policy (a zero goal id and stamp cancel every goal of the
+action, whoever sent it; a stamp cancels the goals accepted at or before it; an id,
+that goal). Each goal has a UUID and the graph time it was accepted for this.
 """
 
 from __future__ import annotations
 
+import collections
 import itertools
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
@@ -22,10 +29,17 @@ from labd.graph.types import ActionType
 
 if TYPE_CHECKING:
     from labd.graph.graph import Node
+    from labd.graph.services import Service
 
 # action_msgs/msg/GoalStatus
 UNKNOWN, ACCEPTED, EXECUTING, CANCELING, SUCCEEDED, CANCELED, ABORTED = range(7)
 TERMINAL = frozenset({SUCCEEDED, CANCELED, ABORTED})
+
+CANCEL_GOAL = "action_msgs/srv/CancelGoal"
+CANCEL_SERVICE = "/_action/cancel_goal"  # after the action's name
+# action_msgs/srv/CancelGoal_Response return codes
+ERROR_NONE, ERROR_REJECTED, ERROR_UNKNOWN_GOAL_ID, ERROR_GOAL_TERMINATED = range(4)
+_ZERO_UUID = bytes(16)
 
 
 @dataclass(frozen=True)
@@ -47,6 +61,7 @@ FeedbackCallback = Callable[[Message], None]
 ActionHandler = Callable[["Goal"], None]
 
 _goal_ids = itertools.count(1)
+FINISHED_KEPT = 1000  # ended goals an action remembers, per action
 
 
 class Action:
@@ -59,6 +74,9 @@ class Action:
         self.handler = handler
         self.goals: dict[str, Goal] = {}
         self.closed = False
+        self.cancel_service: Service | None = None  # <action>/_action/cancel_goal
+        # UUIDs of goals that ended, so a late cancel says "terminated", not "unknown".
+        self._finished_uuids: collections.OrderedDict[bytes, None] = collections.OrderedDict()
         registry = node.graph.types
         self.goal_codec = codec_for(registry, atype.goal.name)
         self.result_codec = codec_for(registry, atype.result.name)
@@ -73,17 +91,57 @@ class Action:
     ) -> Goal:
         value = args_to_value(self.type.goal, args)
         goal_msg = Message(self.goal_codec, self.goal_codec.normalize(value, self.node.graph.now))
-        goal = Goal(self, client, goal_msg, on_result, on_feedback)
+        goal = Goal(self, client, goal_msg, on_result, on_feedback, accepted=self.node.graph.now())
         self.goals[goal.id] = goal
         client.goals.append(goal)
         self.handler(goal)
         return goal
+
+    def cancel_goals(self, request: Mapping[str, Any]) -> dict[str, Any]:
+        """Answer ``<action>/_action/cancel_goal``: cancel the goals ``goal_info`` names.
+
+        ``request`` is an ``action_msgs/srv/CancelGoal`` request in normal form; the
+        answer is its response. Goals that accept (all do here) are listed; the goal's
+        server then decides how it ends, as with ``cancel_action_goal``.
+        """
+        info = request["goal_info"]
+        uuid = bytes(info["goal_id"]["uuid"])
+        stamp = (info["stamp"]["sec"], info["stamp"]["nanosec"])
+        by_time = stamp != (0, 0)
+        if uuid == _ZERO_UUID:
+            chosen = [g for g in self.goals.values() if not by_time or g.accepted <= stamp]
+        else:
+            chosen = [
+                g
+                for g in self.goals.values()
+                if g.uuid == uuid or (by_time and g.accepted <= stamp)
+            ]
+            if not any(g.uuid == uuid for g in chosen):
+                known = uuid in self._finished_uuids
+                code = ERROR_GOAL_TERMINATED if known else ERROR_UNKNOWN_GOAL_ID
+                if not chosen:
+                    return {"return_code": code, "goals_canceling": []}
+        canceling = [g.info() for g in chosen]
+        for goal in chosen:
+            goal.cancel()
+        return {
+            "return_code": ERROR_NONE if canceling else ERROR_REJECTED,
+            "goals_canceling": canceling,
+        }
+
+    def ended(self, goal: Goal) -> None:
+        """Remember that ``goal`` ended (the last ``FINISHED_KEPT`` of them)."""
+        self._finished_uuids[goal.uuid] = None
+        if len(self._finished_uuids) > FINISHED_KEPT:
+            self._finished_uuids.popitem(last=False)
 
     def close(self) -> None:
         """Withdraw the action; goals in progress are aborted."""
         if self.closed:
             return
         self.closed = True
+        if self.cancel_service is not None:
+            self.cancel_service.close()
         for goal in tuple(self.goals.values()):
             goal.fail(f"the server of {self.name} went away")
         graph = self.node.graph
@@ -102,8 +160,13 @@ class Goal:
         goal: Message,
         on_result: GoalResultCallback,
         on_feedback: FeedbackCallback | None,
+        *,
+        accepted: tuple[int, int] = (0, 0),
     ) -> None:
-        self.id = f"goal_{next(_goal_ids)}"
+        number = next(_goal_ids)
+        self.id = f"goal_{number}"
+        self.uuid = number.to_bytes(16, "big")  # never zero, which means "every goal"
+        self.accepted = accepted  # graph time (sec, nanosec)
         self.action = action
         self.client = client
         self.goal = goal
@@ -115,6 +178,11 @@ class Goal:
     @property
     def done(self) -> bool:
         return self._on_result is None
+
+    def info(self) -> dict[str, Any]:
+        """The goal as ``action_msgs/msg/GoalInfo`` (normal form)."""
+        sec, nanosec = self.accepted
+        return {"goal_id": {"uuid": self.uuid}, "stamp": {"sec": sec, "nanosec": nanosec}}
 
     # -- the server's side -------------------------------------------------------------
 
@@ -190,7 +258,8 @@ class Goal:
         callback(result)
 
     def _forget(self) -> None:
-        self.action.goals.pop(self.id, None)
+        if self.action.goals.pop(self.id, None) is not None:
+            self.action.ended(self)
         if self in self.client.goals:
             self.client.goals.remove(self)
 

@@ -104,6 +104,9 @@ class Codec:
 def codec_for(registry: TypeRegistry, name: str) -> Codec:
     """The codec of a message type, compiled on first use and cached in the registry."""
     mtype = registry.message(name)
+    owner = registry.owner(mtype.name)
+    if owner is not registry:  # a trial's own registry shares the lab's codecs
+        return codec_for(owner, mtype.name)
     cache = registry.codec_cache()
     codec = cache.get(mtype.name)
     if codec is None:

@@ -19,6 +19,9 @@ is made once, when a publisher or provider is made, so publishing stays a plain
 delivery; a claim made after a client advertised revokes the client's publisher.
 Taps (the recorder) hear, with each message, the side of its publisher.
 
+Every graph has ``/rosout`` from its creation (``rcl_interfaces/msg/Log``, advertised
+by the lab's ``/labd`` node), as every ROS 2 system does; clients may log there too.
+
 A graph is not thread-safe; it lives on one event loop.
 """
 
@@ -40,6 +43,8 @@ from labd.errors import (
     TypeMismatchError,
 )
 from labd.graph.actions import (
+    CANCEL_GOAL,
+    CANCEL_SERVICE,
     Action,
     ActionHandler,
     ClientGoal,
@@ -88,7 +93,9 @@ class Graph:
         self.taps: list[Tap] = []
         self.log = logging.getLogger(f"labd.graph.{name}")
         self._node_ids = itertools.count(1)
-        self._rosout: Publisher | None = None
+        # /rosout exists from the start, as on any ROS 2 system (clients check for it).
+        self._log_node = self.create_node("/labd")
+        self._rosout = self._log_node.advertise("/rosout", "rcl_interfaces/msg/Log")
 
     # -- time and messages ------------------------------------------------------------
 
@@ -110,8 +117,6 @@ class Graph:
 
     def rosout(self, level: int, logger: str, text: str) -> None:
         """Publish a log line on /rosout (rcl_interfaces/msg/Log), as ROS nodes do."""
-        if self._rosout is None:
-            self._rosout = self.create_node("/labd").advertise("/rosout", "rcl_interfaces/msg/Log")
         sec, nanosec = self.now()
         self._rosout.publish(
             {"stamp": {"sec": sec, "nanosec": nanosec}, "level": level, "name": logger, "msg": text}
@@ -382,12 +387,20 @@ class Node:
         return service.call(self, request, on_result)
 
     def provide_action(self, name: str, type_name: str, handler: ActionHandler) -> Action:
+        """Serve an action, with its ``<action>/_action/cancel_goal`` service (as ROS 2)."""
         absolute = resolve(name)
         atype = self.graph.types.action(type_name)
+        cancel_name = absolute + CANCEL_SERVICE
         self._claim(self.graph.actions, "action", absolute)
+        self._claim(self.graph.services, "service", cancel_name)
         action = Action(self, absolute, atype, handler)
         self.graph.actions[absolute] = action
         self.actions.append(action)
+
+        def cancel(call: ServiceCall) -> None:
+            call.reply(action.cancel_goals(call.request.data))
+
+        action.cancel_service = self.provide_service(cancel_name, CANCEL_GOAL, cancel)
         return action
 
     def send_goal(

@@ -7,13 +7,17 @@ service ``pkg/srv/Name`` is two messages, ``pkg/srv/Name_Request`` and
 ``_Goal``, ``_Result`` and ``_Feedback``, as ROS 2 itself lays them out.
 
 Names are accepted in the short form ``pkg/Type`` as well as ``pkg/msg/Type``.
+
+A trial whose repository brings its own types gets a registry of its own,
+``TypeRegistry.extended``: the lab's types and those, so they never reach another
+trial or a live robot (``labd.graph.definitions`` checks them first).
 """
 
 from __future__ import annotations
 
 import enum
 import re
-from collections.abc import Iterable, Iterator
+from collections.abc import Iterable, Iterator, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -147,17 +151,50 @@ class TypeRegistry:
     """All the types a graph knows, with their definitions.
 
     Built once at start-up (it compiles code for each type when first used) and
-    shared by every graph in the process.
+    shared by every graph in the process; a trial with types of its own has an
+    ``extended`` one, which shares the lab's compiled code for the lab's types.
     """
 
     def __init__(
-        self, typestore: Typestore, services: Iterable[str], actions: Iterable[str]
+        self,
+        typestore: Typestore,
+        services: Iterable[str],
+        actions: Iterable[str],
+        *,
+        base: TypeRegistry | None = None,
     ) -> None:
         self.typestore = typestore
         self._services = frozenset(services)
         self._actions = frozenset(actions)
         self._messages: dict[str, MessageType] = {}
         self._codecs: dict[str, Any] = {}
+        self.base = base  # the registry this one extends, if any
+
+    def extended(
+        self, parts: Mapping[str, Any], services: Iterable[str], actions: Iterable[str]
+    ) -> TypeRegistry:
+        """A new registry with this one's types and ``parts`` (rosbags' parsed definitions,
+        by full name), whose services and actions also include those named. This one is
+        left as it was."""
+        store = Typestore(max_sequence_length=self.typestore.max_sequence_length)
+        store.fielddefs.update(self.typestore.fielddefs)
+        store.types.update(self.typestore.types)
+        store.cache.update(self.typestore.cache)  # serializers already made, shared
+        store.register(dict(parts))
+        return TypeRegistry(
+            store, self._services | set(services), self._actions | set(actions), base=self
+        )
+
+    def owner(self, name: str) -> TypeRegistry:
+        """The registry that defined the message ``name`` (full name): the lab's for its
+        own types, so compiled converters are shared by every trial."""
+        if self.base is not None and name in self.base.typestore.fielddefs:
+            return self.base.owner(name)
+        return self
+
+    def packages(self) -> frozenset[str]:
+        """The packages of every message, service and action this registry knows."""
+        return frozenset(n.split("/", 1)[0] for n in self.typestore.fielddefs)
 
     @classmethod
     def default(cls, extra: Iterable[Path] = ()) -> TypeRegistry:

@@ -314,6 +314,42 @@ def test_cancel_goal_reaches_the_server_and_the_client_hears_canceled(server):
     assert '{"sequence":[0,1]}' in seen["value"]
 
 
+def test_cancel_all_goals_cancels_every_goal_of_the_action(server):
+    """Action.cancelAllGoals (a call of <action>/_action/cancel_goal with a zero goal id)
+    reaches the server's cancel callback for every running goal, whoever sent it, and each
+    client hears its goal canceled."""
+    seen = roslibjs(server, "actions.mjs", "cancel_all")
+    events = [(e["event"], e["id"]) for e in seen["server"]]
+    goals = {i for event, i in events if event == "goal"}
+    assert len(goals) == 2
+    assert {i for event, i in events if event == "cancel"} == goals
+    for result in seen["results"]:
+        assert result["outcome"] == "failed"
+        assert result["value"].startswith("GoalError: Action was canceled")
+
+
+def test_cancel_all_goals_cancels_a_goal_the_lab_serves(server):
+    """cancelAllGoals also cancels a goal of an action served inside the lab (here with
+    action_tutorials_interfaces' Fibonacci, as the ROS 2 tutorials' server)."""
+    served: list[Any] = []
+
+    def serve(goal: Any) -> None:
+        served.append(goal)
+        goal.feedback({"partial_sequence": [0, 1]})  # then runs until cancelled
+
+    graph = server.lab.graphs["playground"]
+    server.call(
+        lambda: graph.create_node("/fibonacci_server").provide_action(
+            "/lab_fibonacci", "action_tutorials_interfaces/action/Fibonacci", serve
+        )
+    )
+    seen = roslibjs(server, "actions.mjs", "cancel_all_lab")
+    assert seen["feedback"] == [{"partial_sequence": [0, 1]}]
+    assert seen["outcome"] == "failed"
+    assert seen["value"].startswith("GoalError: Action was canceled")
+    assert server.call(lambda: [g.status for g in served]) == [5]  # CANCELED
+
+
 def test_client_leaving_cancels_its_goal_at_the_server(server):
     """When a roslibjs client closes its connection mid-goal, the server's cancel callback
     runs for that goal."""
@@ -390,7 +426,8 @@ def test_rosapi_services_nodes_and_action_servers(server, lab_node):
     assert seen["publisher_details"] == {
         "subscribing": [],
         "publishing": ["/rosapi_probe"],
-        "services": ["/probe_service"],
+        # with its action's cancel service, as a ROS 2 action server has
+        "services": ["/fib_probe/_action/cancel_goal", "/probe_service"],
     }
     assert seen["action_servers"] == ["/fib_probe"]
 

@@ -88,6 +88,14 @@ def test_rosapi_calls(ros):
     assert client.get_time().secs > 1_700_000_000
 
 
+def test_rosout_is_listed_on_a_fresh_server(ros, server):
+    """/rosout is there before anything was logged, as on any ROS 2 system."""
+    client = ros()
+    assert "/rosout" in client.get_topics()
+    assert client.get_topic_type("/rosout") == "rcl_interfaces/msg/Log"
+    assert "/rosout" in client.get_node_details("/labd")["publishing"]  # the lab's log
+
+
 def test_params(ros):
     """roslibpy's Param set/get/delete round-trips JSON values."""
     param = roslibpy.Param(ros(), "gains")

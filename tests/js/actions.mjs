@@ -94,6 +94,39 @@ run({
     return { ...end, server: log.items };
   },
 
+  // B and C each send a long goal to A's server; once both run, B's cancelAllGoals (a call
+  // of /fibonacci/_action/cancel_goal with a zero goal id) cancels both.
+  async cancel_all(url) {
+    const a = await connect(url, "A");
+    const b = await connect(url, "B");
+    const c = await connect(url, "C");
+    const log = new Inbox("the server at A");
+    serveFibonacci(a, log);
+    await roundTrip(a);
+    const running = new Inbox("feedback at B and C");
+    const ends = [b, c].map((ros) => {
+      const client = new Action({ ros, name: "/fibonacci", actionType: FIBONACCI });
+      return { client, end: sendGoal(client, { order: LONG }, (fb) => running.push(fb)) };
+    });
+    await running.count(2);
+    ends[0].client.cancelAllGoals();
+    const results = await Promise.all(ends.map((e) => e.end));
+    return { results, server: log.items };
+  },
+
+  // B sends a long goal to an action the lab serves (action_tutorials_interfaces'
+  // Fibonacci, as the ROS 2 tutorials' server); cancelAllGoals cancels it.
+  async cancel_all_lab(url) {
+    const b = await connect(url, "B");
+    const client = new Action({
+      ros: b,
+      name: "/lab_fibonacci",
+      actionType: "action_tutorials_interfaces/action/Fibonacci",
+    });
+    const end = sendGoal(client, { order: LONG }, () => client.cancelAllGoals());
+    return end;
+  },
+
   // B closes its connection while its goal runs; A's server is told to cancel it.
   async client_leaves(url) {
     const a = await connect(url, "A");

@@ -7,7 +7,7 @@ import re
 import pytest
 
 from scheduler.controller import load
-from scheduler.errors import ControllerConfigError
+from scheduler.errors import ControllerConfigError, RepositoryFileError
 
 
 def write(tmp_path, text):
@@ -53,3 +53,73 @@ def test_broken_files_say_what_is_wrong(tmp_path, text, expected):
         write(tmp_path, text)
     with pytest.raises(ControllerConfigError, match=re.escape(expected)):
         load(tmp_path)
+
+
+def interfaces_repo(tmp_path):
+    """A repository with two interface packages, one with a file the lab does not read."""
+    (tmp_path / "msgs" / "planner_msgs" / "msg").mkdir(parents=True)
+    (tmp_path / "msgs" / "planner_msgs" / "msg" / "Debug.msg").write_text("string phase\n")
+    (tmp_path / "msgs" / "planner_msgs" / "msg" / "notes.txt").write_text("not a type\n")
+    (tmp_path / "msgs" / "planner_msgs" / "srv").mkdir()
+    (tmp_path / "msgs" / "planner_msgs" / "srv" / "Reset.srv").write_text("---\nbool ok\n")
+    (tmp_path / "arm_msgs" / "action").mkdir(parents=True)
+    (tmp_path / "arm_msgs" / "action" / "Reach.action").write_text("float64 x\n---\n---\n")
+    return tmp_path
+
+
+def test_interfaces_are_read_with_their_paths(tmp_path):
+    """interfaces names package folders (one or a list); their msg/, srv/ and action/ files
+    are read with their paths, and digested for the manifest."""
+    root = interfaces_repo(tmp_path)
+    text = '[controller]\ncommand = ["x"]\ninterfaces = ["msgs/planner_msgs", "arm_msgs/"]\n'
+    config = load(write(root, text))
+    assert config.interfaces == ("msgs/planner_msgs", "arm_msgs")
+    assert config.interface_files == {
+        "msgs/planner_msgs/msg/Debug.msg": "string phase\n",
+        "msgs/planner_msgs/srv/Reset.srv": "---\nbool ok\n",
+        "arm_msgs/action/Reach.action": "float64 x\n---\n---\n",
+    }
+    digest = config.interfaces_sha256
+    assert digest is not None and len(digest) == 64
+    (root / "arm_msgs" / "action" / "Reach.action").write_text("float64 y\n---\n---\n")
+    assert load(root).interfaces_sha256 != digest
+    single = load(write(root, '[controller]\ncommand = ["x"]\ninterfaces = "arm_msgs"\n'))
+    assert list(single.interface_files) == ["arm_msgs/action/Reach.action"]
+    assert load(write(root, '[controller]\ncommand = ["x"]\n')).interfaces_sha256 is None
+
+
+@pytest.mark.parametrize(
+    ("value", "expected"),
+    [
+        ("3", "interfaces must name a folder"),
+        ('"../outside"', "folders inside the repository"),
+        ('"missing_msgs"', "names 'missing_msgs', which is not a folder of the repository"),
+        ('"empty_msgs"', "has no msg/*.msg, srv/*.srv or action/*.action file"),
+    ],
+)
+def test_bad_interfaces_say_what_is_wrong(tmp_path, value, expected):
+    """A folder outside, missing or holding no interface file is refused with a reason."""
+    (tmp_path / "empty_msgs" / "msg").mkdir(parents=True)
+    write(tmp_path, f'[controller]\ncommand = ["x"]\ninterfaces = {value}\n')
+    with pytest.raises(ControllerConfigError, match=re.escape(expected)):
+        load(tmp_path)
+
+
+def test_interfaces_are_never_read_through_a_link(tmp_path):
+    """A linked msg/ folder or .msg file is refused, naming it (the lab would read it on its
+    own host)."""
+    root = interfaces_repo(tmp_path)
+    outside = tmp_path.parent / f"{tmp_path.name}-outside"
+    outside.mkdir()
+    (outside / "Secret.msg").write_text("string password\n")
+    (root / "msgs" / "planner_msgs" / "msg" / "Secret.msg").symlink_to(outside / "Secret.msg")
+    write(root, '[controller]\ncommand = ["x"]\ninterfaces = "msgs/planner_msgs"\n')
+    with pytest.raises(
+        RepositoryFileError, match=r"msgs/planner_msgs/msg/Secret\.msg: it is a symbolic"
+    ):
+        load(root)
+    (root / "msgs" / "planner_msgs" / "msg" / "Secret.msg").unlink()
+    (root / "arm_msgs" / "msg").symlink_to(outside)
+    write(root, '[controller]\ncommand = ["x"]\ninterfaces = "arm_msgs"\n')
+    with pytest.raises(RepositoryFileError, match="arm_msgs/msg: it is a symbolic link"):
+        load(root)

@@ -168,7 +168,7 @@ class StuckHost(LabHost):
         super().__init__()
         self.hang_finish = hang_finish
 
-    def open(self, task, values, seed, *, realtime, out):
+    def open(self, task, values, seed, *, realtime, out, interfaces=None):
         return StuckLab(self.hang_finish)
 
 

@@ -155,3 +155,82 @@ def test_in_process_action_server(connect, graph):
     feedback, result = client.frames()
     assert feedback["values"] == {"sequence": [0]}
     assert result["values"] == {"sequence": [0, 1, 1, 2, 3]} and result["action"] == "fib"
+
+
+# -- <action>/_action/cancel_goal (roslibjs' cancelAllGoals) -------------------------------
+
+
+def cancel_goal(client, args, id_="c", others=None):
+    """Call the action's cancel service; return its response values (and keep the other
+    frames the client received meanwhile in ``others``)."""
+    frame = {"op": "call_service", "service": "/fib/_action/cancel_goal", "args": args}
+    client.send(frame if id_ is None else {**frame, "id": id_})
+    frames = client.frames()
+    (reply,) = [f for f in frames if f["op"] == "service_response"]
+    assert reply["result"] is True, reply
+    if others is not None:
+        others += [f for f in frames if f is not reply]
+    return reply["values"]
+
+
+def test_cancel_all_goals_of_a_client_served_action(connect):
+    """A zero goal id and stamp (what cancelAllGoals sends) cancel every client's goals."""
+    server, alice, bob = connect(), connect(), connect()
+    advertise(server)
+    alice.send({"op": "send_action_goal", "id": "a", "action": "/fib", "args": {"order": 9}})
+    bob.send({"op": "send_action_goal", "id": "b", "action": "/fib", "args": {"order": 9}})
+    goals = server.frames()
+    values = cancel_goal(alice, {}, id_=None)  # roslibjs sends no id
+    assert values["return_code"] == 0  # ERROR_NONE
+    assert len(values["goals_canceling"]) == 2
+    uuids = {g["goal_id"]["uuid"] for g in values["goals_canceling"]}
+    assert len(uuids) == 2 and "A" * 22 + "==" not in uuids  # none is the zero UUID
+    cancels = server.frames()
+    assert cancels == [{"op": "cancel_action_goal", "id": g["id"], "action": "/fib"} for g in goals]
+    for goal in goals:
+        server.send(
+            {"op": "action_result", "id": goal["id"], "action": "/fib", "status": 5, "result": True}
+        )
+    assert [(f["id"], f["status"]) for f in alice.frames() + bob.frames()] == [
+        ("a", 5),
+        ("b", 5),
+    ]
+
+
+def test_cancel_by_stamp_by_id_and_unknown_ids(connect, graph, timers):
+    """A stamp cancels the goals accepted at or before it, an id that goal alone; an id of a
+    goal that ended is ERROR_GOAL_TERMINATED, one no goal had ERROR_UNKNOWN_GOAL_ID."""
+    goals = []
+    graph.create_node("/fibber").provide_action("/fib", FIB, goals.append)
+    client = connect()
+    for n in (1, 2, 3):
+        client.send({"op": "send_action_goal", "id": n, "action": "/fib", "args": {"order": n}})
+        timers.advance(1.0)  # accepted at 0 s, 1 s and 2 s of graph time
+    ended: list = []
+    by_time = cancel_goal(client, {"goal_info": {"stamp": {"sec": 1}}}, others=ended)
+    assert [g["stamp"]["sec"] for g in by_time["goals_canceling"]] == [0, 1]
+    assert [(f["id"], f["status"]) for f in ended] == [(1, 5), (2, 5)]  # no on_cancel: at once
+    uuid = list(goals[2].info()["goal_id"]["uuid"])
+    by_id = cancel_goal(client, {"goal_info": {"goal_id": {"uuid": uuid}}}, others=ended)
+    assert [g["stamp"]["sec"] for g in by_id["goals_canceling"]] == [2]
+    assert [(f["id"], f["status"]) for f in ended] == [(1, 5), (2, 5), (3, 5)]
+    assert cancel_goal(client, {"goal_info": {"goal_id": {"uuid": uuid}}}) == {
+        "return_code": 3,  # ERROR_GOAL_TERMINATED
+        "goals_canceling": [],
+    }
+    assert cancel_goal(client, {"goal_info": {"goal_id": {"uuid": [7] * 16}}}) == {
+        "return_code": 2,  # ERROR_UNKNOWN_GOAL_ID
+        "goals_canceling": [],
+    }
+
+
+def test_cancel_with_no_goals_is_rejected_and_the_service_goes_with_its_action(connect):
+    """With no goal in progress the answer is ERROR_REJECTED; unadvertising the action
+    removes its cancel service."""
+    server, client = connect(), connect()
+    advertise(server)
+    assert cancel_goal(client, {}) == {"return_code": 1, "goals_canceling": []}
+    server.send({"op": "unadvertise_action", "action": "/fib"})
+    client.send({"op": "call_service", "id": "x", "service": "/fib/_action/cancel_goal"})
+    (reply,) = client.frames()
+    assert reply["result"] is False and "no service" in reply["values"]

@@ -65,7 +65,7 @@ def test_nodes_and_node_details(busy):
     assert call(busy, "/rosapi/node_details", {"node": "/robot"}) == {
         "subscribing": ["/cmd_vel"],
         "publishing": ["/odom"],
-        "services": ["/reset"],
+        "services": ["/fib/_action/cancel_goal", "/reset"],  # an action's, as in ROS 2
     }
 
 
@@ -118,3 +118,13 @@ def test_time_and_version(busy, timers):
         "time": {"sec": 12, "nanosec": 500_000_000, "secs": 12, "nsecs": 500_000_000}
     }
     assert call(busy, "/rosapi/get_ros_version") == {"version": 2, "distro": "jazzy"}
+
+
+def test_rosout_is_listed_before_anything_is_logged(connect):
+    """A graph has /rosout from its creation, published by the lab's /labd node."""
+    client = connect()
+    values = call(client, "rosapi/topics")
+    assert dict(zip(values["topics"], values["types"], strict=True))["/rosout"] == (
+        "rcl_interfaces/msg/Log"
+    )
+    assert call(client, "/rosapi/publishers", {"topic": "/rosout"}) == {"publishers": ["/labd"]}
