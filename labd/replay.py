@@ -169,6 +169,8 @@ def _run(path: Path, station: Station, renderers: Sequence[Any], realtime: bool)
     graph = station.graph
     robot = station.robot
     on_demand = {o.name for o in robot.sim.task.observations if o.on_demand}
+    # only the task's commands move the robot; a controller's own topics are its business
+    commands = {c.name for c in robot.sim.task.commands}
     produced: list[Entry] = []
 
     def tap(topic: Topic, message: Message, side: Side) -> None:
@@ -194,7 +196,8 @@ def _run(path: Path, station: Station, renderers: Sequence[Any], realtime: bool)
                 watched.add(topic)
             if index > 0:
                 for command in tick.commands:
-                    _send(graph, client, publishers, command)
+                    if command.topic in commands:
+                        _send(graph, client, publishers, command)
                 robot.step()
                 verdict.ticks += 1
                 for render in renderers:

@@ -16,6 +16,7 @@ from rosbags.highlevel import AnyReader
 from labd.errors import UnknownTypeError
 from labd.graph.graph import Side
 from labd.recorder import read_channels
+from labd.replay import replay
 from repository.trial import Outcome
 from scheduler.controller import load
 from scheduler.runner import TrialSpec, run_trial
@@ -79,6 +80,8 @@ def test_own_debug_type_is_published_and_recorded_with_its_schema(backend, cache
     controller = result.manifest["controller"]
     assert controller["interfaces"] == ["planner_msgs"]
     assert controller["interfaces_sha256"] == load(folder).interfaces_sha256
+    # a replay needs none of the controller's types: only the task's commands move the robot
+    assert replay(result.mcap).verified
     with pytest.raises(UnknownTypeError):
         host.types.message("planner_msgs/msg/Debug")  # that trial's alone
 
