@@ -160,9 +160,25 @@ def replay(
     )
     try:
         check_manifest(manifest, station)
+        _framebuffer(station, renderers)
         return _run(path, station, renderers, realtime)
     finally:
         station.close()
+
+
+def _framebuffer(station: Station, renderers: Sequence[Any]) -> None:
+    """Make the offscreen framebuffer large enough for the videos asked for.
+
+    A model's framebuffer is as large as its cameras; a video may be larger. This is a
+    setting of the renderer, not of the physics, and is made after the model's digest
+    was checked and before anything is rendered.
+    """
+    sizes = [(r.spec.width, r.spec.height) for r in renderers if hasattr(r, "spec")]
+    if not sizes:
+        return
+    visual = station.robot.sim.physics.model.vis.global_
+    visual.offwidth = max(int(visual.offwidth), *(w for w, _ in sizes))
+    visual.offheight = max(int(visual.offheight), *(h for _, h in sizes))
 
 
 def _run(path: Path, station: Station, renderers: Sequence[Any], realtime: bool) -> Verdict:

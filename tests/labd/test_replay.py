@@ -118,6 +118,16 @@ def test_a_cut_record_says_where_it_stops(registry, tmp_path):
         replay(cut)
 
 
+def test_a_video_larger_than_the_camera_leaves_the_verdict_alone(registry, tmp_path):
+    """Rendering 640x480 (past the model's framebuffer) still verifies the camera's frames."""
+    run = record(registry, tmp_path / "a", MAZE, seed=3, ticks=6, camera=True, manifest=True)
+    video = Video(VideoSpec.parse("front", "640x480", 10), tmp_path / "big.mp4")
+    verdict = replay(run.summary.path, renderers=[video])
+    video.close()
+    assert verdict.verified, verdict
+    assert video.frames == 7
+
+
 def test_videos_are_rendered_after_the_fact(registry, tmp_path):
     """A camera nobody subscribed to, and the whole scene, are rendered during a replay."""
     run = record(registry, tmp_path / "a", MAZE, seed=3, ticks=20, manifest=True)
