@@ -202,14 +202,19 @@ def test_subscribe_unsubscribe_flood_leaves_nothing_behind(connect, graph):
 
 def test_client_leaving_releases_everything(connect, graph):
     """After a client leaves, its node, topics, services and actions are gone from the graph."""
-    client = connect()
+    client = status_client(connect)
     client.send({"op": "advertise", "topic": "/mine", "type": "std_msgs/String"})
     client.send({"op": "subscribe", "topic": "/theirs", "type": "std_msgs/String"})
     client.send({"op": "advertise_service", "service": "/svc", "type": "std_srvs/srv/Trigger"})
     client.send(
         {"op": "advertise_action", "action": "/act", "type": "example_interfaces/action/Fibonacci"}
     )
+    assert [f["level"] for f in client.frames()] == ["info"] * 4
     node = client.session.node.name
+    # Each of them is there, the client's, before it leaves.
+    assert [p.node.name for p in graph.topics["/mine"].publishers] == [node]
+    assert [s.node.name for s in graph.topics["/theirs"].subscriptions] == [node]
+    assert graph.services["/svc"].node.name == graph.actions["/act"].node.name == node
     client.session.close()
     assert node not in graph.nodes
     assert "/mine" not in graph.topics and "/theirs" not in graph.topics
