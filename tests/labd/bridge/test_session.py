@@ -107,10 +107,13 @@ def test_protected_service_calls_return_empty(connect):
 
 def test_protected_names_are_hidden_from_rosapi(connect, graph):
     """rosapi lists leave out protected topics, so clients cannot learn they exist."""
-    graph.create_node("/robot").advertise("/protected/pose", "geometry_msgs/msg/Pose")
+    robot = graph.create_node("/robot")
+    robot.advertise("/protected/pose", "geometry_msgs/msg/Pose")
+    robot.advertise("/pose", "geometry_msgs/msg/Pose")
     client = connect()
     client.send({"op": "call_service", "id": 1, "service": "/rosapi/topics"})
-    assert "/protected/pose" not in client.frames()[0]["values"]["topics"]
+    topics = client.frames()[0]["values"]["topics"]
+    assert "/pose" in topics and "/protected/pose" not in topics
 
 
 def test_protected_prefix_is_configurable(connect, graph):
