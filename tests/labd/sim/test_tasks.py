@@ -89,19 +89,40 @@ def test_topics_validate_against_their_types(task, sim, registry):
         codec_for(registry, command.type)  # a known type
 
 
+def _stamps(value: Any) -> list[Any]:
+    """Every header stamp in a message, nested ones (each /tf transform's) included."""
+    if isinstance(value, dict):
+        own = [value["header"]["stamp"]] if "header" in value else []
+        return own + [stamp for item in value.values() for stamp in _stamps(item)]
+    if isinstance(value, list):
+        return [stamp for item in value for stamp in _stamps(item)]
+    return []
+
+
 def test_observations_are_stamped_with_simulation_time(task, registry):
-    """Headers carry the simulation time of the tick, not the wall clock."""
-    sim = Simulation(task, {}, seed=1)
-    for _ in range(3):
-        sim.step()
-    stamp = stamp_of(sim.physics)
-    assert stamp["sec"] * 10**9 + stamp["nanosec"] == sim.time_ns
-    for obs in sim.task.observations:
-        if obs.on_demand:
-            continue
-        data = sim.task.observe(sim.physics, obs.name, stamp)
-        if data and "header" in data:
-            assert data["header"]["stamp"] == stamp, obs.name
+    """Every header the robot publishes, nested ones too, carries its tick's simulation time."""
+    graph = Graph(registry, name="stamps")
+    robot = Robot(graph, task, {}, seed=1)
+    period_ns = round(robot.sim.control_timestep * 1e9)
+    heard: list[tuple[int, str, Any]] = []  # (tick, topic, stamps)
+    listener = graph.create_node("/listener")
+    try:
+        for obs in robot.sim.task.observations:  # at tick 0, as a controller subscribes
+            listener.subscribe(
+                obs.name,
+                None,
+                lambda m, name=obs.name: heard.append((robot.sim.tick, name, _stamps(m.data))),
+            )
+        for _ in range(3):
+            robot.step()
+    finally:
+        robot.close()
+    assert {topic for _, topic, _ in heard} == {o.name for o in robot.sim.task.observations}
+    assert {tick for tick, _, _ in heard} == {0, 1, 2, 3}
+    for tick, topic, stamps in heard:
+        assert stamps, f"{topic} at tick {tick} has no header"
+        want = {"sec": tick * period_ns // 10**9, "nanosec": tick * period_ns % 10**9}
+        assert all(stamp == want for stamp in stamps), (topic, tick, stamps)
 
 
 def _nan_message(codec: Any, registry: Any) -> tuple[dict[str, Any], list[str]] | None:
