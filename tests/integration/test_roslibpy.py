@@ -180,6 +180,6 @@ def test_client_leaving_is_cleaned_up(ros, server):
     client.get_services(seen)
     seen.wait()
     graph = server.lab.graphs["playground"]
-    assert server.call(lambda: "/gone_srv" in graph.services)
+    assert server.call(lambda: "/gone" in graph.topics and "/gone_srv" in graph.services)
     client.close()
     server.wait_until(lambda: "/gone" not in graph.topics and "/gone_srv" not in graph.services)

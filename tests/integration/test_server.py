@@ -46,6 +46,12 @@ def raw_client(port: int, rcvbuf: int | None = None) -> socket.socket:
     return sock
 
 
+def send_frame(sock: socket.socket, payload: bytes) -> None:
+    """Send one masked text frame (under 64 KiB), as a client must, on a raw socket."""
+    length = bytes([0x80 | 126]) + len(payload).to_bytes(2, "big")
+    sock.sendall(bytes([0x81]) + length + b"\x00\x00\x00\x00" + payload)
+
+
 # -- a real HTTP authorizer ----------------------------------------------------------------
 
 
@@ -204,8 +210,13 @@ def test_keepalive_drops_a_silent_peer(make_server):
     """A peer that stops answering pings is disconnected and its subscriptions released."""
     config = BridgeConfig(port=0, ping_interval=0.2, ping_timeout=0.2, close_timeout=0.5)
     server = make_server(config)
-    sock = raw_client(server.port)  # never reads again, never answers a ping
-    server.wait_until(lambda: not server.lab.bridge.connections)
+    topics = server.lab.graphs["playground"].topics
+    sock = raw_client(server.port)
+    frame = orjson.dumps({"op": "subscribe", "topic": "/heard", "type": "std_msgs/String"})
+    send_frame(sock, frame)  # then it never reads again, never answers a ping
+    # Its subscription shows it connected: what follows is the keepalive's doing.
+    server.wait_until(lambda: "/heard" in topics and len(topics["/heard"].subscriptions) == 1)
+    server.wait_until(lambda: not server.lab.bridge.connections and "/heard" not in topics)
     sock.close()
 
 
@@ -214,8 +225,7 @@ def test_stalled_reader_does_not_hold_back_others(make_server):
     server = make_server(BridgeConfig(port=0, max_queue_bytes=200_000))
     frame = orjson.dumps({"op": "subscribe", "topic": "/blob", "type": "std_msgs/String"})
     stalled = raw_client(server.port, rcvbuf=4096)
-    mask = b"\x00\x00\x00\x00"
-    stalled.sendall(bytes([0x81, 0x80 | 126]) + len(frame).to_bytes(2, "big") + mask + frame)
+    send_frame(stalled, frame)
     with connect(server.url) as healthy, connect(server.url) as talker:
         healthy.send(frame.decode())
         topics = server.lab.graphs["playground"].topics

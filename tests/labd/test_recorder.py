@@ -153,6 +153,10 @@ def test_every_message_is_in_the_file_in_delivery_order(registry, tmp_path):
     ]
     want = [(t, m.stamp_ns, m.stamp_ns, m.cdr()) for t, m in run.delivered]
     assert got == want
+    # What was delivered is the whole drive: each tick's observations and command.
+    ticks = [m.data["tick"] for t, m in run.delivered if t == "/lab/episode"]
+    assert ticks == list(range(13))
+    assert {t for t, _ in run.delivered} == {"/pose", "/slow", "/clock", "/lab/episode", "/cmd_vel"}
     assert run.summary.counts == {
         t: sum(1 for n, _ in run.delivered if n == t) for t in {n for n, _ in run.delivered}
     }

@@ -168,13 +168,18 @@ async def test_open_files_are_limited(controllers: Controllers) -> None:
 
 
 SPAWNER = """
-    import asyncio, os, signal, subprocess, sys, time
+    import os, signal, subprocess, sys, time
     from websockets.sync.client import connect
     signal.signal(signal.SIGTERM, signal.{handler})
-    # A child, and a grandchild that leaves for a session of its own.
-    subprocess.Popen([sys.executable, "-c", "import time; time.sleep(600)"])
-    subprocess.Popen([sys.executable, "-c", "import os, time; os.setsid(); time.sleep(600)"],
-                     start_new_session=True)
+    # A child in the controller's process group and one in a session of its own, both
+    # running before the controller says it is ready. (start_new_session calls setsid();
+    # a second os.setsid() in the child would fail with EPERM and end it at once.)
+    sleeper = [sys.executable, "-c", "import time; print('up', flush=True); time.sleep(600)"]
+    children = [
+        subprocess.Popen(sleeper, stdout=subprocess.PIPE),
+        subprocess.Popen(sleeper, stdout=subprocess.PIPE, start_new_session=True),
+    ]
+    assert [child.stdout.readline() for child in children] == [b"up\\n"] * 2
     with connect(os.environ["LAB_BRIDGE_URL"]) as ws:
         ws.send("ready")
         ws.recv()
@@ -209,13 +214,15 @@ async def test_what_a_controller_leaves_behind_is_killed(controllers: Controller
     ended = await controllers.run(
         """
         import subprocess, sys
-        subprocess.Popen([sys.executable, "-c", "import os, time; os.setsid(); time.sleep(600)"],
-                         start_new_session=True)
-        print("leaving")
+        # In a session of its own, so that killing the controller's process group misses it.
+        sleeper = [sys.executable, "-c", "import time; print('up', flush=True); time.sleep(600)"]
+        left = subprocess.Popen(sleeper, stdout=subprocess.PIPE, start_new_session=True)
+        print("leaving", left.stdout.readline().decode().strip())
         """,
         limits=Limits(wall=30),
     )
     assert ended.code == 0, ended.stderr
+    assert ended.stdout == b"leaving up\n"  # it ran when the controller exited
     assert not ended.wall_exceeded
     assert ended.seconds < 10
 

@@ -214,10 +214,12 @@ def test_lists_filter_and_paginate(index, queue):
 
 
 def test_concurrent_submissions_and_claims_all_land(index, queue):
-    """API threads submitting while workers claim: no "database is locked", nothing lost."""
+    """API threads submitting while workers claim: no "database is locked", and every trial
+    submitted is claimed exactly once."""
     alice = make_user(index, "alice", max_running=1000)
     errors: list[BaseException] = []
     claimed: list[int] = []
+    submitted = threading.Event()
 
     def submitter(n):
         try:
@@ -228,23 +230,30 @@ def test_concurrent_submissions_and_claims_all_land(index, queue):
 
     def worker(name):
         try:
-            for _ in range(20):
+            while True:
+                last_round = submitted.is_set()  # then a claim of None means none is left
                 claim = queue.claim(name)
                 if claim is not None:
                     claimed.append(claim.id)
+                elif last_round:
+                    return
         except BaseException as err:
             errors.append(err)
 
-    threads = [threading.Thread(target=submitter, args=(n,)) for n in range(4)]
-    threads += [threading.Thread(target=worker, args=(f"w{n}",)) for n in range(2)]
-    for t in threads:
+    submitters = [threading.Thread(target=submitter, args=(n,)) for n in range(4)]
+    workers = [threading.Thread(target=worker, args=(f"w{n}",)) for n in range(2)]
+    for t in submitters + workers:
         t.start()
-    for t in threads:
+    for t in submitters:
+        t.join()
+    submitted.set()
+    for t in workers:
         t.join()
     assert errors == []
-    assert len(set(claimed)) == len(claimed)
     rows = index.find(Filters(submitter="alice"), limit=500).items
     assert len(rows) == 40
+    assert sorted(claimed) == sorted(r.id for r in rows)
+    assert {r.status for r in rows} == {Status.RUNNING}
 
 
 def test_concurrent_claims_keep_the_running_limit(index, queue):

@@ -107,10 +107,13 @@ def test_protected_service_calls_return_empty(connect):
 
 def test_protected_names_are_hidden_from_rosapi(connect, graph):
     """rosapi lists leave out protected topics, so clients cannot learn they exist."""
-    graph.create_node("/robot").advertise("/protected/pose", "geometry_msgs/msg/Pose")
+    robot = graph.create_node("/robot")
+    robot.advertise("/protected/pose", "geometry_msgs/msg/Pose")
+    robot.advertise("/pose", "geometry_msgs/msg/Pose")
     client = connect()
     client.send({"op": "call_service", "id": 1, "service": "/rosapi/topics"})
-    assert "/protected/pose" not in client.frames()[0]["values"]["topics"]
+    topics = client.frames()[0]["values"]["topics"]
+    assert "/pose" in topics and "/protected/pose" not in topics
 
 
 def test_protected_prefix_is_configurable(connect, graph):
@@ -202,14 +205,19 @@ def test_subscribe_unsubscribe_flood_leaves_nothing_behind(connect, graph):
 
 def test_client_leaving_releases_everything(connect, graph):
     """After a client leaves, its node, topics, services and actions are gone from the graph."""
-    client = connect()
+    client = status_client(connect)
     client.send({"op": "advertise", "topic": "/mine", "type": "std_msgs/String"})
     client.send({"op": "subscribe", "topic": "/theirs", "type": "std_msgs/String"})
     client.send({"op": "advertise_service", "service": "/svc", "type": "std_srvs/srv/Trigger"})
     client.send(
         {"op": "advertise_action", "action": "/act", "type": "example_interfaces/action/Fibonacci"}
     )
+    assert [f["level"] for f in client.frames()] == ["info"] * 4
     node = client.session.node.name
+    # Each of them is there, the client's, before it leaves.
+    assert [p.node.name for p in graph.topics["/mine"].publishers] == [node]
+    assert [s.node.name for s in graph.topics["/theirs"].subscriptions] == [node]
+    assert graph.services["/svc"].node.name == graph.actions["/act"].node.name == node
     client.session.close()
     assert node not in graph.nodes
     assert "/mine" not in graph.topics and "/theirs" not in graph.topics

@@ -19,16 +19,19 @@ from labd.graph.types import FLOATS, Kind, TypeRegistry
 from labd.sim.robot import Robot
 
 
-def random_value(codec: Codec, registry: TypeRegistry, rng: np.random.Generator) -> dict[str, Any]:
-    """A message with every float scalar (and fixed float array) drawn from [-1, 1]."""
+def random_value(
+    codec: Codec, registry: TypeRegistry, rng: np.random.Generator, scale: float = 1.0
+) -> dict[str, Any]:
+    """A message with every float scalar (and fixed float array) drawn from [-scale, scale]."""
     out: dict[str, Any] = {}
     for field in codec.type.fields:
         if field.base in FLOATS and field.kind is Kind.SCALAR:
-            out[field.name] = float(rng.uniform(-1, 1))
+            out[field.name] = float(rng.uniform(-scale, scale))
         elif field.base in FLOATS and field.kind is Kind.ARRAY:
-            out[field.name] = rng.uniform(-1, 1, field.length).tolist()
+            out[field.name] = rng.uniform(-scale, scale, field.length).tolist()
         elif field.message and field.kind is Kind.SCALAR and "Time" not in field.message:
-            out[field.name] = random_value(codec_for(registry, field.message), registry, rng)
+            inner = codec_for(registry, field.message)
+            out[field.name] = random_value(inner, registry, rng, scale)
     return out
 
 

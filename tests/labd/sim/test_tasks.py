@@ -26,7 +26,7 @@ from labd.sim import registry
 from labd.sim.base import stamp_of
 from labd.sim.robot import Robot
 from labd.sim.simulation import Simulation
-from tests.labd.sim.drive import drive
+from tests.labd.sim.drive import drive, random_value
 
 ROOT = Path(__file__).resolve().parents[3]
 TASKS = registry.names()
@@ -78,6 +78,48 @@ def test_specs_and_a_random_episode(task, sim):
         assert set(timestep.observation) == set(observation_spec)
 
 
+def _check_observation(observation: Any, spec: Any, tick: int) -> None:
+    """As dm_control's suite_test does: the spec's keys, each array of its spec's shape
+    and dtype, every value finite."""
+    assert set(observation) == set(spec), (tick, sorted(observation), sorted(spec))
+    for name, array_spec in spec.items():
+        value = observation[name]
+        assert isinstance(value, np.ndarray), (tick, name, type(value))
+        assert (value.shape, value.dtype) == (array_spec.shape, array_spec.dtype), (tick, name)
+        assert np.all(np.isfinite(value)), f"{name} at tick {tick} is not finite: {value}"
+
+
+def test_an_episode_driven_by_commands_keeps_to_the_specs(task, registry):
+    """Commands far past the robot's limits give actions within the action spec; every
+    observation of the episode keeps its spec's keys, shapes and float64 dtype with finite
+    values; rewards and discounts fit their specs and are finite."""
+    sim = Simulation(task, {}, seed=3)
+    env, lab_task = sim.env, sim.task
+    observation_spec, action_spec = env.observation_spec(), env.action_spec()
+    assert observation_spec
+    assert {name: s.dtype for name, s in observation_spec.items()} == {
+        name: np.float64 for name in observation_spec
+    }
+    codecs = [(c.name, codec_for(registry, c.type)) for c in lab_task.commands]
+    rng = np.random.default_rng(3)
+    timestep = env.reset()
+    assert timestep.first() and timestep.reward is None
+    _check_observation(timestep.observation, observation_spec, 0)
+    for tick in range(1, TICKS + 1):
+        for name, codec in codecs:  # each command, every field in [-5, 5]
+            value = codec.normalize(random_value(codec, registry, rng, 5.0), lambda: (0, 0))
+            lab_task.command(name, value)
+        action = lab_task.action(sim.physics)
+        action_spec.validate(action)  # its shape, dtype and bounds
+        timestep = env.step(action)
+        _check_observation(timestep.observation, observation_spec, tick)
+        assert isinstance(timestep.reward, float) and math.isfinite(timestep.reward), tick
+        env.reward_spec().validate(timestep.reward)
+        env.discount_spec().validate(timestep.discount)
+        assert timestep.mid(), f"the episode ended at tick {tick}"
+    assert sum(lab_task.clipped.values()) >= TICKS // 2, lab_task.clipped  # bounds were tested
+
+
 def test_topics_validate_against_their_types(task, sim, registry):
     """Every observation, cameras included, is a valid message of its declared type."""
     stamp = stamp_of(sim.physics)
@@ -89,19 +131,40 @@ def test_topics_validate_against_their_types(task, sim, registry):
         codec_for(registry, command.type)  # a known type
 
 
+def _stamps(value: Any) -> list[Any]:
+    """Every header stamp in a message, nested ones (each /tf transform's) included."""
+    if isinstance(value, dict):
+        own = [value["header"]["stamp"]] if "header" in value else []
+        return own + [stamp for item in value.values() for stamp in _stamps(item)]
+    if isinstance(value, list):
+        return [stamp for item in value for stamp in _stamps(item)]
+    return []
+
+
 def test_observations_are_stamped_with_simulation_time(task, registry):
-    """Headers carry the simulation time of the tick, not the wall clock."""
-    sim = Simulation(task, {}, seed=1)
-    for _ in range(3):
-        sim.step()
-    stamp = stamp_of(sim.physics)
-    assert stamp["sec"] * 10**9 + stamp["nanosec"] == sim.time_ns
-    for obs in sim.task.observations:
-        if obs.on_demand:
-            continue
-        data = sim.task.observe(sim.physics, obs.name, stamp)
-        if data and "header" in data:
-            assert data["header"]["stamp"] == stamp, obs.name
+    """Every header the robot publishes, nested ones too, carries its tick's simulation time."""
+    graph = Graph(registry, name="stamps")
+    robot = Robot(graph, task, {}, seed=1)
+    period_ns = round(robot.sim.control_timestep * 1e9)
+    heard: list[tuple[int, str, Any]] = []  # (tick, topic, stamps)
+    listener = graph.create_node("/listener")
+    try:
+        for obs in robot.sim.task.observations:  # at tick 0, as a controller subscribes
+            listener.subscribe(
+                obs.name,
+                None,
+                lambda m, name=obs.name: heard.append((robot.sim.tick, name, _stamps(m.data))),
+            )
+        for _ in range(3):
+            robot.step()
+    finally:
+        robot.close()
+    assert {topic for _, topic, _ in heard} == {o.name for o in robot.sim.task.observations}
+    assert {tick for tick, _, _ in heard} == {0, 1, 2, 3}
+    for tick, topic, stamps in heard:
+        assert stamps, f"{topic} at tick {tick} has no header"
+        want = {"sec": tick * period_ns // 10**9, "nanosec": tick * period_ns % 10**9}
+        assert all(stamp == want for stamp in stamps), (topic, tick, stamps)
 
 
 def _nan_message(codec: Any, registry: Any) -> tuple[dict[str, Any], list[str]] | None:
