@@ -147,7 +147,6 @@ class Robot:
         """
         sim = self.sim
         stamp = stamp_of(sim.physics)
-        self._stale.clear()
         due = [
             (o.name, o.on_demand)
             for o in sim.task.observations
@@ -155,6 +154,9 @@ class Robot:
         ]
         recording = bool(self.graph.taps)
         for topic, on_demand in (*due, ("/clock", False), ("/lab/episode", False)):
+            # A topic not due this tick keeps its staleness: one published once, when the
+            # episode began (/goal, /tf_static), still reaches a subscriber who comes later.
+            self._stale.discard(topic)
             if self.publishers[topic].topic.subscriptions or (recording and not on_demand):
                 self._publish_one(topic, stamp)
             else:

@@ -176,3 +176,18 @@ def test_unheard_topics_are_built_when_someone_subscribes(world):
         step(client)
     poses = record(client, "/pose")
     assert len(poses) == 1 and poses[0]["header"]["stamp"] == {"sec": 0, "nanosec": 400_000_000}
+
+
+def test_a_late_subscriber_gets_what_was_published_once(registry):
+    """/goal, published once when the episode begins, reaches a subscriber who comes
+    ticks later, though nobody listened at tick 0."""
+    graph = Graph(registry, name="late")
+    robot = Robot(graph, "icreate-maze", {}, 4)
+    client = graph.create_node("/late")
+    step_once = []
+    client.call_service("/lab/step", None, step_once.append)
+    client.call_service("/lab/step", None, step_once.append)
+    got = []
+    client.subscribe("/goal", None, got.append)
+    assert len(got) == 1 and got[0].data["header"]["stamp"] == {"sec": 0, "nanosec": 200_000_000}
+    robot.close()
