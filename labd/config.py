@@ -41,6 +41,10 @@ class BridgeConfig:
     fragment_timeout: float = 30.0
     log_rate: float = 20.0  # log lines per second per client before suppression
     log_burst: int = 50
+    # Topics a client may publish on only so fast (messages per second, burst): a page's
+    # user-experience events are many and small, and a flood of them must not crowd the
+    # robot's data out of a record.
+    rate_limits: tuple[tuple[str, float, int], ...] = (("/ux/events", 50.0, 100),)
 
 
 @dataclass(frozen=True)

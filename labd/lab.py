@@ -25,6 +25,7 @@ from labd.config import DATA, DEFAULT_ROBOTS, BridgeConfig, RobotConfig
 from labd.errors import PortInUse
 from labd.graph.graph import Graph
 from labd.graph.types import TypeRegistry
+from labd.live import Demonstration, Driving
 from labd.service import Service, ServiceConfig
 from labd.sim.robot import LiveRunner, Robot
 from labd.station import Station
@@ -82,6 +83,8 @@ class Lab:
             self.graphs["playground"] = Graph(self.types, name="playground")
             self.rosapi.append(Rosapi(self.graphs["playground"], protected))
         self._runners: list[asyncio.Task[None]] = []
+        self._filings: set[asyncio.Future[int]] = set()
+        self.drives: dict[str, Driving] = {}
         self._own_authorizer: HttpAuthorizer | None = None
         if authorizer is None and config.bridge.authorizer_url:
             authorizer = self._own_authorizer = HttpAuthorizer(config.bridge.authorizer_url)
@@ -103,6 +106,15 @@ class Lab:
         await _listen(
             self.bridge.start(), self.config.bridge.host, self.config.bridge.port, "--bridge-port"
         )
+        self.drives = {
+            name: Driving(
+                station,
+                work=self._live_work(),
+                file=self._file if self.service is not None else None,
+            )
+            for name, station in self.stations.items()
+            if station.robot.live
+        }
         if self.app is not None:  # the pages link to the robots on the port now known
             self.app.state.site = replace(self.site, bridge_port=self.bridge.port)
         if self.service is not None and self.http is not None:
@@ -111,17 +123,43 @@ class Lab:
             )
             await self.service.start()
 
+    def _live_work(self) -> Path | None:
+        """Where live drives are recorded before they are filed (None: no archive)."""
+        if self.service is None:
+            return None
+        folder = (self.service.config.data / "work" / "live").resolve()
+        folder.mkdir(parents=True, exist_ok=True)
+        return folder
+
+    def _file(self, demo: Demonstration) -> None:
+        """File a finished drive from a thread, so the robot goes on stepping meanwhile."""
+        assert self.service is not None
+        filing = asyncio.get_running_loop().run_in_executor(
+            None, self.service.file_demonstration, demo
+        )
+        self._filings.add(filing)
+        filing.add_done_callback(self._filed)
+
+    def _filed(self, filing: asyncio.Future[int]) -> None:
+        self._filings.discard(filing)
+        if not filing.cancelled() and filing.exception() is not None:
+            log.error("a demonstration could not be filed", exc_info=filing.exception())
+
     async def close(self) -> None:
         if self.http is not None:
             await self.http.close()
-        if self.service is not None:
-            await self.service.close()
         for task in self._runners:
             task.cancel()
         for task in self._runners:
             with contextlib.suppress(asyncio.CancelledError):
                 await task
-        await self.bridge.close()
+        await self.bridge.close()  # clients leave: their drives end and are filed
+        for drive in self.drives.values():
+            drive.close()
+        if self._filings:
+            await asyncio.gather(*self._filings, return_exceptions=True)
+        if self.service is not None:
+            await self.service.close()
         for station in self.stations.values():
             station.close()
         for api in self.rosapi:

@@ -19,6 +19,7 @@ for the ticks the record has them.
 from __future__ import annotations
 
 import logging
+import math
 import struct
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
@@ -85,14 +86,21 @@ class _Tick:
     observed: list[RecordedMessage] = field(default_factory=list)
 
 
-def ticks_of(path: Path) -> Iterator[_Tick]:
+def ticks_of(
+    path: Path, commands: frozenset[str] = frozenset(), robot: frozenset[str] | None = None
+) -> Iterator[_Tick]:
     """A record as ticks: the commands sent before each step, and what the lab then
-    published (ending with ``/lab/episode``)."""
+    published (ending with ``/lab/episode``). A message on one of the ``commands`` topics
+    is a command whoever sent it (a live robot's watchdog sends a stop itself); of the
+    lab's other messages, those on the ``robot``'s topics (its observations, ``/clock``,
+    ``/lab/episode``), since the lab's other nodes (who drives, logs) are no robot's."""
     current = _Tick()
     for message in read_messages(path):
         if message.topic in IGNORED:
             continue
-        if message.side is Side.LAB:
+        if message.side is Side.LAB and message.topic not in commands:
+            if robot is not None and message.topic not in robot:
+                continue
             current.observed.append(message)
             if message.topic == EPISODE:
                 yield current
@@ -157,6 +165,8 @@ def replay(
         int(manifest.get("seed", 0)),
         live=False,
         protected_prefixes=("/protected",),
+        # a live robot's episode has no time limit: it ends at its goal, or by a reset
+        time_limit=math.inf if manifest.get("live") else None,
     )
     try:
         check_manifest(manifest, station)
@@ -203,7 +213,8 @@ def _run(path: Path, station: Station, renderers: Sequence[Any], realtime: bool)
         robot.publish()  # tick 0, as a trial does once its recorder listens
         for render in renderers:
             render(robot.sim.physics, 0)
-        for index, tick in enumerate(_readable(ticks_of(path), robot)):
+        ticks = ticks_of(path, frozenset(commands), frozenset(robot.publishers))
+        for index, tick in enumerate(_readable(ticks, robot)):
             if index > 0:
                 produced.clear()
             needed = {m.topic for m in tick.observed if m.topic in on_demand} - watched

@@ -17,6 +17,7 @@ import asyncio
 import contextlib
 import logging
 import os
+import shutil
 import socket
 from collections.abc import Mapping
 from dataclasses import dataclass, field
@@ -26,10 +27,12 @@ from typing import Any
 import sandbox
 from labd.config import DATA
 from labd.graph.types import TypeRegistry
+from labd.live import Demonstration
 from labd.trial import LabHost, client_library
 from repository.blobs import BlobStore
 from repository.index import Index
 from repository.signing import Keyring
+from repository.trial import Ending, Filing, Kind
 from scheduler.fetch import FetchPolicy
 from scheduler.queue import Queue, QueueConfig
 from scheduler.runner import RunOptions
@@ -134,6 +137,36 @@ class Service:
                 continue
             released += self.queue.release_worker(f"{host}:{pid}/")
         return released
+
+    def file_demonstration(self, demo: Demonstration) -> int:
+        """File a live robot's drive in the archive as a trial of kind ``demonstration``;
+        its id. Blocking (the record goes to the blob store): call it from a thread."""
+        mcap = demo.folder / "trial.mcap"
+        filing = Filing(
+            **(
+                Ending.success(demo.reason) if demo.achieved else Ending.fail(demo.reason)
+            ).model_dump(),
+            manifest=demo.manifest,
+            manifest_digest=demo.manifest_digest,
+            data_digest=demo.data_digest,
+            digest_topics=demo.digest_topics,
+            metrics=demo.metrics,
+            backend="live",
+            mcap=self.store.put_file(mcap),
+            mcap_size=mcap.stat().st_size,
+        )
+        trial_id = self.queue.file_finished(
+            kind=Kind.DEMONSTRATION,
+            repository=f"robot:{demo.robot}",
+            task=demo.task,
+            params=demo.params,
+            seed=demo.seed,
+            submitter=demo.user,
+            filing=filing,
+        )
+        shutil.rmtree(demo.folder, ignore_errors=True)
+        log.info("demonstration %d filed: %s drove %s", trial_id, demo.user, demo.robot)
+        return trial_id
 
     def wake(self) -> None:
         """A trial was queued: let idle workers claim it now."""

@@ -34,7 +34,7 @@ from sqlalchemy.engine import Connection
 from repository.index import Index, User, reward_of, to_trial
 from repository.index import trials as T
 from repository.signing import Keyring, record_statement
-from repository.trial import Claim, Filing, Outcome, Status, Trial
+from repository.trial import Claim, Filing, Kind, Outcome, Status, Trial
 from scheduler.errors import NotYours, QuotaExceeded
 
 log = logging.getLogger("scheduler.queue")
@@ -246,31 +246,77 @@ class Queue:
                 .where(T.c.id == trial_id, T.c.worker == worker, T.c.status == RUNNING)
                 .values(lease_until=None, **values)
             ).rowcount
-            if done == 1 and self.keyring is not None:
-                row = db.execute(sa.select(T).where(T.c.id == trial_id)).one()
-                signed = self.keyring.sign(
-                    record_statement(
-                        trial=trial_id,
-                        kind=row.kind,
-                        repository=row.repository,
-                        commit=row.commit,
-                        task=row.task,
-                        seed=row.seed,
-                        status=row.status,
-                        outcome=row.outcome,
-                        manifest_digest=row.manifest_digest,
-                        data_digest=row.data_digest,
-                        digest_topics=row.digest_topics,
-                        mcap=row.mcap,
-                        finished=row.finished,
-                    )
-                )
-                db.execute(
-                    sa.update(T).where(T.c.id == trial_id).values(signature=signed.to_json())
-                )
+            if done == 1:
+                self._sign(db, trial_id)
         if done != 1:
             log.warning("worker %s finished trial %d after losing it; dropped", worker, trial_id)
         return done == 1
+
+    def file_finished(
+        self,
+        *,
+        kind: Kind,
+        repository: str,
+        task: str,
+        params: Mapping[str, Any],
+        seed: int,
+        submitter: str,
+        filing: Filing,
+        started: float | None = None,
+    ) -> int:
+        """File a record made outside the queue (a live robot's demonstration): a trial
+        that is finished when it is added, signed as any other."""
+        now = self.clock()
+        with self.index.begin() as db:
+            trial_id = self.index.add_trial(
+                repository=repository,
+                ref=None,
+                commit="",
+                task=task,
+                params=params,
+                seed=seed,
+                submitter=submitter,
+                public=True,
+                kind=kind,
+                db=db,
+            )
+            values = filing.model_dump(mode="json")
+            db.execute(
+                sa.update(T)
+                .where(T.c.id == trial_id)
+                .values(
+                    started=started if started is not None else now,
+                    finished=now,
+                    reward=reward_of(filing.metrics),
+                    **values,
+                )
+            )
+            self._sign(db, trial_id)
+        return trial_id
+
+    def _sign(self, db: Connection, trial_id: int) -> None:
+        """Sign the trial's record as it now stands in the index (with a keyring)."""
+        if self.keyring is None:
+            return
+        row = db.execute(sa.select(T).where(T.c.id == trial_id)).one()
+        signed = self.keyring.sign(
+            record_statement(
+                trial=trial_id,
+                kind=row.kind,
+                repository=row.repository,
+                commit=row.commit,
+                task=row.task,
+                seed=row.seed,
+                status=row.status,
+                outcome=row.outcome,
+                manifest_digest=row.manifest_digest,
+                data_digest=row.data_digest,
+                digest_topics=row.digest_topics,
+                mcap=row.mcap,
+                finished=row.finished,
+            )
+        )
+        db.execute(sa.update(T).where(T.c.id == trial_id).values(signature=signed.to_json()))
 
     def requeue_expired(self) -> list[int]:
         """Put running trials whose lease ran out back in the queue (or fail them)."""

@@ -32,7 +32,7 @@ LAYERS = [
     {"labd.graph"},
     {"labd.sim", "labd.bridge", "labd.recorder"},
     {"labd.station"},
-    {"labd.trial", "labd.replay"},
+    {"labd.trial", "labd.replay", "labd.live"},
     {"labd.service"},
     {"labd.api"},
     {"labd.web"},

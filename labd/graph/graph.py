@@ -59,6 +59,7 @@ from labd.graph.types import TypeRegistry
 
 Clock = Callable[[], int]  # graph time in nanoseconds
 MessageCallback = Callable[[Message], None]
+GateCallback = Callable[[Message, "Node | None"], None]  # a gatekeeper told who sent it
 
 
 class Side(enum.Enum):
@@ -91,6 +92,8 @@ class Graph:
         self.nodes: dict[str, Node] = {}
         self.params: dict[str, str] = {}
         self.taps: list[Tap] = []
+        # Called with each node destroyed (a client that left): a live robot's driver.
+        self.node_gone: list[Callable[[Node], None]] = []
         self.log = logging.getLogger(f"labd.graph.{name}")
         self._node_ids = itertools.count(1)
         # /rosout exists from the start, as on any ROS 2 system (clients check for it).
@@ -192,15 +195,20 @@ class Topic:
     def type_name(self) -> str:
         return self.codec.type.name
 
-    def deliver(self, message: Message, latch: bool, side: Side) -> None:
+    def deliver(
+        self, message: Message, latch: bool, side: Side, sender: Node | None = None
+    ) -> None:
         """Hand a message to everyone: gatekeepers first, who may still refuse it.
 
-        ``side`` is its publisher's, for the taps.
+        ``side`` is its publisher's, for the taps; ``sender`` its node, for gates.
         """
         subs = tuple(self.subscriptions)
         for sub in subs:
             if sub.gatekeeper and not sub.closed:
-                sub.callback(message)
+                if sub.gate is not None:
+                    sub.gate(message, sender)
+                else:
+                    sub.callback(message)
         if latch:
             self.latched = message
         for tap in self.graph.taps:
@@ -231,7 +239,7 @@ class Publisher:
         else:
             graph = self.node.graph
             message = Message(topic.codec, topic.codec.normalize(value, graph.now), graph.clock())
-        topic.deliver(message, self.latch if latch is None else latch, self.side)
+        topic.deliver(message, self.latch if latch is None else latch, self.side, self.node)
         return message
 
     def revoke(self, reason: GraphError) -> None:
@@ -259,15 +267,24 @@ class Subscription:
     """A callback on every message of a topic."""
 
     def __init__(
-        self, node: Node, topic: Topic, callback: MessageCallback, hidden: bool, gatekeeper: bool
+        self,
+        node: Node,
+        topic: Topic,
+        callback: MessageCallback,
+        hidden: bool,
+        gatekeeper: bool,
+        *,
+        gate: GateCallback | None = None,
     ) -> None:
         self.node = node
         self.topic = topic
         self.callback = callback
         self.hidden = hidden  # the recorder and the like do not show up in rosapi
         # A gatekeeper sees each message before anyone else and may refuse it by
-        # raising (a robot refusing a NaN command): then no one receives it.
-        self.gatekeeper = gatekeeper
+        # raising (a robot refusing a NaN command, or a command from a client that is not
+        # driving): then no one receives it. A ``gate`` is told who sent it too.
+        self.gatekeeper = gatekeeper or gate is not None
+        self.gate = gate
         self.closed = False
 
     def close(self) -> None:
@@ -336,12 +353,18 @@ class Node:
         hidden: bool = False,
         latched: bool = True,
         gatekeeper: bool = False,
+        gate: GateCallback | None = None,
     ) -> Subscription:
-        """Subscribe; the topic's latched message, if any, is delivered at once."""
+        """Subscribe; the topic's latched message, if any, is delivered at once.
+
+        With ``gate`` the subscription is a gatekeeper told each message's sending node
+        (None for a message handed in without one); its ``callback`` still gets the
+        latched message.
+        """
         t = self.graph.topic(topic, type_name)
         if t.refresh is not None:
             t.refresh()
-        sub = Subscription(self, t, callback, hidden, gatekeeper)
+        sub = Subscription(self, t, callback, hidden, gatekeeper, gate=gate)
         t.subscriptions.append(sub)
         self.subscriptions.append(sub)
         if latched and t.latched is not None:
@@ -440,6 +463,8 @@ class Node:
         for sub in tuple(self.subscriptions):
             sub.close()
         self.graph.nodes.pop(self.name, None)
+        for listener in tuple(self.graph.node_gone):
+            listener(self)
 
     def __repr__(self) -> str:
         return f"Node({self.name})"

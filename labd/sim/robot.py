@@ -35,8 +35,8 @@ import time
 from collections.abc import Callable, Mapping
 from typing import Any
 
-from labd.errors import EpisodeOverError
-from labd.graph.graph import Graph, Publisher
+from labd.errors import EpisodeOverError, GraphError
+from labd.graph.graph import Graph, Node, Publisher, Side
 from labd.graph.message import Message
 from labd.graph.services import ServiceCall
 from labd.sim import registry
@@ -73,6 +73,9 @@ class Robot:
         self.live = live
         self.time_limit = time_limit  # overrides the task's; live robots have none otherwise
         self.on_tick: Callable[[], None] | None = None  # called after every step
+        # Live robots: who may command (labd.live decides); raises to refuse a command.
+        self.command_gate: Callable[[Node | None, str], None] | None = None
+        self.on_reset: Callable[[], None] | None = None  # a new episode, before it is published
         spec = task if isinstance(task, TaskSpec) else registry.get(task)
         self.params = {**(spec.live_params if live else {}), **(params or {})}
         self.sim = self._simulation(seed)
@@ -80,10 +83,17 @@ class Robot:
         self.node = graph.create_node(node_name)
         self.publishers: dict[str, Publisher] = {}
         self.command_times: dict[str, float] = {}  # wall time of each live Twist command
+        self._watchdog: dict[str, Publisher] = {}  # live: the stop a watchdog sends
         for command in self.sim.task.commands:
             self.node.subscribe(
-                command.name, command.type, self._commander(command.name), gatekeeper=True
+                command.name,
+                command.type,
+                self._commander(command.name),
+                gate=self._gate(command.name),
             )
+            if live and command.type == TWIST:
+                # the watchdog's stop is published, so a live session's record holds it
+                self._watchdog[command.name] = self.node.advertise(command.name, TWIST)
         self._stale: set[str] = set()  # topics skipped because no one listened
         for obs in self.sim.task.observations:
             self._advertise(obs.name, obs.type, obs.latched)
@@ -115,12 +125,29 @@ class Robot:
 
         return take
 
+    def _gate(self, topic: str) -> Any:
+        take = self._commander(topic)
+
+        def gate(message: Message, sender: Node | None) -> None:
+            if sender is self.node:  # the watchdog's stop: no command to watch any more
+                self.sim.task.command(topic, message.data)
+                return
+            if self.command_gate is not None:
+                self.command_gate(sender, topic)
+            take(message)
+
+        return gate
+
     def expire_commands(self, now: float) -> None:
         """Live mode: stop a Twist that has not been repeated for WATCHDOG seconds."""
         for topic, at in list(self.command_times.items()):
             if now - at > WATCHDOG:
+                stop = self._watchdog.get(topic)
                 del self.command_times[topic]
-                self.sim.task.command(topic, self.graph.codec(TWIST).default())
+                if stop is not None:
+                    stop.publish(self.graph.codec(TWIST).default())
+                else:
+                    self.sim.task.command(topic, self.graph.codec(TWIST).default())
 
     # -- ticks -------------------------------------------------------------------------
 
@@ -206,15 +233,25 @@ class Robot:
 
     # -- episodes ----------------------------------------------------------------------
 
-    def reset(self, seed: int | None = None) -> None:
-        """Start a new episode (the next seed unless one is given) and publish it."""
+    def reset(self, seed: int | None = None, *, publish: bool = True) -> None:
+        """Start a new episode (the next seed unless one is given) and publish it (unless
+        told not to: a recorder about to start publishes it itself)."""
         old = self.sim
         self.sim = self._simulation(self.sim.seed + 1 if seed is None else seed)
         old.close()
         self.command_times.clear()
-        self.publish()
+        if self.on_reset is not None:
+            self.on_reset()
+        if publish:
+            self.publish()
 
     def _reset_service(self, call: ServiceCall) -> None:
+        if self.command_gate is not None:
+            try:
+                self.command_gate(call.caller, "/lab/reset")
+            except GraphError as err:
+                call.reply({"success": False, "message": str(err)})
+                return
         self.reset()
         call.reply({"success": True, "message": f"new episode, seed {self.sim.seed}"})
 
@@ -222,7 +259,9 @@ class Robot:
         """Someone is listening or commanding (live robots idle otherwise)."""
         if any(p.topic.subscriptions for p in self.publishers.values()):
             return True
-        return any(len(s.topic.publishers) for s in self.node.subscriptions)
+        return any(
+            p.side is Side.CLIENT for s in self.node.subscriptions for p in s.topic.publishers
+        )
 
     def close(self) -> None:
         self.node.destroy()

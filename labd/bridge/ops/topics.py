@@ -23,6 +23,7 @@ advertised it) is forgotten at the next ``publish``, which reports why.
 from __future__ import annotations
 
 from collections import deque
+from collections.abc import Callable
 from dataclasses import dataclass
 
 from labd.bridge.frames import Advertise, Id, Op, Publish, Subscribe, Unadvertise, Unsubscribe
@@ -115,6 +116,29 @@ class Stream:
             self.subscription.close()
 
 
+class Bucket:
+    """A token bucket: ``rate`` per second, up to ``burst`` at once."""
+
+    def __init__(self, rate: float, burst: int, clock: Callable[[], float]) -> None:
+        self.rate = rate
+        self.burst = burst
+        self.clock = clock
+        self.tokens = float(burst)
+        self.at = clock()
+        self.dropped = 0  # in a row, since the last message let through
+
+    def take(self) -> bool:
+        now = self.clock()
+        self.tokens = min(float(self.burst), self.tokens + (now - self.at) * self.rate)
+        self.at = now
+        if self.tokens < 1.0:
+            self.dropped += 1
+            return False
+        self.tokens -= 1.0
+        self.dropped = 0
+        return True
+
+
 class Topics(Capability):
     ops = (Advertise, Unadvertise, Publish, Subscribe, Unsubscribe)
 
@@ -124,6 +148,10 @@ class Topics(Capability):
         self._by_spelling: dict[str, Publisher] = {}  # fast path for publish
         self.streams: dict[str, Stream] = {}  # by spelling
         self.subscription_count = 0
+        self.buckets = {
+            topic: Bucket(rate, burst, session.timers.time)
+            for topic, rate, burst in session.config.rate_limits
+        }
 
     def handle(self, op: Op) -> None:
         if isinstance(op, Publish):
@@ -172,6 +200,16 @@ class Topics(Capability):
         pub = self._by_spelling.get(op.topic)
         if pub is None:
             pub = self._publisher_for(op)
+        bucket = self.buckets.get(pub.topic.name) if self.buckets else None
+        if bucket is not None and not bucket.take():
+            if bucket.dropped == 1:  # say it once per burst of drops, not per message
+                self.session.report(
+                    "warning",
+                    f"publish: {pub.topic.name} takes at most {bucket.rate:g} messages a"
+                    " second from a client; the rest are dropped",
+                    op.id,
+                )
+            return
         try:
             pub.publish(op.msg, latch=op.latch)
         except MessageError as err:

@@ -246,3 +246,35 @@ def test_slow_client_does_not_slow_a_healthy_one(connect):
     assert received == 2000
     assert stalled.session.outbox.pending_bytes <= 10_000
     assert stalled.session.outbox.dropped > 1800
+
+
+def test_ux_events_are_rate_limited_per_client(connect, timers):
+    """A client flooding /ux/events gets its burst through, then its rate, and is told
+    once that the rest are dropped; another topic is not limited."""
+    sub, page = connect(), connect()
+    sub.send(
+        {
+            "op": "subscribe",
+            "topic": "/ux/events",
+            "type": "lab_msgs/msg/UxEvent",
+            "queue_length": 500,
+        }
+    )
+    page.send({"op": "set_level", "level": "warning"})
+    page.send({"op": "advertise", "topic": "/ux/events", "type": "lab_msgs/msg/UxEvent"})
+    for n in range(150):
+        page.send({"op": "publish", "topic": "/ux/events", "msg": {"kind": "key", "key": str(n)}})
+    assert len(sub.frames()) == 100  # the burst
+    warnings = [f for f in page.frames() if f["op"] == "status"]
+    assert len(warnings) == 1 and "at most 50 messages a second" in warnings[0]["msg"]
+    timers.advance(0.1)  # five more tokens
+    for n in range(10):
+        page.send({"op": "publish", "topic": "/ux/events", "msg": {"kind": "key", "key": str(n)}})
+    assert len(sub.frames()) == 5
+    sub.send(
+        {"op": "subscribe", "topic": "/chatter", "type": "std_msgs/msg/String", "queue_length": 500}
+    )
+    page.send({"op": "advertise", "topic": "/chatter", "type": "std_msgs/msg/String"})
+    for _ in range(300):
+        page.send({"op": "publish", "topic": "/chatter", "msg": {"data": "x"}})
+    assert len(sub.frames()) == 300

@@ -1,0 +1,99 @@
+"""A live robot driven by real clients: one drives, one watches and is refused, and the
+drive lands in the archive as a demonstration that replays."""
+
+from __future__ import annotations
+
+import json
+import time
+
+import pytest
+import roslibpy
+from websockets.sync.client import connect as connect_ws
+
+from labd.config import BridgeConfig, RobotConfig
+from labd.lab import LabConfig
+from labd.replay import replay
+from labd.service import ServiceConfig
+from repository.index import Filters
+from repository.trial import Kind
+from tests.conftest import ServerThread
+
+pytestmark = [pytest.mark.integration, pytest.mark.timeout(120)]
+TWIST = "geometry_msgs/msg/Twist"
+
+
+@pytest.fixture
+def lab(tmp_path):
+    data = tmp_path / "data"
+    config = LabConfig(
+        data=data,
+        bridge=BridgeConfig(port=0),
+        robots=(RobotConfig("icreate-1", "icreate-maze"),),
+        playground=False,
+        http_port=0,
+        service=ServiceConfig(data=data, workers=0),
+    )
+    server = ServerThread(config).start()
+    yield server
+    server.stop()
+
+
+def connect(lab: ServerThread) -> roslibpy.Ros:
+    ros = roslibpy.Ros(host=lab.url + "/robots/icreate-1")
+    ros.run(timeout=10)
+    return ros
+
+
+def test_a_drive_in_a_real_lab_is_a_demonstration(lab, tmp_path):
+    """A roslibpy client takes control with /lab/drive and drives; a second client's
+    commands are refused; when the driver leaves, its drive is a demonstration trial with
+    the session and interface in its manifest, and its record replays."""
+    driver, watcher = connect(lab), connect(lab)
+    try:
+        seen = []
+        roslibpy.Topic(watcher, "/lab/driver", "lab_msgs/msg/Driver").subscribe(seen.append)
+        answer = roslibpy.Service(driver, "/lab/drive", "lab_msgs/srv/Drive").call(
+            roslibpy.ServiceRequest({"session": "s-1", "interface": "video", "user": "ann"}),
+            timeout=10,
+        )
+        assert answer["success"], answer
+        cmd = roslibpy.Topic(driver, "/cmd_vel", TWIST)
+        with connect_ws(lab.url + "/robots/icreate-1") as other:  # a plain client, watching
+            other.send(json.dumps({"op": "set_level", "level": "error"}))
+            other.send(json.dumps({"op": "advertise", "topic": "/cmd_vel", "type": TWIST}))
+            other.send(
+                json.dumps({"op": "publish", "topic": "/cmd_vel", "msg": {"linear": {"x": -1}}})
+            )
+            status = json.loads(other.recv(timeout=10))
+        assert status["op"] == "status"
+        assert "icreate-1 is driven by ann; you are watching" in status["msg"]
+        odom = []
+        roslibpy.Topic(driver, "/odom", "nav_msgs/msg/Odometry").subscribe(odom.append)
+        deadline = time.monotonic() + 20
+        while len(odom) < 30 and time.monotonic() < deadline:
+            cmd.publish(roslibpy.Message({"linear": {"x": 0.2}}))
+            time.sleep(0.05)
+        assert len(odom) >= 30
+        assert any(m["driver"] == "ann" and m["interface"] == "video" for m in seen)
+    finally:
+        driver.close()
+    service = lab.lab.service
+    deadline = time.monotonic() + 30
+    while not (found := service.index.find(Filters(kind=Kind.DEMONSTRATION)).items):
+        assert time.monotonic() < deadline, "no demonstration filed"
+        time.sleep(0.1)
+    watcher.close()
+    [demo] = found
+    assert (demo.submitter, demo.task, demo.repository) == (
+        "ann",
+        "icreate-maze",
+        "robot:icreate-1",
+    )
+    assert demo.reason.startswith("the driver left at tick")
+    assert demo.manifest["driver"] == {"user": "ann", "interface": "video", "session": "s-1"}
+    assert demo.signature is not None
+    record = tmp_path / "demo.mcap"
+    service.store.copy_to(demo.mcap, record)
+    verdict = replay(record)
+    assert verdict.verified, verdict
+    assert verdict.ticks >= 29  # the 30 odometry messages seen: ticks 0 to 29, at least
