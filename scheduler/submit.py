@@ -20,7 +20,7 @@ import tempfile
 from pathlib import Path
 
 from repository.index import Index, User
-from repository.trial import TrialRequest
+from repository.trial import Kind, TrialRequest
 from scheduler import controller
 from scheduler.errors import InvalidRequest
 from scheduler.fetch import FetchPolicy, Resolved, resolve
@@ -92,6 +92,11 @@ class Submissions:
         the same record.
         """
         old = self.index.trial(trial_id)
+        if old.kind is Kind.DEMONSTRATION:
+            raise InvalidRequest(
+                f"trial {trial_id} is a demonstration, a person's live drive: it has no code"
+                f" to rerun; replay it instead (labd replay {trial_id})"
+            )
         if old.rerun_of is not None:
             old = self.index.trial(old.rerun_of)
         new_id = self.queue.submit(
