@@ -26,7 +26,7 @@ import pytest
 
 from tests.scheduler.conftest import backend, cache, host
 
-__all__ = ["Served", "backend", "cache", "host", "served", "wait_for"]
+__all__ = ["Served", "backend", "cache", "gone", "host", "served", "wait_for"]
 
 START = 120.0  # seconds `labd serve` may take to listen (the first runtime build is cached)
 
@@ -46,10 +46,13 @@ def wait_for(what: str, predicate: Callable[[], Any], timeout: float, every: flo
 class Served:
     """A `labd serve` process on the data folder ``data``, started with ``args``."""
 
-    def __init__(self, data: Path, cache: Path, *args: str) -> None:
+    def __init__(
+        self, data: Path, cache: Path, *args: str, env: dict[str, str] | None = None
+    ) -> None:
         self.data = data
         self.cache = cache
         self.args = list(args)
+        self.env = {**os.environ, **(env or {})}
         self.process: subprocess.Popen[str] | None = None
         self.output: list[str] = []
         self.bridge = ""  # ws://127.0.0.1:PORT
@@ -68,6 +71,7 @@ class Served:
             stderr=subprocess.STDOUT,
             text=True,
             start_new_session=True,
+            env=self.env,
         )
         lines: queue.Queue[str] = queue.Queue()
 
@@ -112,12 +116,14 @@ class Served:
         """The server's resident memory, in bytes."""
         return int(psutil.Process(self.pid).memory_info().rss)
 
-    def kill(self) -> None:
-        """SIGKILL, as a crash or the OOM killer would; what it ran is left as it was."""
+    def kill(self) -> list[psutil.Process]:
+        """SIGKILL, as a crash or the OOM killer would; the processes it had started."""
         assert self.process is not None
+        children = psutil.Process(self.pid).children(recursive=True)
         self.process.send_signal(signal.SIGKILL)
         self.process.wait(10)
         self._closed()
+        return children
 
     def _closed(self) -> None:
         assert self.process is not None and self.process.stdout is not None
@@ -197,13 +203,28 @@ class Served:
         return rows
 
 
+def gone(processes: list[psutil.Process], timeout: float = 20) -> None:
+    """Wait until each of ``processes`` has ended (a zombie has ended too)."""
+
+    def ended(p: psutil.Process) -> bool:
+        try:
+            return not p.is_running() or p.status() == psutil.STATUS_ZOMBIE
+        except psutil.NoSuchProcess:
+            return True
+
+    def alive() -> list[psutil.Process]:
+        return [p for p in processes if not ended(p)]
+
+    wait_for("the killed lab's processes to end", lambda: not alive(), timeout)
+
+
 @pytest.fixture
 def served(tmp_path: Path, cache: Path) -> Iterator[Callable[..., Served]]:
-    """Start labs: ``served(*args, data=None)``; every one is stopped at the end."""
+    """Labs to start: ``served(*args, data=None, env=None)``; each is stopped at the end."""
     labs: list[Served] = []
 
-    def make(*args: str, data: Path | None = None) -> Served:
-        lab = Served(data or tmp_path / "data", cache, *args)
+    def make(*args: str, data: Path | None = None, env: dict[str, str] | None = None) -> Served:
+        lab = Served(data or tmp_path / "data", cache, *args, env=env)
         labs.append(lab)
         return lab
 
