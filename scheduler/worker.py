@@ -34,6 +34,7 @@ from repository.trial import Claim, Ending, Filing, Status, Trial
 from sandbox.api import Backend
 from scheduler.errors import QueueError
 from scheduler.host import TrialHost
+from scheduler.outcome import storage_failure
 from scheduler.runner import Progress, RunOptions, TrialResult, TrialSpec, run_trial
 
 
@@ -253,15 +254,20 @@ class Worker:
                 "wall_seconds": round(result.wall_seconds, 3),
             }
         try:
+            # Only a run that returned made whole files (the runner deletes a record it
+            # could not finish); after an exception, what is in ``out`` may be partial.
             mcap = out / "trial.mcap"
-            if mcap.exists():
+            if result is not None and mcap.exists():
                 record["mcap"] = self.store.put_file(mcap)
                 record["mcap_size"] = mcap.stat().st_size
             for stream in ("stdout", "stderr"):
                 path = out / f"controller.{stream}.log"
-                if path.exists():
+                if result is not None and path.exists():
                     record[stream] = self.store.put_file(path)
-        except (OSError, ArchiveError, QueueError) as err:
+        except OSError as err:
+            self.log.exception("trial %d: the record could not be stored", claim.id)
+            return Filing.error(storage_failure(err, "the archive could not store the record"))
+        except (ArchiveError, QueueError) as err:
             self.log.exception("trial %d: the record could not be stored", claim.id)
             return Filing.error(f"the archive could not store the trial's record: {err}")
         if claim.rerun_of is not None and result is not None and result.status is Status.FINISHED:

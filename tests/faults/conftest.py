@@ -26,20 +26,37 @@ import pytest
 
 from tests.scheduler.conftest import backend, cache, host
 
-__all__ = ["Served", "backend", "cache", "gone", "host", "served", "wait_for"]
+__all__ = [
+    "Served",
+    "backend",
+    "cache",
+    "gone",
+    "host",
+    "served",
+    "small_disk",
+    "wait_for",
+]
 
 START = 120.0  # seconds `labd serve` may take to listen (the first runtime build is cached)
 
 
-def wait_for(what: str, predicate: Callable[[], Any], timeout: float, every: float = 0.1) -> Any:
-    """Poll ``predicate`` until it returns something true, for at most ``timeout`` seconds."""
+def wait_for(
+    what: str,
+    predicate: Callable[[], Any],
+    timeout: float,
+    every: float = 0.1,
+    detail: Callable[[], str] | None = None,
+) -> Any:
+    """Poll ``predicate`` until it returns something true, for at most ``timeout`` seconds;
+    ``detail`` says more when it does not."""
     deadline = time.monotonic() + timeout
     while True:
         value = predicate()
         if value:
             return value
         if time.monotonic() > deadline:
-            pytest.fail(f"{what}: not within {timeout:g} s")
+            more = f"\n{detail()}" if detail else ""
+            pytest.fail(f"{what}: not within {timeout:g} s{more}")
         time.sleep(every)
 
 
@@ -216,6 +233,29 @@ def gone(processes: list[psutil.Process], timeout: float = 20) -> None:
         return [p for p in processes if not ended(p)]
 
     wait_for("the killed lab's processes to end", lambda: not alive(), timeout)
+
+
+@pytest.fixture
+def small_disk() -> Iterator[Callable[[Path, int], Path]]:
+    """Mount a tmpfs of ``size`` bytes at a folder: a disk that fills up (needs root)."""
+    if os.geteuid() != 0:
+        if os.environ.get("CI"):
+            pytest.fail("a small filesystem needs root to mount")
+        pytest.skip("a small filesystem needs root to mount")
+    mounted: list[Path] = []
+
+    def mount(folder: Path, size: int) -> Path:
+        folder.mkdir(parents=True, exist_ok=True)
+        subprocess.run(
+            ["mount", "-t", "tmpfs", "-o", f"size={size},mode=0755", "tmpfs", str(folder)],
+            check=True,
+        )
+        mounted.append(folder)
+        return folder
+
+    yield mount
+    for folder in reversed(mounted):
+        subprocess.run(["umount", "--lazy", str(folder)], check=True)
 
 
 @pytest.fixture
