@@ -24,6 +24,7 @@ import httpx
 import psutil
 import pytest
 
+from tests.faults.slow import PackageIndex, S3Server
 from tests.scheduler.conftest import backend, cache, host
 
 __all__ = [
@@ -32,6 +33,8 @@ __all__ = [
     "cache",
     "gone",
     "host",
+    "index",
+    "s3",
     "served",
     "small_disk",
     "wait_for",
@@ -221,7 +224,8 @@ class Served:
 
 
 def gone(processes: list[psutil.Process], timeout: float = 20) -> None:
-    """Wait until each of ``processes`` has ended (a zombie has ended too)."""
+    """Wait until each of ``processes`` has ended (a zombie has ended too); else fail,
+    naming those still there."""
 
     def ended(p: psutil.Process) -> bool:
         try:
@@ -232,7 +236,33 @@ def gone(processes: list[psutil.Process], timeout: float = 20) -> None:
     def alive() -> list[psutil.Process]:
         return [p for p in processes if not ended(p)]
 
-    wait_for("the killed lab's processes to end", lambda: not alive(), timeout)
+    wait_for(
+        "the processes to end",
+        lambda: not alive(),
+        timeout,
+        detail=lambda: "still there: " + ", ".join(f"{p.pid} {p.name()}" for p in alive()),
+    )
+
+
+@pytest.fixture
+def index() -> Iterator[PackageIndex]:
+    """A package index whose page of tinypkg waits until ``index.release`` is set."""
+    server = PackageIndex()
+    yield server
+    server.release.set()
+    server.shutdown()
+    server.server_close()
+
+
+@pytest.fixture
+def s3(monkeypatch: pytest.MonkeyPatch) -> Iterator[S3Server]:
+    """An S3 server (moto) that can be frozen, with a bucket ``lab-archive``; the lab
+    finds its keys in the environment."""
+    monkeypatch.setenv("AWS_ACCESS_KEY_ID", "testing")
+    monkeypatch.setenv("AWS_SECRET_ACCESS_KEY", "testing")
+    server = S3Server()
+    yield server
+    server.close()
 
 
 @pytest.fixture

@@ -27,7 +27,7 @@ from labd.graph.graph import Side
 from labd.recorder import read_channels
 from repository.trial import Outcome
 from scheduler.runner import TrialSpec, run_trial
-from tests.faults.test_crowd import Healthy, mean
+from tests.faults.test_crowd import Healthy
 from tests.scheduler.conftest import make_backend
 
 pytestmark = pytest.mark.integration

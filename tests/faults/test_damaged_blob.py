@@ -18,7 +18,7 @@ import httpx
 import pytest
 
 from scheduler.remote import PROTOCOL, PROTOCOL_HEADER
-from tests.faults.test_sigkill import controller
+from tests.faults.slow import controller
 from tests.helpers.githttp import GitRepo
 
 pytestmark = pytest.mark.integration

@@ -19,7 +19,7 @@ import pytest
 from websockets.exceptions import ConnectionClosed
 from websockets.sync.client import connect as ws_connect
 
-from labd.config import MiB, BridgeConfig
+from labd.config import BridgeConfig, MiB
 
 pytestmark = pytest.mark.integration
 DEFAULT = BridgeConfig()

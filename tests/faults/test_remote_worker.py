@@ -21,7 +21,7 @@ import psutil
 import pytest
 
 from tests.faults.conftest import gone, wait_for
-from tests.faults.test_sigkill import controller
+from tests.faults.slow import controller
 from tests.helpers.githttp import GitRepo
 
 pytestmark = pytest.mark.integration
