@@ -173,12 +173,12 @@ class Recorder:
         if self._error is not None:
             return
         channels = self._lab_channels if side is Side.LAB else self._client_channels
-        channel = channels.get(topic)
-        if channel is None:
-            channel = self._channel(topic, side)
         data = message.cdr()
         time = message.stamp_ns
         try:
+            channel = channels.get(topic)
+            if channel is None:
+                channel = self._channel(topic, side)
             self._writer.add_message(channel.id, time, data, time, channel.count & _SEQUENCE)
         except OSError as err:  # the disk is full: the record is lost, the robot goes on
             self._fail(err)
