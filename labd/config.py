@@ -35,8 +35,8 @@ class BridgeConfig:
     service_timeout: float = 5.0  # call_service without a timeout field
     max_subscriptions: int = 1000  # per client, counting subscription ids
     max_publishers: int = 1000
-    max_services: int = 200  # services and actions a client provides
-    max_pending: int = 1000  # calls and goals a client waits on
+    max_services: int = 200  # services a client provides, and actions likewise
+    max_pending: int = 1000  # calls a client waits on, and goals likewise
     max_fragmented: int = 16  # messages a client may be sending in fragments at once
     fragment_timeout: float = 30.0
     log_rate: float = 20.0  # log lines per second per client before suppression

@@ -21,11 +21,14 @@ formats itself, so a handler turns it into a protocol reply without string surge
     │   ├── UnknownTaskError       no task of that name
     │   ├── ParamError             a task parameter is unknown, of the wrong kind, out of range
     │   └── EpisodeOverError       the episode has ended; no more steps
+    ├── RecordError                a trial's record could not be written (a full disk)
     └── PortInUse                  a port the lab was told to listen on is taken
 """
 
 from __future__ import annotations
 
+import errno
+import os
 from collections.abc import Sequence
 
 
@@ -212,6 +215,21 @@ class EpisodeOverError(SimError):
         self.status = status
         self.reason = reason
         super().__init__(f"the episode has ended ({status}: {reason})")
+
+
+class RecordError(LabError):
+    """A record could not be written, so it was deleted: ``error`` is what the disk said."""
+
+    def __init__(self, path: str | os.PathLike[str], error: OSError) -> None:
+        self.path = os.fspath(path)
+        self.error = error
+        self.disk_full = error.errno in (errno.ENOSPC, errno.EDQUOT)
+        what = error.strerror or str(error)
+        lead = "the lab's disk is full: " if self.disk_full else ""
+        super().__init__(
+            f"{lead}the trial's record could not be written ({what}: {self.path});"
+            " the partial record was deleted"
+        )
 
 
 class PortInUse(LabError):

@@ -24,7 +24,7 @@ from typing import Any
 
 from labd.bridge.server import BridgeServer
 from labd.config import BridgeConfig
-from labd.errors import InterfaceError, LabError
+from labd.errors import InterfaceError, LabError, RecordError
 from labd.graph.definitions import trial_types
 from labd.graph.types import TypeRegistry
 from labd.recorder import Recorder, first_difference
@@ -171,9 +171,12 @@ class LabTrial:
     # -- its life -----------------------------------------------------------------------
 
     async def start(self, socket: Path, manifest: Mapping[str, Any]) -> None:
-        self.recorder = Recorder(
-            self.station.graph, self.out, digest_topics=self._digest_topics, manifest=manifest
-        )
+        try:
+            self.recorder = Recorder(
+                self.station.graph, self.out, digest_topics=self._digest_topics, manifest=manifest
+            )
+        except RecordError as err:  # the disk is full
+            raise TrialError(str(err)) from None
         await self.bridge.start(unix_path=socket)
         self.robot.publish()  # tick 0, now that the recorder listens
         if self.realtime:
@@ -191,6 +194,8 @@ class LabTrial:
         try:
             if self.recorder is not None:
                 digest = self.recorder.finish(attachments=dict(attachments)).data_digest
+        except RecordError as err:  # the disk filled up: the record is gone
+            raise TrialError(str(err)) from None
         finally:
             self.station.close()
             self._finished = digest

@@ -12,6 +12,10 @@ with s3fs options such as ``{"endpoint_url": ..., "key": ..., "secret": ...}``).
   local disk the move is a hard link, which never replaces an existing blob even when two
   writers race. An object store has no link: there, two writers of the same bytes at
   the same moment may both copy them into place, which leaves the same bytes.
+- A blob found under the name is read and checked first, though: if it was damaged
+  (its bytes no longer hash to its name), the bytes being stored, which do, take its
+  place. So storing what a record should hold (a rerun that reproduced, say) heals it,
+  and a name never keeps bytes that do not match it once the right ones came again.
 - Reading checks the bytes against their name as they stream by (``iter_chunks``); a
   mismatch raises ``BlobCorrupt`` once the last chunk has been read, so a consumer that
   writes somewhere must be ready to throw it away (``copy_to`` does).
@@ -129,17 +133,36 @@ class BlobStore:
         try:
             os.link(tmp, final)  # fails, atomically, if the blob exists
         except FileExistsError:
-            return False
+            return self._heal(tmp, final)
         except OSError:  # a filesystem without hard links: move it, if still absent
             if os.path.exists(final):
-                return False
+                return self._heal(tmp, final)
             os.replace(tmp, final)
         return True
 
     def _settle_remote(self, tmp: str, final: str) -> bool:
         if self._fs.exists(final):
-            return False
+            return self._heal(tmp, final)
         self._fs.mv(tmp, final)  # an object store copies it whole into place
+        return True
+
+    def _heal(self, tmp: str, final: str) -> bool:
+        """A blob is at ``final`` already: keep it if whole, else put ``tmp``, whose bytes
+        hash to the name, in its place. Whether the store's copy was replaced."""
+        digest = f"{ALGORITHM}:{final.rsplit('/', 1)[1]}"
+        try:
+            self.verify(digest)
+            return False
+        except BlobCorrupt:
+            log.error(
+                "%s: blob %s was damaged; the same bytes, stored again, replace it", self, digest
+            )
+        except BlobNotFound:  # removed meanwhile: place it
+            pass
+        if self.local:
+            os.replace(tmp, final)
+        else:
+            self._fs.mv(tmp, final)
         return True
 
     def _discard(self, tmp: str) -> None:

@@ -57,6 +57,7 @@ from .jobs import (
     job_plan,
     open_socket,
     stage_requirements,
+    wait_or_stop,
 )
 from .views import Views, refusal, unreachable
 
@@ -209,7 +210,7 @@ class BwrapBackend:
         try:
             chown_tree(target, lease.uid)
             run = await self._start(install_plan(self.runtime, staged, target), lease)
-            ended = await run.wait()
+            ended = await wait_or_stop(run)  # a preparing deadline stops pip too
         finally:
             chown_tree(target, os.geteuid())
             lease.release()

@@ -53,6 +53,7 @@ from .jobs import (
     job_plan,
     open_socket,
     stage_requirements,
+    wait_or_stop,
 )
 
 log = logging.getLogger(__name__)
@@ -113,7 +114,7 @@ class DockerBackend:
         try:
             chown_tree(target, rt.SANDBOX_UID)
             run = await self._start(install_plan(self.runtime, staged, target))
-            ended = await run.wait()
+            ended = await wait_or_stop(run)  # a preparing deadline stops pip too
         finally:
             chown_tree(target, os.geteuid())
             shutil.rmtree(staging, ignore_errors=True)

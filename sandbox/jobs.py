@@ -236,6 +236,16 @@ def stage_requirements(requirements: Path, staging: Path) -> Path:
     return staged
 
 
+async def wait_or_stop(run: Supervised) -> Exit:
+    """Wait for a job's end; if the waiter is cancelled (a deadline passed), stop the job
+    first, so no sandbox outlives what it was started for."""
+    try:
+        return await run.wait()
+    except asyncio.CancelledError:
+        await run.stop(grace=0.5)
+        raise
+
+
 def install_failure(ended: Exit) -> InstallError:
     """The InstallError of a failed pip run, with the end of its output."""
     log = (ended.stdout + b"\n" + ended.stderr).decode("utf-8", "replace").strip()

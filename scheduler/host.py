@@ -49,7 +49,7 @@ class TrialLab(Protocol):
 
     async def start(self, socket: Path, manifest: Mapping[str, Any]) -> None:
         """Listen on ``socket``, record from now on, publish tick 0; on the wall clock,
-        start stepping."""
+        start stepping. ``TrialError`` if the record cannot be written (a full disk)."""
         ...
 
     def episode(self) -> Episode: ...
@@ -66,7 +66,8 @@ class TrialLab(Protocol):
 
     async def finish(self, attachments: Attachments) -> str:
         """Stop serving and stepping, close the record with ``attachments``; the data
-        digest. Safe to call once, whatever happened before."""
+        digest. Safe to call once, whatever happened before. ``TrialError`` if the record
+        could not be written (a full disk): it is deleted, and everything else stopped."""
         ...
 
 

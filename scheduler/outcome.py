@@ -7,6 +7,7 @@ when the trial ran to its end without achieving it, ``error`` when something bro
 
 from __future__ import annotations
 
+import errno
 import re
 import signal
 
@@ -91,3 +92,13 @@ def _signal_name(number: int | None) -> str:
         return signal.Signals(number).name
     except ValueError:
         return f"signal {number}"
+
+
+def storage_failure(err: OSError, what: str) -> str:
+    """``what`` went wrong (a clause: "the record could not be stored"), with the cause,
+    saying so first when it is that the lab's disk is full: the operator's to fix."""
+    detail = err.strerror or str(err)
+    if err.filename:
+        detail += f": {err.filename}"
+    lead = "the lab's disk is full: " if err.errno in (errno.ENOSPC, errno.EDQUOT) else ""
+    return f"{lead}{what} ({detail})"

@@ -43,7 +43,7 @@ from scheduler.errors import ControllerConfigError, RequirementsError, TrialErro
 from scheduler.fetch import FetchPolicy
 from scheduler.files import RepositoryFiles
 from scheduler.host import TrialHost, TrialLab
-from scheduler.outcome import judge
+from scheduler.outcome import judge, storage_failure
 from scheduler.source import Source, checkout
 
 log = logging.getLogger("scheduler.runner")
@@ -199,7 +199,13 @@ async def run_trial(
     finally:
         shutil.rmtree(work, ignore_errors=True)
     result.wall_seconds = loop.time() - started
-    (out / "result.json").write_text(json.dumps(result.to_json(), indent=2) + "\n")
+    try:
+        write_whole(out / "result.json", (json.dumps(result.to_json(), indent=2) + "\n").encode())
+    except OSError as err:
+        reason = storage_failure(err, "the trial's result could not be written")
+        log.error("trial of %s: %s", spec.source, reason)
+        if result.outcome is not Outcome.ERROR:
+            result.ending = Ending.error(reason)
     return result
 
 
@@ -331,8 +337,19 @@ class _Trial:
             if self.launched is not None and self.first_step is not None:
                 result.start_seconds = round(self.first_step - self.launched, 4)
                 result.run_seconds = round(now - self.first_step, 4)
-            result.data_digest = await lab.finish(self._attachments(manifest, exit_, result))
-            result.digest_topics = sorted(lab.digest_topics)
+            failed = None  # the lab could not write the record: the trial is an error
+            try:
+                result.data_digest = await lab.finish(self._attachments(manifest, exit_, result))
+                result.digest_topics = sorted(lab.digest_topics)
+            except TrialError as err:  # the disk filled up: the record was deleted
+                failed = str(err)
+            try:
+                self._write_files(manifest, exit_)
+            except OSError as err:
+                failed = failed or storage_failure(err, "the trial's files could not be written")
+            if failed is not None:
+                log.error("trial in %s: %s", self.out, failed)
+                result.ending = Ending.error(failed)
         return result
 
     def _job(self, socket: Path) -> Job:
@@ -408,10 +425,24 @@ class _Trial:
         if exit_ is not None:
             files["controller.stdout.log"] = ("text/plain", exit_.stdout)
             files["controller.stderr.log"] = ("text/plain", exit_.stderr)
-            (self.out / "controller.stdout.log").write_bytes(exit_.stdout)
-            (self.out / "controller.stderr.log").write_bytes(exit_.stderr)
-        (self.out / "manifest.json").write_bytes(_json(manifest))
         return files
+
+    def _write_files(self, manifest: dict[str, Any], exit_: Exit | None) -> None:
+        """The record's folder beside the MCAP: the manifest and the controller's logs."""
+        if exit_ is not None:
+            write_whole(self.out / "controller.stdout.log", exit_.stdout)
+            write_whole(self.out / "controller.stderr.log", exit_.stderr)
+        write_whole(self.out / "manifest.json", _json(manifest))
+
+
+def write_whole(path: Path, data: bytes) -> None:
+    """Write a file whole or not at all: a full disk leaves no half file to be filed."""
+    tmp = path.with_name(f".{path.name}.tmp")
+    try:
+        tmp.write_bytes(data)
+        tmp.replace(path)
+    finally:
+        tmp.unlink(missing_ok=True)
 
 
 def _json(value: Any) -> bytes:

@@ -1,12 +1,13 @@
 """Workers: claim a trial, run it, file its record in the archive, repeat.
 
-A worker holds its trial by a lease it renews every ``heartbeat`` seconds, but only
-while the trial moves: a trial stuck in a stage past that stage's deadline is stopped
-and filed as an error, and if even that hangs the heartbeat stops, the lease runs out
-and the queue treats the worker as dead. When the queue says the trial must stop (its
-submitter cancelled it) the run is cancelled and filed as cancelled. When the worker
-dies, the lease runs out and the queue gives the trial to another worker: nothing is
-filed twice, because finishing is conditional on still holding the lease.
+A worker holds its trial by a lease it renews every ``heartbeat`` seconds, while it
+runs the trial and while it files it, but only while the trial moves: a trial stuck in
+a stage past that stage's deadline is stopped and filed as an error, and if even that
+hangs the heartbeat stops, the lease runs out and the queue treats the worker as dead.
+When the queue says the trial must stop (its submitter cancelled it) the run is
+cancelled and filed as cancelled. When the worker dies, the lease runs out and the
+queue gives the trial to another worker: nothing is filed twice, because finishing is
+conditional on still holding the lease.
 
 Whatever goes wrong inside a trial (an exception anywhere in the runner, the lab side
 or filing) ends that trial as an ``error`` with the reason, logged with its traceback,
@@ -34,6 +35,7 @@ from repository.trial import Claim, Ending, Filing, Status, Trial
 from sandbox.api import Backend
 from scheduler.errors import QueueError
 from scheduler.host import TrialHost
+from scheduler.outcome import storage_failure
 from scheduler.runner import Progress, RunOptions, TrialResult, TrialSpec, run_trial
 
 
@@ -169,15 +171,17 @@ class Worker:
         except asyncio.CancelledError:
             me = asyncio.current_task()
             if me is not None and me.cancelling():
+                await _stopped(beat)
                 raise  # the worker itself is being stopped: the lease will requeue the trial
             ending = Ending.error(stuck[0]) if stuck else Ending.cancelled("cancelled while it ran")
         except Exception as err:
             self.log.exception("trial %d: the lab failed while running it", claim.id)
             ending = Ending.error(f"the lab failed while running the trial ({_name(err)}: {err})")
-        finally:
-            beat.cancel()
-            with contextlib.suppress(asyncio.CancelledError):
-                await beat
+        except BaseException:
+            await _stopped(beat)
+            raise
+        # The lease is renewed while filing too (a big record to a slow store may take
+        # longer than a lease), until the filing deadline.
         try:
             progress.enter("filing", self.config.filing)
             filing = await asyncio.wait_for(
@@ -190,6 +194,8 @@ class Worker:
         except Exception as err:
             self.log.exception("trial %d: the record could not be filed", claim.id)
             filing = Filing.error(f"the lab could not file the record ({_name(err)})")
+        finally:
+            await _stopped(beat)
         try:
             await asyncio.to_thread(self.queue.finish, claim.id, self.config.name, filing)
             self.log.info(
@@ -253,15 +259,20 @@ class Worker:
                 "wall_seconds": round(result.wall_seconds, 3),
             }
         try:
+            # Only a run that returned made whole files (the runner deletes a record it
+            # could not finish); after an exception, what is in ``out`` may be partial.
             mcap = out / "trial.mcap"
-            if mcap.exists():
+            if result is not None and mcap.exists():
                 record["mcap"] = self.store.put_file(mcap)
                 record["mcap_size"] = mcap.stat().st_size
             for stream in ("stdout", "stderr"):
                 path = out / f"controller.{stream}.log"
-                if path.exists():
+                if result is not None and path.exists():
                     record[stream] = self.store.put_file(path)
-        except (OSError, ArchiveError, QueueError) as err:
+        except OSError as err:
+            self.log.exception("trial %d: the record could not be stored", claim.id)
+            return Filing.error(storage_failure(err, "the archive could not store the record"))
+        except (ArchiveError, QueueError) as err:
             self.log.exception("trial %d: the record could not be stored", claim.id)
             return Filing.error(f"the archive could not store the trial's record: {err}")
         if claim.rerun_of is not None and result is not None and result.status is Status.FINISHED:
@@ -302,6 +313,12 @@ def manifest_changes(a: dict[str, Any], b: dict[str, Any], prefix: str = "") -> 
         elif x != y:
             changed.append(prefix + key)
     return changed
+
+
+async def _stopped(task: asyncio.Task[None]) -> None:
+    task.cancel()
+    with contextlib.suppress(asyncio.CancelledError):
+        await task
 
 
 def _name(err: BaseException) -> str:

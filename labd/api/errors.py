@@ -77,6 +77,7 @@ MEANING = {
     422: "the request names something wrong (the message says what)",
     429: "over a limit the operator set",
     500: "the lab is at fault (the message says what)",
+    507: "the lab's storage is full (the message says where)",
 }
 
 

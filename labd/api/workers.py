@@ -30,6 +30,7 @@ from labd.api.common import Lab, Writer, blob_response
 from labd.api.errors import ApiError, Conflict, Forbidden, responses
 from repository.index import User
 from repository.trial import Claim, Trial
+from scheduler.outcome import storage_failure
 from scheduler.remote import (
     PROTOCOL,
     PROTOCOL_HEADER,
@@ -128,9 +129,16 @@ def record(trial_id: int, service: Lab, user: WorkerUser) -> Trial:
     return service.index.trial(trial_id)
 
 
-@router.put("/api/blobs/{digest}", status_code=201, responses=responses(413, 422))
+@router.put("/api/blobs/{digest}", status_code=201, responses=responses(413, 422, 507))
 async def put_blob(digest: str, request: Request, service: Lab, user: WorkerUser) -> Stored:
     """Store the body under ``digest``, if it is what the body hashes to."""
+    try:
+        return await _store(digest, request, service)
+    except OSError as err:  # the lab's disk is full: the worker files the trial as an error
+        raise ApiError(507, storage_failure(err, "the lab could not store the blob")) from err
+
+
+async def _store(digest: str, request: Request, service: Lab) -> Stored:
     sha = hashlib.sha256()
     size = 0
     with tempfile.TemporaryDirectory(prefix="labd-upload-") as folder:

@@ -141,8 +141,11 @@ def write_bag_yaml(folder: Path, info: str) -> Path:
     """
     path = folder / BAG_METADATA
     tmp = path.with_suffix(".yaml.tmp")
-    tmp.write_text(f"rosbag2_bagfile_information:\n{textwrap.indent(info, '  ')}\n", "utf-8")
-    return tmp.replace(path)
+    try:
+        tmp.write_text(f"rosbag2_bagfile_information:\n{textwrap.indent(info, '  ')}\n", "utf-8")
+        return tmp.replace(path)
+    finally:
+        tmp.unlink(missing_ok=True)
 
 
 def write_bag_metadata(mcap: str | Path) -> Path:

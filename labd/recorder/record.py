@@ -22,6 +22,11 @@ delivery order, and writes it at once:
   at the last message's time;
 - the bag information as the ``rosbag2`` metadata record, as rosbag2's MCAP storage does.
 
+A record is whole or it is not there. When the disk refuses a write (it is full), the
+recorder stops recording, deletes what it had written, and ``finish`` raises
+``RecordError`` saying so; the graph and its robot carry on undisturbed, since the
+error never reaches the publisher whose message was being written.
+
 It runs on every control tick in the lab's event loop, so the per-message work is a
 dictionary look-up, the library's ``add_message`` and, for digest topics, two hash
 updates; compression happens once a chunk is full. The data digest is over topics, not
@@ -32,6 +37,7 @@ publish (a command), since the graph refuses clients the lab's topics.
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import json
 import logging
@@ -46,6 +52,7 @@ from mcap.stream_reader import StreamReader
 from mcap.well_known import MessageEncoding, Profile, SchemaEncoding
 from mcap.writer import CompressionType, Writer
 
+from labd.errors import RecordError
 from labd.graph.graph import Graph, Side, Topic
 from labd.graph.message import Message
 from labd.recorder import bag
@@ -144,8 +151,8 @@ class Recorder:
         manifest_text = None if manifest is None else canonical_json(manifest)  # fail early
         self.folder.mkdir(parents=True, exist_ok=True)
         self._file = self.path.open("xb")
+        self._error: OSError | None = None  # the write that failed: the record is gone
         self._writer = Writer(self._file, chunk_size=chunk_size, compression=CompressionType.ZSTD)
-        self._writer.start(profile=Profile.ROS2)
         self._schemas: dict[str, int] = {}
         self._lab_channels: dict[Topic, _Channel] = {}  # by side: no enum hash per message
         self._client_channels: dict[Topic, _Channel] = {}
@@ -156,20 +163,31 @@ class Recorder:
         self._end = -1
         self._has_manifest = False
         self._summary: RecordSummary | None = None
-        if manifest_text is not None:
-            self._write_manifest(manifest_text)
+        try:
+            self._writer.start(profile=Profile.ROS2)
+            if manifest_text is not None:
+                self._write_manifest(manifest_text)
+        except OSError as err:
+            self._fail(err)
+            raise RecordError(self.path, err) from err
         graph.taps.append(self._tap)
 
     # -- recording ---------------------------------------------------------------------
 
     def _tap(self, topic: Topic, message: Message, side: Side) -> None:
+        if self._error is not None:
+            return
         channels = self._lab_channels if side is Side.LAB else self._client_channels
-        channel = channels.get(topic)
-        if channel is None:
-            channel = self._channel(topic, side)
         data = message.cdr()
         time = message.stamp_ns
-        self._writer.add_message(channel.id, time, data, time, channel.count & _SEQUENCE)
+        try:
+            channel = channels.get(topic)
+            if channel is None:
+                channel = self._channel(topic, side)
+            self._writer.add_message(channel.id, time, data, time, channel.count & _SEQUENCE)
+        except OSError as err:  # the disk is full: the record is lost, the robot goes on
+            self._fail(err)
+            return
         channel.count += 1
         if channel.prefix is not None:
             self._digest.update(channel.prefix + time_frame(time, len(data)))
@@ -237,22 +255,39 @@ class Recorder:
         ``attachments`` maps names to ``(media_type, data)``. ``manifest`` is for a
         recorder made without one; a second manifest is a ValueError, raised once the
         file is complete all the same. Calling again returns the same summary.
+        ``RecordError`` if the record could not be written (it was deleted).
         """
         if self._summary is not None:
             return self._summary
         if self._tap in self.graph.taps:
             self.graph.taps.remove(self._tap)
+        if self._error is not None:
+            raise RecordError(self.path, self._error)
         try:
-            if manifest is not None:
-                if self._has_manifest:
-                    raise ValueError("the record already has its manifest")
-                self._write_manifest(canonical_json(manifest))
-            for name, (media_type, data) in (attachments or {}).items():
-                # create_time 0 is MCAP's "unknown": records hold no wall-clock time.
-                self._writer.add_attachment(0, max(self._end, 0), name, media_type, data)
-        finally:
-            self._summary = self._complete()
+            try:
+                if manifest is not None:
+                    if self._has_manifest:
+                        raise ValueError("the record already has its manifest")
+                    self._write_manifest(canonical_json(manifest))
+                for name, (media_type, data) in (attachments or {}).items():
+                    # create_time 0 is MCAP's "unknown": records hold no wall-clock time.
+                    self._writer.add_attachment(0, max(self._end, 0), name, media_type, data)
+            finally:
+                self._summary = self._complete()
+        except OSError as err:
+            self._summary = None
+            self._fail(err)
+            raise RecordError(self.path, err) from err
         return self._summary
+
+    def _fail(self, err: OSError) -> None:
+        """A write failed: stop recording and delete the record, which cannot be whole."""
+        self._error = err  # the tap stays (it may be iterated now) but writes nothing more
+        with contextlib.suppress(OSError):
+            self._file.close()  # what it still held cannot be written either
+        self.path.unlink(missing_ok=True)
+        (self.folder / bag.BAG_METADATA).unlink(missing_ok=True)
+        self.log.error("the record %s could not be written and was deleted: %s", self.path, err)
 
     def _complete(self) -> RecordSummary:
         """Write the bag record and the summary section, close the file, write the bag."""

@@ -100,7 +100,9 @@ class Actions(Capability):
         if key in self.sent:
             raise GraphError(f"a goal with id {op.id!r} is already in progress")
         if len(self.sent) >= session.config.max_pending:
-            raise LimitError("goals in progress", session.config.max_pending)
+            refused = LimitError("goals in progress", session.config.max_pending)
+            send(frame("action_result", values=str(refused), status=UNKNOWN, result=False))
+            raise refused  # every goal ends with one action_result, a refused one too
         goal_box: list[Goal | None] = [None]
         try:
             goal = session.node.send_goal(

@@ -1,0 +1,168 @@
+"""Controllers and clients that abuse the bridge.
+
+In a real sandboxed trial, a controller (``abuser/``) floods the bridge with
+publishes while a second connection of its own times round trips, subscribes to more
+topics than a client may, and tries to provide every service name of the lab, as a
+service and as an action; then it steps three times as an honest one does. Each abuse
+is refused or absorbed, the trial ends as it would have, and its data digest is the
+honest run's. On a live robot of `labd serve`, a client that publishes as fast as its
+socket allows does not slow another client's odometry or service calls.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import shutil
+import socket
+import threading
+import time
+from pathlib import Path
+
+import orjson
+import pytest
+from websockets.asyncio.client import connect
+
+from labd.graph.graph import Side
+from labd.recorder import read_channels
+from repository.trial import Outcome
+from scheduler.runner import TrialSpec, run_trial
+from tests.faults.test_crowd import Healthy
+from tests.scheduler.conftest import make_backend
+
+pytestmark = pytest.mark.integration
+ABUSER = Path(__file__).resolve().parent / "abuser"
+FLOOD, SUBSCRIPTIONS, MAX_SUBSCRIPTIONS = 20_000, 1_500, 1_000
+
+
+def run(cache, host, tmp_path: Path, mode: str):
+    folder = tmp_path / mode
+    shutil.copytree(ABUSER, folder)
+    toml = folder / "lab.toml"
+    toml.write_text(toml.read_text().replace('"abuse"', f'"{mode}"'))
+    folder.chmod(0o755)
+    backend = make_backend("bwrap", cache)
+    spec = TrialSpec(source=str(folder), seed=2)
+    return asyncio.run(
+        run_trial(spec, backend=backend, host=host, out=tmp_path / f"{mode}-run", cache=cache)
+    )
+
+
+@pytest.mark.timeout(180)
+def test_an_abusive_controller_changes_nothing_but_its_own_topic(cache, host, tmp_path: Path):
+    """Flooding, 1,500 subscriptions and every lab name to provide: the bridge stays quick
+    for the controller's other connection, 500 subscriptions and every name are refused
+    with a status, /lab/step stays the lab's, and the record's data equals an honest run's."""
+    abusive = run(cache, host, tmp_path, "abuse")
+    honest = run(cache, host, tmp_path, "honest")
+    for result in (abusive, honest):
+        assert result.outcome is Outcome.FAIL, result.reason
+        assert result.reason.startswith("the controller exited with 0 at tick 3"), result.reason
+    assert abusive.data_digest == honest.data_digest
+    report = json.loads((abusive.folder / "controller.stdout.log").read_text())
+    probe = report["probe"]
+    print(
+        f"flood of {FLOOD} publishes: {report['flood_seconds']:.2f} s "
+        f"({FLOOD / report['flood_seconds']:,.0f}/s); the other connection's round trips "
+        f"meanwhile: {probe['round_trips']}, median {probe['median'] * 1e3:.1f} ms, "
+        f"max {probe['max'] * 1e3:.1f} ms; {len(report['names'])} lab names tried as services"
+        " and as actions"
+    )
+    assert probe["round_trips"] >= 5 and probe["median"] < 0.1 and probe["max"] < 1.0, probe
+    flooded = {c.topic: c for c in read_channels(abusive.folder)}["/flood"]
+    assert (flooded.side, flooded.message_count) == (Side.CLIENT, FLOOD)  # all recorded
+
+    refused = report["subscriptions_refused"]
+    assert sorted(refused) == sorted(f"sub-{i}" for i in range(MAX_SUBSCRIPTIONS, SUBSCRIPTIONS))
+    assert set(refused.values()) == {
+        f"subscribe: too many subscriptions (the limit is {MAX_SUBSCRIPTIONS})"
+    }
+
+    names = report["names"]
+    assert {"/lab/step", "/rosapi/topics", "/rosapi/get_param", "lab/step"} <= set(names)
+    assert sorted(report["names_refused"]) == sorted(
+        f"{kind} {name}" for name in names for kind in ("service", "action")
+    )
+    for attempt, message in report["names_refused"].items():
+        kind, name = attempt.split(" ", 1)
+        absolute = name if name.startswith("/") else f"/{name}"
+        assert message.startswith(f"advertise_{kind}: "), message
+        assert f"{absolute} belongs to the lab" in message, message
+    assert report["step_providers"] == ["/robot"]
+    assert report["other_statuses"] == []
+
+
+@pytest.mark.timeout(120)
+def test_a_flooding_client_does_not_slow_a_live_robots_other_clients(served):
+    """A client publishing /cmd_vel as fast as its socket allows, never reading: another
+    client keeps its odometry rate and its service calls stay quick."""
+    lab = served("--robot", "icreate-1=icreate-maze", "--no-playground", "--workers", "0").start()
+    port = int(lab.bridge.rsplit(":", 1)[1])
+    figures = asyncio.run(flooded(lab.bridge + "/robots/icreate-1", port))
+    print("flooding client:", figures)
+    assert figures["published"] > 10_000, figures
+    assert figures["odom_flooded"] >= 0.85 * figures["odom_alone"], figures
+    assert figures["call_median"] < 0.1 and figures["call_max"] < 1.0, figures
+    assert lab.process.poll() is None, lab.log
+
+
+async def flooded(url: str, port: int) -> dict[str, float]:
+    async with connect(url, max_size=None) as ws:
+        healthy = Healthy(ws)
+        frame = {"op": "subscribe", "topic": "/odom", "type": "nav_msgs/msg/Odometry"}
+        await ws.send(orjson.dumps(frame).decode())
+        await asyncio.sleep(1.0)  # warm-up
+        before = healthy.counts["/odom"]
+        await asyncio.sleep(4.0)  # the rate alone, over a window
+        alone = (healthy.counts["/odom"] - before) / 4.0
+        stop = threading.Event()
+        sent: list[int] = []
+        flooder = threading.Thread(target=flood, args=(port, stop, sent), daemon=True)
+        flooder.start()
+        await asyncio.sleep(0.5)
+        before, began, calls = healthy.counts["/odom"], time.monotonic(), []
+        while time.monotonic() - began < 5.0:  # calls back to back while the flood goes on
+            start = time.monotonic()
+            answer = await healthy.call("/rosapi/get_time")
+            assert answer["result"] is True, answer
+            calls.append(time.monotonic() - start)
+        odom = (healthy.counts["/odom"] - before) / (time.monotonic() - began)
+        stop.set()
+        flooder.join(10)
+        healthy.reader.cancel()
+    calls.sort()
+    return {
+        "odom_alone": alone,
+        "odom_flooded": round(odom, 2),
+        "calls": len(calls),
+        "call_median": round(calls[len(calls) // 2], 4),
+        "call_max": round(calls[-1], 4),
+        "published": sum(sent),
+    }
+
+
+def flood(port: int, stop: threading.Event, sent: list[int]) -> None:
+    """Publish /cmd_vel frames back to back on a raw socket that never reads."""
+    sock = socket.create_connection(("127.0.0.1", port))
+    sock.sendall(
+        b"GET /robots/icreate-1 HTTP/1.1\r\nHost: x\r\nUpgrade: websocket\r\n"
+        b"Connection: Upgrade\r\nSec-WebSocket-Key: dGhlIHNhbXBsZSBub25jZQ==\r\n"
+        b"Sec-WebSocket-Version: 13\r\n\r\n"
+    )
+    answer = b""
+    while b"\r\n\r\n" not in answer:
+        answer += sock.recv(1)
+    assert b" 101 " in answer
+    payload = orjson.dumps(
+        {"op": "publish", "topic": "/cmd_vel", "msg": {"linear": {"x": 0.1}, "angular": {"z": 0.2}}}
+    )
+    frame = bytes([0x81, 0x80 | len(payload)]) + b"\x00\x00\x00\x00" + payload
+    batch = frame * 500
+    count = 0
+    try:
+        while not stop.is_set():
+            sock.sendall(batch)
+            count += 500
+    finally:
+        sent.append(count)
+        sock.close()

@@ -1,0 +1,120 @@
+"""Every limit the docs promise is the default the code runs with.
+
+Each row names a sentence of docs/ (whitespace aside) and the value in the code it
+states. The fault suite and the tests it cites hit each limit (docs/faults.md has the
+table); this keeps the figures they hit and the figures users read the same, so a
+change to either fails here until both say it.
+"""
+
+from __future__ import annotations
+
+import argparse
+import re
+from collections.abc import Callable
+from pathlib import Path
+
+import pytest
+
+from labd.api.app import TrialQuery
+from labd.commands import serve
+from labd.config import BridgeConfig
+from repository.index import UserLimits
+from sandbox.api import Limits
+from sandbox.jobs import KEEP
+from scheduler.fetch import FetchPolicy
+from scheduler.queue import QueueConfig
+from scheduler.runner import RunOptions
+from scheduler.worker import WorkerConfig
+
+pytestmark = pytest.mark.integration
+DOCS = Path(__file__).resolve().parents[2] / "docs"
+MiB, KiB = 1024 * 1024, 1024
+BRIDGE, SANDBOX, RUN, QUEUE = BridgeConfig(), Limits(), RunOptions(), QueueConfig()
+WORKER = WorkerConfig(name="", work=Path(), cache=Path())
+
+
+def limit_of_trial_pages() -> int:
+    query = TrialQuery.__dataclass_fields__["limit"].type
+    le = re.search(r"le=(\d+)", str(query))
+    assert le is not None, query
+    return int(le.group(1))
+
+
+def serve_heartbeat(lease: float) -> float:
+    args = serve_args("--lease", str(lease))
+    config = serve.service_config(args)
+    assert config is not None
+    return config.heartbeat
+
+
+def serve_args(*argv: str) -> argparse.Namespace:
+    parser = argparse.ArgumentParser()
+    commands = parser.add_subparsers(dest="command")
+    serve.add_parser(commands)
+    return parser.parse_args(["serve", *argv])
+
+
+# (doc, what it says, the code's value, the value the sentence states)
+ROWS: list[tuple[str, str, Callable[[], object], object]] = [
+    # docs/trials.md: the sandbox and a trial's stages
+    ("trials.md", "| wall time | 600 s", lambda: SANDBOX.wall, 600),
+    ("trials.md", "| memory | 1 GiB |", lambda: SANDBOX.memory, 1024 * MiB),
+    ("trials.md", "| processes and threads | 64 |", lambda: SANDBOX.processes, 64),
+    ("trials.md", "3,600 s in all", lambda: SANDBOX.cpu_seconds, 3600),
+    ("trials.md", "| open files | 256 |", lambda: SANDBOX.open_files, 256),
+    ("trials.md", "| output (stdout and stderr) | 8 MiB |", lambda: SANDBOX.output, 8 * MiB),
+    ("trials.md", "the first and last 64 KiB of each are kept", lambda: KEEP, 64 * KiB),
+    ("trials.md", "| scratch | 256 MiB |", lambda: SANDBOX.scratch, 256 * MiB),
+    ("trials.md", "no `/lab/step` for 10 s", lambda: RUN.stall, 10),
+    ("trials.md", "or 60 s before the first one", lambda: RUN.first_step, 60),
+    ("trials.md", "the controller gets 2 seconds to exit by itself", lambda: RUN.grace, 2),
+    ("trials.md", "installing requirements: 15 minutes", lambda: RUN.prepare, 15 * 60),
+    ("trials.md", "filing it (5 minutes)", lambda: WORKER.filing, 5 * 60),
+    # docs/protocol.md: the bridge
+    ("protocol.md", "limited per stream (its `queue_length`, default 100)",
+     lambda: BRIDGE.default_queue_length, 100),
+    ("protocol.md", "and in total (32 MiB)", lambda: BRIDGE.max_queue_bytes, 32 * MiB),
+    ("protocol.md", "the server pings every 20 s", lambda: BRIDGE.ping_interval, 20),
+    ("protocol.md", "does not answer within 20 s", lambda: BRIDGE.ping_timeout, 20),
+    ("protocol.md", "a frame over 16 MiB is refused", lambda: BRIDGE.max_message_size, 16 * MiB),
+    ("protocol.md", "a frame over 64 MiB closes the connection (1009)",
+     lambda: BRIDGE.max_frame_size, 64 * MiB),
+    ("protocol.md", "at most 1,000 subscriptions", lambda: BRIDGE.max_subscriptions, 1000),
+    ("protocol.md", "1,000 advertised topics", lambda: BRIDGE.max_publishers, 1000),
+    ("protocol.md", "200 provided services and 200 provided actions",
+     lambda: BRIDGE.max_services, 200),
+    ("protocol.md", "1,000 calls waiting for an answer and 1,000 goals in progress",
+     lambda: BRIDGE.max_pending, 1000),
+    ("protocol.md", "at most 200 connections per server", lambda: BRIDGE.max_connections, 200),
+    ("protocol.md", "At most 16 messages may be in parts at once per client",
+     lambda: BRIDGE.max_fragmented, 16),
+    ("protocol.md", "parts that stop coming are forgotten after 30 s",
+     lambda: BRIDGE.fragment_timeout, 30),
+    ("protocol.md", "`timeout` defaults to 5 s", lambda: BRIDGE.service_timeout, 5),
+    ("protocol.md", "(20 lines a second, bursts of 50)",
+     lambda: (BRIDGE.log_rate, BRIDGE.log_burst), (20, 50)),
+    ("protocol.md", "no key within 10 s closes the connection", lambda: BRIDGE.auth_timeout, 10),
+    # docs/service.md: fetching, the queue, the archive
+    ("service.md", "| `--max-repo-mb N` | 512 |", lambda: FetchPolicy().max_bytes, 512 * MiB),
+    ("service.md", "| `--fetch-timeout S` | 300 |", lambda: FetchPolicy().timeout, 300),
+    ("service.md", "(`--lease`, 30 s)", lambda: QUEUE.lease, 30),
+    ("service.md", "(`--lease`, 30 s)", lambda: serve_args().lease, 30),
+    ("service.md", "renew by heartbeat (every third of the lease)",
+     lambda: (serve_heartbeat(30), serve_heartbeat(3)), (10, 1)),
+    ("service.md", "after three lost leases it ends as an `error`",
+     lambda: QUEUE.max_attempts, 3),
+    ("service.md", "`max_running` trials running (default 2)",
+     lambda: UserLimits().max_running, 2),
+    ("service.md", "`max_daily` (default 500)", lambda: UserLimits().max_daily, 500),
+    ("service.md", "`limit` up to 500", limit_of_trial_pages, 500),
+]  # fmt: skip
+
+
+@pytest.mark.parametrize(
+    ("doc", "sentence", "value", "stated"), ROWS, ids=[f"{r[0]}: {r[1]}" for r in ROWS]
+)
+def test_the_docs_state_the_default(doc, sentence, value, stated):
+    """The sentence is in the doc, and the code's default is the figure it states."""
+    text = " ".join((DOCS / doc).read_text().split())
+    assert " ".join(sentence.split()) in text, f"{doc} no longer says {sentence!r}"
+    assert value() == stated
