@@ -293,7 +293,7 @@ class Worker:
         seconds = self.config.summary
         try:
             blob = await asyncio.wait_for(
-                asyncio.to_thread(self.host.summarize, mcap, seconds=seconds), seconds + 5
+                asyncio.to_thread(self.host.summarize, mcap, seconds=seconds), seconds + 1
             )
             if blob is None:
                 return
