@@ -60,6 +60,7 @@ VERSION = 1
 MAX_POINTS = 400  # per series: enough for a plot a page wide
 MIN_POINTS = 50  # the budget never cuts a series below this
 MAX_FRAMES = 240  # camera thumbnails
+MIN_FRAMES = 24  # the budget keeps at least this many (if the record has them)
 THUMB_WIDTH = 160  # pixels; the height keeps the camera's aspect
 SPRITE_COLUMNS = 16
 QUALITY = 70  # JPEG quality of the thumbnails
@@ -112,17 +113,21 @@ def summary_blob(
     path: str | Path, *, types: TypeRegistry | None = None, seconds: float | None = None
 ) -> bytes:
     """The stored form of the record's summary (``encode``), cut to fit the budget:
-    fewer points, then smaller thumbnails, until it weighs at most 1/``BUDGET_SHARE``
-    of the record (or ``MIN_BUDGET``)."""
+    fewer points, then fewer frames, then smaller thumbnails, until it weighs at most
+    1/``BUDGET_SHARE`` of the record (or ``MIN_BUDGET``)."""
     reading = read(path, types=types, seconds=seconds)
     budget = max(MIN_BUDGET, mcap_path(path).stat().st_size // BUDGET_SHARE)
-    points, quality, width = MAX_POINTS, QUALITY, THUMB_WIDTH
+    points, every, quality, width = MAX_POINTS, 1, QUALITY, THUMB_WIDTH
     while True:
-        blob = encode(build(reading, points, quality=quality, width=width))
+        summary = build(reading, points, every=every, quality=quality, width=width)
+        blob = encode(summary)
         if len(blob) <= budget:
             return blob
+        frames = len(reading.frames) // every
         if points > MIN_POINTS:
             points = max(MIN_POINTS, points // 2)
+        elif frames > MIN_FRAMES:
+            every *= 2  # fewer frames of the same quality: a coarser strip, still sharp
         elif reading.frames and width > 64:
             width, quality = width * 3 // 4, max(40, quality - 10)
         else:
@@ -286,7 +291,12 @@ def _compressed_data(message: RecordedMessage) -> memoryview:
 
 
 def build(
-    reading: Reading, points: int, *, quality: int = QUALITY, width: int = THUMB_WIDTH
+    reading: Reading,
+    points: int,
+    *,
+    every: int = 1,
+    quality: int = QUALITY,
+    width: int = THUMB_WIDTH,
 ) -> dict[str, Any]:
     """The summary from a reading, with at most ``points`` points per series."""
     ticks = len(reading.times)
@@ -304,7 +314,7 @@ def build(
         "plots": plots,
         "constant": constants,
         "episode": {"status": reading.status, "reason": reading.reason, "ends": reading.ends},
-        "camera": _camera(reading, quality, width),
+        "camera": _camera(reading.frames[::every], reading.source, quality, width),
         "map": _map(reading),
         "scene": _scene(reading, ends),
     }
@@ -342,22 +352,27 @@ def _plots(reading: Reading, starts: np.ndarray) -> tuple[list[dict[str, Any]], 
     return plots, constants
 
 
-def _camera(reading: Reading, quality: int, width: int) -> dict[str, Any] | None:
-    if not reading.frames or reading.source is None:
+def _camera(
+    frames: list[tuple[float, Image.Image]],
+    source: tuple[int, int] | None,
+    quality: int,
+    width: int,
+) -> dict[str, Any] | None:
+    if not frames or source is None:
         return None
-    sw, sh = reading.source
+    sw, sh = source
     height = max(1, round(width * sh / sw))
-    columns = min(SPRITE_COLUMNS, len(reading.frames))
-    rows = math.ceil(len(reading.frames) / columns)
+    columns = min(SPRITE_COLUMNS, len(frames))
+    rows = math.ceil(len(frames) / columns)
     sprite = Image.new("RGB", (columns * width, rows * height))
-    for k, (_, image) in enumerate(reading.frames):
+    for k, (_, image) in enumerate(frames):
         thumb = image.resize((width, height), Image.Resampling.BILINEAR)
         sprite.paste(thumb, ((k % columns) * width, (k // columns) * height))
     out = io.BytesIO()
     sprite.save(out, format="JPEG", quality=quality, optimize=True)
     return {
         "topic": CAMERA,
-        "t": [t for t, _ in reading.frames],
+        "t": [t for t, _ in frames],
         "width": width,
         "height": height,
         "columns": columns,
