@@ -20,7 +20,7 @@ from mcap.reader import make_reader
 from labd.recorder.summary import decode
 from scheduler.host import SUMMARY
 from tests.helpers.githttp import GitRepo
-from tests.integration.browser import Watched, browser, watched
+from tests.integration.browser import browser, watched
 from tests.integration.test_browser import lab, shot, url, wait_ended
 
 __all__ = ["browser", "lab", "watched"]
