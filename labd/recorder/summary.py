@@ -153,6 +153,7 @@ def read(
     """One pass over the record: every tick's numbers, chosen frames, the robot's state."""
     deadline = None if seconds is None else time.monotonic() + seconds
     typestore = (types or TypeRegistry.default()).typestore
+    known = typestore.fielddefs
     reading = Reading()
     try:
         channels = read_channels(path)
@@ -175,8 +176,8 @@ def read(
                     _frame(reading, clock.seconds(message.log_time), message)
                 seen_frames += 1
                 continue
-            if message.schema.name in IMAGE_TYPES:
-                continue
+            if message.schema.name in IMAGE_TYPES or message.schema.name not in known:
+                continue  # a repository's own types (the lab's registry lacks them)
             decoded = typestore.deserialize_cdr(message.data, message.schema.name)
             if message.topic == EPISODE:
                 _tick(reading, clock, message, decoded)

@@ -27,7 +27,9 @@ PATH = "/api/trials/{}/summary"
 def record(registry, tmp_path_factory):
     """A short maze drive, recorded as a trial records it."""
     folder = tmp_path_factory.mktemp("record")
-    return drive(registry, folder, "icreate-maze", 12, lambda k: [twist(0.2, 0.5)]).path
+    made = drive(registry, folder, "icreate-maze", 12, lambda k: [twist(0.2, 0.5)])
+    made.robot.close()
+    return made.path
 
 
 def file_trial(service, record, worker="w"):  # noqa: F811

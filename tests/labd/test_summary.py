@@ -11,7 +11,7 @@ import base64
 import gzip
 import io
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -94,7 +94,7 @@ def twist(v: float, w: float) -> Command:
 
 
 @pytest.fixture(scope="module")
-def maze(registry, tmp_path_factory) -> Drive:
+def maze(registry, tmp_path_factory) -> Iterator[Drive]:
     """60 ticks of the maze with the camera on: ahead, then a turn, then slowly ahead
     (never into a wall, where wheels slip and odometry drifts)."""
     folder = tmp_path_factory.mktemp("maze")
@@ -104,7 +104,9 @@ def maze(registry, tmp_path_factory) -> Drive:
             return [twist(0.3, 0.0)]
         return [twist(0.0, 1.0 + tick / 100) if tick < 35 else twist(0.08, 0.0)]
 
-    return drive(registry, folder, "icreate-maze", 60, commands, camera=True)
+    made = drive(registry, folder, "icreate-maze", 60, commands, camera=True)
+    yield made
+    made.robot.close()  # its rendering context, now rather than at some later collection
 
 
 @pytest.fixture(scope="module")
@@ -202,7 +204,7 @@ def test_the_scene_puts_the_robot_where_the_simulation_had_it(maze, maze_summary
     assert len(tag_textures) >= len(maze.robot.sim.task.tags)
 
 
-def test_the_pr2s_arms_and_objects_are_posed_from_the_record(registry, tmp_path):
+def test_the_pr2s_arms_and_objects_are_posed_from_the_record(registry, tmp_path, request):
     """/joint_states pose the arm's joints, /tf the base, /objects the objects: the scene
     at each point matches the simulation's joints and objects."""
     ready = [0.66, -0.18, 1.34, -1.65, 1.37, -1.78, 2.1]
@@ -220,6 +222,7 @@ def test_the_pr2s_arms_and_objects_are_posed_from_the_record(registry, tmp_path)
         return []
 
     made = drive(registry, tmp_path, "pr2-table", 40, commands)
+    request.addfinalizer(made.robot.close)
     summary = summarize(made.path, types=registry)
     scene = summary["scene"]
     model = made.robot.sim.physics.model
