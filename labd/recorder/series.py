@@ -89,9 +89,17 @@ def euler(q: Any) -> tuple[float, float, float]:
 
 
 def _fields(message: Any) -> Iterator[tuple[str, Any]]:
-    for name in message.__dataclass_fields__:
-        if not name.startswith("_"):
-            yield name, getattr(message, name)
+    for name, spec in message.__dataclass_fields__.items():
+        if name.startswith("_"):
+            continue
+        value = getattr(message, name)
+        if isinstance(value, list) and "__msg__" in str(spec.type):
+            value = _Sequence(value)  # of messages: its length, even when empty
+        yield name, value
+
+
+class _Sequence(list[Any]):
+    """A field that is a sequence of messages (so its length is plotted)."""
 
 
 def _is_message(value: Any) -> bool:
@@ -121,7 +129,7 @@ def _numbers(value: Any, path: str, under: str = "") -> Iterator[tuple[str, floa
         if value.dtype.kind in "iuf" and value.dtype != np.uint8 and 0 < len(value) <= MAX_ARRAY:
             for i, number in enumerate(value.tolist()):
                 yield f"{path}[{i}]", float(number)
-    elif isinstance(value, list) and value and _is_message(value[0]):
+    elif isinstance(value, _Sequence):
         yield _join(path, "count"), float(len(value))
 
 

@@ -334,6 +334,8 @@ def _plots(reading: Reading, starts: np.ndarray) -> tuple[list[dict[str, Any]], 
         labels: list[str] = []
         values: list[list[float | None]] = []
         for label, column in grouped.get((topic, group), []):
+            if not np.isfinite(column).any():
+                continue  # never a number (a NaN a client sent, say): nothing to draw
             fixed = series.constant(column)
             if fixed is not None:
                 constants.append([topic, group, label, fixed])

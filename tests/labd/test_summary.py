@@ -264,6 +264,10 @@ def test_flatten_follows_the_conventions(registry):
     pose = Pose(Point(1.0, 2.0, 0.0), Quaternion(0.0, 0.0, math.sin(yaw / 2), math.cos(yaw / 2)))
     flat = S.flatten(pose)
     assert flat[("position", "x")] == 1.0 and flat[("orientation", "yaw")] == pytest.approx(yaw)
+    Header = store.types["std_msgs/msg/Header"]
+    Time = store.types["builtin_interfaces/msg/Time"]
+    none_seen = store.types["lab_msgs/msg/ArTagArray"](Header(Time(0, 0), "camera"), [])
+    assert S.flatten(none_seen) == {("", "tags.count"): 0.0}  # seen nothing: 0, not a gap
 
 
 def test_the_stored_summary_fits_its_budget_and_reads_back(maze, registry):
