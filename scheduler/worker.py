@@ -210,9 +210,8 @@ class Worker:
                 filing.outcome or filing.status,
                 filing.reason,
             )
-            if filed and filing.mcap and (out / "trial.mcap").exists():
-                progress.enter("summarizing", self.config.summary)
-                await self._summarize(claim.id, out / "trial.mcap")
+            if filed and filing.mcap:
+                await self._summarize(claim.id, out / "trial.mcap", progress)
         except QueueError as err:  # the lease will run out and the trial run again
             self.log.error("trial %d could not be filed: %s", claim.id, err)
         finally:
@@ -288,9 +287,10 @@ class Worker:
             record.update(self._compare(claim.rerun_of, result))
         return Filing(**record)
 
-    async def _summarize(self, trial_id: int, mcap: Path) -> None:
+    async def _summarize(self, trial_id: int, mcap: Path, progress: Progress) -> None:
         """File the record's page summary beside it; never fails the filed trial."""
         seconds = self.config.summary
+        progress.enter("summarizing", seconds)
         try:
             blob = await asyncio.wait_for(
                 asyncio.to_thread(self.host.summarize, mcap, seconds=seconds), seconds + 1
