@@ -2,14 +2,14 @@
 
 ``LabHost`` is the ``TrialHost`` a runner is given (by ``labd run``, by the service's
 workers, by ``labd worker``): it checks tasks and parameters against the registry,
-opens ``LabTrial``\\ s and compares records. A ``LabTrial`` is one trial's station (the
-robot on a graph of its own, with rosapi), a bridge server for that graph alone on a
-unix socket (which the sandbox relays to ``ws://127.0.0.1:9090``), and a recorder of
-every topic into ``OUT/trial.mcap``. A trial whose repository brings its own interface
-definitions has a type registry of its own (``labd.graph.definitions``), so its types
-reach no other trial and no live robot, and the record holds their schemas. In
-lockstep the controller advances the task with ``/lab/step``; with ``realtime = true``
-a ``LiveRunner`` steps it on the wall clock.
+opens ``LabTrial``\\ s, compares records and summarizes them for their pages. A
+``LabTrial`` is one trial's station (the robot on a graph of its own, with rosapi), a
+bridge server for that graph alone on a unix socket (which the sandbox relays to
+``ws://127.0.0.1:9090``), and a recorder of every topic into ``OUT/trial.mcap``. A
+trial whose repository brings its own interface definitions has a type registry of its
+own (``labd.graph.definitions``), so its types reach no other trial and no live robot,
+and the record holds their schemas. In lockstep the controller advances the task with
+``/lab/step``; with ``realtime = true`` a ``LiveRunner`` steps it on the wall clock.
 """
 
 from __future__ import annotations
@@ -28,6 +28,7 @@ from labd.errors import InterfaceError, LabError, RecordError
 from labd.graph.definitions import trial_types
 from labd.graph.types import TypeRegistry
 from labd.recorder import Recorder, first_difference
+from labd.recorder.summary import summary_blob
 from labd.sim import registry
 from labd.sim.base import SUCCEEDED
 from labd.sim.robot import LiveRunner
@@ -82,6 +83,10 @@ class LabHost:
     def first_difference(self, a: Path, b: Path, topics: Sequence[str]) -> str | None:
         difference = first_difference(a, b, topics)
         return None if difference is None else str(difference)
+
+    def summarize(self, mcap: Path, *, seconds: float) -> bytes:
+        """The record's page summary (``labd.recorder.summary``; ``SummaryError``)."""
+        return summary_blob(mcap, types=self.types, seconds=seconds)
 
 
 class LabTrial:

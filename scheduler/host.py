@@ -19,6 +19,9 @@ from typing import Any, Protocol
 from repository.trial import Value
 
 Attachments = Mapping[str, tuple[str, bytes]]  # name -> (media type, bytes)
+# A record's summary for its page, filed beside it as a derived artifact: gzip'd JSON.
+SUMMARY = "summary.json"
+SUMMARY_MEDIA_TYPE = "application/gzip"
 
 
 @dataclass(frozen=True)
@@ -101,4 +104,9 @@ class TrialHost(Protocol):
 
     def first_difference(self, a: Path, b: Path, topics: Sequence[str]) -> str | None:
         """Where two records part, in words; None if they hold the same data."""
+        ...
+
+    def summarize(self, mcap: Path, *, seconds: float) -> bytes | None:
+        """The record's summary for its page (``SUMMARY``), made within ``seconds``;
+        None if this lab makes none. Raises if the record cannot be summarized."""
         ...

@@ -31,7 +31,7 @@ from typing import Any
 import sqlalchemy as sa
 from sqlalchemy.engine import Connection
 
-from repository.index import Index, User, reward_of, to_trial
+from repository.index import Derived, Index, User, reward_of, to_trial
 from repository.index import trials as T
 from repository.signing import Keyring, record_statement
 from repository.trial import Claim, Filing, Kind, Outcome, Status, Trial
@@ -317,6 +317,18 @@ class Queue:
             )
         )
         db.execute(sa.update(T).where(T.c.id == trial_id).values(signature=signed.to_json()))
+
+    def derive(self, trial_id: int, worker: str, item: Derived) -> bool:
+        """Keep a derived artifact (a page summary) of a trial this worker filed; False
+        if the trial is not one this worker finished."""
+        trial = self.index.trial(trial_id)
+        if trial.worker != worker or trial.status is not Status.FINISHED or not trial.mcap:
+            log.warning(
+                "worker %s filed %s for trial %d, not its own; dropped", worker, item.name, trial_id
+            )
+            return False
+        self.index.put_derived(trial_id, item)
+        return True
 
     def requeue_expired(self) -> list[int]:
         """Put running trials whose lease ran out back in the queue (or fail them)."""

@@ -16,7 +16,10 @@ and the worker goes on with the next one.
 Filing a trial: the MCAP and the controller's logs go to the content-addressed store,
 the record (manifest, digests, metrics, ending) to the index. A rerun is compared with
 the trial it reruns: the same data digest is "reproduced", otherwise the first message
-where the two records part says where they diverged.
+where the two records part says where they diverged. Once the trial is filed, the
+record's summary for its page (``TrialHost.summarize``) is made within ``summary``
+seconds and filed beside it as a derived artifact; a summary that fails is logged and
+the trial stays filed without it (its page makes one when first asked).
 """
 
 from __future__ import annotations
@@ -31,10 +34,11 @@ from pathlib import Path
 from typing import Any, Protocol
 
 from repository.errors import ArchiveError
+from repository.index import Derived
 from repository.trial import Claim, Ending, Filing, Status, Trial
 from sandbox.api import Backend
 from scheduler.errors import QueueError
-from scheduler.host import TrialHost
+from scheduler.host import SUMMARY, SUMMARY_MEDIA_TYPE, TrialHost
 from scheduler.outcome import storage_failure
 from scheduler.runner import Progress, RunOptions, TrialResult, TrialSpec, run_trial
 
@@ -47,6 +51,7 @@ class Jobs(Protocol):
     def heartbeat(self, trial_id: int, worker: str) -> bool: ...
     def finish(self, trial_id: int, worker: str, filing: Filing) -> bool: ...
     def trial(self, trial_id: int) -> Trial: ...
+    def derive(self, trial_id: int, worker: str, item: Derived) -> bool: ...
 
 
 class Blobs(Protocol):
@@ -64,6 +69,7 @@ class WorkerConfig:
     heartbeat: float = 10.0  # seconds between lease renewals
     poll: float = 2.0  # seconds between claims while the queue is empty
     filing: float = 300.0  # seconds to store a record and file it
+    summary: float = 120.0  # seconds to summarize a filed record for its page
     options: RunOptions = field(default_factory=RunOptions)
 
 
@@ -197,13 +203,15 @@ class Worker:
         finally:
             await _stopped(beat)
         try:
-            await asyncio.to_thread(self.queue.finish, claim.id, self.config.name, filing)
+            filed = await asyncio.to_thread(self.queue.finish, claim.id, self.config.name, filing)
             self.log.info(
                 "trial %d %s: %s",
                 claim.id,
                 filing.outcome or filing.status,
                 filing.reason,
             )
+            if filed and filing.mcap:
+                await self._summarize(claim.id, out / "trial.mcap", progress)
         except QueueError as err:  # the lease will run out and the trial run again
             self.log.error("trial %d could not be filed: %s", claim.id, err)
         finally:
@@ -278,6 +286,28 @@ class Worker:
         if claim.rerun_of is not None and result is not None and result.status is Status.FINISHED:
             record.update(self._compare(claim.rerun_of, result))
         return Filing(**record)
+
+    async def _summarize(self, trial_id: int, mcap: Path, progress: Progress) -> None:
+        """File the record's page summary beside it; never fails the filed trial."""
+        seconds = self.config.summary
+        progress.enter("summarizing", seconds)
+        try:
+            blob = await asyncio.wait_for(
+                asyncio.to_thread(self.host.summarize, mcap, seconds=seconds), seconds + 1
+            )
+            if blob is None:
+                return
+            path = mcap.with_name(SUMMARY)
+            path.write_bytes(blob)
+            digest = await asyncio.to_thread(self.store.put_file, path)
+            item = Derived(SUMMARY, digest, len(blob), SUMMARY_MEDIA_TYPE)
+            await asyncio.to_thread(self.queue.derive, trial_id, self.config.name, item)
+        except TimeoutError:
+            self.log.error(
+                "trial %d: its summary took longer than %g s; none filed", trial_id, seconds
+            )
+        except Exception:  # whatever it was, the trial is filed: its page makes one later
+            self.log.exception("trial %d: its summary could not be filed", trial_id)
 
     def _compare(self, original_id: int, result: TrialResult) -> dict[str, Any]:
         """Did this rerun reproduce the trial it reruns?"""

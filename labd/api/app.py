@@ -32,7 +32,7 @@ from fastapi import APIRouter, Depends, FastAPI, Query, Request
 from fastapi.responses import JSONResponse, StreamingResponse
 
 from labd import __version__
-from labd.api import errors, records, workers
+from labd.api import errors, records, summaries, workers
 from labd.api.common import Lab, Writer, blob_response
 from labd.api.errors import ApiError, responses
 from labd.api.models import (
@@ -68,7 +68,7 @@ def create_app(service: Service, *, on_submit: Callable[[], None] | None = None)
     app.state.service = service
     app.state.on_submit = on_submit or service.wake
     errors.install(app)
-    for part in (router, records.router, workers.router, workers.blobs):
+    for part in (router, records.router, summaries.router, workers.router, workers.blobs):
         app.include_router(errors.declare_validation(part))
     return app
 

@@ -9,11 +9,11 @@ from collections.abc import Callable
 from fastapi import FastAPI
 from fastapi.openapi.docs import get_redoc_html, get_swagger_ui_html
 from fastapi.responses import HTMLResponse
-from fastapi.staticfiles import StaticFiles
 
 from labd.api.app import create_app as create_api
 from labd.service import Service
 from labd.web import forms, pages
+from labd.web.assets import Precompressed
 from labd.web.render import STATIC, RobotLink, Site
 
 __all__ = ["RobotLink", "Site", "create_app", "install"]
@@ -31,7 +31,7 @@ def create_app(
 def install(app: FastAPI, site: Site) -> None:
     """Add the pages, the static files and offline API docs to ``app``."""
     app.state.site = site
-    app.mount("/static", StaticFiles(directory=STATIC), name="static")
+    app.mount("/static", Precompressed(directory=STATIC), name="static")
     app.include_router(pages.router)
     app.include_router(forms.router)
 

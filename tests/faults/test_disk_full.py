@@ -96,9 +96,14 @@ def test_disk_full_while_filing(served, small_disk, tmp_path: Path):
     assert big["mcap"] is None
     check_the_small_one(lab, small)
     logs = [httpx.get(small["logs"][s], timeout=30).content for s in ("stdout", "stderr")]
+    # its page summary, a derived artifact: the worker's, or made now (the same bytes)
+    url = f"{lab.server}/api/trials/{small['id']}/summary"
+    with httpx.stream("GET", url, headers={"Accept-Encoding": "gzip"}, timeout=60) as answer:
+        summary = b"".join(answer.iter_raw())
     files = [p for p in (blobs / "sha256").rglob("*") if p.is_file()]
+    kept = [*logs, summary]
     assert sorted(f"sha256:{p.name}" for p in files) == sorted(  # the small trial's alone
-        [small["mcap"]["digest"], *("sha256:" + hashlib.sha256(b).hexdigest() for b in logs)]
+        [small["mcap"]["digest"], *("sha256:" + hashlib.sha256(b).hexdigest() for b in kept)]
     )
     for path in files:  # and each is whole: its bytes hash to its name
         assert hashlib.sha256(path.read_bytes()).hexdigest() == path.name
