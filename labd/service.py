@@ -56,6 +56,8 @@ class ServiceConfig:
     heartbeat: float = 10.0
     fetch: FetchPolicy = field(default_factory=FetchPolicy)
     run: RunOptions = field(default_factory=RunOptions)
+    canaries: tuple[int, ...] = ()  # reference trials each worker reruns (canary.py)
+    canary_every: float = 3600.0  # seconds between a worker's canary reruns
 
     @property
     def database_url(self) -> str:
@@ -112,6 +114,8 @@ class Service:
                     cache=self.cache,
                     heartbeat=self.config.heartbeat,
                     options=self.config.run,
+                    canaries=self.config.canaries,
+                    canary_every=self.config.canary_every,
                 ),
             )
             self.workers.append(worker)

@@ -29,13 +29,14 @@ from labd.graph.definitions import trial_types
 from labd.graph.types import TypeRegistry
 from labd.recorder import Recorder, first_difference
 from labd.recorder.summary import summary_blob
+from labd.replay import replay_with_video
 from labd.sim import registry
 from labd.sim.base import SUCCEEDED
 from labd.sim.robot import LiveRunner
 from labd.station import Station
 from repository.trial import Value
 from scheduler.errors import InvalidRequest, TrialError
-from scheduler.host import Attachments, Episode
+from scheduler.host import Attachments, Episode, Replayed
 
 log = logging.getLogger("labd.trial")
 MAX_CLIENTS = 16  # bridge connections a trial's controller may open
@@ -87,6 +88,11 @@ class LabHost:
     def summarize(self, mcap: Path, *, seconds: float) -> bytes:
         """The record's page summary (``labd.recorder.summary``; ``SummaryError``)."""
         return summary_blob(mcap, types=self.types, seconds=seconds)
+
+    def replay(self, mcap: Path, out: Path) -> Replayed:
+        """Replay a filed record (``labd.replay``), rendering its task's first camera at
+        10 frames a second into ``out``: the verdict and the video."""
+        return replay_with_video(mcap, out, self.types)
 
 
 class LabTrial:

@@ -35,6 +35,7 @@ from repository.index import Derived, Index, User, reward_of, to_trial
 from repository.index import trials as T
 from repository.signing import Keyring, record_statement
 from repository.trial import Claim, Filing, Kind, Outcome, Status, Trial
+from scheduler.canary import Health
 from scheduler.errors import NotYours, QuotaExceeded
 
 log = logging.getLogger("scheduler.queue")
@@ -68,6 +69,7 @@ class Queue:
         self.config = config or QueueConfig()
         self.keyring = keyring
         self.clock = index.clock
+        self.health: dict[str, Health] = {}  # what each worker last said of itself
 
     # -- submitting ---------------------------------------------------------------------
 
@@ -376,6 +378,10 @@ class Queue:
                 sa.select(T.c.worker).where(T.c.status == RUNNING).group_by(T.c.worker)
             ).all()
         return {r[0] for r in rows if r[0]}
+
+    def report(self, health: Health) -> None:
+        """Keep what a worker says of its health (its canaries), for the lab's status."""
+        self.health[health.worker] = health
 
     def running(self) -> list[Trial]:
         """The trials running now, oldest first: who runs them and since when."""

@@ -20,6 +20,7 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from repository.index import Derived
 from repository.trial import Claim, Filing, Trial
+from scheduler.canary import Health
 from scheduler.client import ApiClient, version
 from scheduler.errors import RemoteError
 
@@ -65,6 +66,10 @@ class RemoteLab:
         path = f"/api/workers/trials/{trial_id}/finish"
         body = {"worker": worker, "filing": filing.model_dump(mode="json")}
         return self.api.post(path, Filed, json=body).filed
+
+    def report(self, health: Health) -> None:
+        body = {"worker": health.worker, "state": health.state, "detail": health.detail}
+        self.api.request("POST", "/api/workers/health", json=body)
 
     def trial(self, trial_id: int) -> Trial:
         return self.api.get(f"/api/workers/trials/{trial_id}", Trial)
@@ -112,6 +117,11 @@ class DerivedItem(BaseModel):
 
 class DeriveBody(WorkerName):
     item: DerivedItem
+
+
+class HealthBody(WorkerName):
+    state: str = Field(pattern="^(ok|checking|out)$")
+    detail: str = Field("", max_length=2000)
 
 
 class Kept(BaseModel):

@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import json
 import logging
 import shutil
 import tempfile
@@ -37,8 +38,9 @@ from repository.errors import ArchiveError
 from repository.index import Derived
 from repository.trial import Claim, Ending, Filing, Status, Trial
 from sandbox.api import Backend
+from scheduler.canary import CHECKING, OK, OUT, Canaries, Health
 from scheduler.errors import QueueError
-from scheduler.host import SUMMARY, SUMMARY_MEDIA_TYPE, TrialHost
+from scheduler.host import REPLAY, SUMMARY, SUMMARY_MEDIA_TYPE, VIDEO, TrialHost
 from scheduler.outcome import storage_failure
 from scheduler.runner import Progress, RunOptions, TrialResult, TrialSpec, run_trial
 
@@ -52,6 +54,7 @@ class Jobs(Protocol):
     def finish(self, trial_id: int, worker: str, filing: Filing) -> bool: ...
     def trial(self, trial_id: int) -> Trial: ...
     def derive(self, trial_id: int, worker: str, item: Derived) -> bool: ...
+    def report(self, health: Health) -> None: ...
 
 
 class Blobs(Protocol):
@@ -70,6 +73,9 @@ class WorkerConfig:
     poll: float = 2.0  # seconds between claims while the queue is empty
     filing: float = 300.0  # seconds to store a record and file it
     summary: float = 120.0  # seconds to summarize a filed record for its page
+    replay: float = 600.0  # seconds to replay a filed record and render its video (0: none)
+    canaries: tuple[int, ...] = ()  # reference trials to rerun at start and every ...
+    canary_every: float = 3600.0  # ... seconds; one that diverges takes the worker out
     options: RunOptions = field(default_factory=RunOptions)
 
 
@@ -103,6 +109,8 @@ class Worker:
         self.wake = asyncio.Event()  # set by a submission, to claim at once
         self.log = logging.getLogger(f"scheduler.worker.{config.name}")
         self._current: tuple[Claim, Progress] | None = None
+        self.canaries = Canaries(config.canaries, config.canary_every)
+        self.health = Health(config.name, OK, "no canaries" if not config.canaries else "")
 
     @property
     def current(self) -> Current | None:
@@ -115,6 +123,11 @@ class Worker:
         stopping = asyncio.create_task(stop.wait())
         try:
             while not stop.is_set():
+                if self.canaries.due():
+                    await self._check_canaries()
+                if self.health.state == OUT:  # out of the pool: claim nothing, until stopped
+                    await asyncio.wait({stopping}, timeout=self.config.poll)
+                    continue
                 try:
                     claim = await asyncio.to_thread(self.queue.claim, self.config.name)
                 except QueueError as err:  # a remote lab that is down: try again later
@@ -142,6 +155,22 @@ class Worker:
             stopping.cancel()
             with contextlib.suppress(asyncio.CancelledError):
                 await stopping
+
+    async def _check_canaries(self) -> None:
+        self.health = Health(self.config.name, CHECKING, "rerunning the canaries")
+        await self._report()
+        try:
+            self.health = await self.canaries.check(self)
+        except Exception as err:  # a bug: say so in the status, claim nothing meanwhile
+            self.log.exception("the canaries could not be checked")
+            self.health = Health(self.config.name, OUT, f"the canaries could not run: {err}")
+        await self._report()
+
+    async def _report(self) -> None:
+        try:
+            await asyncio.to_thread(self.queue.report, self.health)
+        except QueueError as err:
+            self.log.warning("could not report the worker's health: %s", err)
 
     async def execute(self, claim: Claim) -> None:
         """Run one claimed trial to its end and file it."""
@@ -211,7 +240,7 @@ class Worker:
                 filing.reason,
             )
             if filed and filing.mcap:
-                await self._summarize(claim.id, out / "trial.mcap", progress)
+                await self._derive(claim.id, out / "trial.mcap", progress)
         except QueueError as err:  # the lease will run out and the trial run again
             self.log.error("trial %d could not be filed: %s", claim.id, err)
         finally:
@@ -308,6 +337,44 @@ class Worker:
             )
         except Exception:  # whatever it was, the trial is filed: its page makes one later
             self.log.exception("trial %d: its summary could not be filed", trial_id)
+
+    async def _derive(self, trial_id: int, mcap: Path, progress: Progress) -> None:
+        """What is made of a filed record, beside it: its page summary, its replay."""
+        await self._summarize(trial_id, mcap, progress)
+        await self._replay(trial_id, mcap, progress)
+
+    async def _replay(self, trial_id: int, mcap: Path, progress: Progress) -> None:
+        """Replay the filed record and file the verdict and the camera's video beside it;
+        never fails the filed trial (a replay that diverges is its verdict)."""
+        seconds = self.config.replay
+        if seconds <= 0:
+            return
+        progress.enter("replaying", seconds)
+        folder = mcap.with_name("replay")
+        try:
+            done = await asyncio.wait_for(
+                asyncio.to_thread(self.host.replay, mcap, folder), seconds
+            )
+            if done is None:
+                return
+            if not done.verified:
+                self.log.warning("trial %d: %s", trial_id, json.loads(done.verdict)["said"])
+            path = folder / REPLAY
+            path.write_bytes(done.verdict)
+            digest = await asyncio.to_thread(self.store.put_file, path)
+            verdict = Derived(REPLAY, digest, len(done.verdict), "application/json")
+            await asyncio.to_thread(self.queue.derive, trial_id, self.config.name, verdict)
+            if done.video is not None:
+                digest = await asyncio.to_thread(self.store.put_file, done.video)
+                size = done.video.stat().st_size
+                video = Derived(VIDEO, digest, size, "video/mp4")
+                await asyncio.to_thread(self.queue.derive, trial_id, self.config.name, video)
+        except TimeoutError:
+            self.log.error(
+                "trial %d: its replay took longer than %g s; none filed", trial_id, seconds
+            )
+        except Exception:  # whatever it was, the trial is filed; its page says "not replayed"
+            self.log.exception("trial %d: its replay could not be filed", trial_id)
 
     def _compare(self, original_id: int, result: TrialResult) -> dict[str, Any]:
         """Did this rerun reproduce the trial it reruns?"""

@@ -43,6 +43,7 @@ from labd.api.models import (
     TaskList,
     TrialDetail,
     TrialPage,
+    WorkerHealth,
     WorkerView,
     commit_view,
     task_view,
@@ -123,6 +124,10 @@ def status(service: Lab) -> LabStatus:
         queued=service.queue.queued(),
         running=running,
         local_workers=len(service.workers),
+        workers=[
+            WorkerHealth(worker=h.worker, state=h.state, detail=h.detail, since=h.since)
+            for h in sorted(service.queue.health.values(), key=lambda h: h.worker)
+        ],
     )
 
 

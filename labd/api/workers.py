@@ -31,7 +31,8 @@ from labd.api.common import Lab, Writer, blob_response
 from labd.api.errors import ApiError, Conflict, Forbidden, responses
 from repository.index import Derived, User
 from repository.trial import Claim, Trial
-from scheduler.host import SUMMARY
+from scheduler.canary import Health
+from scheduler.host import REPLAY, SUMMARY, VIDEO
 from scheduler.outcome import storage_failure
 from scheduler.remote import (
     PROTOCOL,
@@ -40,11 +41,13 @@ from scheduler.remote import (
     DeriveBody,
     Filed,
     FinishBody,
+    HealthBody,
     Kept,
     WorkerName,
 )
 
 MAX_BLOB = 4 << 30
+WORKER_MADE = frozenset({SUMMARY, REPLAY, VIDEO})  # what a worker may file beside a record
 
 
 class Stored(BaseModel):
@@ -128,17 +131,26 @@ def finish(trial_id: int, body: FinishBody, service: Lab, user: WorkerUser) -> F
 
 @router.post("/api/workers/trials/{trial_id}/derived", responses=responses(404, 422))
 def derived(trial_id: int, body: DeriveBody, service: Lab, user: WorkerUser) -> Filed:
-    """Keep a page summary of a trial this worker filed (its blob uploaded first, checked
-    against its digest); ``filed`` false if the trial is not this worker's."""
+    """Keep what a worker made of a trial it filed (its page summary, its replay's verdict
+    and video), the blob uploaded first and checked against its digest; ``filed`` false
+    if the trial is not this worker's."""
     item = body.item
-    if item.name != SUMMARY:
-        raise ApiError(422, f"item.name: a worker files {SUMMARY} only, not {item.name!r}")
+    if item.name not in WORKER_MADE:
+        made = ", ".join(sorted(WORKER_MADE))
+        raise ApiError(422, f"item.name: a worker files {made}, not {item.name!r}")
     if not service.store.exists(item.digest):
         raise ApiError(422, f"item.digest: upload {item.digest} first")
     if service.store.size(item.digest) != item.size:
         raise ApiError(422, f"item.size: the blob {item.digest} is not {item.size} bytes")
     derived = Derived(item.name, item.digest, item.size, item.media_type)
     return Filed(filed=service.queue.derive(trial_id, _named(user, body.worker), derived))
+
+
+@router.post("/api/workers/health", status_code=204, response_class=Response)
+def health(body: HealthBody, service: Lab, user: WorkerUser) -> Response:
+    """A worker says how its canaries went: ``out`` takes it out of the pool (it says so)."""
+    service.queue.report(Health(_named(user, body.worker), body.state, body.detail))
+    return Response(status_code=204)
 
 
 @router.get("/api/workers/trials/{trial_id}", responses=responses(404))

@@ -148,6 +148,21 @@ def add_parser(commands: Any) -> None:
         "--cache", type=Path, help="git mirrors and controller runtimes (default: DATA/cache)"
     )
     group.add_argument(
+        "--canary",
+        action="append",
+        type=int,
+        default=[],
+        metavar="TRIAL",
+        help="a reference trial each worker reruns when it starts and every --canary-every"
+        " seconds; one that does not reproduce takes the worker out (repeatable; default: none)",
+    )
+    group.add_argument(
+        "--canary-every",
+        type=float,
+        default=SERVICE.canary_every,
+        help="seconds between a worker's canary reruns (default: %(default)g)",
+    )
+    group.add_argument(
         "--no-service", action="store_true", help="no HTTP API, no archive, no workers"
     )
 
@@ -203,6 +218,8 @@ def service_config(args: argparse.Namespace) -> ServiceConfig | None:
         heartbeat=max(0.5, args.lease / 3),
         fetch=fetch,
         run=RunOptions(fetch=fetch),
+        canaries=tuple(args.canary),
+        canary_every=args.canary_every,
     )
 
 
