@@ -30,10 +30,11 @@ from labd.graph.types import TypeRegistry
 from labd.live import Demonstration
 from labd.trial import LabHost, client_library
 from repository.blobs import BlobStore
-from repository.index import Index
+from repository.index import Derived, Index
 from repository.signing import Keyring
 from repository.trial import Ending, Filing, Kind
 from scheduler.fetch import FetchPolicy
+from scheduler.host import REPLAY, VIDEO
 from scheduler.queue import Queue, QueueConfig
 from scheduler.runner import RunOptions
 from scheduler.submit import Submissions
@@ -168,9 +169,32 @@ class Service:
             submitter=demo.user,
             filing=filing,
         )
-        shutil.rmtree(demo.folder, ignore_errors=True)
         log.info("demonstration %d filed: %s drove %s", trial_id, demo.user, demo.robot)
+        try:
+            self._replay(trial_id, mcap)
+        except Exception:  # the drive is filed; its page says "not replayed"
+            log.exception("demonstration %d: its replay could not be filed", trial_id)
+        finally:
+            shutil.rmtree(demo.folder, ignore_errors=True)
         return trial_id
+
+    def _replay(self, trial_id: int, mcap: Path) -> None:
+        """Replay a filed record here (as a worker does after filing) and keep the
+        verdict and the camera's video beside it."""
+        done = self.host.replay(mcap, mcap.with_name("replay"))
+        verdict_file = mcap.with_name("replay") / REPLAY
+        verdict_file.write_bytes(done.verdict)
+        self.index.put_derived(
+            trial_id,
+            Derived(
+                REPLAY, self.store.put_file(verdict_file), len(done.verdict), "application/json"
+            ),
+        )
+        if done.video is not None:
+            size = done.video.stat().st_size
+            self.index.put_derived(
+                trial_id, Derived(VIDEO, self.store.put_file(done.video), size, "video/mp4")
+            )
 
     def wake(self) -> None:
         """A trial was queued: let idle workers claim it now."""
