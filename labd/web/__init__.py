@@ -1,6 +1,7 @@
 """The lab's web pages, served beside the HTTP API: the archive to browse (``pages``),
-forms to sign in, submit and rerun (``forms``), and the API's own documentation
-(``/docs``, ``/redoc``), every script and style served by the lab (``render``)."""
+forms to sign in, submit and rerun (``forms``), the live robots' pages (``robots``),
+and the API's own documentation (``/docs``, ``/redoc``), every script and style served
+by the lab (``render``)."""
 
 from __future__ import annotations
 
@@ -12,7 +13,7 @@ from fastapi.responses import HTMLResponse
 
 from labd.api.app import create_app as create_api
 from labd.service import Service
-from labd.web import forms, pages
+from labd.web import forms, pages, robots
 from labd.web.assets import Precompressed
 from labd.web.render import STATIC, RobotLink, Site
 
@@ -34,6 +35,8 @@ def install(app: FastAPI, site: Site) -> None:
     app.mount("/static", Precompressed(directory=STATIC), name="static")
     app.include_router(pages.router)
     app.include_router(forms.router)
+    app.include_router(robots.router)
+    app.include_router(robots.api)
 
     @app.get("/docs", include_in_schema=False)
     def swagger() -> HTMLResponse:
