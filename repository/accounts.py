@@ -64,7 +64,6 @@ class Accounts:
         self.index = index
         self.hasher = hasher or PasswordHasher()
         self.session_age = session_age
-        self.clock = index.clock
         # Checked against when the user does not exist, so that a wrong name takes as
         # long as a wrong password (no way to find out who has an account).
         self._decoy = self.hasher.hash(secrets.token_urlsafe(16))
@@ -84,7 +83,9 @@ class Accounts:
         digest = self.hasher.hash(password)
         with self.index.begin() as db:
             db.execute(sa.delete(passwords).where(passwords.c.user == name))
-            db.execute(sa.insert(passwords).values(user=name, hash=digest, changed=self.clock()))
+            db.execute(
+                sa.insert(passwords).values(user=name, hash=digest, changed=self.index.clock())
+            )
 
     def check_password(self, name: str, password: str) -> User:
         """The user, if the password is theirs (else BadCredentials, for either mistake)."""
@@ -114,7 +115,7 @@ class Accounts:
         label = " ".join(label.split())[:128] or "unnamed"
         self.index.user(name)
         secret = "labd_" + secrets.token_urlsafe(24)
-        now = self.clock()
+        now = self.index.clock()
         with self.index.begin() as db:
             result = db.execute(
                 sa.insert(tokens).values(
@@ -136,7 +137,7 @@ class Accounts:
 
     def revoke_token(self, name: str, token_id: int) -> Token:
         """Revoke one of ``name``'s tokens (RecordNotFound if it is not theirs)."""
-        now = self.clock()
+        now = self.index.clock()
         with self.index.begin() as db:
             row = db.execute(
                 sa.select(tokens).where(tokens.c.id == token_id, tokens.c.user == name)
@@ -151,7 +152,7 @@ class Accounts:
     def revoke_all(self, name: str) -> int:
         """Revoke every token of ``name`` and end their browser sessions; how many tokens."""
         self.index.user(name)
-        now = self.clock()
+        now = self.index.clock()
         with self.index.begin() as db:
             count = db.execute(
                 sa.update(tokens)
@@ -179,7 +180,7 @@ class Accounts:
     def open_session(self, user: User) -> tuple[str, WebSession]:
         """Sign ``user`` in: the cookie's value (kept only as a hash) and the session."""
         cookie = secrets.token_urlsafe(32)
-        now = self.clock()
+        now = self.index.clock()
         session = WebSession(user, secrets.token_urlsafe(24), now + self.session_age)
         with self.index.begin() as db:
             db.execute(sa.delete(web_sessions).where(web_sessions.c.expires < now))
@@ -200,7 +201,7 @@ class Accounts:
             row = db.execute(
                 sa.select(web_sessions).where(web_sessions.c.sha256 == token_hash(cookie))
             ).first()
-        if row is None or row.expires <= self.clock():
+        if row is None or row.expires <= self.index.clock():
             return None
         try:
             user = self.index.user(row.user)

@@ -13,8 +13,9 @@ ArchiveError                 the archive could not do what was asked
     ├── SlotTaken            the slot overlaps someone's booking of that robot
     ├── OverLimit            over the operator's limits per day or per week
     ├── NotYourReservation   only the person who booked it may change it or read its key
-    └── KeyRefused           a key that does not open this robot now (unknown, forged,
-                             expired, not yet valid, another robot's)
+    └── KeyRefused           a key that does not open this robot now (expired, not yet
+        │                    valid, released, another robot's)
+        └── UnknownKey       a key the lab never made (forged, mistyped, guessed)
 """
 
 from __future__ import annotations
@@ -112,3 +113,8 @@ class KeyRefused(ReservationError):
     def __init__(self, reason: str) -> None:
         self.reason = reason
         super().__init__(reason)
+
+
+class UnknownKey(KeyRefused):
+    def __init__(self) -> None:
+        super().__init__("the lab knows no such key; fetch your slot's key again")

@@ -318,8 +318,8 @@ class Index:
         self.tokens = tokens
 
     @classmethod
-    def open(cls, url: str, **engine_options: Any) -> Index:
-        index = cls(connect(url, **engine_options))
+    def open(cls, url: str, *, clock: Any = time.time, **engine_options: Any) -> Index:
+        index = cls(connect(url, **engine_options), clock=clock)
         try:
             index.create()
         except BaseException:

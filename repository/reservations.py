@@ -51,6 +51,7 @@ from repository.errors import (
     RecordNotFound,
     ReservationError,
     SlotTaken,
+    UnknownKey,
 )
 from repository.index import Index, reservations
 
@@ -126,13 +127,12 @@ class Reservations:
         self.index = index
         self.rules = rules
         self._secret = secret
-        self.clock = index.clock
 
     # -- booking ------------------------------------------------------------------------
 
     def book(self, user: str, robot: str, start: float, end: float) -> Booking:
         """Book ``robot`` for ``user`` from ``start`` to ``end`` (epoch seconds)."""
-        now = self.clock()
+        now = self.index.clock()
         if not (math.isfinite(start) and math.isfinite(end)):
             raise ReservationError("give the slot's start and end as times")
         if end <= start:
@@ -185,7 +185,7 @@ class Reservations:
 
     def extend(self, user: str, reservation_id: int, end: float) -> Reservation:
         """Make a slot end later, if the time after it is free and the rules allow."""
-        now = self.clock()
+        now = self.index.clock()
         with self.index.begin() as db:
             _lock(db)
             found = self._mine(db, user, reservation_id, "extend it")
@@ -213,7 +213,7 @@ class Reservations:
 
     def release(self, user: str, reservation_id: int) -> Reservation:
         """End a slot now (cancel it, before it began): the rest is free for others."""
-        now = self.clock()
+        now = self.index.clock()
         with self.index.begin() as db:
             _lock(db)
             found = self._mine(db, user, reservation_id, "release it")
@@ -274,7 +274,7 @@ class Reservations:
 
     def current(self, user: str, robot: str) -> Reservation | None:
         """``user``'s slot of ``robot`` that runs now, if any."""
-        now = self.clock()
+        now = self.index.clock()
         found = self.find(robot=robot, user=user, since=now, until=now + 1e-6, limit=1)
         return found[0] if found else None
 
@@ -300,9 +300,9 @@ class Reservations:
                 else db.execute(sa.select(reservations).where(R.id == reservation_id)).first()
             )
         if row is None or not hmac.compare_digest(mac, self._mac(row.id, row.nonce)):
-            raise KeyRefused("the lab knows no such key; fetch your slot's key again")
+            raise UnknownKey()
         found = _reservation(row)
-        now = self.clock()
+        now = self.index.clock()
         if robot is not None and found.robot != robot:
             raise KeyRefused(f"this key is for {found.robot}, not {robot}")
         if found.released is not None:

@@ -23,8 +23,9 @@ def create_app(
     service: Service, site: Site | None = None, *, on_submit: Callable[[], None] | None = None
 ) -> FastAPI:
     """The lab's whole HTTP face: the API over ``service`` and the pages."""
-    app = create_api(service, on_submit=on_submit)
-    install(app, site or Site())
+    site = site or Site()
+    app = create_api(service, on_submit=on_submit, robots=[r.name for r in site.robots if r.live])
+    install(app, site)
     return app
 
 
