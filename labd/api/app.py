@@ -41,7 +41,6 @@ from labd import __version__
 from labd.api import accounts, errors, records, reservations, workers
 from labd.api.common import Lab, Writer, blob_response
 from labd.api.errors import ApiError, responses
-from labd.api.throttle import Throttle
 from labd.api.models import (
     CancelView,
     CommitView,
@@ -56,6 +55,7 @@ from labd.api.models import (
     trial_detail,
     trial_summary,
 )
+from labd.api.throttle import Throttle
 from labd.service import Service
 from labd.sim import registry
 from repository.index import Filters
@@ -81,7 +81,7 @@ def create_app(
     app.state.service = service
     app.state.on_submit = on_submit or service.wake
     app.state.robots = tuple(robots)
-    app.state.throttle = Throttle(lambda: service.index.clock())
+    app.state.throttle = Throttle(service.index.clock)
     app.state.on_reservation = None  # the lab's bridge is told of extended or released slots
     errors.install(app)
     parts = (

@@ -25,10 +25,11 @@ from __future__ import annotations
 
 import datetime as dt
 import re
+from dataclasses import dataclass
 from typing import Annotated
 
 import orjson
-from fastapi import APIRouter, Query, Request
+from fastapi import APIRouter, Depends, Query, Request
 from fastapi.responses import JSONResponse, Response
 from icalendar import Calendar, Event
 from pydantic import BaseModel, ConfigDict, Field
@@ -155,24 +156,29 @@ def changed(request: Request, reservation: Reservation) -> None:
         notify(reservation)
 
 
+@dataclass(frozen=True)
+class SlotQuery:
+    """The filters of GET /api/reservations."""
+
+    robot: str | None = None
+    user: str | None = None
+    since: Annotated[dt.datetime | None, Query(description="default: now")] = None
+    until: dt.datetime | None = None
+    limit: Annotated[int, Query(ge=1, le=1000)] = 200
+
+
 @router.get("/api/reservations", responses=responses(422))
 def list_reservations(
-    request: Request,
-    service: Lab,
-    robot: str | None = None,
-    user: str | None = None,
-    since: dt.datetime | None = None,
-    until: dt.datetime | None = None,
-    limit: Annotated[int, Query(ge=1, le=1000)] = 200,
+    request: Request, service: Lab, q: Annotated[SlotQuery, Depends()]
 ) -> ReservationList:
     """Booked slots by start time (default: those not ended yet). Public: who and when."""
     now = service.index.clock()
     found = service.reservations.find(
-        robot=robot,
-        user=user,
-        since=now if since is None else _epoch(since),
-        until=None if until is None else _epoch(until),
-        limit=limit,
+        robot=q.robot,
+        user=q.user,
+        since=now if q.since is None else _epoch(q.since),
+        until=None if q.until is None else _epoch(q.until),
+        limit=q.limit,
     )
     return ReservationList(reservations=[view(r, request, now) for r in found])
 
