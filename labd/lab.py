@@ -94,7 +94,10 @@ class Lab:
         self._loop: asyncio.AbstractEventLoop | None = None
         self.service: Service | None = None
         self.http: HttpServer | None = None
-        self.site = Site(tuple(RobotLink(r.name, r.task, r.live) for r in config.robots))
+        self.site = Site(
+            tuple(RobotLink(r.name, r.task, r.live) for r in config.robots),
+            reservations=config.reservations,
+        )
         self.app: FastAPI | None = None
         if config.service is not None:
             self.service = Service(config.service, self.types)
