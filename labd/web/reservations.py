@@ -122,7 +122,7 @@ def book(request: Request, service: Lab, viewer: Viewer, sent: Annotated[BookFor
         code = err.status if isinstance(err, ApiError) else 422
         return _overview(request, service, viewer, form=form, problem=problem, status=code)
     return RedirectResponse(
-        f"/reservations?done=booked+{made.reservation.id}#mine", status_code=303
+        f"/reservations?done=booked+reservation+{made.reservation.id}#mine", status_code=303
     )
 
 
@@ -146,7 +146,9 @@ def extend(
     except (RecordNotFound, ReservationError) as err:
         return _overview(request, service, viewer, problem=str(err), status=422)
     changed(request, longer)
-    return RedirectResponse(f"/reservations?done=extended+{reservation_id}#mine", status_code=303)
+    return RedirectResponse(
+        f"/reservations?done=extended+reservation+{reservation_id}#mine", status_code=303
+    )
 
 
 @router.post("/reservations/{reservation_id}/release", dependencies=[CsrfChecked])
@@ -158,7 +160,9 @@ def release(request: Request, reservation_id: int, service: Lab, viewer: Viewer)
     except (RecordNotFound, ReservationError) as err:
         return _overview(request, service, viewer, problem=str(err), status=422)
     changed(request, released)
-    return RedirectResponse(f"/reservations?done=released+{reservation_id}#mine", status_code=303)
+    return RedirectResponse(
+        f"/reservations?done=released+reservation+{reservation_id}#mine", status_code=303
+    )
 
 
 @router.get("/reservations/{robot}", response_class=HTMLResponse)
