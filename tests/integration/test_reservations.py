@@ -14,6 +14,7 @@ import pytest
 from websockets.exceptions import ConnectionClosed
 from websockets.sync.client import connect as connect_ws
 
+from labd.bridge.auth import AuthError, Grant
 from labd.config import BridgeConfig, RobotConfig
 from labd.lab import LabConfig
 from labd.service import ServiceConfig
@@ -195,3 +196,31 @@ def test_two_people_each_drive_only_in_their_own_slot(lab):
         ws.send(json.dumps({"op": "advertise", "topic": "/cmd_vel", "type": TWIST}))
         drive(ws)
         lab.wait_until(lambda: drives.current is not None and drives.current.user == "bob")
+
+
+class Refusing:
+    """An authorizer that refuses every key, and counts the keys it was asked about."""
+
+    def __init__(self) -> None:
+        self.asked: list[str] = []
+
+    async def authorize(self, key: str, graph: str) -> Grant:
+        self.asked.append(key)
+        raise AuthError("the lab knows no such key")
+
+
+def test_guessing_keys_on_the_bridge_is_cut_short(make_server, caplog):
+    """After the allowed number of refused keys from one address, the next key is refused
+    without asking the authorizer, saying when to try again; it is logged."""
+    refusing = Refusing()
+    server = make_server(
+        BridgeConfig(port=0, auth_failures=3, auth_failure_window=60), authorizer=refusing
+    )
+    for key in ("a", "b", "c", "d"):
+        with connect_ws(server.url + f"?key={key}") as ws:
+            code, reason = closed_reason(ws)
+    assert refusing.asked == ["a", "b", "c"]
+    assert code == 1008 and reason.startswith(
+        "authorization refused: too many refused keys from your address; try again in"
+    )
+    assert any("3 keys refused from 127.0.0.1" in r.message for r in caplog.records)
