@@ -19,7 +19,8 @@ from typing import Any
 from fastapi import FastAPI
 
 from labd.api.server import HttpServer
-from labd.bridge.auth import Authorizer, HttpAuthorizer
+from labd.authorizer import ReservationAuthorizer, ref
+from labd.bridge.auth import Authorizer, HttpAuthorizer, KeyPolicy
 from labd.bridge.rosapi import Rosapi
 from labd.bridge.server import BridgeServer
 from labd.config import DATA, DEFAULT_ROBOTS, BridgeConfig, RobotConfig
@@ -31,6 +32,7 @@ from labd.service import Service, ServiceConfig
 from labd.sim.robot import LiveRunner, Robot
 from labd.station import Station
 from labd.web import RobotLink, Site, create_app
+from repository.reservations import Reservation
 
 log = logging.getLogger("labd.lab")
 
@@ -51,6 +53,10 @@ class LabConfig:
     # others see the perceptual space (B). The seed makes the draws repeatable (tests).
     interface_ratio: float = 0.5
     interface_seed: int | None = None
+    # Live robots behind the lab's reservations: only a slot's key drives (needs service).
+    reservations: bool = False
+    # With reservations: clients without a key may connect and watch (never drive).
+    watchers: bool = True
 
 
 class Lab:
@@ -90,10 +96,7 @@ class Lab:
         self._runners: list[asyncio.Task[None]] = []
         self._filings: set[asyncio.Future[int]] = set()
         self.drives: dict[str, Driving] = {}
-        self._own_authorizer: HttpAuthorizer | None = None
-        if authorizer is None and config.bridge.authorizer_url:
-            authorizer = self._own_authorizer = HttpAuthorizer(config.bridge.authorizer_url)
-        self.bridge = BridgeServer(self.graphs, config.bridge, authorizer)
+        self._loop: asyncio.AbstractEventLoop | None = None
         self.service: Service | None = None
         self.http: HttpServer | None = None
         self.site = Site(
@@ -101,14 +104,31 @@ class Lab:
             bridge_tls=config.bridge.tls_cert is not None,
             interface_ratio=config.interface_ratio,
             rng=random.Random(config.interface_seed),
+            reservations=config.reservations,
         )
         self.app: FastAPI | None = None
         if config.service is not None:
             self.service = Service(config.service, self.types)
             self.app = create_app(self.service, self.site)
+            self.app.state.on_reservation = self._reservation_changed
             self.http = HttpServer(self.app, config.bridge.host, config.http_port)
+        self._own_authorizer: HttpAuthorizer | None = None
+        policies: dict[str, KeyPolicy] = {}
+        if config.reservations:
+            if self.service is None or authorizer is not None or config.bridge.authorizer_url:
+                raise ValueError("reservations need the archive, and no other authorizer")
+            authorizer = ReservationAuthorizer(self.service.reservations)
+            live = KeyPolicy.OPTIONAL if config.watchers else KeyPolicy.REQUIRED
+            policies = {
+                name: live if name in self.robots and self.robots[name].live else KeyPolicy.NONE
+                for name in self.graphs
+            }
+        elif authorizer is None and config.bridge.authorizer_url:
+            authorizer = self._own_authorizer = HttpAuthorizer(config.bridge.authorizer_url)
+        self.bridge = BridgeServer(self.graphs, config.bridge, authorizer, policies=policies)
 
     async def start(self) -> None:
+        self._loop = asyncio.get_running_loop()
         for name, robot in self.robots.items():
             if robot.live:
                 task = asyncio.create_task(LiveRunner(robot).run(), name=f"live {name}")
@@ -121,6 +141,7 @@ class Lab:
                 station,
                 work=self._live_work(),
                 file=self._file if self.service is not None else None,
+                reserved=self.config.reservations,
             )
             for name, station in self.stations.items()
             if station.robot.live
@@ -151,6 +172,16 @@ class Lab:
         )
         self._filings.add(filing)
         filing.add_done_callback(self._filed)
+
+    def _reservation_changed(self, reservation: Reservation) -> None:
+        """A slot was extended or released (the API, from any thread): the clients
+        connected with its key get its new end, or are disconnected."""
+        loop = self._loop
+        if loop is None or self.service is None:
+            return
+        left = reservation.end - self.service.index.clock()
+        reason = f"your slot on {reservation.robot} was released"
+        loop.call_soon_threadsafe(self.bridge.reauthorize, ref(reservation.id), left, reason)
 
     def _filed(self, filing: asyncio.Future[int]) -> None:
         self._filings.discard(filing)

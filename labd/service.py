@@ -19,7 +19,8 @@ import logging
 import os
 import shutil
 import socket
-from collections.abc import Mapping
+import time
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -29,8 +30,10 @@ from labd.config import DATA
 from labd.graph.types import TypeRegistry
 from labd.live import Demonstration
 from labd.trial import LabHost, client_library
+from repository.accounts import Accounts
 from repository.blobs import BlobStore
 from repository.index import Derived, Index
+from repository.reservations import Reservations, Rules, load_secret
 from repository.signing import Keyring
 from repository.trial import Ending, Filing, Kind
 from scheduler.fetch import FetchPolicy
@@ -59,6 +62,8 @@ class ServiceConfig:
     run: RunOptions = field(default_factory=RunOptions)
     canaries: tuple[int, ...] = ()  # reference trials each worker reruns (canary.py)
     canary_every: float = 3600.0  # seconds between a worker's canary reruns
+    rules: Rules = field(default_factory=Rules)  # booking live robots
+    signup: bool = False  # people may make their own accounts on the sign-in page
 
     @property
     def database_url(self) -> str:
@@ -76,14 +81,25 @@ def host_prefix() -> str:
 class Service:
     """Index, blob store, queue, submissions and (after ``start``) workers."""
 
-    def __init__(self, config: ServiceConfig, types: TypeRegistry | None = None) -> None:
+    def __init__(
+        self,
+        config: ServiceConfig,
+        types: TypeRegistry | None = None,
+        *,
+        clock: Callable[[], float] = time.time,
+    ) -> None:
         self.config = config
         self.host = LabHost(types or TypeRegistry.default())
         config.data.mkdir(parents=True, exist_ok=True)
         self.cache = (config.cache or config.data / "cache").resolve()
-        self.index = Index.open(config.database_url)
+        self.index = Index.open(config.database_url, clock=clock)
         self.store = BlobStore(config.blobs_url, dict(config.blob_options) or None)
-        self.keyring = Keyring((config.keys or config.data / "keys").resolve())
+        keys = (config.keys or config.data / "keys").resolve()
+        self.keyring = Keyring(keys)
+        self.accounts = Accounts(self.index)
+        self.reservations = Reservations(
+            self.index, config.rules, load_secret(keys / "reservations.secret")
+        )
         self.queue = Queue(self.index, config.queue, self.keyring)
         self.submissions = Submissions(self.queue, self.host, self.cache, config.fetch)
         self.workers: list[Worker] = []

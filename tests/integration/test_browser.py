@@ -93,7 +93,7 @@ def test_the_archive_in_a_browser(lab, watched, tmp_path):
     assert page.locator("h1").first.inner_text() == "A remote robot lab"
     page.goto(url(lab, "/session?then=/submit"))
     page.fill("input[name=token]", token)
-    page.click("form.card button[type=submit]")
+    page.click("#token-signin button[type=submit]")
     page.wait_for_url("**/submit")
     made = {}
     for name, repo in (("bad", bad), ("good", good)):
