@@ -132,7 +132,8 @@ def assign(lab: Site, console: Console, asked: str | None) -> tuple[str, str]:
 def robots(request: Request, viewer: Viewer) -> HTMLResponse:
     lab = site(request)
     states = [state(request, lab, r) for r in lab.robots]
-    return page(request, "robots.html", {"robots": states}, user=viewer)
+    context = {"robots": states, "reservations": lab.reservations}
+    return page(request, "robots.html", context, user=viewer)
 
 
 @router.get("/robots/{name}", response_class=HTMLResponse, name="robot_page")
@@ -164,6 +165,8 @@ def robot_page(
         "bridge": bridge_url(request, lab, robot.name),
         "session": secrets.token_hex(6),
         "user": viewer.name if viewer is not None else "guest",
+        "signed_in": viewer is not None,
+        "reservations": lab.reservations,
         "interface": shown,
         "assigned": assigned,
         "ratio": lab.interface_ratio,
