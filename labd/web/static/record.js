@@ -257,6 +257,21 @@ async function scene3d(info, summary, holder) {
   };
 }
 
+// -- a live page's user-experience events ---------------------------------------------------
+
+function uxEvents(ux) {
+  const counts = Object.entries(ux.counts).map(([kind, n]) => `${kind} ${n}`).join(" · ");
+  const rows = ux.events.map(([t, kind, key, value]) =>
+    el("tr", {}, el("td", { class: "num" }, t.toFixed(2)), el("td", {}, kind), el("td", {}, key),
+       el("td", { class: "mono" }, value)));
+  const total = Object.values(ux.counts).reduce((a, b) => a + b, 0);
+  return el("details", { class: "panel ux", id: "ux-events" },
+    el("summary", {}, `The page's events (/ux/events): ${counts}`),
+    el("table", {}, el("thead", {}, el("tr", {}, ...["s", "kind", "key", "value"].map((h) => el("th", {}, h)))),
+      el("tbody", {}, ...rows)),
+    total > ux.events.length ? el("p", { class: "muted" }, `the first ${ux.events.length} of ${total}`) : "");
+}
+
 // -- putting it together -----------------------------------------------------------------
 
 async function main() {
@@ -289,6 +304,7 @@ async function main() {
     await scene3d(summary.scene, summary, holder);
     mark("scene");
   }
+  if (summary.ux) { view.append(uxEvents(summary.ux)); mark("ux"); }
   if (!summary.plots.length && !summary.camera && !summary.scene) {
     view.append(el("p", { class: "muted" }, "The record holds nothing to plot."));
   }

@@ -103,6 +103,7 @@ async function main() {
     });
     perception($("perception"), state);
   }
+  document.body.dataset.ready = "yes";  // every handler is in place
 }
 
 /** A tag's centre in odom, from its position in the camera's optical frame. */

@@ -67,7 +67,9 @@ export async function connect(cfg) {
       browser_ms: performance.timeOrigin + performance.now(),
     });
   };
-  live.ux("interface", cfg.interface, { assigned: cfg.assigned, ratio: cfg.ratio, robot: cfg.robot });
+  const shown = () => live.ux("interface", cfg.interface,
+    { assigned: cfg.assigned, ratio: cfg.ratio, robot: cfg.robot, driving: live.driving });
+  shown();
   document.addEventListener("keydown", (e) => { if (!e.repeat) live.ux("key", e.key, "down"); });
   document.addEventListener("click", (e) => {
     const target = e.target.closest("button, a, input, canvas, img");
@@ -79,8 +81,10 @@ export async function connect(cfg) {
 
   // -- who drives, and the episode ------------------------------------------------------
   new Topic({ ros, name: "/lab/driver", messageType: "lab_msgs/msg/Driver" }).subscribe((m) => {
+    const was = live.driving;
     live.driver = m.driver;
     live.driving = m.driver !== "" && m.session === cfg.session;
+    if (live.driving && !was) shown();  // in the drive's record from its start
     $("driver").textContent = m.driver ? `${m.driver}${m.interface ? ` (${m.interface})` : ""}` : "nobody";
     $("you").textContent = `${cfg.user}, ${live.driving ? "driving" : "watching"}`;
     $("take").disabled = live.driving;

@@ -245,6 +245,7 @@ async function main() {
       for (const arm of Object.keys(ARMS)) { targets[arm].inBase = null; grab(arm); }
     }, 9500);
   });
+  document.body.dataset.ready = "yes";  // every handler is in place
 }
 
 main().catch((err) => {

@@ -3,7 +3,10 @@
 
 import { camera, config, connect } from "/static/live/lab.js";
 
-connect(config()).then((live) => camera(live, document.getElementById("camera"))).catch((err) => {
+connect(config()).then((live) => {
+  camera(live, document.getElementById("camera"));
+  document.body.dataset.ready = "yes";
+}).catch((err) => {
   document.getElementById("status").textContent = `the page could not start: ${err}`;
   throw err;
 });
