@@ -166,6 +166,8 @@ def test_interface_b_shows_the_tags(lab, watched):
     assert page.query_selector("#camera") is None
     page.wait_for_function("document.body.dataset.ready === 'yes'")
     page.wait_for_function("Number(document.getElementById('perception').dataset.frames || 0) > 2")
+    page.click("#take")
+    page.wait_for_function("document.body.dataset.driving === 'yes'")
     hold(page, "ArrowLeft", "Number(document.getElementById('perception').dataset.tags) > 0")
     page.wait_for_function("document.getElementById('goal').textContent.includes('m away')")
     shot(watched, "live-icreate-perception")

@@ -35,7 +35,6 @@ async function main() {
   camera(live, $("camera"));
 
   // -- the scene -------------------------------------------------------------------------
-  const info = await (await fetch(cfg.scene)).json();
   const holder = $("scene3d");
   const width = holder.clientWidth || 640, height = Math.round(width * 0.7);
   const renderer = new THREE.WebGLRenderer({ antialias: true });
@@ -43,17 +42,35 @@ async function main() {
   renderer.setSize(width, height);
   renderer.domElement.id = "pr2-scene";
   holder.replaceChildren(renderer.domElement);
-  const scene = await buildScene(THREE, info);
-  const q = info.qpos.slice();
-  const body = Object.fromEntries(info.bodies.map((b, i) => [b.name, i]));
-  const root = body[info.root];
-  // where the root body is at rest (its planar joints measure from there, as MuJoCo's)
-  const rest = kinematics(THREE, info.bodies);
-  rest.forward(info.rest);
-  const worldFromOdom = pose3({ x: info.odom[0], y: info.odom[1], z: info.odom[2] },
-    { x: info.odom[3], y: info.odom[4], z: info.odom[5], w: info.odom[6] });
+  // Each episode has its own model (the objects the seed drew): loaded again when the
+  // seed changes. ``q`` is MuJoCo's qpos, kept from the robot's topics.
+  let info, scene, q, body, root, rest, worldFromOdom;
   let worldFromBase = null;  // from /tf: odom -> base_footprint
   const tools = {};  // the tool frames in base_footprint, from /tf
+  const targets = {};
+  let handle = null, dirty = true;
+  const load = async () => {
+    info = await (await fetch(cfg.scene)).json();
+    const next = await buildScene(THREE, info);
+    for (const t of Object.values(targets)) { next.world.add(t.mesh); t.inBase = null; t.mesh.visible = false; }
+    if (handle) next.world.add(handle.getHelper());
+    scene = next;
+    q = info.qpos.slice();
+    body = Object.fromEntries(info.bodies.map((b, i) => [b.name, i]));
+    root = body[info.root];
+    rest = kinematics(THREE, info.bodies);  // where the root is at rest: its planar joints measure from there
+    rest.forward(info.rest);
+    worldFromOdom = pose3({ x: info.odom[0], y: info.odom[1], z: info.odom[2] },
+      { x: info.odom[3], y: info.odom[4], z: info.odom[5], w: info.odom[6] });
+    worldFromBase = null;
+    scene.pose(q);
+    dirty = true;
+  };
+  await load();
+  let loading = null;
+  live.onEpisode.push((m) => {
+    if (m.seed !== info.seed && !loading) loading = load().finally(() => { loading = null; });
+  });
 
   scene.pose(q);
   scene.world.updateMatrixWorld(true);
@@ -63,7 +80,6 @@ async function main() {
   orbit.update();
 
   // -- Cartesian targets, one per arm -------------------------------------------------------
-  const targets = {};
   for (const [arm, spec] of Object.entries(ARMS)) {
     const mesh = new THREE.Mesh(new THREE.SphereGeometry(0.025, 16, 12),
       new THREE.MeshLambertMaterial({ color: spec.color, transparent: true, opacity: 0.8 }));
@@ -74,7 +90,7 @@ async function main() {
     targets[arm] = { mesh, inBase: null, send: live.command(spec.topic, "geometry_msgs/msg/PoseStamped") };
   }
   let selected = "left";
-  const handle = new TransformControls(eye, renderer.domElement);
+  handle = new TransformControls(eye, renderer.domElement);
   handle.setSize(0.8);
   scene.world.add(handle.getHelper());
   handle.addEventListener("dragging-changed", (e) => { orbit.enabled = !e.value; });
@@ -126,7 +142,6 @@ async function main() {
   };
 
   // -- the robot's topics pose the scene -----------------------------------------------------
-  let dirty = true;
   new Topic({ ros, name: "/joint_states", messageType: "sensor_msgs/msg/JointState" }).subscribe((m) => {
     m.name.forEach((name, i) => { if (name in info.joints) q[info.joints[name]] = m.position[i]; });
     dirty = true;
@@ -143,7 +158,7 @@ async function main() {
       }
     }
     for (const arm of Object.keys(ARMS)) place(arm);
-    if (!handle.object && grab(selected)) handle.attach(targets[selected].mesh);
+    if (!targets[selected].inBase && grab(selected)) handle.attach(targets[selected].mesh);
     dirty = true;
   });
   new Topic({ ros, name: "/objects", messageType: "lab_msgs/msg/DetectedObjectArray", throttle_rate: 100 }).subscribe((m) => {
