@@ -84,8 +84,8 @@ async def drive(url: str, seconds: float) -> list[float]:
     async with websockets.connect(url, max_size=None) as ws:
         send = lambda m: ws.send(orjson.dumps(m).decode())  # noqa: E731
         await send({"op": "subscribe", "topic": "/camera/image/compressed", "queue_length": 1})
-        await send({"op": "call_service", "service": "/lab/drive", "id": "d",
-                    "args": {"session": "bench", "interface": "video", "user": "bench"}})  # fmt: skip
+        who = {"session": "bench", "interface": "video", "user": "bench"}
+        await send({"op": "call_service", "service": "/lab/drive", "id": "d", "args": who})
         await send({"op": "advertise", "topic": "/cmd_vel", "type": "geometry_msgs/msg/Twist"})
         frames: asyncio.Queue[tuple[float, np.ndarray]] = asyncio.Queue()
 
@@ -138,17 +138,15 @@ def run(viewers: int, seconds: float, rate: int, data: Path) -> dict[str, Any]:
     try:
         node = None
         if viewers:
+            script = str(ROOT / "bench" / "live_viewers.mjs")
             node = subprocess.Popen(
-                ["node", str(ROOT / "bench" / "live_viewers.mjs"), url, str(viewers), str(seconds + 4)],
-                stdout=subprocess.PIPE,
-            )  # fmt: skip
+                ["node", script, url, str(viewers), str(seconds + 4)], stdout=subprocess.PIPE
+            )
             assert node.stdout is not None
             assert node.stdout.readline().strip() == b"ready"
         cpu_start, wall_start = process.cpu_times(), time.monotonic()
-        peak = 0
-        latencies = asyncio.run(watch(drive(url, seconds), process, lambda r: None))
+        latencies, peak = asyncio.run(watch(drive(url, seconds), process))
         cpu_end, wall = process.cpu_times(), time.monotonic() - wall_start
-        peak = max(peak, process.memory_info().rss)
         fps: list[float] = []
         if node is not None:
             out, _ = node.communicate(timeout=60)
@@ -159,24 +157,21 @@ def run(viewers: int, seconds: float, rate: int, data: Path) -> dict[str, Any]:
             "fps": [round(f, 1) for f in fps],
             "latency_ms": sorted(latencies),
             "cpu": used / wall,
-            "rss_mb": max(peak, PEAK[0]) / 1e6,
+            "rss_mb": peak / 1e6,
         }
     finally:
         lab.terminate()
         lab.wait(10)
 
 
-PEAK = [0]
-
-
-async def watch(work: Any, process: psutil.Process, _: Any) -> Any:
-    """Run ``work`` while sampling the server's RSS every 100 ms."""
-    PEAK[0] = 0
+async def watch(work: Any, process: psutil.Process) -> tuple[Any, int]:
+    """Run ``work`` while sampling the server's RSS every 100 ms: its result, the peak."""
+    peak = 0
     task = asyncio.ensure_future(work)
     while not task.done():
-        PEAK[0] = max(PEAK[0], process.memory_info().rss)
+        peak = max(peak, process.memory_info().rss)
         await asyncio.sleep(0.1)
-    return task.result()
+    return task.result(), peak
 
 
 def pct(values: list[float], q: float) -> float:
@@ -194,12 +189,15 @@ def main() -> None:
     parser.add_argument("--json", action="store_true")
     args = parser.parse_args()
     data = Path(os.environ.get("TMPDIR", "/tmp")) / f"labd-bench-live-{os.getpid()}"
-    results = [run(0, args.seconds, args.rate, data), run(args.viewers, args.seconds, args.rate, data)]
+    results = [run(n, args.seconds, args.rate, data) for n in (0, args.viewers)]
     if args.json:
         print(json.dumps(results, indent=2))
         return
     base, loaded = results
-    print(f"camera 640x480 at {args.rate} Hz; {args.viewers} roslibjs viewers (Node), {args.seconds:g} s")
+    print(
+        f"camera 640x480 at {args.rate} Hz; {args.viewers} roslibjs viewers (Node),"
+        f" {args.seconds:g} s"
+    )
     print(f"{'':32} {'no viewer':>12} {f'{args.viewers} viewers':>12} {'ratio':>7}")
     for label, a, b in (
         ("latency p50 (ms)", pct(base["latency_ms"], 0.5), pct(loaded["latency_ms"], 0.5)),

@@ -103,7 +103,7 @@ class Lab:
             tuple(RobotLink(r.name, r.task, r.live) for r in config.robots),
             bridge_tls=config.bridge.tls_cert is not None,
             interface_ratio=config.interface_ratio,
-            rng=random.Random(config.interface_seed),
+            rng=random.Random(config.interface_seed),  # noqa: S311 (a study's draw, not a secret)
             reservations=config.reservations,
         )
         self.app: FastAPI | None = None

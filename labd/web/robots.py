@@ -144,9 +144,7 @@ def robot_page(
     robot = _robot(lab, name)
     if robot is None:
         names = ", ".join(r.name for r in lab.robots) or "none"
-        return missing(
-            request, viewer, f"No robot {name}", f"This lab's live robots: {names}."
-        )
+        return missing(request, viewer, f"No robot {name}", f"This lab's live robots: {names}.")
     console = CONSOLES.get(robot.task, PLAIN)
     try:
         shown, assigned = assign(lab, console, interface)
@@ -154,8 +152,12 @@ def robot_page(
         return page(
             request,
             "error.html",
-            {"title": "No such interface", "message": str(err), "back": f"/robots/{name}",
-             "back_text": "Open the page with an interface drawn at random"},
+            {
+                "title": "No such interface",
+                "message": str(err),
+                "back": f"/robots/{name}",
+                "back_text": "Open the page with an interface drawn at random",
+            },
             user=viewer,
             status_code=422,
         )

@@ -199,7 +199,9 @@ def test_the_pr2_page_moves_an_arm_to_a_target(lab, watched):
     page = watched.page
     page.goto(url(lab, "/robots/pr2-1"))
     page.wait_for_function("document.body.dataset.ready === 'yes'", timeout=60_000)
-    page.wait_for_function("Number(document.getElementById('pr2-scene')?.dataset.frames || 0) > 3", timeout=60_000)
+    page.wait_for_function(
+        "Number(document.getElementById('pr2-scene')?.dataset.frames || 0) > 3", timeout=60_000
+    )
     page.wait_for_function("window.labPr2 && window.labPr2.tool('left') !== null")
     assert page.evaluate("window.labPr2.bodyPose('torso_lift_link')") is not None
     page.wait_for_function("Number(document.getElementById('camera').dataset.frames || 0) >= 2")
