@@ -162,11 +162,7 @@ class LabTrial:
         return dict(self.robot.sim.metrics())
 
     def model_files(self) -> dict[str, tuple[str, bytes]]:
-        sim = self.robot.sim
-        files = {"model.xml": ("application/xml", sim.model_xml().encode())}
-        for name, data in sim.task.model_assets.items():
-            files[f"model/{name}"] = ("application/octet-stream", data)
-        return files
+        return self.robot.sim.model_files()
 
     async def next_tick(self) -> None:
         waiter = asyncio.get_running_loop().create_future()

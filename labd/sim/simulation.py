@@ -120,6 +120,14 @@ class Simulation:
         """The model as MJCF, for the record (what was compiled, not the generator)."""
         return self.task.model_xml
 
+    def model_files(self) -> dict[str, tuple[str, bytes]]:
+        """The model as a record's attachments: ``model.xml`` and the files it names
+        (``model/NAME``: textures), so that MuJoCo compiles it back from the record."""
+        files = {"model.xml": ("application/xml", self.model_xml().encode())}
+        for name, data in self.task.model_assets.items():
+            files[f"model/{name}"] = ("application/octet-stream", data)
+        return files
+
     def close(self) -> None:
         """Free the physics and its rendering contexts, on the thread that made them.
 
