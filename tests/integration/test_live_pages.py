@@ -176,6 +176,58 @@ def test_interface_b_shows_the_tags(lab, watched):
     watched.check()
 
 
+# A gamepad the page polls through the Gamepad API: its left stick is pushed forward
+# (axis 1 at -1) once the test sets window.padForward; "gamepadconnected" is sent by the test.
+GAMEPAD = """
+(() => {
+  const pad = { id: "test pad (STANDARD GAMEPAD)", index: 0, connected: true, mapping: "standard",
+                buttons: Array.from({ length: 17 }, () => ({ pressed: false, value: 0 })),
+                get axes() { return [0, window.padForward ? -1 : 0, 0, 0]; } };
+  navigator.getGamepads = () => [pad, null, null, null];
+  window.connectPad = () => {
+    const event = new Event("gamepadconnected");
+    Object.defineProperty(event, "gamepad", { value: pad });
+    window.dispatchEvent(event);
+  };
+})();
+"""
+
+
+ODOM = "() => ['x', 'y'].map((k) => Number(document.getElementById('odom').dataset[k]))"
+
+
+def test_a_gamepad_drives(lab, watched):
+    """The left stick of a gamepad (the Gamepad API, polled) drives the robot forward,
+    and letting it go stops it; the page names the pad and logs its connection."""
+    page = watched.page
+    page.add_init_script(GAMEPAD)
+    page.goto(url(lab, "/robots/icreate-1?interface=perception"))
+    page.wait_for_function("document.body.dataset.ready === 'yes'")
+    page.evaluate("window.connectPad()")
+    page.wait_for_function("document.getElementById('gamepad').textContent.includes('test pad')")
+    page.click("#take")
+    page.wait_for_function("document.body.dataset.driving === 'yes'")
+    page.wait_for_function("document.getElementById('odom').dataset.y !== undefined")
+    start = page.evaluate(ODOM)
+    page.evaluate("window.padForward = true")
+    page.wait_for_function(
+        f"(() => {{ const [x, y] = ({ODOM})(); return Math.hypot(x - {start[0]}, y - {start[1]}) > 0.1; }})()"
+    )
+    page.evaluate("window.padForward = false")
+    # stopped: odometry settles (two readings a second apart agree)
+    def still() -> bool:
+        first = page.evaluate(ODOM)
+        time.sleep(1.0)
+        return first == page.evaluate(ODOM)
+
+    deadline = time.monotonic() + 20
+    while not still():
+        assert time.monotonic() < deadline, "the robot kept moving after the stick was let go"
+    page.click("#release")
+    page.wait_for_function("document.body.dataset.driving === 'no'")
+    watched.check()
+
+
 def test_the_interface_is_drawn_per_session(lab):
     """Page loads without an override draw both interfaces (the lab's ratio); the
     override wins; an unknown one is refused; an unknown robot is a 404."""

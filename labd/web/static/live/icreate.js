@@ -67,6 +67,7 @@ async function main() {
     $("odom").textContent = `x ${p.x.toFixed(2)} m, y ${p.y.toFixed(2)} m, heading ${(th * 180 / Math.PI).toFixed(0)}°`
       + ` · ${m.twist.twist.linear.x.toFixed(2)} m/s, ${m.twist.twist.angular.z.toFixed(2)} rad/s`;
     $("odom").dataset.x = p.x.toFixed(4);
+    $("odom").dataset.y = p.y.toFixed(4);
     showGoal();
   });
   new Topic({ ros, name: "/bumper", messageType: "lab_msgs/msg/Bumper" }).subscribe((m) => {
