@@ -214,6 +214,7 @@ def test_a_gamepad_drives(lab, watched):
         f"(() => {{ const [x, y] = ({ODOM})(); return Math.hypot(x - {start[0]}, y - {start[1]}) > 0.1; }})()"
     )
     page.evaluate("window.padForward = false")
+
     # stopped: odometry settles (two readings a second apart agree)
     def still() -> bool:
         first = page.evaluate(ODOM)
