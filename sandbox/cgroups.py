@@ -16,6 +16,7 @@ Where the memory hierarchy is missing or read-only (cgroup v2, an unprivileged l
 from __future__ import annotations
 
 import contextlib
+import errno
 import logging
 import os
 import signal
@@ -97,10 +98,25 @@ class JobCgroup:
     def limits_processes(self) -> bool:
         return "pids" in self.folders
 
-    def add(self, pid: int) -> None:
-        """Move ``pid`` (and so what it starts from now on) into the job's cgroups."""
+    def add(self, pid: int, patience: float = 2.0) -> None:
+        """Move ``pid`` (and so what it starts from now on) into the job's cgroups.
+
+        A process forked a moment ago may not have been woken for the first time yet
+        (the kernel's TASK_NEW state), and the cpu controller refuses to move it with
+        EINVAL until it has: that is retried for up to ``patience`` seconds.
+        """
+        deadline = time.monotonic() + patience
         for controller in self.folders:
-            self._write(controller, "cgroup.procs", pid)
+            delay = 0.001
+            while True:
+                try:
+                    self._write(controller, "cgroup.procs", pid)
+                    break
+                except OSError as err:
+                    if err.errno != errno.EINVAL or time.monotonic() > deadline:
+                        raise
+                time.sleep(delay)
+                delay = min(delay * 2, 0.05)
 
     def oom_kills(self) -> int:
         """How many processes the kernel killed in this cgroup for lack of memory."""
