@@ -33,6 +33,7 @@ from repository.blobs import BlobStore
 from repository.index import Index
 from repository.signing import Keyring
 from repository.trial import Ending, Filing, Kind
+from scheduler.data import DataPolicy, LocalArchive
 from scheduler.fetch import FetchPolicy
 from scheduler.queue import Queue, QueueConfig
 from scheduler.runner import RunOptions
@@ -56,6 +57,7 @@ class ServiceConfig:
     heartbeat: float = 10.0
     fetch: FetchPolicy = field(default_factory=FetchPolicy)
     run: RunOptions = field(default_factory=RunOptions)
+    data: DataPolicy = field(default_factory=DataPolicy)  # how much [data] a trial may pin
 
     @property
     def database_url(self) -> str:
@@ -82,7 +84,14 @@ class Service:
         self.store = BlobStore(config.blobs_url, dict(config.blob_options) or None)
         self.keyring = Keyring((config.keys or config.data / "keys").resolve())
         self.queue = Queue(self.index, config.queue, self.keyring)
-        self.submissions = Submissions(self.queue, self.host, self.cache, config.fetch)
+        self.submissions = Submissions(
+            self.queue,
+            self.host,
+            self.cache,
+            config.fetch,
+            archive=LocalArchive(self.index, self.store),
+            data_policy=config.data,
+        )
         self.workers: list[Worker] = []
         self._tasks: list[asyncio.Task[None]] = []
         self._stop = asyncio.Event()

@@ -17,9 +17,11 @@ from mcap_ros2.writer import Writer as Ros2Writer
 from labd.graph.graph import Graph, Side
 from labd.graph.types import TypeRegistry
 from labd.recorder import Recorder
+from labd.sim import registry
 from labd.sim.robot import Robot
+from scheduler.manifest import versions
 from repository.errors import ExportError
-from repository.export import PROVENANCE_KEY, export
+from repository.export import export
 
 TASK = "icreate-maze"
 TICKS = 24
@@ -66,7 +68,16 @@ def drive(
     robot = Robot(graph, TASK, {}, 3)
     task = robot.sim.task
     topics = {o.name for o in task.observations} | {c.name for c in task.commands}
-    recorder = Recorder(graph, folder, digest_topics=topics, manifest=PROVENANCE["manifest"])
+    manifest = {
+        "task": {"name": TASK, "version": registry.get(TASK).version},
+        "parameters": registry.validate(TASK, {}),
+        "seed": 3,
+        "versions": versions(),
+        "model_sha256": robot.sim.model_digest(),
+        "repository": PROVENANCE["repository"],
+        "commit": PROVENANCE["commit"],
+    }
+    recorder = Recorder(graph, folder, digest_topics=topics, manifest=manifest)
     run = Drive(folder / "trial.mcap")
     latest: dict[str, Any] = {}
 
