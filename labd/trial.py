@@ -30,6 +30,7 @@ from labd.graph.definitions import trial_types
 from labd.graph.types import TypeRegistry
 from labd.recorder import Recorder, first_difference
 from labd.recorder.digest import data_digest
+from labd.recorder.record import media_type
 from labd.sim import registry
 from labd.sim.base import SUCCEEDED
 from labd.sim.robot import LiveRunner
@@ -171,7 +172,7 @@ class LabTrial:
         sim = self.robot.sim
         files = {"model.xml": ("application/xml", sim.model_xml().encode())}
         for name, data in sim.task.model_assets.items():
-            files[f"model/{name}"] = ("application/octet-stream", data)
+            files[f"model/{name}"] = (media_type(name), data)
         return files
 
     async def next_tick(self) -> None:

@@ -34,6 +34,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 from collections.abc import Sequence
 from fractions import Fraction
 from pathlib import Path
@@ -215,6 +216,8 @@ def _encode(
     """Encode every episode's frames of ``camera`` into one AV1 MP4; its frame shape, and
     LeRobot's image statistics (per channel, in [0, 1]) overall and per episode."""
     path.parent.mkdir(parents=True, exist_ok=True)
+    # SVT-AV1 prints its configuration to stderr unless told to log errors only.
+    os.environ.setdefault("SVT_LOG", "1")
     shape: tuple[int, int, int] | None = None
     container = av.open(str(path), mode="w", format="mp4")
     overall: list[np.ndarray] = []
