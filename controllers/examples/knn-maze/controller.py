@@ -1,0 +1,128 @@
+"""A k-nearest-neighbours policy for icreate-maze, learnt from demonstrations.
+
+The rosjs paper's own example of the lab's loop: people drive the robot, the lab keeps
+their drives, and a controller that learns from them drives the robot in turn. The
+demonstrations are in ``LAB_DATA_DIR`` (the lab pins them when the trial is submitted;
+docs/trials.md, "Data to learn from"): ``lerobot/icreate-maze/arrays.npz`` holds every
+demonstrated control tick, the observation entries of the task's export layout
+(docs/tasks.md) and the command the driver gave then.
+
+The policy reads what the robot senses, in its own frame, so what it learnt in one maze
+applies in another: the goal's distance and direction from ``/odom`` and ``/goal``, the
+two bumpers, and the robot's own speed and turn rate. Each tick it finds the ``K``
+demonstrated ticks nearest to that (each feature scaled by its spread in the data) and
+commands the distance-weighted mean of their ``/cmd_vel``. Nothing else: no map, no
+planner; it is as good as its data and its features let it be. It uses NumPy and the
+lab's client library only, and nothing random, so the same data and seed give the same
+run.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import os
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from controllers.client import EpisodeOver, Lab
+
+K = 5
+FEATURES = (
+    "goal.distance",
+    "goal.bearing",
+    "bumper.left",
+    "bumper.right",
+    "odom.linear",
+    "odom.angular",
+)
+DATASET = Path("lerobot") / "icreate-maze" / "arrays.npz"
+log = logging.getLogger("knn")
+
+
+def features(values: dict[str, float]) -> np.ndarray:
+    """The policy's view of one tick: the goal (distance capped at 3 m, direction as a unit
+    vector, so that -pi and pi are neighbours), bumpers, speed and turn rate."""
+    bearing = values["goal.bearing"]
+    return np.array(
+        [
+            min(values["goal.distance"], 3.0),
+            math.cos(bearing),
+            math.sin(bearing),
+            values["bumper.left"],
+            values["bumper.right"],
+            values["odom.linear"],
+            values["odom.angular"],
+        ]
+    )
+
+
+class Policy:
+    """The demonstrated ticks, as features and commands."""
+
+    def __init__(self, data: Path) -> None:
+        arrays = np.load(data)
+        names = [str(n) for n in arrays["observation_names"]]
+        columns = {name: arrays["observation"][:, names.index(name)] for name in FEATURES}
+        rows = [dict(zip(FEATURES, values, strict=True)) for values in zip(*columns.values())]
+        self.inputs = np.array([features(row) for row in rows])
+        actions = [str(n) for n in arrays["action_names"]]
+        picked = [actions.index("cmd_vel.linear.x"), actions.index("cmd_vel.angular.z")]
+        self.outputs = arrays["action"][:, picked].astype(np.float64)
+        self.scale = self.inputs.std(axis=0) + 1e-6
+        episodes = len(set(arrays["episode"].tolist()))
+        log.info("learnt from %d ticks of %d demonstrations", len(self.inputs), episodes)
+
+    def act(self, now: np.ndarray) -> tuple[float, float]:
+        distances = np.linalg.norm((self.inputs - now) / self.scale, axis=1)
+        nearest = np.argsort(distances, kind="stable")[:K]
+        weights = 1.0 / (distances[nearest] + 1e-3)
+        v, w = (self.outputs[nearest] * weights[:, None]).sum(axis=0) / weights.sum()
+        return float(v), float(w)
+
+
+def observe(odom: dict, goal: dict, bumper: dict) -> dict[str, float]:
+    """The layout's entries the policy uses, computed as the lab's export computes them."""
+    pose = odom["pose"]["pose"]
+    q = pose["orientation"]
+    heading = math.atan2(2 * (q["w"] * q["z"] + q["x"] * q["y"]), 1 - 2 * (q["y"] ** 2 + q["z"] ** 2))
+    dx = goal["point"]["x"] - pose["position"]["x"]
+    dy = goal["point"]["y"] - pose["position"]["y"]
+    return {
+        "goal.distance": math.hypot(dx, dy),
+        "goal.bearing": math.remainder(math.atan2(dy, dx) - heading, math.tau),
+        "bumper.left": float(bumper["left"]),
+        "bumper.right": float(bumper["right"]),
+        "odom.linear": odom["twist"]["twist"]["linear"]["x"],
+        "odom.angular": odom["twist"]["twist"]["angular"]["z"],
+    }
+
+
+def main() -> int:
+    logging.basicConfig(level=logging.INFO, format="%(name)s: %(message)s")
+    folder = os.environ.get("LAB_DATA_DIR")
+    if not folder or not (Path(folder) / DATASET).is_file():
+        log.error("no demonstrations: lab.toml's [data] must pin some (LAB_DATA_DIR/%s)", DATASET)
+        return 2
+    policy = Policy(Path(folder) / DATASET)
+    with Lab.connect() as lab:
+        odom = lab.subscribe("/odom", "nav_msgs/msg/Odometry")
+        bumper = lab.subscribe("/bumper", "lab_msgs/msg/Bumper")
+        goal = lab.subscribe("/goal", "geometry_msgs/msg/PointStamped").get()
+        odom.get()
+        bumper.get()
+        try:
+            while True:
+                now = features(observe(odom.latest, goal, bumper.latest))
+                v, w = policy.act(now)
+                lab.publish("/cmd_vel", "geometry_msgs/msg/Twist", {"linear": {"x": v}, "angular": {"z": w}})
+                lab.step()
+        except EpisodeOver as end:
+            log.info("%s: %s", end.status, end.reason)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
