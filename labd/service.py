@@ -57,7 +57,7 @@ class ServiceConfig:
     heartbeat: float = 10.0
     fetch: FetchPolicy = field(default_factory=FetchPolicy)
     run: RunOptions = field(default_factory=RunOptions)
-    data: DataPolicy = field(default_factory=DataPolicy)  # how much [data] a trial may pin
+    data_policy: DataPolicy = field(default_factory=DataPolicy)  # how much [data] a trial pins
 
     @property
     def database_url(self) -> str:
@@ -90,7 +90,7 @@ class Service:
             self.cache,
             config.fetch,
             archive=LocalArchive(self.index, self.store),
-            data_policy=config.data,
+            data_policy=config.data_policy,
         )
         self.workers: list[Worker] = []
         self._tasks: list[asyncio.Task[None]] = []

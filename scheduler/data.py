@@ -51,6 +51,7 @@ from scheduler.errors import DataUnavailable, InvalidData, QueueError
 from scheduler.host import TrialHost
 
 log = logging.getLogger("scheduler.data")
+MiB = 1024**2
 GiB = 1024**3
 LAYOUT = "labd.data/1"  # the folder's layout; part of the cache key
 INDEX = "data.json"
@@ -126,8 +127,8 @@ def resolve(
     size = sum(p.size for p in chosen.values())
     if size > policy.max_bytes:
         raise InvalidData(
-            f"its {len(chosen)} records hold {size / GiB:.2f} GiB, more than this lab's limit"
-            f" of {policy.max_bytes / GiB:.2f} GiB: pin fewer (a smaller limit)"
+            f"its {len(chosen)} records hold {size / MiB:.1f} MiB, more than this lab's limit"
+            f" of {policy.max_bytes / MiB:.1f} MiB: pin fewer (a smaller limit)"
         )
     return [chosen[i] for i in sorted(chosen)]
 

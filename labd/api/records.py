@@ -179,7 +179,7 @@ def export_many(
     if not trials and query is None:
         raise ApiError(422, "name trials (trials=12&trials=15) and/or a query (task=..., ...)")
     archive = LocalArchive(service.index, service.store)
-    pinned = resolve(DataSpec(tuple(trials), query), archive, service.config.data)
+    pinned = resolve(DataSpec(tuple(trials), query), archive, service.config.data_policy)
     chosen = [service.index.trial(p.trial) for p in pinned]
     folder = Path(tempfile.mkdtemp(prefix="labd-export-"))
     try:
