@@ -3,12 +3,14 @@
     .venv/bin/python bench/knn.py [--seeds 20] [--demos 5 10 20] [--time-limit 180]
 
 Scripted demonstrations (``labd.scripted``: a driver that knows the maze drives a live
-robot, each drive recorded as the lab records a person's) are converted as a trial's
-``LAB_DATA_DIR`` is (``labd.exports.write_dataset``); the example's policy
-(``controllers/examples/knn-maze``) learns from the first N of them and drives
-icreate-maze in lockstep, in this process, on seeds 0 .. seeds-1 (the demonstrations are
-of other seeds: other mazes). A random policy (uniform commands, seeded) drives the same
-seeds as the baseline. Prints the success rate, the mean reward (metres of progress along
+robot, each drive recorded as the lab records a person's), one of each maze of seeds
+0 .. seeds-1, are converted as a trial's ``LAB_DATA_DIR`` is
+(``labd.exports.write_dataset``). The example's policy (``controllers/examples/knn-maze``)
+learns from the first N of them (the mazes of seeds 0 .. N-1) and drives icreate-maze in
+lockstep, in this process, on every seed 0 .. seeds-1: so it is tried on N mazes it was
+shown and seeds-N it was not. Baselines on the same seeds: a random policy (uniform
+commands, seeded), and the kNN learning from as many demonstrations of other mazes
+(seeds 1000 and up). Prints the success rate, the mean reward (metres of progress along
 the corridors, +10 at the goal) and the time each took.
 """
 
@@ -45,20 +47,26 @@ def load_knn() -> Any:
     return module
 
 
-def demonstrations(count: int, folder: Path, seed: int = 1000) -> list[tuple[dict[str, Any], Path]]:
-    """``count`` successful scripted drives of seeds after ``seed``, as pinned records."""
+def demonstrations(seeds: list[int], folder: Path) -> list[tuple[dict[str, Any], Path]]:
+    """A successful scripted drive of each of the mazes of ``seeds``, as pinned records."""
     station = Station(
-        TypeRegistry.default(), "icreate-1", TASK, {}, seed, live=True, protected_prefixes=()
+        TypeRegistry.default(), "icreate-1", TASK, {}, 0, live=True, protected_prefixes=()
     )
     driving = Driving(station, work=folder)
     records = []
     try:
-        while len(records) < count:
-            demo = demonstrate(station, driving, user="script")
+        for seed in seeds:
+            demo = demonstrate(station, driving, user="script", seed=seed)
             if demo is None or not demo.achieved:
-                continue
-            known = {"trial": len(records) + 1, "kind": "demonstration", "task": TASK,
-                     "seed": demo.seed, "outcome": "success", "data_digest": demo.data_digest}
+                raise RuntimeError(f"the scripted driver failed on seed {seed}")
+            known = {
+                "trial": len(records) + 1,
+                "kind": "demonstration",
+                "task": TASK,
+                "seed": demo.seed,
+                "outcome": "success",
+                "data_digest": demo.data_digest,
+            }
             records.append((known, demo.folder / "trial.mcap"))
     finally:
         driving.close()
@@ -66,7 +74,7 @@ def demonstrations(count: int, folder: Path, seed: int = 1000) -> list[tuple[dic
     return records
 
 
-Act = Callable[[dict[str, Any], dict[str, Any], dict[str, Any]], tuple[float, float]]
+Act = Callable[[dict[str, Any], dict[str, Any]], tuple[float, float]]
 
 
 def drive(act: Act, seed: int, time_limit: float) -> dict[str, Any]:
@@ -75,13 +83,13 @@ def drive(act: Act, seed: int, time_limit: float) -> dict[str, Any]:
     robot = Robot(graph, TASK, {"time_limit": time_limit}, seed)
     client = graph.create_node("/policy", side=Side.CLIENT)
     latest: dict[str, Any] = {}
-    for topic in ("/odom", "/bumper", "/goal"):
+    for topic in ("/odom", "/goal"):
         client.subscribe(topic, None, lambda m, t=topic: latest.__setitem__(t, m.data))
     cmd = client.advertise("/cmd_vel", "geometry_msgs/msg/Twist")
     try:
         robot.publish()
         while robot.sim.running:
-            v, w = act(latest["/odom"], latest["/goal"], latest["/bumper"])
+            v, w = act(latest["/odom"], latest["/goal"])
             cmd.publish({"linear": {"x": v}, "angular": {"z": w}})
             robot.step()
         return dict(robot.sim.metrics())
@@ -94,10 +102,18 @@ def evaluate(name: str, act_for: Callable[[int], Act], seeds: int, limit: float)
     runs = [drive(act_for(seed), seed, limit) for seed in range(seeds)]
     wins = sum(bool(r["success"]) for r in runs)
     reward = sum(float(r["reward"]) for r in runs) / len(runs)
-    out = {"policy": name, "successes": wins, "seeds": seeds, "mean_reward": reward,
-           "seconds": time.perf_counter() - started}
-    print(f"{name:<28} {wins:>3}/{seeds} = {wins / seeds:5.0%}   mean reward {reward:6.2f}"
-          f"   ({out['seconds']:.0f} s)", flush=True)
+    out = {
+        "policy": name,
+        "successes": wins,
+        "seeds": seeds,
+        "mean_reward": reward,
+        "seconds": time.perf_counter() - started,
+    }
+    print(
+        f"{name:<28} {wins:>3}/{seeds} = {wins / seeds:5.0%}   mean reward {reward:6.2f}"
+        f"   ({out['seconds']:.0f} s)",
+        flush=True,
+    )
     return out
 
 
@@ -112,8 +128,10 @@ def main() -> None:
     with tempfile.TemporaryDirectory(prefix="labd-bench-knn-") as tmp:
         folder = Path(tmp)
         started = time.perf_counter()
-        records = demonstrations(max(args.demos), folder / "live")
-        print(f"{len(records)} scripted demonstrations in {time.perf_counter() - started:.0f} s")
+        most = max(args.demos)
+        shown = demonstrations(list(range(most)), folder / "live")
+        others = demonstrations(list(range(1000, 1000 + most)), folder / "live")
+        print(f"{2 * most} scripted demonstrations in {time.perf_counter() - started:.0f} s")
 
         def rng_policy(seed: int) -> Act:
             rng = random.Random(seed)
@@ -121,14 +139,18 @@ def main() -> None:
 
         evaluate("random", rng_policy, args.seeds, args.time_limit)
         for n in args.demos:
-            data = folder / f"data-{n}"
-            write_dataset(records[:n], data)
-            policy = knn.Policy(data / TASK / "arrays.npz")
+            for name, records in (
+                (f"kNN, {n} demonstrations", shown),
+                ("  of other mazes", others),
+            ):
+                data = folder / f"data-{name}-{n}"
+                write_dataset(records[:n], data)
+                policy = knn.Policy(data / TASK / "arrays.npz")
 
-            def act(odom: Any, goal: Any, bumper: Any, policy: Any = policy) -> tuple[float, float]:
-                return policy.act(knn.features(knn.observe(odom, goal, bumper)))
+                def act(odom: Any, goal: Any, policy: Any = policy) -> tuple[float, float]:
+                    return policy.act(knn.features(knn.observe(odom, goal)))
 
-            evaluate(f"kNN, {n} demonstrations", lambda _seed, act=act: act, args.seeds, args.time_limit)
+                evaluate(name, lambda _seed, act=act: act, args.seeds, args.time_limit)
 
 
 if __name__ == "__main__":

@@ -42,14 +42,22 @@ def move(layout: Any, pose: tuple[float, float, float]) -> tuple[float, float]:
 
 
 def demonstrate(
-    station: Station, driving: Driving, *, user: str, max_ticks: int = 4000
+    station: Station,
+    driving: Driving,
+    *,
+    user: str,
+    seed: int | None = None,
+    max_ticks: int = 4000,
 ) -> Demonstration | None:
     """Drive ``station``'s maze robot to its goal once, as ``user``; the filed drive.
 
-    The drive starts a new episode (the robot's next seed) and ends when the episode
-    does, or after ``max_ticks`` (then the drive is released, and filed as such).
+    The drive starts a new episode (the robot's next seed, or ``seed``: a maze shown
+    again) and ends when the episode does, or after ``max_ticks`` (then the drive is
+    released, and filed as such).
     """
     robot = station.robot
+    if seed is not None:  # taking the robot starts the episode of the seed after this one
+        robot.sim.seed = seed - 1
     node = station.graph.create_node(f"/scripted_{user}", side=Side.CLIENT)
     try:
         command = node.advertise("/cmd_vel", TWIST)

@@ -3,8 +3,8 @@
 Scripted drives of a live maze robot are filed as demonstrations; the kNN example, whose
 lab.toml asks for the maze's successful demonstrations, is submitted (its data pinned
 then, on SQLite and PostgreSQL), runs as a real sandboxed trial with the records in
-LAB_DATA_DIR, does better than a random policy on the same maze, and its rerun learns
-from the same records (even after more were filed) and reproduces.
+LAB_DATA_DIR, reaches the goal of a maze it was shown where a random policy gets nowhere,
+and its rerun learns from the same records (even after more were filed) and reproduces.
 """
 
 from __future__ import annotations
@@ -32,7 +32,7 @@ from tests.scheduler.conftest import make_backend
 EXAMPLE = Path(__file__).resolve().parents[2] / "controllers" / "examples" / "knn-maze"
 TASK = "icreate-maze"
 SEED = 4
-PARAMS = {"time_limit": 40.0}
+PARAMS: dict[str, float] = {}  # the task's defaults: 180 s
 
 
 def random_reward(seed: int) -> float:
@@ -63,8 +63,9 @@ async def run_next(service: Service, worker: Worker) -> int:
 async def test_a_knn_controller_learns_from_pinned_demonstrations_and_reruns(
     database_url, cache, tmp_path
 ):
-    """Demonstrations filed, the kNN submitted with them pinned, run sandboxed, better than
-    random; more demonstrations filed; the rerun pins the same ones and reproduces."""
+    """Demonstrations filed, the kNN submitted with them pinned, run sandboxed: it reaches
+    the goal of a demonstrated maze, better than random; more demonstrations are filed;
+    the rerun pins the same ones and reproduces."""
     service = Service(ServiceConfig(data=tmp_path / "lab", database=database_url, workers=0))
     service.index.add_user("knn", max_running=5)
     user = service.index.user("knn")
@@ -72,7 +73,8 @@ async def test_a_knn_controller_learns_from_pinned_demonstrations_and_reruns(
                       protected_prefixes=())  # fmt: skip
     driving = Driving(station, work=tmp_path / "live", file=service.file_demonstration)
     try:
-        demos = [demonstrate(station, driving, user="ann") for _ in range(5)]
+        mazes = [SEED, 11, 12, 13, 14]  # the trial's maze among others
+        demos = [demonstrate(station, driving, user="ann", seed=s) for s in mazes]
         assert all(d is not None and d.achieved for d in demos)
         filed = [t.id for t in service.index.find(Filters(kind=Kind.DEMONSTRATION)).items]
         assert len(filed) == 5
@@ -95,10 +97,10 @@ async def test_a_knn_controller_learns_from_pinned_demonstrations_and_reruns(
         await run_next(service, worker)
         done = service.index.trial(trial_id)
         assert done.status is Status.FINISHED and done.outcome is not None, done.reason
-        assert done.outcome.value != "error", done.reason
+        assert done.outcome.value == "success", done.reason
         assert done.manifest is not None
         assert done.manifest["data"] == [p.manifest_entry() for p in queued.data or []]
-        assert done.reward is not None and done.reward > random_reward(SEED)  # 1.20 > 0.49
+        assert done.reward is not None and done.reward > random_reward(SEED) + 10
 
         more = demonstrate(station, driving, user="ann")  # filed after: not learnt from
         assert more is not None

@@ -7,14 +7,16 @@ docs/trials.md, "Data to learn from"): ``lerobot/icreate-maze/arrays.npz`` holds
 demonstrated control tick, the observation entries of the task's export layout
 (docs/tasks.md) and the command the driver gave then.
 
-The policy reads what the robot senses, in its own frame, so what it learnt in one maze
-applies in another: the goal's distance and direction from ``/odom`` and ``/goal``, the
-two bumpers, and the robot's own speed and turn rate. Each tick it finds the ``K``
-demonstrated ticks nearest to that (each feature scaled by its spread in the data) and
-commands the distance-weighted mean of their ``/cmd_vel``. Nothing else: no map, no
-planner; it is as good as its data and its features let it be. It uses NumPy and the
-lab's client library only, and nothing random, so the same data and seed give the same
-run.
+The policy reads what the robot senses: its odometry (where it is and which way it
+faces, from where it started) and ``/goal`` (where the goal is, in the same frame). Each
+tick it finds the ``K`` demonstrated ticks nearest to its own (the goal's offset from the
+robot, its heading, and the goal's place, each scaled by its spread in the data) and
+commands the distance-weighted mean of their ``/cmd_vel``. The goal's place tells one
+maze from another, so it drives the mazes it was shown, along the demonstrated routes,
+and steers back onto them when it strays; in a maze no one demonstrated it has nothing
+to go on but heading for the goal, and a wall stops it. No map, no planner: it is as
+good as its data. It uses NumPy and the lab's client library only, and nothing random,
+so the same data and seed give the same run.
 """
 
 from __future__ import annotations
@@ -30,31 +32,23 @@ import numpy as np
 from controllers.client import EpisodeOver, Lab
 
 K = 5
-FEATURES = (
-    "goal.distance",
-    "goal.bearing",
-    "bumper.left",
-    "bumper.right",
-    "odom.linear",
-    "odom.angular",
-)
+FEATURES = ("odom.x", "odom.y", "odom.yaw", "goal.x", "goal.y")
 DATASET = Path("lerobot") / "icreate-maze" / "arrays.npz"
 log = logging.getLogger("knn")
 
 
 def features(values: dict[str, float]) -> np.ndarray:
-    """The policy's view of one tick: the goal (distance capped at 3 m, direction as a unit
-    vector, so that -pi and pi are neighbours), bumpers, speed and turn rate."""
-    bearing = values["goal.bearing"]
+    """The policy's view of one tick: the goal's offset from the robot (m), its heading as
+    a unit vector (so that -pi and pi are neighbours), and the goal's place (m)."""
+    yaw = values["odom.yaw"]
     return np.array(
         [
-            min(values["goal.distance"], 3.0),
-            math.cos(bearing),
-            math.sin(bearing),
-            values["bumper.left"],
-            values["bumper.right"],
-            values["odom.linear"],
-            values["odom.angular"],
+            values["goal.x"] - values["odom.x"],
+            values["goal.y"] - values["odom.y"],
+            math.cos(yaw),
+            math.sin(yaw),
+            values["goal.x"],
+            values["goal.y"],
         ]
     )
 
@@ -83,20 +77,18 @@ class Policy:
         return float(v), float(w)
 
 
-def observe(odom: dict, goal: dict, bumper: dict) -> dict[str, float]:
+def observe(odom: dict, goal: dict) -> dict[str, float]:
     """The layout's entries the policy uses, computed as the lab's export computes them."""
     pose = odom["pose"]["pose"]
     q = pose["orientation"]
-    heading = math.atan2(2 * (q["w"] * q["z"] + q["x"] * q["y"]), 1 - 2 * (q["y"] ** 2 + q["z"] ** 2))
-    dx = goal["point"]["x"] - pose["position"]["x"]
-    dy = goal["point"]["y"] - pose["position"]["y"]
     return {
-        "goal.distance": math.hypot(dx, dy),
-        "goal.bearing": math.remainder(math.atan2(dy, dx) - heading, math.tau),
-        "bumper.left": float(bumper["left"]),
-        "bumper.right": float(bumper["right"]),
-        "odom.linear": odom["twist"]["twist"]["linear"]["x"],
-        "odom.angular": odom["twist"]["twist"]["angular"]["z"],
+        "odom.x": pose["position"]["x"],
+        "odom.y": pose["position"]["y"],
+        "odom.yaw": math.atan2(
+            2 * (q["w"] * q["z"] + q["x"] * q["y"]), 1 - 2 * (q["y"] ** 2 + q["z"] ** 2)
+        ),
+        "goal.x": goal["point"]["x"],
+        "goal.y": goal["point"]["y"],
     }
 
 
@@ -109,15 +101,15 @@ def main() -> int:
     policy = Policy(Path(folder) / DATASET)
     with Lab.connect() as lab:
         odom = lab.subscribe("/odom", "nav_msgs/msg/Odometry")
-        bumper = lab.subscribe("/bumper", "lab_msgs/msg/Bumper")
         goal = lab.subscribe("/goal", "geometry_msgs/msg/PointStamped").get()
         odom.get()
-        bumper.get()
         try:
             while True:
-                now = features(observe(odom.latest, goal, bumper.latest))
+                now = features(observe(odom.latest, goal))
                 v, w = policy.act(now)
-                lab.publish("/cmd_vel", "geometry_msgs/msg/Twist", {"linear": {"x": v}, "angular": {"z": w}})
+                lab.publish(
+                    "/cmd_vel", "geometry_msgs/msg/Twist", {"linear": {"x": v}, "angular": {"z": w}}
+                )
                 lab.step()
         except EpisodeOver as end:
             log.info("%s: %s", end.status, end.reason)

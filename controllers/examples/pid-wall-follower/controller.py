@@ -125,10 +125,14 @@ def main() -> int:
             while True:
                 pose = odom.latest["pose"]["pose"]
                 q = pose["orientation"]
-                yaw = math.atan2(2 * (q["w"] * q["z"] + q["x"] * q["y"]), 1 - 2 * (q["y"] ** 2 + q["z"] ** 2))
+                yaw = math.atan2(
+                    2 * (q["w"] * q["z"] + q["x"] * q["y"]), 1 - 2 * (q["y"] ** 2 + q["z"] ** 2)
+                )
                 bumped = bumper.latest["left"] or bumper.latest["right"]
                 v, w = follower.command(pose["position"]["x"], pose["position"]["y"], yaw, bumped)
-                lab.publish("/cmd_vel", "geometry_msgs/msg/Twist", {"linear": {"x": v}, "angular": {"z": w}})
+                lab.publish(
+                    "/cmd_vel", "geometry_msgs/msg/Twist", {"linear": {"x": v}, "angular": {"z": w}}
+                )
                 lab.step()
         except EpisodeOver as end:
             log.info("%s: %s", end.status, end.reason)
