@@ -1,10 +1,12 @@
 """Run by the real ``lerobot`` package's Python (tests/integration/test_lerobot.py): load
 labd's LeRobot exports, merge them with ``aggregate_datasets``, and print what came out.
 
-    python lerobot_check.py OUT DATASET [DATASET ...]
+    python lerobot_check.py MERGED A,B[,...] [DATASET ...]
 
-Prints one JSON object: for each dataset and for the merge, the frames, episodes, an
-item's keys and image shape, each episode's ``labd/trial`` and the seconds it took.
+Loads every dataset named (those of the comma-separated list and the others), merges the
+list's into MERGED with ``aggregate_datasets`` and loads that too. Prints one JSON
+object: for each dataset and for the merge, the frames, episodes, an item's keys and
+image shape, each episode's ``labd/trial`` and provenance, and the seconds it took.
 """
 
 from __future__ import annotations
@@ -40,11 +42,13 @@ def load(root: Path, repo_id: str) -> dict:
 
 
 def main() -> None:
-    out, roots = Path(sys.argv[1]), [Path(p) for p in sys.argv[2:]]
-    report = {"datasets": [load(root, f"labd/{root.name}") for root in roots]}
+    out = Path(sys.argv[1])
+    merged = [Path(p) for p in sys.argv[2].split(",")]
+    roots = merged + [Path(p) for p in sys.argv[3:]]
+    report: dict = {"datasets": {root.name: load(root, f"labd/{root.name}") for root in roots}}
     started = time.perf_counter()
-    ids = [f"labd/{root.name}" for root in roots]
-    aggregate_datasets(ids, "labd/merged", roots=roots, aggr_root=out)
+    ids = [f"labd/{root.name}" for root in merged]
+    aggregate_datasets(ids, "labd/merged", roots=merged, aggr_root=out)
     report["aggregate_seconds"] = round(time.perf_counter() - started, 2)
     report["merged"] = load(out, "labd/merged")
     print(json.dumps(report))

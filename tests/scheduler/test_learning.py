@@ -113,3 +113,99 @@ async def test_a_knn_controller_learns_from_pinned_demonstrations_and_reruns(
         driving.close()
         station.close()
         service.index.close()
+
+
+# -- exports of the examples' trials -------------------------------------------------------
+
+EXAMPLES = EXAMPLE.parent
+
+
+@pytest.fixture(scope="module")
+def example_records(cache, tmp_path_factory):
+    """The maze and PR2 examples, each run once as a sandboxed trial (seed 0)."""
+    from labd.trial import LabHost
+    from scheduler.runner import TrialSpec, run_trial
+    import asyncio
+
+    backend = make_backend("bwrap", cache)
+    records = {}
+    for name in ("icreate-maze", "pr2-pick-place"):
+        out = tmp_path_factory.mktemp(name)
+        result = asyncio.run(
+            run_trial(TrialSpec(str(EXAMPLES / name)), backend=backend, host=LabHost(), out=out,
+                      cache=cache)  # fmt: skip
+        )
+        assert result.outcome is not None and result.outcome.value == "success", result.reason
+        records[name] = result
+    return records
+
+
+@pytest.mark.parametrize("fmt", ["parquet", "lerobot"])
+def test_exports_of_the_examples_keep_every_tick_and_the_camera(example_records, fmt, tmp_path):
+    """Neither example looks through the camera, and the PR2's commands start late: each
+    export has a row for every tick the trial ran, from tick 0, and an image on each."""
+    import json
+
+    import pyarrow.parquet as pq
+
+    from labd.exports import export_records
+
+    for name, result in example_records.items():
+        assert result.mcap is not None
+        out = tmp_path / f"{name}-{fmt}"
+        summary = export_records([(result.mcap, {"trial": 1})], out, fmt)
+        ticks = result.metrics["ticks"]
+        assert summary.frames == ticks and summary.rendered == ticks, name
+        if fmt == "parquet":
+            table = pq.read_table(out / "data.parquet")
+            assert table.column("frame_index").to_pylist() == list(range(ticks))
+            assert all(table.column("observation.images.camera").to_pylist())
+        else:
+            info = json.loads((out / "meta" / "info.json").read_text())
+            assert info["total_frames"] == ticks
+            assert info["features"]["observation.images.camera"]["dtype"] == "video"
+
+
+@pytest.mark.slow
+def test_lerobot_loads_the_exports_and_a_merge_keeps_every_provenance(example_records, tmp_path):
+    """The real lerobot (a throwaway environment: LABD_LEROBOT_PYTHON, made by
+    .ci/lerobot) loads the examples' exports and a camera trial's, video frames included,
+    and merging two with aggregate_datasets keeps each episode's provenance."""
+    import json
+    import os
+    import subprocess
+
+    from labd.exports import export_records
+    from tests.repository.test_export import drive
+
+    python = os.environ.get("LABD_LEROBOT_PYTHON")
+    if not python:
+        pytest.skip("set LABD_LEROBOT_PYTHON to a Python with lerobot (.ci/lerobot makes one)")
+    maze, pr2 = example_records["icreate-maze"], example_records["pr2-pick-place"]
+    camera = drive(tmp_path / "camera-trial", ticks=30, camera=5)
+    sources = {
+        "maze": [(maze.mcap, {"trial": 1, "data_digest": maze.data_digest})],
+        "camera": [(camera.mcap, {"trial": 2})],
+        "pr2": [(pr2.mcap, {"trial": 3, "data_digest": pr2.data_digest})],
+    }
+    for name, records in sources.items():
+        export_records(records, tmp_path / name, "lerobot")
+    check = Path(__file__).resolve().parents[1] / "integration" / "lerobot_check.py"
+    env = {**os.environ, "HF_HUB_OFFLINE": "1", "HF_LEROBOT_HOME": str(tmp_path / "home")}
+    done = subprocess.run(
+        [python, str(check), str(tmp_path / "merged"),
+         f"{tmp_path / 'maze'},{tmp_path / 'camera'}", str(tmp_path / "pr2")],
+        capture_output=True, text=True, env=env, timeout=600, check=False,
+    )  # fmt: skip
+    assert done.returncode == 0, done.stderr[-3000:]
+    report = json.loads(done.stdout.strip().splitlines()[-1])
+    loaded = report["datasets"]
+    assert loaded["maze"]["frames"] == maze.metrics["ticks"]
+    assert loaded["pr2"]["frames"] == pr2.metrics["ticks"]
+    assert loaded["camera"]["frames"] == 30
+    assert loaded["maze"]["image"] == loaded["pr2"]["image"] == [3, 240, 320]
+    assert loaded["pr2"]["task"].startswith("put the ") and "target area" in loaded["pr2"]["task"]
+    merged = report["merged"]
+    assert merged["frames"] == maze.metrics["ticks"] + 30 and merged["episodes"] == 2
+    assert merged["trials"] == [1, 2]
+    assert merged["data_digests"][0] == maze.data_digest
