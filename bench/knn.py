@@ -26,13 +26,13 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+from labd.exports import write_dataset
 from labd.graph.graph import Graph, Side
 from labd.graph.types import TypeRegistry
 from labd.live import Driving
 from labd.scripted import demonstrate
 from labd.sim.robot import Robot
 from labd.station import Station
-from labd.exports import write_dataset
 
 ROOT = Path(__file__).resolve().parent.parent
 TASK = "icreate-maze"

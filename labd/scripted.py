@@ -64,7 +64,7 @@ def demonstrate(
         driving.take(node, user=user, interface="script")
         before = len(driving.filed)
         sim = robot.sim
-        layout = sim.task.layout  # type: ignore[attr-defined]
+        layout = sim.task.layout  # the maze's; other tasks have none
         for _ in range(max_ticks):
             if not sim.running:
                 break

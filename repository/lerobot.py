@@ -112,20 +112,20 @@ def write_lerobot(episodes: Sequence[Episode], layout: Layout, folder: Path) -> 
     pq.write_table(pa.table({k: _arrow(v) for k, v in data.items()}), paths["data"])
     files = list(paths.values())
 
-    stats = {key: _stats(value) for key, value in data.items()}
+    stats: dict[str, dict[str, Any]] = {key: _stats(value) for key, value in data.items()}
     per_episode: list[dict[str, Any]] = [{} for _ in episodes]
     for camera in layout.cameras:
         key = IMAGES + camera.name
         video = folder / VIDEO_PATH.format(video_key=key, chunk_index=0, file_index=0)
-        shape, image_stats, episode_stats = _encode(episodes, camera.name, video, fps)
+        frame, image_stats, episode_stats = _encode(episodes, camera.name, video, fps)
         files.append(video)
         features[key] = {
             "dtype": "video",
-            "shape": list(shape),
+            "shape": list(frame),
             "names": ["height", "width", "channels"],
             "info": {
-                "video.height": shape[0],
-                "video.width": shape[1],
+                "video.height": frame[0],
+                "video.width": frame[1],
                 "video.codec": "av1",
                 "video.pix_fmt": PIX_FMT,
                 "video.is_depth_map": False,
@@ -136,13 +136,13 @@ def write_lerobot(episodes: Sequence[Episode], layout: Layout, folder: Path) -> 
         }
         stats[key] = image_stats
         for i, episode in enumerate(episodes):
-            row = per_episode[i]
-            row[f"videos/{key}/chunk_index"] = 0
-            row[f"videos/{key}/file_index"] = 0
-            row[f"videos/{key}/from_timestamp"] = float(starts[i]) / fps
-            row[f"videos/{key}/to_timestamp"] = float(starts[i] + len(episode)) / fps
-            for stat, value in episode_stats[i].items():
-                row[f"stats/{key}/{stat}"] = value
+            where_video = per_episode[i]
+            where_video[f"videos/{key}/chunk_index"] = 0
+            where_video[f"videos/{key}/file_index"] = 0
+            where_video[f"videos/{key}/from_timestamp"] = float(starts[i]) / fps
+            where_video[f"videos/{key}/to_timestamp"] = float(starts[i] + len(episode)) / fps
+            for stat, figure in episode_stats[i].items():
+                where_video[f"stats/{key}/{stat}"] = figure
 
     rows: list[dict[str, Any]] = []
     for i, episode in enumerate(episodes):
@@ -160,12 +160,11 @@ def write_lerobot(episodes: Sequence[Episode], layout: Layout, folder: Path) -> 
             "meta/episodes/file_index": 0,
         }
         for feature, values in data.items():
-            for stat, value in _stats(values[where]).items():
-                row[f"stats/{feature}/{stat}"] = value
+            for stat, figures in _stats(values[where]).items():
+                row[f"stats/{feature}/{stat}"] = figures
         provenance = episode.provenance
         for name in PROVENANCE_FIELDS:
-            value = provenance.get(name)
-            row[f"labd/{name}"] = None if value is None else value
+            row[f"labd/{name}"] = provenance.get(name)
         row["labd/provenance"] = json.dumps(provenance, sort_keys=True, ensure_ascii=False)
         rows.append(row)
     pq.write_table(_episodes_table(rows), paths["episodes"])

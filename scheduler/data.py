@@ -40,12 +40,13 @@ import uuid
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Protocol
+from typing import Any, Protocol
 
 from repository.blobs import BlobStore
 from repository.errors import ArchiveError, RecordNotFound
 from repository.index import Filters, Index
 from repository.trial import Kind, Outcome, PinnedRecord, Status, Trial
+from scheduler.client import ApiClient, refusal
 from scheduler.controller import DataQuery, DataSpec
 from scheduler.errors import DataUnavailable, InvalidData, QueueError
 from scheduler.host import TrialHost
@@ -100,6 +101,58 @@ class LocalArchive:
 
     def copy_to(self, digest: str, dest: str | Path) -> Path:
         return self.store.copy_to(digest, dest)
+
+
+class RemoteArchive:
+    """A lab's archive through its public HTTP API (``labd run --server``): trials are
+    read from ``/api/trials``, records downloaded from ``/api/trials/{id}/data.mcap`` and
+    checked against their digest."""
+
+    def __init__(self, client: ApiClient) -> None:
+        self.client = client
+        self.blobs: dict[str, int] = {}  # a record's blob digest -> its trial
+
+    def trial(self, trial_id: int) -> Trial:
+        response = self.client.http.get(f"/api/trials/{trial_id}")
+        if response.status_code == 404:
+            raise RecordNotFound("trial", str(trial_id))
+        if response.status_code >= 400:
+            raise refusal(response)
+        found: dict[str, Any] = response.json()
+        mcap = found.get("mcap") or {}
+        found.update(mcap=mcap.get("digest"), mcap_size=mcap.get("size"))
+        for name in ("worker", "stdout", "stderr"):
+            found.setdefault(name, None)
+        trial = Trial.model_validate(found)
+        if trial.mcap:
+            self.blobs[trial.mcap] = trial.id
+        return trial
+
+    def find(self, filters: Filters, limit: int) -> list[Trial]:
+        params: dict[str, str | int] = {"limit": min(500, max(limit * 2, 50))}
+        if filters.task is not None:
+            params["task"] = filters.task
+        if filters.submitter is not None:
+            params["user"] = filters.submitter
+        for name in ("kind", "outcome", "status"):
+            value = getattr(filters, name)
+            if value is not None:
+                params[name] = value.value
+        listed = self.client.request("GET", "/api/trials", params=params).json()["trials"]
+        found: list[Trial] = []
+        for row in listed:
+            if row["public"] and row.get("mcap") and len(found) < limit:
+                found.append(self.trial(int(row["id"])))
+        return found
+
+    def copy_to(self, digest: str, dest: str | Path) -> Path:
+        dest = Path(dest)
+        trial = self.blobs.get(digest)
+        if trial is None:
+            raise ArchiveError(f"no trial of this archive has the record {digest}")
+        dest.parent.mkdir(parents=True, exist_ok=True)
+        self.client.download(f"/api/trials/{trial}/data.mcap", dest, digest=digest)
+        return dest
 
 
 def resolve(

@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import dataclasses
 import hashlib
 import json
 import logging
@@ -39,7 +40,7 @@ from repository.trial import Ending, Outcome, PinnedRecord, Status, Value
 from sandbox.api import Backend, Exit, InstallError, Job, Limits, Running, SandboxError
 from scheduler import controller as controller_config
 from scheduler import manifest as manifests
-from scheduler.data import Blobs, materialize
+from scheduler.data import Archive, Blobs, materialize, resolve
 from scheduler.errors import ControllerConfigError, DataUnavailable, RequirementsError, TrialError
 from scheduler.fetch import FetchPolicy
 from scheduler.files import RepositoryFiles
@@ -166,13 +167,16 @@ async def run_trial(
     options: RunOptions | None = None,
     progress: Progress | None = None,
     archive: Blobs | None = None,
+    resolver: Archive | None = None,
 ) -> TrialResult:
     """Run one trial into the folder ``out``.
 
     ``archive`` is where the records ``spec.data`` pins are fetched from (a lab's blob
-    store, or its HTTP API). A trial that cannot start (no lab.toml, an unknown task,
-    requirements that do not install, pinned data that is gone or changed...) ends as an
-    ``error`` with the reason, not with an exception.
+    store, or its HTTP API); ``resolver`` is where lab.toml's ``[data]`` is resolved
+    when the spec pins nothing yet (``labd run``: a local archive, or a lab's API). A
+    trial that cannot start (no lab.toml, an unknown task, requirements that do not
+    install, pinned data that is gone or changed...) ends as an ``error`` with the
+    reason, not with an exception.
     """
     options = options or RunOptions()
     progress = progress or Progress()
@@ -193,7 +197,8 @@ async def run_trial(
                     work=work,
                     cache=cache,
                     options=options,
-                    archive=archive,
+                    archive=resolver or archive,
+                    resolver=resolver,
                 ),
                 options.prepare,
             )
@@ -244,6 +249,7 @@ async def _prepare(
     cache: Path,
     options: RunOptions,
     archive: Blobs | None,
+    resolver: Archive | None = None,
 ) -> _Prepared:
     code = work / "code"
     source = await asyncio.to_thread(checkout, spec.source, spec.ref, code, cache, options.fetch)
@@ -259,6 +265,14 @@ async def _prepare(
         )
         python_paths.append(target)
     data = None
+    if config.data is not None and not spec.data:
+        if resolver is None:
+            raise ControllerConfigError(
+                "it has [data], but no data was pinned for this trial and there is no archive"
+                " to resolve it against (labd run: --server URL, or --data with a lab's archive)"
+            )
+        pinned = await asyncio.to_thread(resolve, config.data, resolver)
+        spec = dataclasses.replace(spec, data=tuple(pinned))
     if spec.data:
         if archive is None:
             raise DataUnavailable(

@@ -438,7 +438,16 @@ def _queued_lines(row: TrialDetail) -> Iterator[str]:
     yield f"trial {row.id} queued: {what}"
     yield f"  {row.repository} @ {row.commit}{ref}"
     yield f"  seed {row.seed}" + (f", params {_params(row.params)}" if row.params else "")
+    if row.data:
+        yield f"  learns from {_data(row)}"
     yield f"  follow it: labd show {row.id}, or {row.page}"
+
+
+def _data(row: TrialDetail) -> str:
+    """The pinned records, in words: how many, which, and the first digests."""
+    records = row.data or []
+    ids = ", ".join(str(p.trial) for p in records[:12]) + (", ..." if len(records) > 12 else "")
+    return f"{len(records)} pinned records (trials {ids})"
 
 
 def _trial_lines(row: TrialDetail, full: bool = False) -> Iterator[str]:
@@ -452,6 +461,8 @@ def _trial_lines(row: TrialDetail, full: bool = False) -> Iterator[str]:
     yield f"  submitter  {row.submitter}, submitted {_time(row.created)}"
     if row.rerun_of:
         yield f"  rerun of   trial {row.rerun_of}: {row.verdict or 'not compared yet'}"
+    if row.data:
+        yield f"  data       {_data(row)}"
     if row.metrics:
         yield "  metrics    " + ", ".join(f"{k}={_fmt(v)}" for k, v in row.metrics.items())
     if row.manifest_digest:

@@ -9,22 +9,21 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import av
 import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
 import pytest
-from mcap.writer import Writer as McapWriter
-from mcap_ros2.writer import Writer as Ros2Writer
 
+from labd.exports import export_records, layout
 from labd.graph.graph import Graph, Side
 from labd.graph.types import TypeRegistry
 from labd.recorder import Recorder
 from labd.sim import registry
 from labd.sim.robot import Robot
-from scheduler.manifest import versions
 from repository.errors import ExportError
-from labd.exports import export_records, layout
 from repository.export import EPISODES_KEY, Source, export
+from scheduler.manifest import versions
 
 TASK = "icreate-maze"
 TICKS = 24
@@ -152,9 +151,9 @@ def test_parquet_has_a_row_per_tick_from_tick_0_with_neutral_commands_first(tmp_
         assert row["observation.odom.x"] == pytest.approx(position["x"])
         assert row["observation.bumper.left"] == float(seen["/bumper"]["left"])
         assert row["observation.goal.x"] == pytest.approx(seen["/goal"]["point"]["x"])
-        velocity = seen["/joint_states"]["velocity"][seen["/joint_states"]["name"].index(
-            "right_wheel_joint"
-        )]
+        velocity = seen["/joint_states"]["velocity"][
+            seen["/joint_states"]["name"].index("right_wheel_joint")
+        ]
         assert row["observation.wheel.right.velocity"] == pytest.approx(velocity)
         assert row["observation.images.camera"] == bytes(seen[CAMERA]["data"])
         assert row["next.reward"] == pytest.approx(run.episodes[k + 1]["reward"])
@@ -250,8 +249,6 @@ def test_lerobot_v3_layout_video_and_provenance(tmp_path):
     camera = features["observation.images.camera"]
     assert camera["dtype"] == "video" and camera["shape"] == [240, 320, 3]
     assert camera["info"]["video.codec"] == "av1"
-    import av
-
     with av.open(str(video)) as container:
         stream = container.streams.video[0]
         assert stream.codec_context.name in ("libdav1d", "av1", "libaom-av1")
@@ -304,7 +301,7 @@ def test_a_missing_or_unreadable_mcap_is_refused(tmp_path):
 def test_missing_images_that_nothing_renders_are_refused(tmp_path):
     """Without the lab's renderer, a record lacking a camera's images cannot be exported."""
     run = drive(tmp_path / "trial", ticks=3, camera=False)
-    with pytest.raises(ExportError, match="no image of camera for 3 ticks .from tick 0."):
+    with pytest.raises(ExportError, match=r"no image of camera for 3 ticks \(from tick 0\)"):
         export([Source(run.mcap, {})], tmp_path / "o", "parquet", layout(TASK))
     assert not (tmp_path / "o").exists()
 

@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import pytest
 
+from labd.graph.types import TypeRegistry
+from labd.trial import LabHost
 from repository.blobs import BlobStore
 from repository.index import Index
 from repository.trial import Kind, Outcome, PinnedRecord, Status
@@ -12,6 +14,7 @@ from scheduler import controller
 from scheduler.controller import DataQuery, DataSpec
 from scheduler.data import DataPolicy, LocalArchive, materialize, resolve
 from scheduler.errors import ControllerConfigError, DataUnavailable, InvalidData
+from tests.labd.test_recorder import record
 
 TASK = "icreate-maze"
 
@@ -125,9 +128,6 @@ def test_data_that_cannot_be_pinned_is_refused_with_the_reason(archive):
 def test_a_record_that_is_not_as_pinned_is_never_mounted(archive, tmp_path):
     """At run time each record is fetched and its data digest recomputed: a damaged blob or
     a digest that no longer matches ends the trial, and no data folder is left."""
-    from labd.trial import LabHost
-    from tests.labd.test_recorder import record
-    from labd.graph.types import TypeRegistry
 
     run = record(TypeRegistry.default(), tmp_path / "rec", manifest=True)
     mcap = run.summary.folder / "trial.mcap"

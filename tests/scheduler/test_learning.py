@@ -9,12 +9,18 @@ and its rerun learns from the same records (even after more were filed) and repr
 
 from __future__ import annotations
 
+import asyncio
+import json
+import os
 import random
 import shutil
+import subprocess
 from pathlib import Path
 
+import pyarrow.parquet as pq
 import pytest
 
+from labd.exports import export_records
 from labd.graph.graph import Graph, Side
 from labd.graph.types import TypeRegistry
 from labd.live import Driving
@@ -22,11 +28,13 @@ from labd.scripted import demonstrate
 from labd.service import Service, ServiceConfig
 from labd.sim.robot import Robot
 from labd.station import Station
+from labd.trial import LabHost
 from repository.index import Filters
 from repository.trial import Kind, Status, TrialRequest
-from scheduler.runner import RunOptions
+from scheduler.runner import RunOptions, TrialSpec, run_trial
 from scheduler.worker import Worker, WorkerConfig
 from tests.helpers.githttp import GitRepo
+from tests.repository.test_export import drive
 from tests.scheduler.conftest import make_backend
 
 EXAMPLE = Path(__file__).resolve().parents[2] / "controllers" / "examples" / "knn-maze"
@@ -46,7 +54,9 @@ def random_reward(seed: int) -> float:
     try:
         robot.publish()
         while robot.sim.running:
-            cmd.publish({"linear": {"x": rng.uniform(-0.5, 0.5)}, "angular": {"z": rng.uniform(-4, 4)}})
+            cmd.publish(
+                {"linear": {"x": rng.uniform(-0.5, 0.5)}, "angular": {"z": rng.uniform(-4, 4)}}
+            )
             robot.step()
         return float(robot.sim.metrics()["reward"])
     finally:
@@ -89,9 +99,7 @@ async def test_a_knn_controller_learns_from_pinned_demonstrations_and_reruns(
         assert [p.trial for p in queued.data or []] == sorted(filed)  # pinned when submitted
         assert {p.data_digest for p in queued.data or []} == {d.data_digest for d in demos if d}
 
-        config = WorkerConfig(
-            name="w", work=tmp_path / "work", cache=cache, options=RunOptions()
-        )
+        config = WorkerConfig(name="w", work=tmp_path / "work", cache=cache, options=RunOptions())
         worker = Worker(service.queue, service.store, make_backend("bwrap", cache), service.host,
                         config)  # fmt: skip
         await run_next(service, worker)
@@ -123,17 +131,19 @@ EXAMPLES = EXAMPLE.parent
 @pytest.fixture(scope="module")
 def example_records(cache, tmp_path_factory):
     """The maze and PR2 examples, each run once as a sandboxed trial (seed 0)."""
-    from labd.trial import LabHost
-    from scheduler.runner import TrialSpec, run_trial
-    import asyncio
 
     backend = make_backend("bwrap", cache)
     records = {}
     for name in ("icreate-maze", "pr2-pick-place"):
         out = tmp_path_factory.mktemp(name)
         result = asyncio.run(
-            run_trial(TrialSpec(str(EXAMPLES / name)), backend=backend, host=LabHost(), out=out,
-                      cache=cache)  # fmt: skip
+            run_trial(
+                TrialSpec(str(EXAMPLES / name)),
+                backend=backend,
+                host=LabHost(),
+                out=out,
+                cache=cache,
+            )
         )
         assert result.outcome is not None and result.outcome.value == "success", result.reason
         records[name] = result
@@ -144,12 +154,6 @@ def example_records(cache, tmp_path_factory):
 def test_exports_of_the_examples_keep_every_tick_and_the_camera(example_records, fmt, tmp_path):
     """Neither example looks through the camera, and the PR2's commands start late: each
     export has a row for every tick the trial ran, from tick 0, and an image on each."""
-    import json
-
-    import pyarrow.parquet as pq
-
-    from labd.exports import export_records
-
     for name, result in example_records.items():
         assert result.mcap is not None
         out = tmp_path / f"{name}-{fmt}"
@@ -171,13 +175,6 @@ def test_lerobot_loads_the_exports_and_a_merge_keeps_every_provenance(example_re
     """The real lerobot (a throwaway environment: LABD_LEROBOT_PYTHON, made by
     .ci/lerobot) loads the examples' exports and a camera trial's, video frames included,
     and merging two with aggregate_datasets keeps each episode's provenance."""
-    import json
-    import os
-    import subprocess
-
-    from labd.exports import export_records
-    from tests.repository.test_export import drive
-
     python = os.environ.get("LABD_LEROBOT_PYTHON")
     if not python:
         pytest.skip("set LABD_LEROBOT_PYTHON to a Python with lerobot (.ci/lerobot makes one)")

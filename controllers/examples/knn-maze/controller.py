@@ -29,7 +29,7 @@ from pathlib import Path
 
 import numpy as np
 
-from controllers.client import EpisodeOver, Lab
+from controllers.client import EpisodeOver, Lab, Message
 
 K = 5
 FEATURES = ("odom.x", "odom.y", "odom.yaw", "goal.x", "goal.y")
@@ -60,7 +60,10 @@ class Policy:
         arrays = np.load(data)
         names = [str(n) for n in arrays["observation_names"]]
         columns = {name: arrays["observation"][:, names.index(name)] for name in FEATURES}
-        rows = [dict(zip(FEATURES, values, strict=True)) for values in zip(*columns.values())]
+        rows = [
+            dict(zip(FEATURES, values, strict=True))
+            for values in zip(*columns.values(), strict=True)
+        ]
         self.inputs = np.array([features(row) for row in rows])
         actions = [str(n) for n in arrays["action_names"]]
         picked = [actions.index("cmd_vel.linear.x"), actions.index("cmd_vel.angular.z")]
@@ -77,7 +80,7 @@ class Policy:
         return float(v), float(w)
 
 
-def observe(odom: dict, goal: dict) -> dict[str, float]:
+def observe(odom: Message, goal: Message) -> dict[str, float]:
     """The layout's entries the policy uses, computed as the lab's export computes them."""
     pose = odom["pose"]["pose"]
     q = pose["orientation"]
@@ -105,7 +108,7 @@ def main() -> int:
         odom.get()
         try:
             while True:
-                now = features(observe(odom.latest, goal))
+                now = features(observe(odom.get(), goal))
                 v, w = policy.act(now)
                 lab.publish(
                     "/cmd_vel", "geometry_msgs/msg/Twist", {"linear": {"x": v}, "angular": {"z": w}}

@@ -123,12 +123,13 @@ def main() -> int:
         follower = Follower(dt=0.1)
         try:
             while True:
-                pose = odom.latest["pose"]["pose"]
+                pose = odom.get()["pose"]["pose"]
                 q = pose["orientation"]
                 yaw = math.atan2(
                     2 * (q["w"] * q["z"] + q["x"] * q["y"]), 1 - 2 * (q["y"] ** 2 + q["z"] ** 2)
                 )
-                bumped = bumper.latest["left"] or bumper.latest["right"]
+                pressed = bumper.get()
+                bumped = pressed["left"] or pressed["right"]
                 v, w = follower.command(pose["position"]["x"], pose["position"]["y"], yaw, bumped)
                 lab.publish(
                     "/cmd_vel", "geometry_msgs/msg/Twist", {"linear": {"x": v}, "angular": {"z": w}}
