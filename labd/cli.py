@@ -11,6 +11,7 @@
     labd keys rotate               the operator's: sign with a new key
     labd worker --server URL       run a lab's trials on this machine
     labd demo                      what `make demo` runs
+    labd demonstrate               scripted maze demonstrations, filed in the archive
 
 Exit codes are listed in ``labd.commands.common`` and at the end of ``labd --help``.
 """
@@ -26,7 +27,18 @@ from collections.abc import Callable, Sequence
 from typing import NoReturn
 
 from labd import __version__
-from labd.commands import demo, migrate, remote, replay, run, serve, users, verify, worker
+from labd.commands import (
+    demo,
+    demonstrate,
+    migrate,
+    remote,
+    replay,
+    run,
+    serve,
+    users,
+    verify,
+    worker,
+)
 from labd.commands.common import EPILOG
 
 log = logging.getLogger("labd")
@@ -65,6 +77,7 @@ def build_parser() -> argparse.ArgumentParser:
     verify.add_parser(commands)
     replay.add_parser(commands)
     demo.add_parser(commands)
+    demonstrate.add_parser(commands)
     worker.add_parser(commands)
     return parser
 
@@ -78,6 +91,7 @@ MAINS: dict[str, Callable[[argparse.Namespace], int]] = {
     "replay": replay.main,
     "keys": verify.main,
     "demo": demo.main,
+    "demonstrate": demonstrate.main,
     "worker": worker.main,
     **dict.fromkeys(remote.COMMANDS, remote.main),
 }

@@ -462,7 +462,7 @@ def _trial_lines(row: TrialDetail, full: bool = False) -> Iterator[str]:
     if row.rerun_of:
         yield f"  rerun of   trial {row.rerun_of}: {row.verdict or 'not compared yet'}"
     if row.data:
-        yield f"  data       {_data(row)}"
+        yield f"  learns     {_data(row)}"
     if row.metrics:
         yield "  metrics    " + ", ".join(f"{k}={_fmt(v)}" for k, v in row.metrics.items())
     if row.manifest_digest:

@@ -19,6 +19,8 @@ from pathlib import Path
 
 import pyarrow.parquet as pq
 import pytest
+from mcap.records import Attachment, DataEnd
+from mcap.stream_reader import StreamReader
 
 from labd.exports import export_records
 from labd.graph.graph import Graph, Side
@@ -207,3 +209,25 @@ def test_lerobot_loads_the_exports_and_a_merge_keeps_every_provenance(example_re
     assert merged["frames"] == maze.metrics["ticks"] + 30 and merged["episodes"] == 2
     assert merged["trials"] == [1, 2]
     assert merged["data_digests"][0] == maze.data_digest
+
+
+def test_records_have_data_checksums_and_typed_attachments(example_records):
+    """A trial's MCAP file has a CRC of its data section, and each attachment its media
+    type (the model's textures are PNG images)."""
+    result = example_records["icreate-maze"]
+    assert result.mcap is not None
+    types: dict[str, str] = {}
+    crc = None
+    with result.mcap.open("rb") as stream:
+        for item in StreamReader(stream, validate_crcs=True).records:
+            if isinstance(item, Attachment):
+                types[item.name] = item.media_type
+            elif isinstance(item, DataEnd):
+                crc = item.data_section_crc
+    assert crc not in (None, 0)
+    assert types["manifest.json"] == "application/json"
+    assert types["lab.toml"] == "application/toml"
+    assert types["controller.stdout.log"] == "text/plain"
+    pngs = [n for n in types if n.startswith("model/") and n.endswith(".png")]
+    assert pngs and all(types[n] == "image/png" for n in pngs)
+    assert "application/octet-stream" not in types.values()
