@@ -198,7 +198,10 @@ def test_lerobot_loads_the_exports_and_a_merge_keeps_every_provenance(example_re
     )  # fmt: skip
     assert done.returncode == 0, done.stderr[-3000:]
     report = json.loads(done.stdout.strip().splitlines()[-1])
-    print(json.dumps({k: v["seconds"] for k, v in report["datasets"].items()}), report["aggregate_seconds"])
+    print(
+        json.dumps({k: v["seconds"] for k, v in report["datasets"].items()}),
+        report["aggregate_seconds"],
+    )
     loaded = report["datasets"]
     assert loaded["maze"]["frames"] == maze.metrics["ticks"]
     assert loaded["pr2"]["frames"] == pr2.metrics["ticks"]
