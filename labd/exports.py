@@ -29,7 +29,7 @@ from labd.errors import LabError
 from labd.recorder import read_manifest
 from labd.replay import ReplayError, replay
 from labd.sim.camera import Camera
-from labd.sim.features import layout_of
+from labd.sim.features import LAYOUTS, layout_of
 from labd.sim.icreate import model as icreate_model
 from labd.sim.pr2 import model as pr2_model
 from repository.errors import ExportError
@@ -132,6 +132,9 @@ def write_dataset(records: Sequence[tuple[Mapping[str, Any], Path]], out: Path) 
     by_task: dict[str, list[Source]] = {}
     for known, path in records:
         task = str(known["task"])
+        if task not in LAYOUTS:  # no layout: the MCAP records are the data
+            log.info("no LeRobot dataset of %s: the task has no export layout", task)
+            continue
         by_task.setdefault(task, []).append(Source(path, provenance_of(path, known)))
     for task, sources in sorted(by_task.items()):
         plain = dataclasses.replace(layout(task), cameras=())

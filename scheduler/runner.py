@@ -36,12 +36,19 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from repository.errors import ArchiveError
 from repository.trial import Ending, Outcome, PinnedRecord, Status, Value
 from sandbox.api import Backend, Exit, InstallError, Job, Limits, Running, SandboxError
 from scheduler import controller as controller_config
 from scheduler import manifest as manifests
 from scheduler.data import Archive, Blobs, materialize, resolve
-from scheduler.errors import ControllerConfigError, DataUnavailable, RequirementsError, TrialError
+from scheduler.errors import (
+    ControllerConfigError,
+    DataUnavailable,
+    QueueError,
+    RequirementsError,
+    TrialError,
+)
 from scheduler.fetch import FetchPolicy
 from scheduler.files import RepositoryFiles
 from scheduler.host import TrialHost, TrialLab
@@ -271,7 +278,10 @@ async def _prepare(
                 "it has [data], but no data was pinned for this trial and there is no archive"
                 " to resolve it against (labd run: --server URL, or --data with a lab's archive)"
             )
-        pinned = await asyncio.to_thread(resolve, config.data, resolver)
+        try:
+            pinned = await asyncio.to_thread(resolve, config.data, resolver)
+        except (QueueError, ArchiveError) as err:  # nothing to pin, too much, unreachable
+            raise TrialError(str(err)) from None
         spec = dataclasses.replace(spec, data=tuple(pinned))
     if spec.data:
         if archive is None:

@@ -31,7 +31,8 @@ from labd.config import DATA
 from labd.errors import LabError
 from labd.trial import LabHost, client_library
 from repository.blobs import BlobStore
-from repository.index import Index
+from repository.index import Filters, Index
+from repository.trial import Trial
 from sandbox.api import Limits, SandboxError
 from scheduler.client import ApiClient
 from scheduler.data import Archive, LocalArchive, RemoteArchive
@@ -114,16 +115,45 @@ def main(args: argparse.Namespace) -> int:
 
 
 def _archive(args: argparse.Namespace, stack: contextlib.ExitStack) -> Archive | None:
-    """Where [data] is resolved: a lab's API, or the archive under --data if it has one."""
+    """Where [data] is resolved: a lab's API, or the archive under --data if it has one
+    (opened only if the repository asks for data)."""
     if args.server:
         client: ApiClient = stack.enter_context(ApiClient(args.server))
         return RemoteArchive(client)
     index_file = args.data / "index.sqlite"
     if not index_file.is_file():
         return None
-    index = Index.open(f"sqlite:///{index_file.resolve()}")
-    stack.callback(index.close)
-    return LocalArchive(index, BlobStore(str((args.data / "blobs").resolve())))
+    local = _LocalArchive(index_file, args.data / "blobs")
+    stack.callback(local.close)
+    return local
+
+
+class _LocalArchive:
+    """The archive of a lab's data folder, opened when first asked."""
+
+    def __init__(self, index_file: Path, blobs: Path) -> None:
+        self.index_file = index_file
+        self.blobs = blobs
+        self.opened: LocalArchive | None = None
+
+    def _open(self) -> LocalArchive:
+        if self.opened is None:
+            index = Index.open(f"sqlite:///{self.index_file.resolve()}")
+            self.opened = LocalArchive(index, BlobStore(str(self.blobs.resolve())))
+        return self.opened
+
+    def trial(self, trial_id: int) -> Trial:
+        return self._open().trial(trial_id)
+
+    def find(self, filters: Filters, limit: int) -> list[Trial]:
+        return self._open().find(filters, limit)
+
+    def copy_to(self, digest: str, dest: str | Path) -> Path:
+        return self._open().copy_to(digest, dest)
+
+    def close(self) -> None:
+        if self.opened is not None:
+            self.opened.index.close()
 
 
 def report(result: TrialResult, spec: TrialSpec) -> None:

@@ -31,8 +31,9 @@ from labd.service import Service, ServiceConfig
 from labd.sim.robot import Robot
 from labd.station import Station
 from labd.trial import LabHost
-from repository.index import Filters
+from repository.index import Filters, Index
 from repository.trial import Kind, Status, TrialRequest
+from scheduler.data import LocalArchive
 from scheduler.runner import RunOptions, TrialSpec, run_trial
 from scheduler.worker import Worker, WorkerConfig
 from tests.helpers.githttp import GitRepo
@@ -111,6 +112,32 @@ async def test_a_knn_controller_learns_from_pinned_demonstrations_and_reruns(
         assert done.manifest is not None
         assert done.manifest["data"] == [p.manifest_entry() for p in queued.data or []]
         assert done.reward is not None and done.reward > random_reward(SEED) + 10
+
+        local = await run_trial(  # labd run: [data] resolved against the local archive
+            TrialSpec(str(repo), seed=SEED, params=PARAMS),
+            backend=worker.backend,
+            host=service.host,
+            out=tmp_path / "local-run",
+            cache=cache,
+            resolver=LocalArchive(service.index, service.store),
+        )
+        assert local.manifest["data"] == done.manifest["data"]
+        assert local.data_digest == done.data_digest
+        empty = Index.open(f"sqlite:///{tmp_path / 'empty.sqlite'}")
+        try:  # labd run against an archive with no demonstrations: a clear error, no record
+            nothing = await run_trial(
+                TrialSpec(str(repo), seed=SEED, params=PARAMS),
+                backend=worker.backend,
+                host=service.host,
+                out=tmp_path / "nothing-run",
+                cache=cache,
+                resolver=LocalArchive(empty, service.store),
+            )
+        finally:
+            empty.close()
+        assert nothing.outcome is not None and nothing.outcome.value == "error"
+        assert "[data]: the query (" in nothing.reason, nothing.reason
+        assert "matches no public, finished trial" in nothing.reason
 
         more = demonstrate(station, driving, user="ann")  # filed after: not learnt from
         assert more is not None
