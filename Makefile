@@ -47,11 +47,12 @@ unit: $(STAMP)
 test: lint $(JSSTAMP) $(WEBSTAMP)
 	$(PY) -m pytest
 
-bench: $(STAMP)
+bench: $(STAMP) $(WEBSTAMP)
 	$(PY) bench/sim.py
 	$(PY) bench/trial.py
 	$(PY) bench/bridge.py
 	$(PY) bench/archive.py
+	$(PY) bench/web.py
 
 clean:
 	rm -rf $(VENV) $(JS)/node_modules $(WEB)/node_modules labd/web/static/vendor .mypy_cache .ruff_cache .pytest_cache

@@ -4,7 +4,10 @@
     labd run PATH|URL ...          one trial, locally, with no server (the pre-flight)
     labd submit | trials | show | logs | download | rerun | cancel | export | tasks | status
                                    a running lab, through its HTTP API
-    labd users add NAME            the operator's: a user and their token
+    labd reserve book|list|extend|release|key
+                                   book a live robot for a slot; its key
+    labd users add|list|password|revoke|rotate
+                                   the operator's: users, their passwords and tokens
     labd migrate                   the operator's: upgrade an archive's index in place
     labd replay TRIAL|RECORD       re-simulate a record from its actions; render its cameras
     labd verify FILE|DIR           check a record or an export against its signature, offline
@@ -33,6 +36,7 @@ from labd.commands import (
     migrate,
     remote,
     replay,
+    reserve,
     run,
     serve,
     users,
@@ -72,6 +76,7 @@ def build_parser() -> argparse.ArgumentParser:
     serve.add_parser(commands)
     run.add_parser(commands)
     remote.add_parsers(commands)
+    reserve.add_parser(commands)
     users.add_parser(commands)
     migrate.add_parser(commands)
     verify.add_parser(commands)
@@ -85,6 +90,7 @@ def build_parser() -> argparse.ArgumentParser:
 MAINS: dict[str, Callable[[argparse.Namespace], int]] = {
     "serve": serve.main,
     "run": run.main,
+    "reserve": reserve.main,
     "users": users.main,
     "migrate": migrate.main,
     "verify": verify.main,

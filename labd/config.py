@@ -20,6 +20,12 @@ class BridgeConfig:
     # Key authorization: an HTTP(S) URL answering {"seconds": N} for ?key=...
     authorizer_url: str | None = None
     auth_timeout: float = 10.0  # seconds a client has to authorize
+    # A client is told (a status of level warning) this long before its key's time ends.
+    expiry_warning: float = 60.0
+    # Refused keys from one address, within the window, before the bridge refuses that
+    # address's keys without asking the authorizer (guessing keys).
+    auth_failures: int = 10
+    auth_failure_window: float = 60.0
     tls_cert: Path | None = None
     tls_key: Path | None = None
     # Frames above max_message_size are refused with a status; the connection stays.

@@ -22,6 +22,7 @@ formats itself, so a handler turns it into a protocol reply without string surge
     │   ├── ParamError             a task parameter is unknown, of the wrong kind, out of range
     │   └── EpisodeOverError       the episode has ended; no more steps
     ├── RecordError                a trial's record could not be written (a full disk)
+    ├── SummaryError               a record could not be summarized for its page
     └── PortInUse                  a port the lab was told to listen on is taken
 """
 
@@ -230,6 +231,10 @@ class RecordError(LabError):
             f"{lead}the trial's record could not be written ({what}: {self.path});"
             " the partial record was deleted"
         )
+
+
+class SummaryError(LabError):
+    """A record could not be summarized (unreadable, or it took too long)."""
 
 
 class PortInUse(LabError):

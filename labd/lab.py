@@ -18,7 +18,8 @@ from typing import Any
 from fastapi import FastAPI
 
 from labd.api.server import HttpServer
-from labd.bridge.auth import Authorizer, HttpAuthorizer
+from labd.authorizer import ReservationAuthorizer, ref
+from labd.bridge.auth import Authorizer, HttpAuthorizer, KeyPolicy
 from labd.bridge.rosapi import Rosapi
 from labd.bridge.server import BridgeServer
 from labd.config import DATA, DEFAULT_ROBOTS, BridgeConfig, RobotConfig
@@ -30,6 +31,7 @@ from labd.service import Service, ServiceConfig
 from labd.sim.robot import LiveRunner, Robot
 from labd.station import Station
 from labd.web import RobotLink, Site, create_app
+from repository.reservations import Reservation
 
 log = logging.getLogger("labd.lab")
 
@@ -46,6 +48,10 @@ class LabConfig:
     http_port: int = 8080  # the HTTP API
     # The archive, the queue and its workers; None: only the bridge and its robots.
     service: ServiceConfig | None = None
+    # Live robots behind the lab's reservations: only a slot's key drives (needs service).
+    reservations: bool = False
+    # With reservations: clients without a key may connect and watch (never drive).
+    watchers: bool = True
 
 
 class Lab:
@@ -85,20 +91,36 @@ class Lab:
         self._runners: list[asyncio.Task[None]] = []
         self._filings: set[asyncio.Future[int]] = set()
         self.drives: dict[str, Driving] = {}
-        self._own_authorizer: HttpAuthorizer | None = None
-        if authorizer is None and config.bridge.authorizer_url:
-            authorizer = self._own_authorizer = HttpAuthorizer(config.bridge.authorizer_url)
-        self.bridge = BridgeServer(self.graphs, config.bridge, authorizer)
+        self._loop: asyncio.AbstractEventLoop | None = None
         self.service: Service | None = None
         self.http: HttpServer | None = None
-        self.site = Site(tuple(RobotLink(r.name, r.task, r.live) for r in config.robots))
+        self.site = Site(
+            tuple(RobotLink(r.name, r.task, r.live) for r in config.robots),
+            reservations=config.reservations,
+        )
         self.app: FastAPI | None = None
         if config.service is not None:
             self.service = Service(config.service, self.types)
             self.app = create_app(self.service, self.site)
+            self.app.state.on_reservation = self._reservation_changed
             self.http = HttpServer(self.app, config.bridge.host, config.http_port)
+        self._own_authorizer: HttpAuthorizer | None = None
+        policies: dict[str, KeyPolicy] = {}
+        if config.reservations:
+            if self.service is None or authorizer is not None or config.bridge.authorizer_url:
+                raise ValueError("reservations need the archive, and no other authorizer")
+            authorizer = ReservationAuthorizer(self.service.reservations)
+            live = KeyPolicy.OPTIONAL if config.watchers else KeyPolicy.REQUIRED
+            policies = {
+                name: live if name in self.robots and self.robots[name].live else KeyPolicy.NONE
+                for name in self.graphs
+            }
+        elif authorizer is None and config.bridge.authorizer_url:
+            authorizer = self._own_authorizer = HttpAuthorizer(config.bridge.authorizer_url)
+        self.bridge = BridgeServer(self.graphs, config.bridge, authorizer, policies=policies)
 
     async def start(self) -> None:
+        self._loop = asyncio.get_running_loop()
         for name, robot in self.robots.items():
             if robot.live:
                 task = asyncio.create_task(LiveRunner(robot).run(), name=f"live {name}")
@@ -111,6 +133,7 @@ class Lab:
                 station,
                 work=self._live_work(),
                 file=self._file if self.service is not None else None,
+                reserved=self.config.reservations,
             )
             for name, station in self.stations.items()
             if station.robot.live
@@ -139,6 +162,16 @@ class Lab:
         )
         self._filings.add(filing)
         filing.add_done_callback(self._filed)
+
+    def _reservation_changed(self, reservation: Reservation) -> None:
+        """A slot was extended or released (the API, from any thread): the clients
+        connected with its key get its new end, or are disconnected."""
+        loop = self._loop
+        if loop is None or self.service is None:
+            return
+        left = reservation.end - self.service.index.clock()
+        reason = f"your slot on {reservation.robot} was released"
+        loop.call_soon_threadsafe(self.bridge.reauthorize, ref(reservation.id), left, reason)
 
     def _filed(self, filing: asyncio.Future[int]) -> None:
         self._filings.discard(filing)

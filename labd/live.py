@@ -13,6 +13,11 @@ session ends (the driver released, left, or the episode ended) the record is fin
 and handed to ``file``: the lab's service files it in the archive as a trial of kind
 ``demonstration``, under the driver, the robot, the task, the seed and the interface.
 A robot nobody drove files nothing.
+
+With reservations on (``reserved``), only a client whose key opened the robot (a key of
+the slot running now: the bridge put its user on the client's node) may drive; anyone
+else watches, and is told how to book. The drive is filed under the key's user, never
+under a name the client gives.
 """
 
 from __future__ import annotations
@@ -48,6 +53,17 @@ class NotDriving(GraphError):
         super().__init__(
             f"{robot} is driven by {driver}; you are watching. You may drive when they leave"
             " (or release it)"
+        )
+
+
+class NotReserved(GraphError):
+    """A command from a client without a key of the slot running now."""
+
+    def __init__(self, robot: str) -> None:
+        self.robot = robot
+        super().__init__(
+            f"{robot} is driven only in a reserved slot; you are watching. To drive, book a"
+            " slot (the lab's /reservations page, or labd reserve) and connect with its key"
         )
 
 
@@ -92,8 +108,10 @@ class Driving:
         *,
         work: Path | None,
         file: Callable[[Demonstration], None] | None = None,
+        reserved: bool = False,
     ) -> None:
         self.station = station
+        self.reserved = reserved
         self.robot = station.robot
         self.name = station.name
         self.work = work  # where sessions are recorded; None: drives are not recorded
@@ -114,19 +132,25 @@ class Driving:
 
     def admit(self, sender: Node | None, topic: str) -> None:
         """The robot's gate: a command from the driver, or from anyone while nobody drives
-        (who then drives); anyone else is refused (``NotDriving``)."""
+        (who then drives); anyone else is refused (``NotDriving``). With reservations,
+        a client without a key of the slot is refused first (``NotReserved``)."""
         if sender is None or sender.side is Side.LAB:
             return
+        if self.reserved and sender.user is None:
+            raise NotReserved(self.name)
         if self.current is None:
             self.take(sender)
         elif sender is not self.current.node:
             raise NotDriving(self.name, self.current.user)
 
     def take(self, node: Node, *, user: str = "", interface: str = "", session: str = "") -> None:
-        """Make ``node`` the driver: a new episode, and a recorded session."""
+        """Make ``node`` the driver: a new episode, and a recorded session. With
+        reservations the drive is the key's user's, whatever name was given."""
+        if self.reserved and node.user is not None:
+            user = node.user
         self.current = _Session(
             node,
-            user or node.name,
+            user or node.user or node.name,
             interface,
             session or secrets.token_hex(6),
         )
@@ -164,6 +188,9 @@ class Driving:
     def _drive_service(self, call: ServiceCall) -> None:
         request = call.request.data
         caller = call.caller
+        if self.reserved and (caller is None or caller.user is None):
+            call.reply({"success": False, "message": str(NotReserved(self.name)), "seed": 0})
+            return
         if self.current is not None and self.current.node is not caller:
             call.reply({"success": False, "message": f"{self.current.user} drives", "seed": 0})
             return

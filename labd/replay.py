@@ -18,6 +18,7 @@ for the ticks the record has them.
 
 from __future__ import annotations
 
+import json
 import logging
 import math
 import struct
@@ -38,6 +39,8 @@ from labd.recorder.digest import EPISODE, Entry, field_difference
 from labd.recorder.reader import RecordedMessage, read_messages
 from labd.sim import registry
 from labd.station import Station
+from labd.video import FIRST, Video, VideoSpec
+from scheduler.host import VIDEO, Replayed
 from scheduler.manifest import versions
 
 log = logging.getLogger("labd.replay")
@@ -302,3 +305,51 @@ def _differs(expected: Entry, got: Entry | None) -> str | None:
     if found is None:
         return "the messages differ"
     return found.replace(" in a, ", " recorded, ").replace(" in b", " replayed")
+
+
+def replay_with_video(
+    path: Path, out: Path, types: TypeRegistry | None = None, *, fps: float = 10.0
+) -> Replayed:
+    """Replay a filed record and render its task's first camera at ``fps`` into
+    ``out/video.mp4``: the verdict as JSON, and the video (None if none was made).
+
+    What a worker does after filing every trial: a record that cannot be replayed (an
+    older labd's, another model) is a verdict saying why, not an exception.
+    """
+    video = Video(VideoSpec(FIRST, fps=fps, **_camera_size(path)), out / VIDEO)
+    try:
+        verdict = replay(path, types, renderers=[video])
+        body: dict[str, Any] = {
+            "verified": verdict.verified,
+            "ticks": verdict.ticks,
+            "compared": verdict.compared,
+            "divergence": None
+            if verdict.divergence is None
+            else {
+                "tick": verdict.divergence.tick,
+                "topic": verdict.divergence.topic,
+                "what": verdict.divergence.what,
+            },
+            "said": str(verdict),
+        }
+    except LabError as err:  # not replayable here (another model, simulator, task): say so
+        body = {"verified": False, "ticks": 0, "compared": 0, "divergence": None, "said": str(err)}
+    finally:
+        video.close()
+    made = video.frames > 0 and (out / VIDEO).exists()
+    body["video"] = {"camera": video.camera, "frames": video.frames, "fps": fps} if made else None
+    return Replayed(
+        verdict=json.dumps(body, sort_keys=True).encode(),
+        verified=bool(body["verified"]),
+        video=out / VIDEO if made else None,
+    )
+
+
+def _camera_size(path: Path) -> dict[str, int]:
+    try:
+        manifest = read_manifest(path) or {}
+    except (McapError, ZstdError, struct.error, EOFError, ValueError):
+        manifest = {}
+    params = manifest.get("parameters", {})
+    width, height = int(params.get("camera_width", 320)), int(params.get("camera_height", 240))
+    return {"width": width - width % 2, "height": height - height % 2}

@@ -19,7 +19,8 @@ import logging
 import os
 import shutil
 import socket
-from collections.abc import Mapping
+import time
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -29,12 +30,15 @@ from labd.config import DATA
 from labd.graph.types import TypeRegistry
 from labd.live import Demonstration
 from labd.trial import LabHost, client_library
+from repository.accounts import Accounts
 from repository.blobs import BlobStore
-from repository.index import Index
+from repository.index import Derived, Index
+from repository.reservations import Reservations, Rules, load_secret
 from repository.signing import Keyring
 from repository.trial import Ending, Filing, Kind
 from scheduler.data import DataPolicy, LocalArchive
 from scheduler.fetch import FetchPolicy
+from scheduler.host import REPLAY, VIDEO
 from scheduler.queue import Queue, QueueConfig
 from scheduler.runner import RunOptions
 from scheduler.submit import Submissions
@@ -58,6 +62,10 @@ class ServiceConfig:
     fetch: FetchPolicy = field(default_factory=FetchPolicy)
     run: RunOptions = field(default_factory=RunOptions)
     data_policy: DataPolicy = field(default_factory=DataPolicy)  # how much [data] a trial pins
+    canaries: tuple[int, ...] = ()  # reference trials each worker reruns (canary.py)
+    canary_every: float = 3600.0  # seconds between a worker's canary reruns
+    rules: Rules = field(default_factory=Rules)  # booking live robots
+    signup: bool = False  # people may make their own accounts on the sign-in page
 
     @property
     def database_url(self) -> str:
@@ -75,14 +83,25 @@ def host_prefix() -> str:
 class Service:
     """Index, blob store, queue, submissions and (after ``start``) workers."""
 
-    def __init__(self, config: ServiceConfig, types: TypeRegistry | None = None) -> None:
+    def __init__(
+        self,
+        config: ServiceConfig,
+        types: TypeRegistry | None = None,
+        *,
+        clock: Callable[[], float] = time.time,
+    ) -> None:
         self.config = config
         self.host = LabHost(types or TypeRegistry.default())
         config.data.mkdir(parents=True, exist_ok=True)
         self.cache = (config.cache or config.data / "cache").resolve()
-        self.index = Index.open(config.database_url)
+        self.index = Index.open(config.database_url, clock=clock)
         self.store = BlobStore(config.blobs_url, dict(config.blob_options) or None)
-        self.keyring = Keyring((config.keys or config.data / "keys").resolve())
+        keys = (config.keys or config.data / "keys").resolve()
+        self.keyring = Keyring(keys)
+        self.accounts = Accounts(self.index)
+        self.reservations = Reservations(
+            self.index, config.rules, load_secret(keys / "reservations.secret")
+        )
         self.queue = Queue(self.index, config.queue, self.keyring)
         self.submissions = Submissions(
             self.queue,
@@ -121,6 +140,8 @@ class Service:
                     cache=self.cache,
                     heartbeat=self.config.heartbeat,
                     options=self.config.run,
+                    canaries=self.config.canaries,
+                    canary_every=self.config.canary_every,
                 ),
             )
             self.workers.append(worker)
@@ -173,9 +194,32 @@ class Service:
             submitter=demo.user,
             filing=filing,
         )
-        shutil.rmtree(demo.folder, ignore_errors=True)
         log.info("demonstration %d filed: %s drove %s", trial_id, demo.user, demo.robot)
+        try:
+            self._replay(trial_id, mcap)
+        except Exception:  # the drive is filed; its page says "not replayed"
+            log.exception("demonstration %d: its replay could not be filed", trial_id)
+        finally:
+            shutil.rmtree(demo.folder, ignore_errors=True)
         return trial_id
+
+    def _replay(self, trial_id: int, mcap: Path) -> None:
+        """Replay a filed record here (as a worker does after filing) and keep the
+        verdict and the camera's video beside it."""
+        done = self.host.replay(mcap, mcap.with_name("replay"))
+        verdict_file = mcap.with_name("replay") / REPLAY
+        verdict_file.write_bytes(done.verdict)
+        self.index.put_derived(
+            trial_id,
+            Derived(
+                REPLAY, self.store.put_file(verdict_file), len(done.verdict), "application/json"
+            ),
+        )
+        if done.video is not None:
+            size = done.video.stat().st_size
+            self.index.put_derived(
+                trial_id, Derived(VIDEO, self.store.put_file(done.video), size, "video/mp4")
+            )
 
     def wake(self) -> None:
         """A trial was queued: let idle workers claim it now."""

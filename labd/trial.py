@@ -2,14 +2,14 @@
 
 ``LabHost`` is the ``TrialHost`` a runner is given (by ``labd run``, by the service's
 workers, by ``labd worker``): it checks tasks and parameters against the registry,
-opens ``LabTrial``\\ s and compares records. A ``LabTrial`` is one trial's station (the
-robot on a graph of its own, with rosapi), a bridge server for that graph alone on a
-unix socket (which the sandbox relays to ``ws://127.0.0.1:9090``), and a recorder of
-every topic into ``OUT/trial.mcap``. A trial whose repository brings its own interface
-definitions has a type registry of its own (``labd.graph.definitions``), so its types
-reach no other trial and no live robot, and the record holds their schemas. In
-lockstep the controller advances the task with ``/lab/step``; with ``realtime = true``
-a ``LiveRunner`` steps it on the wall clock.
+opens ``LabTrial``\\ s, compares records and summarizes them for their pages. A
+``LabTrial`` is one trial's station (the robot on a graph of its own, with rosapi), a
+bridge server for that graph alone on a unix socket (which the sandbox relays to
+``ws://127.0.0.1:9090``), and a recorder of every topic into ``OUT/trial.mcap``. A
+trial whose repository brings its own interface definitions has a type registry of its
+own (``labd.graph.definitions``), so its types reach no other trial and no live robot,
+and the record holds their schemas. In lockstep the controller advances the task with
+``/lab/step``; with ``realtime = true`` a ``LiveRunner`` steps it on the wall clock.
 """
 
 from __future__ import annotations
@@ -31,6 +31,8 @@ from labd.graph.types import TypeRegistry
 from labd.recorder import Recorder, first_difference
 from labd.recorder.digest import data_digest
 from labd.recorder.record import media_type
+from labd.recorder.summary import summary_blob
+from labd.replay import replay_with_video
 from labd.sim import registry
 from labd.sim.base import SUCCEEDED
 from labd.sim.robot import LiveRunner
@@ -38,7 +40,7 @@ from labd.station import Station
 from repository.errors import ExportError
 from repository.trial import PinnedRecord, Value
 from scheduler.errors import InvalidRequest, TrialError
-from scheduler.host import Attachments, Episode
+from scheduler.host import Attachments, Episode, Replayed
 
 log = logging.getLogger("labd.trial")
 MAX_CLIENTS = 16  # bridge connections a trial's controller may open
@@ -100,6 +102,15 @@ class LabHost:
             raise TrialError(
                 f"the data the trial learns from could not be converted: {err}"
             ) from None
+
+    def summarize(self, mcap: Path, *, seconds: float) -> bytes:
+        """The record's page summary (``labd.recorder.summary``; ``SummaryError``)."""
+        return summary_blob(mcap, types=self.types, seconds=seconds)
+
+    def replay(self, mcap: Path, out: Path) -> Replayed:
+        """Replay a filed record (``labd.replay``), rendering its task's first camera at
+        10 frames a second into ``out``: the verdict and the video."""
+        return replay_with_video(mcap, out, self.types)
 
 
 class LabTrial:

@@ -22,6 +22,7 @@ from dm_control.mujoco.engine import MovableCamera
 from labd.errors import LabError
 
 SCENE = "scene"  # the third-person view
+FIRST = ""  # the model's first camera, whatever its name (a worker's video of any task)
 
 
 class VideoError(LabError):
@@ -60,6 +61,7 @@ class Video:
         self.out = out
         self.period = 1.0 / spec.fps
         self.frames = 0
+        self.camera = spec.camera  # the camera rendered (FIRST's, once known)
         self._next = 0.0
         self._container: Any = None
         self._stream: Any = None
@@ -101,6 +103,10 @@ class Video:
             pixels: np.ndarray = self._scene.render()
             return pixels
         names = [physics.model.id2name(i, "camera") for i in range(physics.model.ncam)]
+        if spec.camera == FIRST and names:
+            self.camera = names[0]
+            rendered_first: np.ndarray = physics.render(spec.height, spec.width, camera_id=0)
+            return rendered_first
         if spec.camera not in names:
             raise VideoError(
                 f"the task has no camera {spec.camera!r}; its cameras are"

@@ -6,7 +6,16 @@ ArchiveError                 the archive could not do what was asked
 │   └── BlobCorrupt          a blob's bytes no longer match its digest
 ├── RecordNotFound           no trial, commit or user by that name
 ├── SchemaMismatch           the index was written by another version of labd
-└── ExportError              a record could not be exported (format, content)
+├── ExportError              a record could not be exported (format, content)
+├── AccountError             an account could not be made or changed (name, password)
+│   └── BadCredentials       a wrong user name or password
+└── ReservationError         a booking the lab's rules refuse (the message names the rule)
+    ├── SlotTaken            the slot overlaps someone's booking of that robot
+    ├── OverLimit            over the operator's limits per day or per week
+    ├── NotYourReservation   only the person who booked it may change it or read its key
+    └── KeyRefused           a key that does not open this robot now (expired, not yet
+        │                    valid, released, another robot's)
+        └── UnknownKey       a key the lab never made (forged, mistyped, guessed)
 """
 
 from __future__ import annotations
@@ -66,3 +75,46 @@ class ExportError(ArchiveError):
     def __init__(self, reason: str) -> None:
         self.reason = reason
         super().__init__(f"export: {reason}")
+
+
+class AccountError(ArchiveError):
+    """An account could not be made or changed; the message says what to do."""
+
+
+class BadCredentials(AccountError):
+    def __init__(self) -> None:
+        super().__init__("the user name or the password is wrong")
+
+
+class ReservationError(ArchiveError):
+    """A booking the lab's rules refuse; the message names the rule and what to do."""
+
+
+class SlotTaken(ReservationError):
+    def __init__(self, robot: str, message: str) -> None:
+        self.robot = robot
+        super().__init__(message)
+
+
+class OverLimit(ReservationError):
+    """Over a limit per day or per week that the operator set."""
+
+
+class NotYourReservation(ReservationError):
+    def __init__(self, reservation: int, owner: str, action: str) -> None:
+        self.reservation = reservation
+        self.owner = owner
+        super().__init__(f"reservation {reservation} is {owner}'s; only they may {action}")
+
+
+class KeyRefused(ReservationError):
+    """A key that does not open this robot now; ``reason`` says why, for its holder."""
+
+    def __init__(self, reason: str) -> None:
+        self.reason = reason
+        super().__init__(reason)
+
+
+class UnknownKey(KeyRefused):
+    def __init__(self) -> None:
+        super().__init__("the lab knows no such key; fetch your slot's key again")

@@ -53,6 +53,59 @@ users = sa.Table(
     sa.Column("worker", sa.Boolean, nullable=False),  # may claim and file trials (labd worker)
 )
 
+# A user's API tokens (any number, each revocable by its owner); only their sha256 is
+# kept. A token in ``users.token_sha256`` with no row here is one an older labd made.
+tokens = sa.Table(
+    "tokens",
+    metadata,
+    sa.Column("id", sa.Integer, primary_key=True, autoincrement=True),
+    sa.Column("user", sa.String(64), sa.ForeignKey("users.name"), nullable=False),
+    sa.Column("sha256", sa.String(64), nullable=False, unique=True),
+    sa.Column("label", sa.String(128), nullable=False),
+    sa.Column("created", sa.Float, nullable=False),
+    sa.Column("revoked", sa.Float),  # when; a revoked token is refused
+)
+
+# Signing in on the pages (``repository.accounts``): a password's argon2id hash, and
+# each browser session (only the sha256 of its cookie; its forms' CSRF token).
+passwords = sa.Table(
+    "passwords",
+    metadata,
+    sa.Column("user", sa.String(64), sa.ForeignKey("users.name"), primary_key=True),
+    sa.Column("hash", sa.String(256), nullable=False),
+    sa.Column("changed", sa.Float, nullable=False),
+)
+web_sessions = sa.Table(
+    "web_sessions",
+    metadata,
+    sa.Column("sha256", sa.String(64), primary_key=True),
+    sa.Column("user", sa.String(64), sa.ForeignKey("users.name"), nullable=False),
+    sa.Column("csrf", sa.String(64), nullable=False),
+    sa.Column("created", sa.Float, nullable=False),
+    sa.Column("expires", sa.Float, nullable=False),
+)
+
+# Live robots booked for a slot (``repository.reservations``). ``end`` is when the slot
+# ends now: an early release moves it to the release (to ``start`` before it began).
+# The slot's key is derived from the lab's secret and ``nonce``; nothing here reveals it.
+reservations = sa.Table(
+    "reservations",
+    metadata,
+    sa.Column("id", sa.Integer, primary_key=True, autoincrement=True),
+    sa.Column("robot", sa.String(64), nullable=False),
+    sa.Column("user", sa.String(64), sa.ForeignKey("users.name"), nullable=False),
+    sa.Column("start", sa.Float, nullable=False),
+    sa.Column("end", sa.Float, nullable=False),
+    sa.Column("booked_end", sa.Float, nullable=False),  # the end as booked or extended
+    sa.Column("created", sa.Float, nullable=False),
+    sa.Column("released", sa.Float),
+    sa.Column("nonce", sa.String(32), nullable=False),
+)
+sa.Index("ix_reservations_robot", reservations.c.robot, reservations.c.start)
+sa.Index("ix_reservations_user", reservations.c.user, reservations.c.start)
+sa.Index("ix_tokens_user", tokens.c.user)
+sa.Index("ix_web_sessions_user", web_sessions.c.user)
+
 trials = sa.Table(
     "trials",
     metadata,
@@ -265,10 +318,11 @@ class Index:
         self.clock = clock
         self.trials = trials
         self.users = users
+        self.tokens = tokens
 
     @classmethod
-    def open(cls, url: str, **engine_options: Any) -> Index:
-        index = cls(connect(url, **engine_options))
+    def open(cls, url: str, *, clock: Any = time.time, **engine_options: Any) -> Index:
+        index = cls(connect(url, **engine_options), clock=clock)
         try:
             index.create()
         except BaseException:
@@ -316,32 +370,65 @@ class Index:
         max_running: int = USER_LIMITS.max_running,
         max_daily: int = USER_LIMITS.max_daily,
         worker: bool = False,
+        token: bool = True,
     ) -> str:
-        """Add a user and return their new token (only its hash is kept)."""
-        if not name or len(name) > 64 or not all(c.isalnum() or c in "-_." for c in name):
-            raise ArchiveError(f"user name {name!r}: use 1 to 64 letters, digits, '-', '_' or '.'")
-        token = "labd_" + secrets.token_urlsafe(24)
+        """Add a user and return their new token (only its hash is kept).
+
+        Without ``token`` (a person who signed up on the pages) the user has no token
+        yet, and "" is returned: they make their own on the tokens page.
+        """
+        check_name(name)
+        secret = "labd_" + secrets.token_urlsafe(24)
+        now = self.clock()
         with self.begin() as db:
             if db.execute(sa.select(users.c.name).where(users.c.name == name)).first():
-                raise ArchiveError(f"user {name!r} exists already")
+                raise ArchiveError(f"user {name!r} exists already; choose another name")
             db.execute(
                 sa.insert(users).values(
                     name=name,
-                    token_sha256=token_hash(token),
-                    created=self.clock(),
+                    # never given out when ``token`` is false: nobody can present it
+                    token_sha256=token_hash(secret),
+                    created=now,
                     max_running=max_running,
                     max_daily=max_daily,
                     worker=worker,
                 )
             )
-        return token
+            if token:
+                db.execute(
+                    sa.insert(tokens).values(
+                        user=name,
+                        sha256=token_hash(secret),
+                        label="made by the operator (labd users add)",
+                        created=now,
+                    )
+                )
+        return secret if token else ""
 
     def user_by_token(self, token: str) -> User | None:
+        """The user a token belongs to; None if it is unknown or revoked."""
+        digest = token_hash(token)
         with self.engine.connect() as db:
-            row = db.execute(
-                sa.select(users).where(users.c.token_sha256 == token_hash(token))
+            found = db.execute(
+                sa.select(tokens.c.user, tokens.c.revoked).where(tokens.c.sha256 == digest)
             ).first()
-        return None if row is None else _user(row)
+            if found is not None:
+                if found.revoked is not None:
+                    return None
+                row = db.execute(sa.select(users).where(users.c.name == found.user)).first()
+                return None if row is None else _user(row)
+            # A token an older labd made, kept only in users (until its owner has others).
+            row = db.execute(sa.select(users).where(users.c.token_sha256 == digest)).first()
+            if row is None:
+                return None
+            mine = db.execute(sa.select(tokens.c.id).where(tokens.c.user == row.name)).first()
+        return _user(row) if mine is None else None
+
+    def users_list(self) -> list[User]:
+        """Every user, by name."""
+        with self.engine.connect() as db:
+            rows = db.execute(sa.select(users).order_by(users.c.name)).all()
+        return [_user(r) for r in rows]
 
     def user(self, name: str) -> User:
         with self.engine.connect() as db:
@@ -635,6 +722,12 @@ def to_trial(row: Any) -> Trial:
 
 def _moment(seconds: float | None) -> dt.datetime | None:
     return None if seconds is None else dt.datetime.fromtimestamp(seconds, dt.UTC)
+
+
+def check_name(name: str) -> None:
+    """A user name the lab accepts (ArchiveError saying what is allowed if not)."""
+    if not name or len(name) > 64 or not all(c.isalnum() or c in "-_." for c in name):
+        raise ArchiveError(f"user name {name!r}: use 1 to 64 letters, digits, '-', '_' or '.'")
 
 
 def token_hash(token: str) -> str:

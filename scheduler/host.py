@@ -19,6 +19,20 @@ from typing import Any, Protocol
 from repository.trial import PinnedRecord, Value
 
 Attachments = Mapping[str, tuple[str, bytes]]  # name -> (media type, bytes)
+# A record's summary for its page, filed beside it as a derived artifact: gzip'd JSON.
+SUMMARY = "summary.json"
+SUMMARY_MEDIA_TYPE = "application/gzip"
+REPLAY = "replay.json"  # a record's replay verdict, beside it
+VIDEO = "video.mp4"  # the task's camera, rendered during the replay
+
+
+@dataclass(frozen=True)
+class Replayed:
+    """What replaying a filed record gave: its verdict (JSON), and a video of its camera."""
+
+    verdict: bytes  # {"verified", "ticks", "compared", "divergence", "video"}
+    verified: bool
+    video: Path | None
 
 
 @dataclass(frozen=True)
@@ -110,4 +124,15 @@ class TrialHost(Protocol):
     def dataset(self, records: Sequence[tuple[PinnedRecord, Path]], out: Path) -> None:
         """Write the learning formats of ``records`` (checked MCAP files) under ``out``:
         a LeRobot dataset per task, one episode per record (``scheduler.data``)."""
+        ...
+
+    def summarize(self, mcap: Path, *, seconds: float) -> bytes | None:
+        """The record's summary for its page (``SUMMARY``), made within ``seconds``;
+        None if this lab makes none. Raises if the record cannot be summarized."""
+        ...
+
+    def replay(self, mcap: Path, out: Path) -> Replayed | None:
+        """Re-simulate a filed record from its actions and render its camera into
+        ``out``; None if this lab does not. A record that cannot be replayed is a verdict
+        that says why, not an exception."""
         ...

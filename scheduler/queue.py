@@ -31,10 +31,11 @@ from typing import Any
 import sqlalchemy as sa
 from sqlalchemy.engine import Connection
 
-from repository.index import Index, User, reward_of, to_trial
+from repository.index import Derived, Index, User, reward_of, to_trial
 from repository.index import trials as T
 from repository.signing import Keyring, record_statement
 from repository.trial import Claim, Filing, Kind, Outcome, PinnedRecord, Status, Trial
+from scheduler.canary import Health
 from scheduler.errors import NotYours, QuotaExceeded
 
 log = logging.getLogger("scheduler.queue")
@@ -68,6 +69,7 @@ class Queue:
         self.config = config or QueueConfig()
         self.keyring = keyring
         self.clock = index.clock
+        self.health: dict[str, Health] = {}  # what each worker last said of itself
 
     # -- submitting ---------------------------------------------------------------------
 
@@ -322,6 +324,18 @@ class Queue:
         )
         db.execute(sa.update(T).where(T.c.id == trial_id).values(signature=signed.to_json()))
 
+    def derive(self, trial_id: int, worker: str, item: Derived) -> bool:
+        """Keep a derived artifact (a page summary) of a trial this worker filed; False
+        if the trial is not one this worker finished."""
+        trial = self.index.trial(trial_id)
+        if trial.worker != worker or trial.status is not Status.FINISHED or not trial.mcap:
+            log.warning(
+                "worker %s filed %s for trial %d, not its own; dropped", worker, item.name, trial_id
+            )
+            return False
+        self.index.put_derived(trial_id, item)
+        return True
+
     def requeue_expired(self) -> list[int]:
         """Put running trials whose lease ran out back in the queue (or fail them)."""
         now = self.clock()
@@ -368,6 +382,10 @@ class Queue:
                 sa.select(T.c.worker).where(T.c.status == RUNNING).group_by(T.c.worker)
             ).all()
         return {r[0] for r in rows if r[0]}
+
+    def report(self, health: Health) -> None:
+        """Keep what a worker says of its health (its canaries), for the lab's status."""
+        self.health[health.worker] = health
 
     def running(self) -> list[Trial]:
         """The trials running now, oldest first: who runs them and since when."""

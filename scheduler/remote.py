@@ -13,11 +13,14 @@ old version never files records the new lab would misread.
 
 from __future__ import annotations
 
+from dataclasses import asdict
 from pathlib import Path
 
 from pydantic import BaseModel, ConfigDict, Field
 
+from repository.index import Derived
 from repository.trial import Claim, Filing, Trial
+from scheduler.canary import Health
 from scheduler.client import ApiClient, version
 from scheduler.errors import RemoteError
 
@@ -64,8 +67,17 @@ class RemoteLab:
         body = {"worker": worker, "filing": filing.model_dump(mode="json")}
         return self.api.post(path, Filed, json=body).filed
 
+    def report(self, health: Health) -> None:
+        body = {"worker": health.worker, "state": health.state, "detail": health.detail}
+        self.api.request("POST", "/api/workers/health", json=body)
+
     def trial(self, trial_id: int) -> Trial:
         return self.api.get(f"/api/workers/trials/{trial_id}", Trial)
+
+    def derive(self, trial_id: int, worker: str, item: Derived) -> bool:
+        path = f"/api/workers/trials/{trial_id}/derived"
+        body = {"worker": worker, "item": DerivedItem(**asdict(item)).model_dump()}
+        return self.api.post(path, Filed, json=body).filed
 
     # -- Blobs ------------------------------------------------------------------------
 
@@ -91,6 +103,25 @@ class WorkerName(BaseModel):
 
 class FinishBody(WorkerName):
     filing: Filing
+
+
+class DerivedItem(BaseModel):
+    """A derived artifact of a record (its blob uploaded first), e.g. a page summary."""
+
+    model_config = ConfigDict(extra="forbid")
+    name: str = Field(min_length=1, max_length=64)
+    digest: str = Field(pattern=r"^sha256:[0-9a-f]{64}$")
+    size: int = Field(ge=0)
+    media_type: str = Field(min_length=1, max_length=128)
+
+
+class DeriveBody(WorkerName):
+    item: DerivedItem
+
+
+class HealthBody(WorkerName):
+    state: str = Field(pattern="^(ok|checking|out)$")
+    detail: str = Field("", max_length=2000)
 
 
 class Kept(BaseModel):

@@ -16,13 +16,17 @@ and the worker goes on with the next one.
 Filing a trial: the MCAP and the controller's logs go to the content-addressed store,
 the record (manifest, digests, metrics, ending) to the index. A rerun is compared with
 the trial it reruns: the same data digest is "reproduced", otherwise the first message
-where the two records part says where they diverged.
+where the two records part says where they diverged. Once the trial is filed, the
+record's summary for its page (``TrialHost.summarize``) is made within ``summary``
+seconds and filed beside it as a derived artifact; a summary that fails is logged and
+the trial stays filed without it (its page makes one when first asked).
 """
 
 from __future__ import annotations
 
 import asyncio
 import contextlib
+import json
 import logging
 import shutil
 import tempfile
@@ -31,10 +35,12 @@ from pathlib import Path
 from typing import Any, Protocol
 
 from repository.errors import ArchiveError
+from repository.index import Derived
 from repository.trial import Claim, Ending, Filing, Status, Trial
 from sandbox.api import Backend
+from scheduler.canary import CHECKING, OK, OUT, Canaries, Health
 from scheduler.errors import QueueError
-from scheduler.host import TrialHost
+from scheduler.host import REPLAY, SUMMARY, SUMMARY_MEDIA_TYPE, VIDEO, TrialHost
 from scheduler.outcome import storage_failure
 from scheduler.runner import Progress, RunOptions, TrialResult, TrialSpec, run_trial
 
@@ -47,6 +53,8 @@ class Jobs(Protocol):
     def heartbeat(self, trial_id: int, worker: str) -> bool: ...
     def finish(self, trial_id: int, worker: str, filing: Filing) -> bool: ...
     def trial(self, trial_id: int) -> Trial: ...
+    def derive(self, trial_id: int, worker: str, item: Derived) -> bool: ...
+    def report(self, health: Health) -> None: ...
 
 
 class Blobs(Protocol):
@@ -64,6 +72,10 @@ class WorkerConfig:
     heartbeat: float = 10.0  # seconds between lease renewals
     poll: float = 2.0  # seconds between claims while the queue is empty
     filing: float = 300.0  # seconds to store a record and file it
+    summary: float = 120.0  # seconds to summarize a filed record for its page
+    replay: float = 600.0  # seconds to replay a filed record and render its video (0: none)
+    canaries: tuple[int, ...] = ()  # reference trials to rerun at start and every ...
+    canary_every: float = 3600.0  # ... seconds; one that diverges takes the worker out
     options: RunOptions = field(default_factory=RunOptions)
 
 
@@ -97,6 +109,8 @@ class Worker:
         self.wake = asyncio.Event()  # set by a submission, to claim at once
         self.log = logging.getLogger(f"scheduler.worker.{config.name}")
         self._current: tuple[Claim, Progress] | None = None
+        self.canaries = Canaries(config.canaries, config.canary_every)
+        self.health = Health(config.name, OK, "no canaries" if not config.canaries else "")
 
     @property
     def current(self) -> Current | None:
@@ -109,6 +123,11 @@ class Worker:
         stopping = asyncio.create_task(stop.wait())
         try:
             while not stop.is_set():
+                if self.canaries.due():
+                    await self._check_canaries()
+                if self.health.state == OUT:  # out of the pool: claim nothing, until stopped
+                    await asyncio.wait({stopping}, timeout=self.config.poll)
+                    continue
                 try:
                     claim = await asyncio.to_thread(self.queue.claim, self.config.name)
                 except QueueError as err:  # a remote lab that is down: try again later
@@ -136,6 +155,22 @@ class Worker:
             stopping.cancel()
             with contextlib.suppress(asyncio.CancelledError):
                 await stopping
+
+    async def _check_canaries(self) -> None:
+        self.health = Health(self.config.name, CHECKING, "rerunning the canaries")
+        await self._report()
+        try:
+            self.health = await self.canaries.check(self)
+        except Exception as err:  # a bug: say so in the status, claim nothing meanwhile
+            self.log.exception("the canaries could not be checked")
+            self.health = Health(self.config.name, OUT, f"the canaries could not run: {err}")
+        await self._report()
+
+    async def _report(self) -> None:
+        try:
+            await asyncio.to_thread(self.queue.report, self.health)
+        except QueueError as err:
+            self.log.warning("could not report the worker's health: %s", err)
 
     async def execute(self, claim: Claim) -> None:
         """Run one claimed trial to its end and file it."""
@@ -199,13 +234,15 @@ class Worker:
         finally:
             await _stopped(beat)
         try:
-            await asyncio.to_thread(self.queue.finish, claim.id, self.config.name, filing)
+            filed = await asyncio.to_thread(self.queue.finish, claim.id, self.config.name, filing)
             self.log.info(
                 "trial %d %s: %s",
                 claim.id,
                 filing.outcome or filing.status,
                 filing.reason,
             )
+            if filed and filing.mcap:
+                await self._derive(claim.id, out / "trial.mcap", progress)
         except QueueError as err:  # the lease will run out and the trial run again
             self.log.error("trial %d could not be filed: %s", claim.id, err)
         finally:
@@ -280,6 +317,66 @@ class Worker:
         if claim.rerun_of is not None and result is not None and result.status is Status.FINISHED:
             record.update(self._compare(claim.rerun_of, result))
         return Filing(**record)
+
+    async def _summarize(self, trial_id: int, mcap: Path, progress: Progress) -> None:
+        """File the record's page summary beside it; never fails the filed trial."""
+        seconds = self.config.summary
+        progress.enter("summarizing", seconds)
+        try:
+            blob = await asyncio.wait_for(
+                asyncio.to_thread(self.host.summarize, mcap, seconds=seconds), seconds + 1
+            )
+            if blob is None:
+                return
+            path = mcap.with_name(SUMMARY)
+            path.write_bytes(blob)
+            digest = await asyncio.to_thread(self.store.put_file, path)
+            item = Derived(SUMMARY, digest, len(blob), SUMMARY_MEDIA_TYPE)
+            await asyncio.to_thread(self.queue.derive, trial_id, self.config.name, item)
+        except TimeoutError:
+            self.log.error(
+                "trial %d: its summary took longer than %g s; none filed", trial_id, seconds
+            )
+        except Exception:  # whatever it was, the trial is filed: its page makes one later
+            self.log.exception("trial %d: its summary could not be filed", trial_id)
+
+    async def _derive(self, trial_id: int, mcap: Path, progress: Progress) -> None:
+        """What is made of a filed record, beside it: its page summary, its replay."""
+        await self._summarize(trial_id, mcap, progress)
+        await self._replay(trial_id, mcap, progress)
+
+    async def _replay(self, trial_id: int, mcap: Path, progress: Progress) -> None:
+        """Replay the filed record and file the verdict and the camera's video beside it;
+        never fails the filed trial (a replay that diverges is its verdict)."""
+        seconds = self.config.replay
+        if seconds <= 0:
+            return
+        progress.enter("replaying", seconds)
+        folder = mcap.with_name("replay")
+        try:
+            done = await asyncio.wait_for(
+                asyncio.to_thread(self.host.replay, mcap, folder), seconds
+            )
+            if done is None:
+                return
+            if not done.verified:
+                self.log.warning("trial %d: %s", trial_id, json.loads(done.verdict)["said"])
+            path = folder / REPLAY
+            path.write_bytes(done.verdict)
+            digest = await asyncio.to_thread(self.store.put_file, path)
+            verdict = Derived(REPLAY, digest, len(done.verdict), "application/json")
+            await asyncio.to_thread(self.queue.derive, trial_id, self.config.name, verdict)
+            if done.video is not None:
+                digest = await asyncio.to_thread(self.store.put_file, done.video)
+                size = done.video.stat().st_size
+                video = Derived(VIDEO, digest, size, "video/mp4")
+                await asyncio.to_thread(self.queue.derive, trial_id, self.config.name, video)
+        except TimeoutError:
+            self.log.error(
+                "trial %d: its replay took longer than %g s; none filed", trial_id, seconds
+            )
+        except Exception:  # whatever it was, the trial is filed; its page says "not replayed"
+            self.log.exception("trial %d: its replay could not be filed", trial_id)
 
     def _compare(self, original_id: int, result: TrialResult) -> dict[str, Any]:
         """Did this rerun reproduce the trial it reruns?"""

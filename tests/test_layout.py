@@ -33,7 +33,7 @@ LAYERS = [
     {"labd.sim", "labd.bridge", "labd.recorder"},
     {"labd.station"},
     {"labd.trial", "labd.replay", "labd.live", "labd.exports", "labd.scripted"},
-    {"labd.service"},
+    {"labd.service", "labd.authorizer"},
     {"labd.api"},
     {"labd.web"},
     {"labd.lab"},

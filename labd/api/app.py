@@ -1,7 +1,9 @@
 """The lab's HTTP API (FastAPI; OpenAPI at ``/openapi.json``, docs at ``/docs``).
 
-Reading the archive is public. Writing (submitting, rerunning, cancelling) needs a
-token, sent as ``Authorization: Bearer TOKEN``; ``labd users add NAME`` prints one.
+Reading the archive is public. Writing (submitting, rerunning, cancelling, booking)
+needs a token, sent as ``Authorization: Bearer TOKEN`` (``labd users add NAME`` prints
+one; a user makes more on the tokens page), or a signed-in page's session cookie with
+its CSRF token (``labd.api.common``).
 
     GET  /api/status                       the queue and what each busy worker runs
     GET  /api/tasks                        the tasks and their parameters
@@ -14,6 +16,10 @@ token, sent as ``Authorization: Bearer TOKEN``; ``labd users add NAME`` prints o
     POST /api/trials/{id}/rerun            a new trial from the same manifest
     POST /api/trials/{id}/cancel           cancel a queued or running trial
     GET  /api/commits/{sha}                a commit's trials and their reruns
+    /api/reservations, /api/robots/{robot}/..., /api/auth
+                                           booking live robots, their calendars, keys,
+                                           and the authorizer (``labd.api.reservations``)
+    /api/me, /api/tokens                   my account and tokens (``labd.api.accounts``)
 
 Every body, success or error, is a model of ``labd.api.models``; errors are
 ``{"error": "what went wrong and what to do"}``, mapped from exceptions in one table
@@ -24,7 +30,7 @@ from __future__ import annotations
 
 import datetime as dt
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Annotated, Literal
 
@@ -32,7 +38,7 @@ from fastapi import APIRouter, Depends, FastAPI, Query, Request
 from fastapi.responses import JSONResponse, StreamingResponse
 
 from labd import __version__
-from labd.api import errors, records, workers
+from labd.api import accounts, errors, records, reservations, summaries, workers
 from labd.api.common import Lab, Writer, blob_response
 from labd.api.errors import ApiError, responses
 from labd.api.models import (
@@ -43,21 +49,29 @@ from labd.api.models import (
     TaskList,
     TrialDetail,
     TrialPage,
+    WorkerHealth,
     WorkerView,
     commit_view,
     task_view,
     trial_detail,
     trial_summary,
 )
+from labd.api.throttle import Throttle
 from labd.service import Service
 from labd.sim import registry
 from repository.index import Filters
 from repository.trial import Kind, Outcome, Status, TrialRequest
 
 
-def create_app(service: Service, *, on_submit: Callable[[], None] | None = None) -> FastAPI:
-    """The API over ``service``; ``on_submit`` is called after a trial is queued. The
-    pages and ``/docs`` are added by ``labd.web.create_app``."""
+def create_app(
+    service: Service,
+    *,
+    on_submit: Callable[[], None] | None = None,
+    robots: Sequence[str] = (),
+) -> FastAPI:
+    """The API over ``service``; ``on_submit`` is called after a trial is queued;
+    ``robots`` are the live robots that can be booked. The pages and ``/docs`` are
+    added by ``labd.web.create_app``."""
     app = FastAPI(
         title="labd",
         version=__version__,
@@ -67,8 +81,20 @@ def create_app(service: Service, *, on_submit: Callable[[], None] | None = None)
     )
     app.state.service = service
     app.state.on_submit = on_submit or service.wake
+    app.state.robots = tuple(robots)
+    app.state.throttle = Throttle(service.index.clock)
+    app.state.on_reservation = None  # the lab's bridge is told of extended or released slots
     errors.install(app)
-    for part in (router, records.router, workers.router, workers.blobs):
+    parts = (
+        router,
+        records.router,
+        summaries.router,
+        workers.router,
+        workers.blobs,
+        accounts.router,
+        reservations.router,
+    )
+    for part in parts:
         app.include_router(errors.declare_validation(part))
     return app
 
@@ -123,6 +149,10 @@ def status(service: Lab) -> LabStatus:
         queued=service.queue.queued(),
         running=running,
         local_workers=len(service.workers),
+        workers=[
+            WorkerHealth(worker=h.worker, state=h.state, detail=h.detail, since=h.since)
+            for h in sorted(service.queue.health.values(), key=lambda h: h.worker)
+        ],
     )
 
 
@@ -143,7 +173,7 @@ def tasks() -> TaskList:
     status_code=201,
     tags=["trials"],
     response_model=TrialDetail,
-    responses=responses(400, 401, 413, 422, 429),
+    responses=responses(400, 401, 403, 413, 422, 429),
 )
 def submit(body: TrialRequest, request: Request, service: Lab, user: Writer) -> JSONResponse:
     """Resolve the ref to a commit now, and queue a trial of that commit."""
@@ -220,7 +250,7 @@ def logs(trial_id: int, stream: Literal["stdout", "stderr"], service: Lab) -> St
     status_code=201,
     tags=["trials"],
     response_model=TrialDetail,
-    responses=responses(401, 404, 429),
+    responses=responses(401, 403, 404, 429),
 )
 def rerun(trial_id: int, request: Request, service: Lab, user: Writer) -> JSONResponse:
     """Queue a new trial from the same commit, task, parameters and seed."""

@@ -1,4 +1,11 @@
-"""What the API's routers share: the service, tokens, serving blobs."""
+"""What the API's routers share: the service, who is asking, serving blobs.
+
+A request writes as a user when it carries a token (``Authorization: Bearer TOKEN``,
+for scripts and the ``labd`` commands) or comes from a signed-in page: the session
+cookie the pages set, and, for anything but reading, the session's CSRF token in
+``X-CSRF-Token`` (the pages put it in ``<meta name="csrf-token">``), so that another
+site cannot make a signed-in browser write.
+"""
 
 from __future__ import annotations
 
@@ -8,14 +15,25 @@ from typing import Annotated
 
 from fastapi import Depends, Request
 from fastapi.responses import StreamingResponse
-from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
+from fastapi.security import APIKeyCookie, HTTPAuthorizationCredentials, HTTPBearer
 
-from labd.api.errors import Unauthorized
+from labd.api.errors import Forbidden, Unauthorized
 from labd.service import Service
+from repository.accounts import WebSession, same
 from repository.index import User
 
 log = logging.getLogger("labd.api")
-bearer = HTTPBearer(auto_error=False, description="a token from `labd users add NAME`")
+bearer = HTTPBearer(
+    auto_error=False, description="a token: `labd users add NAME`, or the tokens page"
+)
+SESSION_COOKIE = "labd_session"
+CSRF_HEADER = "X-CSRF-Token"
+SAFE = frozenset({"GET", "HEAD", "OPTIONS"})
+session_cookie = APIKeyCookie(
+    name=SESSION_COOKIE,
+    auto_error=False,
+    description="a signed-in page's session; writing also needs its X-CSRF-Token header",
+)
 
 
 def _service(request: Request) -> Service:
@@ -26,20 +44,42 @@ def _service(request: Request) -> Service:
 Lab = Annotated[Service, Depends(_service)]
 
 
+def web_session(service: Service, request: Request) -> WebSession | None:
+    """The signed-in session of the request's cookie, if it has a live one."""
+    cookie = request.cookies.get(SESSION_COOKIE)
+    return service.accounts.session(cookie) if cookie else None
+
+
 def _writer(
+    request: Request,
     service: Lab,
     credentials: Annotated[HTTPAuthorizationCredentials | None, Depends(bearer)],
+    cookie: Annotated[str | None, Depends(session_cookie)],
 ) -> User:
-    if credentials is None:
-        raise Unauthorized(
-            "this needs a token: send Authorization: Bearer TOKEN "
-            "(the operator makes one with `labd users add NAME`; "
-            "labd commands take --token or LABD_TOKEN)",
-        )
-    user = service.index.user_by_token(credentials.credentials)
-    if user is None:
-        raise Unauthorized("the token is not valid here; ask the operator for a new one")
-    return user
+    if credentials is not None:
+        user = service.index.user_by_token(credentials.credentials)
+        if user is None:
+            raise Unauthorized(
+                "the token is not valid here (unknown or revoked); make a new one on the"
+                " tokens page, or ask the operator"
+            )
+        return user
+    if cookie:
+        session = service.accounts.session(cookie)
+        if session is None:
+            raise Unauthorized("your sign-in has ended; sign in again")
+        sent = request.headers.get(CSRF_HEADER, "")
+        if request.method not in SAFE and not same(sent, session.csrf):
+            raise Forbidden(
+                f"a signed-in page's request must carry its CSRF token in {CSRF_HEADER}"
+                " (the page's <meta name=csrf-token>); reload the page and try again"
+            )
+        return session.user
+    raise Unauthorized(
+        "this needs a token or a sign-in: send Authorization: Bearer TOKEN "
+        "(make one on the tokens page, or the operator makes one with `labd users add "
+        "NAME`; labd commands take --token or LABD_TOKEN)",
+    )
 
 
 Writer = Annotated[User, Depends(_writer)]

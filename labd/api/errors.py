@@ -17,7 +17,18 @@ from fastapi.responses import JSONResponse
 from fastapi.routing import APIRoute
 
 from labd.api.models import ErrorBody
-from repository.errors import ArchiveError, BlobError, BlobNotFound, RecordNotFound
+from repository.errors import (
+    AccountError,
+    ArchiveError,
+    BadCredentials,
+    BlobError,
+    BlobNotFound,
+    NotYourReservation,
+    OverLimit,
+    RecordNotFound,
+    ReservationError,
+    SlotTaken,
+)
 from scheduler.errors import (
     InvalidRequest,
     NotYours,
@@ -54,6 +65,14 @@ class Conflict(ApiError):
         super().__init__(409, message)
 
 
+class TooMany(ApiError):
+    """Too many failed attempts (keys, passwords): wait ``retry_after`` seconds."""
+
+    def __init__(self, message: str, retry_after: float) -> None:
+        self.retry_after = retry_after
+        super().__init__(429, message)
+
+
 # The most specific class wins (a TooLarge is a RepositoryError, but a 413).
 STATUS: dict[type[Exception], int] = {
     RecordNotFound: 404,
@@ -61,6 +80,12 @@ STATUS: dict[type[Exception], int] = {
     BlobError: 500,  # a blob that no longer matches its digest: the store is damaged
     ArchiveError: 422,
     NotYours: 403,
+    NotYourReservation: 403,
+    SlotTaken: 409,
+    OverLimit: 429,
+    ReservationError: 422,
+    BadCredentials: 401,
+    AccountError: 422,
     QuotaExceeded: 429,
     InvalidRequest: 422,
     TooLarge: 413,
@@ -69,13 +94,13 @@ STATUS: dict[type[Exception], int] = {
 }
 MEANING = {
     400: "the request body is not valid JSON",
-    401: "no token, or one the lab does not know",
-    403: "the token's user may not do this",
-    404: "no such trial, commit, record or file",
-    409: "the client's version does not match the lab's",
+    401: "no token or sign-in, or one the lab does not know",
+    403: "the user may not do this (or a signed-in page's request lacks its CSRF token)",
+    404: "no such trial, commit, reservation, record or file",
+    409: "a conflict: the slot is booked already, or the client's version is not the lab's",
     413: "too large",
     422: "the request names something wrong (the message says what)",
-    429: "over a limit the operator set",
+    429: "over a limit the operator set, or too many failed attempts (see Retry-After)",
     500: "the lab is at fault (the message says what)",
     507: "the lab's storage is full (the message says where)",
 }
@@ -100,7 +125,10 @@ async def _known(request: Request, err: Exception) -> JSONResponse:
     message = err.message if isinstance(err, ApiError) else str(err)
     if status >= 500:
         log.error("%s %s: %s", request.method, request.url.path, message, exc_info=err)
-    return JSONResponse({"error": message}, status_code=status)
+    headers = {}
+    if isinstance(err, TooMany):
+        headers["Retry-After"] = str(max(1, round(err.retry_after)))
+    return JSONResponse({"error": message}, status_code=status, headers=headers)
 
 
 async def _bug(request: Request, err: Exception) -> JSONResponse:

@@ -149,13 +149,24 @@ class WorkerView(BaseModel):
     stage_seconds: float | None = None
 
 
+class WorkerHealth(BaseModel):
+    """What a worker last said of itself: ``out`` if a canary did not reproduce."""
+
+    worker: str
+    state: str = Field(description="ok, checking (rerunning its canaries) or out (of the pool)")
+    detail: str
+    since: dt.datetime
+
+
 class LabStatus(BaseModel):
-    """The lab right now: its version, the queue, and what each busy worker runs."""
+    """The lab right now: its version, the queue, what each busy worker runs, and the
+    health of every worker that reported (its canary reruns)."""
 
     version: str
     queued: int
     running: list[WorkerView]
     local_workers: int
+    workers: list[WorkerHealth]
 
 
 def summary(trial: Trial, base: str) -> dict[str, Any]:

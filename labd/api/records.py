@@ -29,6 +29,7 @@ from typing import Any, Literal
 
 from fastapi import APIRouter, Query
 from fastapi.responses import FileResponse, StreamingResponse
+from pydantic import BaseModel, Field
 from starlette.background import BackgroundTask
 
 from labd.api.common import Lab, blob_response
@@ -39,6 +40,7 @@ from repository.signing import EXPORT, file_digests
 from repository.trial import Kind, Outcome, Trial
 from scheduler.controller import DataQuery, DataSpec
 from scheduler.data import LocalArchive, resolve
+from scheduler.host import REPLAY, VIDEO
 
 router = APIRouter(tags=["data"])
 Format = Literal["parquet", "lerobot"]
@@ -201,3 +203,41 @@ def export_many(
         filename=f"export-{len(chosen)}-trials-{fmt}.zip",
         background=BackgroundTask(shutil.rmtree, folder, ignore_errors=True),
     )
+
+
+class ReplayVerdict(BaseModel):
+    """What replaying the trial's record gave, in the worker, after it was filed."""
+
+    verified: bool
+    ticks: int
+    compared: int = Field(description="messages compared with the record")
+    divergence: dict[str, Any] | None = Field(description="tick, topic, what differed")
+    said: str = Field(description="the verdict in words")
+    video: dict[str, Any] | None = Field(description="camera, frames, fps of the video")
+
+
+@router.get("/api/trials/{trial_id}/replay", responses=responses(404, 500))
+def replay_verdict(trial_id: int, service: Lab) -> ReplayVerdict:
+    """The verdict of replaying the trial's record from its actions (made when filed)."""
+    service.index.trial(trial_id)
+    item = service.index.derived(trial_id).get(REPLAY)
+    if item is None:
+        raise ApiError(404, f"trial {trial_id} has not been replayed")
+    return ReplayVerdict.model_validate_json(service.store.read_bytes(item.digest))
+
+
+@router.get(
+    "/api/trials/{trial_id}/video",
+    response_class=StreamingResponse,
+    responses={
+        200: {"content": {"video/mp4": {}}, "description": "H.264 MP4"},
+        **responses(404, 500),
+    },
+)
+def video(trial_id: int, service: Lab) -> StreamingResponse:
+    """The task's camera through the whole trial, rendered during its replay."""
+    service.index.trial(trial_id)
+    item = service.index.derived(trial_id).get(VIDEO)
+    if item is None:
+        raise ApiError(404, f"trial {trial_id} has no video (it has not been replayed)")
+    return blob_response(service, item.digest, "video/mp4", None)

@@ -3,6 +3,7 @@
     POST /api/workers/claim                        {"worker"} → a Claim, or 204
     POST /api/workers/trials/{id}/heartbeat        {"worker"} → {"keep": bool}
     POST /api/workers/trials/{id}/finish           {"worker", "filing"} → {"filed": bool}
+    POST /api/workers/trials/{id}/derived          {"worker", "item"} → {"filed": bool}
     GET  /api/workers/trials/{id}                  the whole record (a rerun's original)
     PUT  /api/blobs/sha256:HEX                     the bytes; stored if they match
     GET  /api/blobs/sha256:HEX                     a blob, checked before it is sent
@@ -28,20 +29,25 @@ from pydantic import BaseModel
 from labd import __version__
 from labd.api.common import Lab, Writer, blob_response
 from labd.api.errors import ApiError, Conflict, Forbidden, responses
-from repository.index import User
+from repository.index import Derived, User
 from repository.trial import Claim, Trial
+from scheduler.canary import Health
+from scheduler.host import REPLAY, SUMMARY, VIDEO
 from scheduler.outcome import storage_failure
 from scheduler.remote import (
     PROTOCOL,
     PROTOCOL_HEADER,
     VERSION_HEADER,
+    DeriveBody,
     Filed,
     FinishBody,
+    HealthBody,
     Kept,
     WorkerName,
 )
 
 MAX_BLOB = 4 << 30
+WORKER_MADE = frozenset({SUMMARY, REPLAY, VIDEO})  # what a worker may file beside a record
 
 
 class Stored(BaseModel):
@@ -121,6 +127,30 @@ def finish(trial_id: int, body: FinishBody, service: Lab, user: WorkerUser) -> F
         if digest and not service.store.exists(digest):
             raise ApiError(422, f"filing.{key}: upload {digest} first")
     return Filed(filed=service.queue.finish(trial_id, _named(user, body.worker), filing))
+
+
+@router.post("/api/workers/trials/{trial_id}/derived", responses=responses(404, 422))
+def derived(trial_id: int, body: DeriveBody, service: Lab, user: WorkerUser) -> Filed:
+    """Keep what a worker made of a trial it filed (its page summary, its replay's verdict
+    and video), the blob uploaded first and checked against its digest; ``filed`` false
+    if the trial is not this worker's."""
+    item = body.item
+    if item.name not in WORKER_MADE:
+        made = ", ".join(sorted(WORKER_MADE))
+        raise ApiError(422, f"item.name: a worker files {made}, not {item.name!r}")
+    if not service.store.exists(item.digest):
+        raise ApiError(422, f"item.digest: upload {item.digest} first")
+    if service.store.size(item.digest) != item.size:
+        raise ApiError(422, f"item.size: the blob {item.digest} is not {item.size} bytes")
+    derived = Derived(item.name, item.digest, item.size, item.media_type)
+    return Filed(filed=service.queue.derive(trial_id, _named(user, body.worker), derived))
+
+
+@router.post("/api/workers/health", status_code=204, response_class=Response)
+def health(body: HealthBody, service: Lab, user: WorkerUser) -> Response:
+    """A worker says how its canaries went: ``out`` takes it out of the pool (it says so)."""
+    service.queue.report(Health(_named(user, body.worker), body.state, body.detail))
+    return Response(status_code=204)
 
 
 @router.get("/api/workers/trials/{trial_id}", responses=responses(404))

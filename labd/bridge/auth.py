@@ -1,15 +1,23 @@
 """Key authorization: how long may the holder of a key stay connected?
 
-The seam is ``Authorizer``: given a key, the number of seconds it may stay, or
+The seam is ``Authorizer``: given a key and the robot (graph) it is presented to, a
+``Grant`` (the seconds it may stay, and, when the authorizer knows, whose key it is), or
 ``AuthError`` saying why not. ``HttpAuthorizer`` asks an HTTP(S) URL, as the rosjs
-paper's labs did: ``GET URL?key=KEY`` answers JSON ``{"seconds": N}``, a bare number,
-or JSONP (``callback({"seconds": N})``) for the paper's authorizers. The lab's own
-reservations will answer the same way under ``/api/auth``.
+paper's labs did: ``GET URL?key=KEY&robot=NAME`` answers JSON ``{"seconds": N}``, a
+bare number, or JSONP (``callback({"seconds": N})``) for the paper's authorizers. The
+lab's own reservations answer the same way under ``/api/auth``, and in process through
+``labd.authorizer``.
+
+Each graph of a bridge has a ``KeyPolicy``: no key needed; a key required (the first
+frame, or ``?key=`` in the URL); or a key optional (anyone may connect and watch, a key
+makes the client someone: a robot lets only such clients drive it).
 """
 
 from __future__ import annotations
 
+import enum
 import re
+from dataclasses import dataclass
 from typing import Any, Protocol
 
 import httpx
@@ -28,9 +36,24 @@ class AuthError(BridgeError):
         super().__init__(reason)
 
 
+class KeyPolicy(enum.Enum):
+    NONE = "none"  # no key is asked for
+    REQUIRED = "required"  # the first frame (or the URL) must carry a valid key
+    OPTIONAL = "optional"  # anyone may connect; a valid key makes the client someone
+
+
+@dataclass(frozen=True)
+class Grant:
+    """What an authorizer says of a key it accepts."""
+
+    seconds: float  # how long the key may stay connected
+    user: str | None = None  # whose key it is, when the authorizer knows
+    ref: str | None = None  # what it opens (``reservation:12``), to find it again later
+
+
 class Authorizer(Protocol):
-    async def authorize(self, key: str) -> float:
-        """Seconds the key may stay connected (> 0), or AuthError."""
+    async def authorize(self, key: str, graph: str) -> Grant:
+        """What ``key`` may do on the graph named ``graph`` (seconds > 0), or AuthError."""
         ...
 
 
@@ -67,16 +90,16 @@ class HttpAuthorizer:
             timeout=timeout, verify=verify, transport=transport, follow_redirects=False
         )
 
-    async def authorize(self, key: str) -> float:
+    async def authorize(self, key: str, graph: str) -> Grant:
         try:
-            response = await self._client.get(self.url, params={"key": key})
+            response = await self._client.get(self.url, params={"key": key, "robot": graph})
         except httpx.HTTPError as err:
             raise AuthError(f"the authorizer could not be reached ({type(err).__name__})") from None
         if response.status_code in (401, 403, 404):
             raise AuthError("the key is not known")
         if response.status_code != 200:
             raise AuthError(f"the authorizer answered HTTP {response.status_code}")
-        return parse_answer(response.text)
+        return Grant(parse_answer(response.text))
 
     async def aclose(self) -> None:
         await self._client.aclose()

@@ -3,7 +3,8 @@
 Each connection gets a ``Session`` on the graph its path names (``/`` the first
 graph, ``/robots/NAME`` the graph called NAME), a reader that feeds it frames, and a
 writer that drains its outbox. The server adds what only I/O can do: TLS, keepalive
-pings, the frame size limit, the connection limit, and the authorizer's HTTP call.
+pings, the frame size limit, the connection limit, and the authorizer's call (with a
+limit on refused keys per address, so keys cannot be guessed at speed).
 """
 
 from __future__ import annotations
@@ -14,6 +15,7 @@ import http
 import itertools
 import logging
 import ssl
+from collections import deque
 from collections.abc import Coroutine, Mapping
 from pathlib import Path
 from typing import Any
@@ -23,7 +25,7 @@ from websockets.asyncio.server import Server, ServerConnection, serve, unix_serv
 from websockets.exceptions import ConnectionClosed
 from websockets.http11 import Request, Response
 
-from labd.bridge.auth import AuthError, Authorizer
+from labd.bridge.auth import AuthError, Authorizer, KeyPolicy
 from labd.bridge.ops import CAPABILITIES
 from labd.bridge.render import OutFrame
 from labd.bridge.session import Session
@@ -44,12 +46,21 @@ class BridgeServer:
         graphs: Mapping[str, Graph],
         config: BridgeConfig,
         authorizer: Authorizer | None = None,
+        *,
+        policies: Mapping[str, KeyPolicy] | None = None,
     ) -> None:
+        """``policies``: each graph's ``KeyPolicy`` (default: a key required on every
+        graph when there is an authorizer, else none)."""
         if not graphs:
             raise ValueError("a bridge needs at least one graph")
         self.graphs = dict(graphs)
         self.config = config
         self.authorizer = authorizer
+        default = KeyPolicy.REQUIRED if authorizer is not None else KeyPolicy.NONE
+        self.policies = {name: (policies or {}).get(name, default) for name in self.graphs}
+        if authorizer is None and any(p is not KeyPolicy.NONE for p in self.policies.values()):
+            raise ValueError("a graph that takes keys needs an authorizer")
+        self.failures = _Failures(config.auth_failures, config.auth_failure_window)
         self.connections: set[_Connection] = set()
         self._ids = itertools.count(1)
         self._server: Server | None = None
@@ -95,13 +106,28 @@ class BridgeServer:
             await self._server.wait_closed()
             self._server = None
 
+    def reauthorize(self, ref: str, seconds: float, reason: str) -> int:
+        """The keys that open ``ref`` now end in ``seconds`` (none left: their clients
+        are disconnected, told ``reason``); how many clients that concerned."""
+        count = 0
+        for conn in list(self.connections):
+            session = conn.session
+            if session is not None and session.grant_ref == ref:
+                session.reauthorize(seconds, reason)
+                count += 1
+        return count
+
     def _graph_for(self, path: str) -> Graph | None:
+        name = self._name_for(path)
+        return None if name is None else self.graphs.get(name)
+
+    def _name_for(self, path: str) -> str | None:
         route = urlsplit(path).path.rstrip("/")
         if route == "":
-            return next(iter(self.graphs.values()))
+            return next(iter(self.graphs))
         prefix = "/robots/"
-        if route.startswith(prefix):
-            return self.graphs.get(route[len(prefix) :])
+        if route.startswith(prefix) and route[len(prefix) :] in self.graphs:
+            return route[len(prefix) :]
         return None
 
     def _admit(self, connection: ServerConnection, request: Request) -> Response | None:
@@ -119,11 +145,14 @@ class BridgeServer:
         return None
 
     async def _handle(self, ws: ServerConnection) -> None:
-        graph = self._graph_for(ws.request.path if ws.request else "/")
-        assert graph is not None
+        name = self._name_for(ws.request.path if ws.request else "/")
+        assert name is not None
+        graph = self.graphs[name]
+        policy = self.policies[name]
         query = parse_qs(urlsplit(ws.request.path if ws.request else "").query)
         key = query.get("key", [None])[0]
-        conn = _Connection(ws, self.authorizer)
+        address = ws.remote_address[0] if ws.remote_address else "unix"
+        conn = _Connection(ws, self.authorizer, name, address, self.failures)
         session = Session(
             graph,
             self.config,
@@ -131,8 +160,9 @@ class BridgeServer:
             conn,
             client_id=next(self._ids),
             capabilities=CAPABILITIES,
-            auth_required=self.authorizer is not None,
-            url_key=key,
+            auth_required=policy is KeyPolicy.REQUIRED,
+            auth_optional=policy is KeyPolicy.OPTIONAL,
+            url_key=key if policy is not KeyPolicy.NONE else None,
         )
         conn.session = session
         self.connections.add(conn)
@@ -152,12 +182,55 @@ class BridgeServer:
             log.info("client %d left (%s)", session.client_id, ws.close_code)
 
 
+class _Failures:
+    """Refused keys per address in a sliding window: past the limit, an address's keys
+    are refused without asking the authorizer, and that is logged."""
+
+    def __init__(self, limit: int, window: float) -> None:
+        self.limit = limit
+        self.window = window
+        self._seen: dict[str, deque[float]] = {}
+
+    def wait(self, address: str, now: float) -> float:
+        """Seconds ``address`` must wait before its next key is checked (0: none)."""
+        times = self._seen.get(address)
+        if times is None:
+            return 0.0
+        while times and times[0] <= now - self.window:
+            times.popleft()
+        if not times:
+            del self._seen[address]
+            return 0.0
+        return times[0] + self.window - now if len(times) >= self.limit else 0.0
+
+    def add(self, address: str, now: float) -> None:
+        times = self._seen.setdefault(address, deque())
+        times.append(now)
+        if len(times) == self.limit:
+            log.warning(
+                "%d keys refused from %s within %.0f s: its keys are refused unchecked for a while",
+                self.limit,
+                address,
+                self.window,
+            )
+
+
 class _Connection:
     """The ``Transport`` of one session: its socket, writer wake-up and auth calls."""
 
-    def __init__(self, ws: ServerConnection, authorizer: Authorizer | None) -> None:
+    def __init__(
+        self,
+        ws: ServerConnection,
+        authorizer: Authorizer | None,
+        graph: str,
+        address: str,
+        failures: _Failures,
+    ) -> None:
         self.ws = ws
         self.authorizer = authorizer
+        self.graph = graph
+        self.address = address
+        self.failures = failures
         self.session: Session | None = None
         self._ready = asyncio.Event()
         self._tasks: set[asyncio.Task[None]] = set()
@@ -174,12 +247,21 @@ class _Connection:
 
     async def _authorize(self, key: str) -> None:
         assert self.session is not None and self.authorizer is not None
+        loop = asyncio.get_running_loop()
+        wait = self.failures.wait(self.address, loop.time())
+        if wait > 0:
+            self.session.refuse(
+                f"too many refused keys from your address; try again in {wait:.0f} s"
+            )
+            return
         try:
-            seconds = await self.authorizer.authorize(key)
+            grant = await self.authorizer.authorize(key, self.graph)
         except AuthError as err:
+            self.failures.add(self.address, loop.time())
+            log.info("a key for %s from %s was refused: %s", self.graph, self.address, err)
             self.session.refuse(err.reason)
             return
-        self.session.grant(seconds)
+        self.session.grant(grant.seconds, user=grant.user, ref=grant.ref)
 
     def _spawn(self, coro: Coroutine[Any, Any, None]) -> None:
         task = asyncio.ensure_future(coro)

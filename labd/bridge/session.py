@@ -85,6 +85,7 @@ class Session:
         client_id: int,
         capabilities: list[Callable[[Session], Capability]],
         auth_required: bool = False,
+        auth_optional: bool = False,
         url_key: str | None = None,
     ) -> None:
         self.graph = graph
@@ -110,12 +111,19 @@ class Session:
         self._held: list[str | bytes] = []  # frames received while authorizing
         self._auth_timer: TimerHandle | None = None
         self._expiry: TimerHandle | None = None
+        self._warning: TimerHandle | None = None
         self.auth = AuthState.OPEN
+        # With a key optional, an open session may still present one (once).
+        self.accepts_key = auth_optional and not auth_required
+        self.grant_ref: str | None = None  # what the granted key opens (Grant.ref)
+        self.expires_at: float | None = None
         if auth_required:
             self.auth = AuthState.AWAITING
             self._auth_timer = timers.call_later(config.auth_timeout, self._auth_timed_out)
             if url_key is not None:
                 self._start_authorizing(url_key)
+        elif self.accepts_key and url_key is not None:
+            self._start_authorizing(url_key)
 
     # -- input --------------------------------------------------------------------------
 
@@ -137,6 +145,9 @@ class Session:
             op = frames.parse(data)
         except FrameError as err:
             self.report("error", str(err), frames.peek_id(data))
+            return
+        if isinstance(op, Auth):
+            self._late_auth(op)
             return
         self.dispatch(op)
 
@@ -273,12 +284,26 @@ class Session:
             return
         self._start_authorizing(key)
 
+    def _late_auth(self, op: Auth) -> None:
+        """An auth frame on an open session: where a key is optional, the client
+        presents one now (frames after it wait for the answer); else it is out of place."""
+        key = op.key or op.mac
+        if not self.accepts_key:
+            self.report("warning", "auth: this connection needs no key, or has one already")
+            return
+        if not key:
+            self.report("error", 'auth: give the key, {"op": "auth", "key": ...}')
+            return
+        self._start_authorizing(key)
+
     def _start_authorizing(self, key: str) -> None:
         self.auth = AuthState.AUTHORIZING
+        self.accepts_key = False
         self.transport.authorize(key)
 
-    def grant(self, seconds: float) -> None:
-        """The authorizer accepted the key for ``seconds``."""
+    def grant(self, seconds: float, *, user: str | None = None, ref: str | None = None) -> None:
+        """The authorizer accepted the key for ``seconds``; it belongs to ``user`` (when
+        the authorizer says) and opens ``ref``."""
         if self.auth is not AuthState.AUTHORIZING:
             return
         if seconds <= 0:
@@ -288,11 +313,55 @@ class Session:
         if self._auth_timer is not None:
             self._auth_timer.cancel()
             self._auth_timer = None
-        self._expiry = self.timers.call_later(seconds, self._expired)
-        self.log.info("client %d authorized for %.0f s", self.client_id, seconds)
+        self.node.user = user
+        self.grant_ref = ref
+        self._schedule_expiry(seconds)
+        self.log.info(
+            "client %d authorized for %.0f s%s",
+            self.client_id,
+            seconds,
+            f" as {user}" if user else "",
+        )
         held, self._held = self._held, []
         for data in held:
             self.receive(data)
+
+    def reauthorize(self, seconds: float, reason: str) -> None:
+        """The key's time changed (its slot was extended or released): it now ends in
+        ``seconds``, or, if none are left, the connection closes saying ``reason``."""
+        if self.closed or self.expires_at is None:
+            return
+        if seconds <= 0:
+            self._cancel_expiry()
+            self.close_connection(POLICY_VIOLATION, reason)
+            return
+        self._schedule_expiry(seconds)
+        self.log.info("client %d: its key now ends in %.0f s", self.client_id, seconds)
+
+    def _schedule_expiry(self, seconds: float) -> None:
+        self._cancel_expiry()
+        self.expires_at = self.timers.time() + seconds
+        self._expiry = self.timers.call_later(seconds, self._expired)
+        ahead = self.config.expiry_warning
+        if 0 < ahead < seconds:
+            self._warning = self.timers.call_later(seconds - ahead, self._warn)
+
+    def _cancel_expiry(self) -> None:
+        for timer in (self._expiry, self._warning):
+            if timer is not None:
+                timer.cancel()
+        self._expiry = self._warning = None
+
+    def _warn(self) -> None:
+        self._warning = None
+        if self.expires_at is None:
+            return
+        left = max(0.0, self.expires_at - self.timers.time())
+        self.report(
+            "warning",
+            f"the time of your key ends in {left:.0f} s: this connection will close then"
+            " (a reservation may be extended if the next slot is free)",
+        )
 
     def refuse(self, reason: str) -> None:
         if self.auth is AuthState.CLOSED or self.closed:
@@ -306,6 +375,7 @@ class Session:
 
     def _expired(self) -> None:
         self._expiry = None
+        self.expires_at = None
         self.close_connection(POLICY_VIOLATION, "the authorization has expired")
 
     # -- lifecycle ---------------------------------------------------------------------
@@ -323,7 +393,7 @@ class Session:
             return
         self.closed = True
         self.auth = AuthState.CLOSED
-        for timer in (self._auth_timer, self._expiry):
+        for timer in (self._auth_timer, self._expiry, self._warning):
             if timer is not None:
                 timer.cancel()
         for cap in self.capabilities:

@@ -380,6 +380,9 @@ def _status(client: ApiClient, args: argparse.Namespace) -> int:
             stage = f", {w.stage} for {w.stage_seconds:.0f} s" if w.stage else ""
             ran = f"{w.running_seconds:.0f} s" if w.running_seconds is not None else "?"
             yield f"  trial {w.trial} ({w.task}) on {w.worker}: running {ran}{stage}"
+        for h in now.workers:
+            if h.state != "ok":
+                yield f"  worker {h.worker}: {h.state.upper()}: {h.detail}"
 
     emit(args, now.model_dump(mode="json"), lines)
     return ExitCode.SUCCESS

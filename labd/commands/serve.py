@@ -27,6 +27,7 @@ from labd.lab import Lab, LabConfig
 from labd.service import ServiceConfig
 from labd.sim import registry
 from repository.errors import ArchiveError, SchemaMismatch
+from repository.reservations import Rules
 from scheduler.data import DataPolicy
 from scheduler.queue import QueueConfig
 from scheduler.runner import RunOptions
@@ -34,6 +35,7 @@ from scheduler.runner import RunOptions
 BRIDGE = BridgeConfig()
 LAB = LabConfig()
 SERVICE = ServiceConfig()
+RULES = Rules()
 
 
 class Refused(Exception):
@@ -161,7 +163,93 @@ def add_parser(commands: Any) -> None:
         "--cache", type=Path, help="git mirrors and controller runtimes (default: DATA/cache)"
     )
     group.add_argument(
+        "--canary",
+        action="append",
+        type=int,
+        default=[],
+        metavar="TRIAL",
+        help="a reference trial each worker reruns when it starts and every --canary-every"
+        " seconds; one that does not reproduce takes the worker out (repeatable; default: none)",
+    )
+    group.add_argument(
+        "--canary-every",
+        type=float,
+        default=SERVICE.canary_every,
+        help="seconds between a worker's canary reruns (default: %(default)g)",
+    )
+    group.add_argument(
         "--no-service", action="store_true", help="no HTTP API, no archive, no workers"
+    )
+    add_reservation_options(serve)
+
+
+def _limit(value: float | None) -> str:
+    return "no limit" if value is None else f"{value:g}"
+
+
+def add_reservation_options(serve: Any) -> None:
+    group = serve.add_argument_group(
+        "accounts and reservations (docs/reservations.md)",
+        "Limits of 0 mean no limit. Days are UTC days; weeks start on Monday.",
+    )
+    group.add_argument(
+        "--reservations",
+        action="store_true",
+        help="only the holder of a reservation's key drives a live robot, in their slot"
+        " (default: anyone connected may drive, one at a time)",
+    )
+    group.add_argument(
+        "--no-watchers",
+        action="store_true",
+        help="with --reservations: a client needs a key even to watch (default: anyone may watch)",
+    )
+    group.add_argument(
+        "--signup",
+        action="store_true",
+        help="people may make their own accounts on the sign-in page (default: only the"
+        " operator, with labd users add)",
+    )
+    group.add_argument(
+        "--max-slot",
+        type=float,
+        default=RULES.max_slot / 60,
+        metavar="MIN",
+        help="minutes a slot may last (default: %(default)g)",
+    )
+    group.add_argument(
+        "--max-slots-per-day",
+        type=int,
+        default=RULES.max_slots_per_day,
+        metavar="N",
+        help=f"slots a person may have a day (default: {_limit(RULES.max_slots_per_day)})",
+    )
+    group.add_argument(
+        "--max-minutes-per-day",
+        type=float,
+        default=RULES.max_minutes_per_day,
+        metavar="MIN",
+        help=f"minutes of slots a day (default: {_limit(RULES.max_minutes_per_day)})",
+    )
+    group.add_argument(
+        "--max-slots-per-week",
+        type=int,
+        default=RULES.max_slots_per_week,
+        metavar="N",
+        help=f"slots a person may have a week (default: {_limit(RULES.max_slots_per_week)})",
+    )
+    group.add_argument(
+        "--max-minutes-per-week",
+        type=float,
+        default=RULES.max_minutes_per_week,
+        metavar="MIN",
+        help=f"minutes of slots a week (default: {_limit(RULES.max_minutes_per_week)})",
+    )
+    group.add_argument(
+        "--book-ahead",
+        type=float,
+        default=RULES.horizon / 86400,
+        metavar="DAYS",
+        help="how far ahead a slot may start (default: %(default)g days)",
     )
 
 
@@ -170,6 +258,15 @@ def config(args: argparse.Namespace) -> LabConfig:
     robots = robot_configs(args)
     if not robots and args.no_playground:
         raise Refused("--no-robots with --no-playground leaves the bridge nothing to serve")
+    if args.reservations and args.no_service:
+        raise Refused("--reservations needs the archive, where they are kept: drop --no-service")
+    if args.reservations and args.authorizer:
+        raise Refused(
+            "--reservations makes the lab its own authorizer: drop --authorizer (or, to"
+            " use an outside one, drop --reservations)"
+        )
+    if args.no_watchers and not args.reservations:
+        raise Refused("--no-watchers goes with --reservations")
     return LabConfig(
         data=args.data,
         bridge=bridge_config(args),
@@ -177,6 +274,32 @@ def config(args: argparse.Namespace) -> LabConfig:
         playground=not args.no_playground,
         http_port=args.http_port,
         service=service_config(args),
+        reservations=args.reservations,
+        watchers=not args.no_watchers,
+    )
+
+
+def rules(args: argparse.Namespace) -> Rules:
+    """The booking rules the options set (0: no limit)."""
+    if args.max_slot <= 0 or args.book_ahead <= 0:
+        raise Refused("--max-slot and --book-ahead must be more than 0")
+
+    def limit(value: float | None) -> float | None:
+        if value is not None and value < 0:
+            raise Refused("the limits per day and per week are 0 (no limit) or more")
+        return value or None
+
+    def count(value: int | None) -> int | None:
+        found = limit(value)
+        return None if found is None else int(found)
+
+    return Rules(
+        max_slot=args.max_slot * 60,
+        max_slots_per_day=count(args.max_slots_per_day),
+        max_minutes_per_day=limit(args.max_minutes_per_day),
+        max_slots_per_week=count(args.max_slots_per_week),
+        max_minutes_per_week=limit(args.max_minutes_per_week),
+        horizon=args.book_ahead * 86400,
     )
 
 
@@ -217,6 +340,10 @@ def service_config(args: argparse.Namespace) -> ServiceConfig | None:
         fetch=fetch,
         run=RunOptions(fetch=fetch),
         data_policy=DataPolicy(args.max_data_trials, args.max_data_mb * 1024 * 1024),
+        canaries=tuple(args.canary),
+        canary_every=args.canary_every,
+        rules=rules(args),
+        signup=args.signup,
     )
 
 
@@ -266,6 +393,9 @@ async def serve(config: LabConfig) -> None:
     if config.playground:
         print(f"  playground (no robot; clients meet here): {bridge.url('playground')}", flush=True)
     print(f"  {bridge.url()} serves the first of these.", flush=True)
+    if config.reservations:
+        watch = "anyone may watch" if config.watchers else "watching needs a key too"
+        print(f"  live robots: only a reservation's key drives ({watch})", flush=True)
     if lab.http is not None and lab.service is not None:
         print(f"HTTP API on {lab.http.url()}/api (OpenAPI: {lab.http.url()}/openapi.json)")
         print(f"  archive: {lab.service.config.database_url}, blobs {lab.service.store.url}")

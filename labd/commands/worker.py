@@ -71,6 +71,21 @@ def add_parser(commands: Any) -> None:
         default=DEFAULTS.poll,
         help="seconds between claims when idle (default: %(default)g)",
     )
+    p.add_argument(
+        "--canary",
+        action="append",
+        type=int,
+        default=[],
+        metavar="TRIAL",
+        help="a reference trial to rerun at start and every --canary-every seconds; one"
+        " that does not reproduce takes this worker out (repeatable; default: none)",
+    )
+    p.add_argument(
+        "--canary-every",
+        type=float,
+        default=DEFAULTS.canary_every,
+        help="seconds between canary reruns (default: %(default)g)",
+    )
     json_option(p)
     fetching.add_options(p.add_argument_group("what this worker fetches"))
 
@@ -107,6 +122,8 @@ def main(args: argparse.Namespace) -> int:
                 heartbeat=args.heartbeat,
                 poll=args.poll,
                 options=RunOptions(fetch=policy),
+                canaries=tuple(args.canary),
+                canary_every=args.canary_every,
             ),
         )
         for n in range(args.workers)

@@ -309,6 +309,8 @@ class Node:
         self.actions: list[Action] = []
         self.calls: list[ServiceCall] = []  # calls this node made that are not answered
         self.goals: list[ClientGoal] = []  # goals this node sent that are not finished
+        # Who the client is, when its key said so (the lab's reservations); None: anyone.
+        self.user: str | None = None
         self.destroyed = False
 
     def advertise(

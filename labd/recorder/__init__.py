@@ -8,7 +8,9 @@ makes the folder a rosbag2 bag. The data digest over the observation and action 
 decides whether a rerun reproduced a trial; ``first_difference`` says where two records
 part (``digest``). Each channel says which side of the bridge published on it (``lab``
 or ``client``), so ``read_messages`` picks a record's observations or actions without
-knowing its task (``reader``).
+knowing its task (``reader``). A record's summary for its page (plots, camera
+thumbnails, the maze's map, the 3D scene from the task's model it carries) is read from
+it once, when the trial is filed (``summary``, with ``series`` and ``scene``).
 
     FOLDER/
     ├── trial.mcap       schemas (ros2msg), channels (cdr) per topic and side, messages

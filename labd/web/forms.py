@@ -1,72 +1,130 @@
-"""The pages' forms: signing in with a token, submitting a trial, rerunning one.
+"""The pages' forms: signing in and out, submitting a trial, rerunning one.
 
-    GET  /session               the sign-in form (a token, pasted once)
-    POST /session               sign in: the token, checked, kept in an HttpOnly cookie
-    POST /session/end           sign out
+    GET  /session               the sign-in form: name and password, or a token pasted once
+    POST /session               sign in: a new session, its id in an HttpOnly cookie
+    POST /session/end           sign out: the session ends
     GET  /submit                the submission form (repository URL, ref, task, params, seed)
     POST /submit                submit; on success, to the new trial's page
     POST /trials/{id}/rerun     rerun a trial; to the rerun's page
 
 A submission goes through the same checks as ``POST /api/trials`` (the same request
 model, the same submissions object), and a refusal is shown on the form with what the
-person typed kept, so they can correct it.
+person typed kept, so they can correct it. Every form that changes something carries
+the CSRF token (``labd.web.session``). Failed sign-ins are counted per name and per
+address (``labd.api.throttle``): past the limit they are refused unchecked for a while.
 """
 
 from __future__ import annotations
 
+import logging
 from typing import Annotated, Any
 
 from fastapi import APIRouter, Form, Request
 from fastapi.responses import HTMLResponse, RedirectResponse
 from pydantic import BaseModel, ValidationError
 
-from labd.api.common import Lab
+from labd.api.common import SESSION_COOKIE, Lab
+from labd.api.errors import TooMany
+from labd.api.throttle import Throttle
 from labd.sim import registry
 from labd.web.render import page
-from labd.web.session import COOKIE, MAX_AGE, SameOrigin, Viewer
-from repository.errors import RecordNotFound
+from labd.web.session import CsrfChecked, Viewer, set_session_cookie
+from repository.errors import BadCredentials, RecordNotFound
+from repository.index import User
 from repository.trial import TrialRequest, Value
 from scheduler.errors import QueueError, TrialError
 
 router = APIRouter(include_in_schema=False)
 
 
+log = logging.getLogger("labd.web")
+
+
 @router.get("/session", response_class=HTMLResponse)
-def signin_form(request: Request, viewer: Viewer, then: str = "/") -> HTMLResponse:
-    return page(request, "signin.html", {"then": _local(then), "problem": None}, user=viewer)
+def signin_form(request: Request, service: Lab, viewer: Viewer, then: str = "/") -> HTMLResponse:
+    return _signin(request, service, viewer, then, None)
 
 
-@router.post("/session", response_class=HTMLResponse, dependencies=[SameOrigin])
-def signin(
+def _signin(
     request: Request,
     service: Lab,
-    token: Annotated[str, Form()],
-    then: Annotated[str, Form()] = "/",
-) -> Any:
-    user = service.index.user_by_token(token.strip())
-    if user is None:
-        return page(
-            request,
-            "signin.html",
-            {"then": _local(then), "problem": "the lab does not know that token"},
-            status_code=401,
-        )
-    response = RedirectResponse(_local(then), status_code=303)
-    response.set_cookie(
-        COOKIE,
-        token.strip(),
-        max_age=MAX_AGE,
-        httponly=True,
-        samesite="strict",
-        secure=request.url.scheme == "https",
+    viewer: User | None,
+    then: str,
+    problem: str | None,
+    *,
+    status: int = 200,
+    name: str = "",
+) -> HTMLResponse:
+    return page(
+        request,
+        "signin.html",
+        {
+            "then": local(then),
+            "problem": problem,
+            "name": name,
+            "signup": service.config.signup,
+        },
+        user=viewer,
+        status_code=status,
     )
+
+
+class SigninForm(BaseModel):
+    """The sign-in forms' fields: a name and password, or a token."""
+
+    name: str = ""
+    password: str = ""
+    token: str = ""
+    then: str = "/"
+
+
+@router.post("/session", response_class=HTMLResponse, dependencies=[CsrfChecked])
+def signin(
+    request: Request, service: Lab, viewer: Viewer, sent: Annotated[SigninForm, Form()]
+) -> Any:
+    address = request.client.host if request.client else "unknown"
+    throttle: Throttle = request.app.state.throttle
+    name, password, token, then = sent.name.strip(), sent.password, sent.token, sent.then
+    try:
+        throttle.check("address", address, "sign-ins from your address")
+        if token.strip():
+            user = service.index.user_by_token(token.strip())
+            if user is None:
+                throttle.fail("address", address)
+                log.info("sign-in with an unknown token from %s", address)
+                return _signin(
+                    request, service, viewer, then, "the lab does not know that token", status=401
+                )
+        else:
+            throttle.check("password", name, f"sign-ins for {name or 'that name'}")
+            try:
+                user = service.accounts.check_password(name, password)
+            except BadCredentials as err:
+                throttle.fail("password", name)
+                throttle.fail("address", address)
+                log.info("failed sign-in for %r from %s", name, address)
+                return _signin(request, service, viewer, then, str(err), status=401, name=name)
+    except TooMany as err:
+        return _signin(request, service, viewer, then, err.message, status=429, name=name)
+    return signed_in(request, service, user, then)
+
+
+def signed_in(request: Request, service: Lab, user: User, then: str) -> RedirectResponse:
+    """Open a session for ``user`` (a new id: nothing carried over) and go on."""
+    cookie, _ = service.accounts.open_session(user)
+    log.info("%s signed in", user.name)
+    response = RedirectResponse(local(then), status_code=303)
+    set_session_cookie(response, request, cookie, service.accounts.session_age)
     return response
 
 
-@router.post("/session/end", dependencies=[SameOrigin])
-def signout() -> RedirectResponse:
+@router.post("/session/end", dependencies=[CsrfChecked])
+def signout(request: Request, service: Lab) -> RedirectResponse:
+    cookie = request.cookies.get(SESSION_COOKIE)
+    if cookie:
+        service.accounts.end_session(cookie)
     response = RedirectResponse("/", status_code=303)
-    response.delete_cookie(COOKIE)
+    response.delete_cookie(SESSION_COOKIE)
     return response
 
 
@@ -101,13 +159,13 @@ class SubmitForm(BaseModel):
     seed: str = "0"
 
 
-@router.post("/submit", response_class=HTMLResponse, dependencies=[SameOrigin])
+@router.post("/submit", response_class=HTMLResponse, dependencies=[CsrfChecked])
 def submit(
     request: Request, service: Lab, viewer: Viewer, sent: Annotated[SubmitForm, Form()]
 ) -> Any:
     form = sent.model_dump()
     if viewer is None:
-        return _form(request, viewer, form, "sign in first: submitting needs your token", 401)
+        return _form(request, viewer, form, "sign in first: submitting needs an account", 401)
     try:
         body = TrialRequest(
             repository=sent.repository.strip(),
@@ -141,7 +199,7 @@ def _params(text: str) -> dict[str, Value]:
     return out
 
 
-@router.post("/trials/{trial_id}/rerun", dependencies=[SameOrigin])
+@router.post("/trials/{trial_id}/rerun", dependencies=[CsrfChecked])
 def rerun(request: Request, trial_id: int, service: Lab, viewer: Viewer) -> Any:
     if viewer is None:
         return RedirectResponse(f"/session?then=/trials/{trial_id}", status_code=303)
@@ -159,6 +217,6 @@ def rerun(request: Request, trial_id: int, service: Lab, viewer: Viewer) -> Any:
     return RedirectResponse(f"/trials/{new_id}", status_code=303)
 
 
-def _local(path: str) -> str:
+def local(path: str) -> str:
     """Where to go after signing in: a path of this lab only (never another site)."""
     return path if path.startswith("/") and not path.startswith("//") else "/"

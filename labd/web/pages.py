@@ -15,6 +15,7 @@ an unknown id or sha is a page saying so, with a way back, never JSON.
 from __future__ import annotations
 
 import datetime as dt
+import json
 from dataclasses import dataclass
 from typing import Annotated, Any
 
@@ -27,7 +28,7 @@ from labd.sim import registry
 from labd.web.render import Site, page
 from labd.web.session import Viewer
 from repository.errors import ArchiveError, BlobError, RecordNotFound
-from repository.index import Filters
+from repository.index import Derived, Filters
 from repository.trial import Kind, Outcome, Status, Trial
 
 router = APIRouter(include_in_schema=False)
@@ -69,6 +70,7 @@ def home(request: Request, service: Lab, viewer: Viewer) -> HTMLResponse:
             "recent": recent,
             "running": running,
             "queued": service.queue.queued(),
+            "unwell": [h for h in service.queue.health.values() if h.state == "out"],
             "now": dt.datetime.now(dt.UTC),
         },
         user=viewer,
@@ -198,10 +200,23 @@ def trial(request: Request, trial_id: int, service: Lab, viewer: Viewer) -> HTML
             "reruns": reruns,
             "logs": logs,
             "summary": derived.get("summary.json"),
+            "replayed": _replayed(service, derived.get("replay.json")),
+            "video": derived.get("video.mp4"),
             "ended": record.status.ended,
         },
         user=viewer,
     )
+
+
+def _replayed(service: Lab, item: Derived | None) -> dict[str, Any] | None:
+    """The replay's verdict, for the page (None: not replayed yet)."""
+    if item is None:
+        return None
+    try:
+        verdict: dict[str, Any] = json.loads(service.store.read_bytes(item.digest))
+    except (BlobError, ValueError) as err:
+        return {"verified": False, "said": f"the verdict cannot be read: {err}"}
+    return verdict
 
 
 def _log(service: Lab, digest: str | None) -> dict[str, Any] | None:

@@ -20,6 +20,7 @@ from fastapi.templating import Jinja2Templates
 from starlette.responses import HTMLResponse
 
 from labd import __version__
+from labd.web.session import CSRF_COOKIE
 from repository.index import User
 from repository.trial import Outcome, Status
 
@@ -43,6 +44,7 @@ class Site:
 
     robots: tuple[RobotLink, ...] = ()
     bridge_port: int | None = None
+    reservations: bool = False  # live robots are driven only with a reservation's key
     extra: dict[str, Any] = field(default_factory=dict)
 
 
@@ -74,7 +76,20 @@ def pretty(value: Any) -> str:
 
 
 templates = Jinja2Templates(directory=str(HERE / "templates"))
-templates.env.filters.update(when=when, number=number, seconds=seconds, pretty=pretty)
+
+
+def epoch(value: float | None) -> str:
+    """An epoch time as pages show it (UTC)."""
+    return when(None if value is None else dt.datetime.fromtimestamp(value, dt.UTC))
+
+
+def hhmm(value: float) -> str:
+    return dt.datetime.fromtimestamp(value, dt.UTC).strftime("%H:%M")
+
+
+templates.env.filters.update(
+    when=when, number=number, seconds=seconds, pretty=pretty, epoch=epoch, hhmm=hhmm
+)
 templates.env.globals.update(state=state, version=__version__)
 
 
@@ -86,15 +101,27 @@ def page(
     user: User | None = None,
     status_code: int = 200,
 ) -> HTMLResponse:
-    """Render template ``name`` with the page shell's context."""
-    return templates.TemplateResponse(
+    """Render template ``name`` with the page shell's context (and the CSRF token its
+    forms carry: ``labd.web.session``)."""
+    response = templates.TemplateResponse(
         request,
         name,
         {
             "user": user,
             "vendor_ready": (VENDOR / "README").exists(),
             "viewer_ready": (STATIC / "record.js").exists(),
+            "csrf": getattr(request.state, "csrf", ""),
             **context,
         },
         status_code=status_code,
     )
+    fresh = getattr(request.state, "new_csrf", None)
+    if fresh:
+        response.set_cookie(
+            CSRF_COOKIE,
+            fresh,
+            httponly=True,
+            samesite="strict",
+            secure=request.url.scheme == "https",
+        )
+    return response

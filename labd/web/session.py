@@ -1,33 +1,57 @@
 """Who is looking at a page, and what they may do from it.
 
-Until the lab has accounts of its own, a person signs in on a page by pasting their
-token once (``labd users add NAME`` makes one); it is kept in a cookie the page's
-scripts cannot read (HttpOnly), sent to this lab only, and only on requests that start
-from its own pages (SameSite=Strict). Forms that change something also check that the
-request comes from one of the lab's pages (``Origin``, else ``Referer``), so another site
-cannot make a visitor's browser submit or rerun.
+A person signs in (``labd.web.forms``) with their password, or by pasting an API token
+once; the lab then keeps a **session**: a random id in a cookie that the pages' scripts
+cannot read (HttpOnly), sent to this lab only, and only on requests that start from its
+own pages (SameSite=Strict); the index keeps only its hash (``repository.accounts``).
+
+Every form that changes something carries a **CSRF token** (a hidden ``csrf`` field):
+the signed-in session's own, or, before signing in, a random one also kept in a cookie
+(double submit). A form whose token is missing or does not match is refused with a
+page saying to reload it; the form must also come from one of the lab's pages
+(``Origin``, else ``Referer``). The pages' scripts send the same token to the API in
+``X-CSRF-Token`` (``<meta name="csrf-token">`` in every page).
 """
 
 from __future__ import annotations
 
+import secrets
 from typing import Annotated
 from urllib.parse import urlsplit
 
 from fastapi import Depends, Request
+from starlette.responses import Response
 
-from labd.api.common import Lab
+from labd.api.common import SESSION_COOKIE, Lab, web_session
 from labd.api.errors import Forbidden
+from repository.accounts import same
 from repository.index import User
 
-COOKIE = "labd_token"
-MAX_AGE = 30 * 24 * 3600  # seconds a sign-in lasts
+CSRF_COOKIE = "labd_csrf"  # before signing in: the double-submitted token
+CSRF_FIELD = "csrf"
+
+
+class FormRefused(Exception):
+    """A form the lab will not act on; shown as a page with ``title`` and ``message``."""
+
+    def __init__(self, status: int, title: str, message: str) -> None:
+        self.status = status
+        self.title = title
+        self.message = message
+        super().__init__(message)
 
 
 def _viewer(request: Request, service: Lab) -> User | None:
-    token = request.cookies.get(COOKIE)
-    if not token:
-        return None
-    return service.index.user_by_token(token)
+    session = web_session(service, request)
+    if session is not None:
+        request.state.csrf = session.csrf
+        return session.user
+    token = request.cookies.get(CSRF_COOKIE, "")
+    if len(token) < 24:
+        token = secrets.token_urlsafe(24)
+        request.state.new_csrf = token  # the page sets the cookie (labd.web.render)
+    request.state.csrf = token
+    return None
 
 
 Viewer = Annotated[User | None, Depends(_viewer)]
@@ -43,4 +67,40 @@ def same_origin(request: Request) -> None:
         raise Forbidden("this form must be sent from the lab's own pages")
 
 
+async def csrf_checked(request: Request, service: Lab) -> None:
+    """Refuse a form without the CSRF token of the session (or of the visitor)."""
+    same_origin(request)
+    form = await request.form()
+    sent = form.get(CSRF_FIELD)
+    if not isinstance(sent, str) or not sent:
+        raise FormRefused(
+            403,
+            "This form had no CSRF token",
+            "The lab acts only on forms from its own pages, which carry a token proving it."
+            " Reload the page and send the form again.",
+        )
+    session = web_session(service, request)
+    expected = session.csrf if session is not None else request.cookies.get(CSRF_COOKIE, "")
+    if not expected or not same(sent, expected):
+        raise FormRefused(
+            403,
+            "This form has expired",
+            "Its CSRF token is not your session's (you may have signed in or out since the"
+            " page was loaded, or in another tab). Reload the page and send it again.",
+        )
+
+
+CsrfChecked = Depends(csrf_checked)
 SameOrigin = Depends(same_origin)
+
+
+def set_session_cookie(response: Response, request: Request, value: str, max_age: float) -> None:
+    """Keep the session id in the browser: HttpOnly, SameSite=Strict, Secure on https."""
+    response.set_cookie(
+        SESSION_COOKIE,
+        value,
+        max_age=int(max_age),
+        httponly=True,
+        samesite="strict",
+        secure=request.url.scheme == "https",
+    )

@@ -12,11 +12,13 @@ from __future__ import annotations
 
 import hashlib
 import os
+import time
 from pathlib import Path
 
 import httpx
 import pytest
 
+from repository.index import Index
 from scheduler.remote import PROTOCOL, PROTOCOL_HEADER
 from tests.helpers.githttp import GitRepo
 
@@ -96,9 +98,18 @@ def test_disk_full_while_filing(served, small_disk, tmp_path: Path):
     assert big["mcap"] is None
     check_the_small_one(lab, small)
     logs = [httpx.get(small["logs"][s], timeout=30).content for s in ("stdout", "stderr")]
+    # what is made of its record beside it (summary, replay verdict, video) is filed after
+    # the trial ends: wait for the replay's verdict, then take the rest from the index
+    verdict = f"{lab.server}/api/trials/{small['id']}/replay"
+    deadline = time.monotonic() + 60
+    while httpx.get(verdict, timeout=30).status_code == 404 and time.monotonic() < deadline:
+        time.sleep(0.2)
+    derived = Index.open(f"sqlite:///{lab.data / 'index.sqlite'}").derived(small["id"])
+    assert {"summary.json", "replay.json"} <= set(derived), derived
     files = [p for p in (blobs / "sha256").rglob("*") if p.is_file()]
+    kept = ["sha256:" + hashlib.sha256(b).hexdigest() for b in logs]
     assert sorted(f"sha256:{p.name}" for p in files) == sorted(  # the small trial's alone
-        [small["mcap"]["digest"], *("sha256:" + hashlib.sha256(b).hexdigest() for b in logs)]
+        {small["mcap"]["digest"], *kept, *(item.digest for item in derived.values())}
     )
     for path in files:  # and each is whole: its bytes hash to its name
         assert hashlib.sha256(path.read_bytes()).hexdigest() == path.name

@@ -93,7 +93,7 @@ def test_the_archive_in_a_browser(lab, watched, tmp_path):
     assert page.locator("h1").first.inner_text() == "A remote robot lab"
     page.goto(url(lab, "/session?then=/submit"))
     page.fill("input[name=token]", token)
-    page.click("form.card button[type=submit]")
+    page.click("#token-signin button[type=submit]")
     page.wait_for_url("**/submit")
     made = {}
     for name, repo in (("bad", bad), ("good", good)):
@@ -122,7 +122,21 @@ def test_the_archive_in_a_browser(lab, watched, tmp_path):
     assert rows.count() == 1 and f"#{made['good']}" in rows.first.inner_text()
     shot(watched, "trials")
 
+    deadline = time.monotonic() + 60  # the worker replays a record once it is filed
+    while "video.mp4" not in service.index.derived(made["good"]):
+        assert time.monotonic() < deadline, "no replay filed"
+        time.sleep(0.2)
     page.goto(url(lab, f"/trials/{made['good']}"))
+    assert page.locator("#replay").inner_text().startswith("Replay: verified")
+    duration = page.eval_on_selector(
+        "#video",
+        """video => new Promise((ok, no) => {
+            if (video.readyState >= 1) ok(video.duration);
+            video.onloadedmetadata = () => ok(video.duration);
+            video.onerror = () => no(String(video.error && video.error.message));
+        })""",
+    )
+    assert 0.4 < duration < 1.0  # six frames, ticks 0 to 5, at 10 frames a second
     page.click("#rerun")
     page.wait_for_url("**/trials/*")
     rerun = int(page.url.rsplit("/", 1)[1])

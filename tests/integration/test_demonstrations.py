@@ -96,4 +96,9 @@ def test_a_drive_in_a_real_lab_is_a_demonstration(lab, tmp_path):
     service.store.copy_to(demo.mcap, record)
     verdict = replay(record)
     assert verdict.verified, verdict
+    deadline = time.monotonic() + 60  # the lab replays a drive once it has filed it
+    while not {"replay.json", "video.mp4"} <= set(made := service.index.derived(demo.id)):
+        assert time.monotonic() < deadline, made
+        time.sleep(0.1)
+    assert json.loads(service.store.read_bytes(made["replay.json"].digest))["verified"] is True
     assert verdict.ticks >= 29  # the 30 odometry messages seen: ticks 0 to 29, at least

@@ -154,29 +154,46 @@ async def test_filters_pages_and_order(web, service, token, repo):
     assert by_reward.index(f"#{ids[2]}<") < by_reward.index(f"#{ids[0]}<")
 
 
+def csrf_of(html: str) -> str:
+    """The CSRF token a page's forms carry."""
+    found = re.search(r'<meta name="csrf-token" content="([^"]+)">', html)
+    assert found, "the page has no CSRF token"
+    return found.group(1)
+
+
 async def test_submitting_and_rerunning_from_the_pages(web, service, token, repo):
     """Signed in with a token, a person submits from the form (lab.toml's task by default)
-    and reruns from a trial's page; a bad request comes back on the form, kept."""
-    anonymous = await web.post("/submit", data={"repository": str(repo.path)})
+    and reruns from a trial's page; a bad request comes back on the form, kept; a form
+    without the page's CSRF token, or from another site, is refused."""
+    csrf = csrf_of((await web.get("/submit")).text)
+    anonymous = await web.post("/submit", data={"repository": str(repo.path), "csrf": csrf})
     assert anonymous.status_code == 401 and "sign in first" in anonymous.text
-    wrong = await web.post("/session", data={"token": "labd_nope"})
+    wrong = await web.post("/session", data={"token": "labd_nope", "csrf": csrf})
     assert wrong.status_code == 401
-    signed = await web.post("/session", data={"token": token, "then": "/submit"})
+    signed = await web.post("/session", data={"token": token, "then": "/submit", "csrf": csrf})
     assert signed.status_code == 303 and signed.headers["location"] == "/submit"
     cookie = signed.headers["set-cookie"]
+    assert cookie.startswith("labd_session=") and token not in cookie
     assert "httponly" in cookie.lower() and "samesite=strict" in cookie.lower()
-    made = await web.post("/submit", data={"repository": str(repo.path), "seed": "4"})
+    csrf = csrf_of((await web.get("/submit")).text)  # the session's own token now
+    made = await web.post("/submit", data={"repository": str(repo.path), "seed": "4", "csrf": csrf})
     assert made.status_code == 303
     trial_id = int(made.headers["location"].rsplit("/", 1)[1])
     assert service.index.trial(trial_id).task == "icreate-maze"
     refused = await web.post(
-        "/submit", data={"repository": str(repo.path), "params": "maze_size=8"}
+        "/submit", data={"repository": str(repo.path), "params": "maze_size=8", "csrf": csrf}
     )
     assert refused.status_code == 422 and "must be odd" in refused.text
     assert 'value="maze_size=8"' in refused.text
-    again = await web.post(f"/trials/{trial_id}/rerun")
+    again = await web.post(f"/trials/{trial_id}/rerun", data={"csrf": csrf})
     assert again.status_code == 303
     rerun = service.index.trial(int(again.headers["location"].rsplit("/", 1)[1]))
     assert rerun.rerun_of == trial_id
-    forged = await web.post(f"/trials/{trial_id}/rerun", headers={"Origin": "http://evil.example"})
+    forged = await web.post(
+        f"/trials/{trial_id}/rerun", data={"csrf": csrf}, headers={"Origin": "http://evil.example"}
+    )
     assert forged.status_code == 403
+    bare = await web.post(f"/trials/{trial_id}/rerun")
+    assert bare.status_code == 403 and "This form had no CSRF token" in bare.text
+    stale = await web.post(f"/trials/{trial_id}/rerun", data={"csrf": "from-an-old-page"})
+    assert stale.status_code == 403 and "Reload the page and send it again" in stale.text

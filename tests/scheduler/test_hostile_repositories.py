@@ -18,7 +18,7 @@ import pytest
 
 from labd.trial import LabHost
 from repository.blobs import BlobStore
-from repository.index import Index
+from repository.index import Derived, Index
 from repository.trial import Claim, Filing, Outcome, Trial
 from sandbox.api import Backend, Limits
 from scheduler.fetch import FetchPolicy
@@ -180,6 +180,9 @@ class Counting:
 
     def trial(self, trial_id: int) -> Trial:
         return self.queue.trial(trial_id)
+
+    def derive(self, trial_id: int, worker: str, item: Derived) -> bool:
+        return self.queue.derive(trial_id, worker, item)
 
 
 async def test_one_worker_files_every_hostile_trial_and_runs_the_next(

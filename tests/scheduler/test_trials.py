@@ -18,6 +18,7 @@ from rosbags.highlevel import AnyReader
 
 from labd.graph.graph import Side
 from labd.recorder import data_digest, read_channels, read_messages
+from labd.replay import replay
 from repository.trial import Outcome
 from sandbox.api import Limits, MiB
 from scheduler.runner import RunOptions, TrialSpec, run_trial
@@ -52,6 +53,7 @@ def test_examples_succeed_and_reproduce(backend, cache, host, tmp_path, example)
     )
     other_seed = run(backend, cache, host, tmp_path, EXAMPLES / example, seed=2)
     assert other_seed.data_digest != first.data_digest
+    assert replay(first.mcap).verified  # its actions alone give its observations back
 
 
 def test_both_backends_give_the_same_data(cache, host, tmp_path):

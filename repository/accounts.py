@@ -1,0 +1,227 @@
+"""People's accounts on the index: passwords, API tokens, browser sessions.
+
+A user (``repository.index.users``) signs in on the pages with a password, kept as an
+argon2id hash (argon2-cffi, its recommended parameters; an older hash is re-hashed at
+the next sign-in). A signed-in browser holds a random session id in a cookie; only its
+sha256 is kept here, with the session's CSRF token (the one its forms carry) and when it
+expires. Scripts use API tokens: a user has any number, each with a label, and lists and
+revokes their own; the operator revokes or rotates anyone's (``labd users``). Revoking
+every token of a user also ends their browser sessions.
+
+Nothing here can tell a token or a session id back: only hashes are stored.
+"""
+
+from __future__ import annotations
+
+import hmac
+import logging
+import secrets
+from dataclasses import dataclass
+
+import sqlalchemy as sa
+from argon2 import PasswordHasher
+from argon2.exceptions import InvalidHashError, VerificationError
+
+from repository.errors import AccountError, BadCredentials, RecordNotFound
+from repository.index import Index, User, passwords, token_hash, tokens, users, web_sessions
+
+log = logging.getLogger("repository.accounts")
+MIN_PASSWORD = 10
+MAX_PASSWORD = 1024
+SESSION_AGE = 14 * 24 * 3600.0  # seconds a browser stays signed in
+
+
+@dataclass(frozen=True)
+class Token:
+    """An API token as its owner sees it listed: never the token itself."""
+
+    id: int
+    user: str
+    label: str
+    created: float
+    revoked: float | None
+
+
+@dataclass(frozen=True)
+class WebSession:
+    """A signed-in browser: whose it is, the CSRF token its forms carry, its end."""
+
+    user: User
+    csrf: str
+    expires: float
+
+
+class Accounts:
+    """Passwords, tokens and sessions of the users on ``index``."""
+
+    def __init__(
+        self,
+        index: Index,
+        *,
+        hasher: PasswordHasher | None = None,
+        session_age: float = SESSION_AGE,
+    ) -> None:
+        self.index = index
+        self.hasher = hasher or PasswordHasher()
+        self.session_age = session_age
+        # Checked against when the user does not exist, so that a wrong name takes as
+        # long as a wrong password (no way to find out who has an account).
+        self._decoy = self.hasher.hash(secrets.token_urlsafe(16))
+
+    # -- passwords ----------------------------------------------------------------------
+
+    def sign_up(self, name: str, password: str) -> User:
+        """A new user with a password and no token yet (they make their own)."""
+        check_password(password)
+        self.index.add_user(name, token=False)
+        self.set_password(name, password)
+        return self.index.user(name)
+
+    def set_password(self, name: str, password: str) -> None:
+        check_password(password)
+        self.index.user(name)  # RecordNotFound if there is no such user
+        digest = self.hasher.hash(password)
+        with self.index.begin() as db:
+            db.execute(sa.delete(passwords).where(passwords.c.user == name))
+            db.execute(
+                sa.insert(passwords).values(user=name, hash=digest, changed=self.index.clock())
+            )
+
+    def check_password(self, name: str, password: str) -> User:
+        """The user, if the password is theirs (else BadCredentials, for either mistake)."""
+        with self.index.engine.connect() as db:
+            stored = db.execute(
+                sa.select(passwords.c.hash).where(passwords.c.user == name)
+            ).scalar()
+        try:
+            self.hasher.verify(stored or self._decoy, password)
+        except (VerificationError, InvalidHashError):
+            raise BadCredentials() from None
+        if stored is None:
+            raise BadCredentials()
+        if self.hasher.check_needs_rehash(stored):
+            self.set_password(name, password)
+        return self.index.user(name)
+
+    def has_password(self, name: str) -> bool:
+        with self.index.engine.connect() as db:
+            found = db.execute(sa.select(passwords.c.user).where(passwords.c.user == name))
+            return found.first() is not None
+
+    # -- tokens -------------------------------------------------------------------------
+
+    def new_token(self, name: str, label: str) -> tuple[Token, str]:
+        """A new API token for ``name``: its listing and the token (shown once)."""
+        label = " ".join(label.split())[:128] or "unnamed"
+        self.index.user(name)
+        secret = "labd_" + secrets.token_urlsafe(24)
+        now = self.index.clock()
+        with self.index.begin() as db:
+            result = db.execute(
+                sa.insert(tokens).values(
+                    user=name, sha256=token_hash(secret), label=label, created=now
+                )
+            )
+            key = result.inserted_primary_key
+            assert key is not None
+        log.info("user %s made token %d (%s)", name, key[0], label)
+        return Token(int(key[0]), name, label, now, None), secret
+
+    def tokens(self, name: str) -> list[Token]:
+        """``name``'s tokens, newest first, revoked ones too (with when)."""
+        with self.index.engine.connect() as db:
+            rows = db.execute(
+                sa.select(tokens).where(tokens.c.user == name).order_by(tokens.c.id.desc())
+            ).all()
+        return [Token(r.id, r.user, r.label, r.created, r.revoked) for r in rows]
+
+    def revoke_token(self, name: str, token_id: int) -> Token:
+        """Revoke one of ``name``'s tokens (RecordNotFound if it is not theirs)."""
+        now = self.index.clock()
+        with self.index.begin() as db:
+            row = db.execute(
+                sa.select(tokens).where(tokens.c.id == token_id, tokens.c.user == name)
+            ).first()
+            if row is None:
+                raise RecordNotFound(f"token of {name}", str(token_id))
+            if row.revoked is None:
+                db.execute(sa.update(tokens).where(tokens.c.id == token_id).values(revoked=now))
+        log.info("user %s: token %d revoked", name, token_id)
+        return Token(row.id, row.user, row.label, row.created, row.revoked or now)
+
+    def revoke_all(self, name: str) -> int:
+        """Revoke every token of ``name`` and end their browser sessions; how many tokens."""
+        self.index.user(name)
+        now = self.index.clock()
+        with self.index.begin() as db:
+            count = db.execute(
+                sa.update(tokens)
+                .where(tokens.c.user == name, tokens.c.revoked.is_(None))
+                .values(revoked=now)
+            ).rowcount
+            # an older labd's token, kept only in users: replaced by one nobody holds
+            db.execute(
+                sa.update(users)
+                .where(users.c.name == name)
+                .values(token_sha256=token_hash(secrets.token_urlsafe(24)))
+            )
+            db.execute(sa.delete(web_sessions).where(web_sessions.c.user == name))
+        log.warning("user %s: every token revoked (%d) and sessions ended", name, count)
+        return int(count)
+
+    def rotate(self, name: str) -> str:
+        """Revoke every token of ``name`` and give them one new token (returned)."""
+        self.revoke_all(name)
+        _, secret = self.new_token(name, "rotated by the operator (labd users rotate)")
+        return secret
+
+    # -- browser sessions ---------------------------------------------------------------
+
+    def open_session(self, user: User) -> tuple[str, WebSession]:
+        """Sign ``user`` in: the cookie's value (kept only as a hash) and the session."""
+        cookie = secrets.token_urlsafe(32)
+        now = self.index.clock()
+        session = WebSession(user, secrets.token_urlsafe(24), now + self.session_age)
+        with self.index.begin() as db:
+            db.execute(sa.delete(web_sessions).where(web_sessions.c.expires < now))
+            db.execute(
+                sa.insert(web_sessions).values(
+                    sha256=token_hash(cookie),
+                    user=user.name,
+                    csrf=session.csrf,
+                    created=now,
+                    expires=session.expires,
+                )
+            )
+        return cookie, session
+
+    def session(self, cookie: str) -> WebSession | None:
+        """The live session a cookie names; None if unknown, ended or expired."""
+        with self.index.engine.connect() as db:
+            row = db.execute(
+                sa.select(web_sessions).where(web_sessions.c.sha256 == token_hash(cookie))
+            ).first()
+        if row is None or row.expires <= self.index.clock():
+            return None
+        try:
+            user = self.index.user(row.user)
+        except RecordNotFound:
+            return None
+        return WebSession(user, row.csrf, row.expires)
+
+    def end_session(self, cookie: str) -> None:
+        with self.index.begin() as db:
+            db.execute(sa.delete(web_sessions).where(web_sessions.c.sha256 == token_hash(cookie)))
+
+
+def check_password(password: str) -> None:
+    """A password the lab accepts (AccountError saying what is needed if not)."""
+    if len(password) < MIN_PASSWORD:
+        raise AccountError(f"the password is too short: use at least {MIN_PASSWORD} characters")
+    if len(password) > MAX_PASSWORD:
+        raise AccountError(f"the password is too long: use at most {MAX_PASSWORD} characters")
+
+
+def same(a: str, b: str) -> bool:
+    """Compare two secrets in constant time."""
+    return hmac.compare_digest(a.encode(), b.encode())

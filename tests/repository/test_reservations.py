@@ -1,0 +1,326 @@
+"""Reservations on both databases, with a clock the test moves: every rule enforced,
+keys that open one robot for one slot, and racing bookings of which exactly one wins."""
+
+from __future__ import annotations
+
+import datetime as dt
+import threading
+
+import pytest
+import sqlalchemy as sa
+
+from repository.errors import (
+    KeyRefused,
+    NotYourReservation,
+    OverLimit,
+    RecordNotFound,
+    ReservationError,
+    SlotTaken,
+)
+from repository.index import Index, connect
+from repository.reservations import Reservations, Rules, load_secret
+
+# Monday 2030-01-07 09:00 UTC: tests start on a known day of a known week.
+MONDAY = dt.datetime(2030, 1, 7, 9, 0, tzinfo=dt.UTC).timestamp()
+MIN = 60.0
+HOUR = 3600.0
+SECRET = b"s" * 32
+
+
+class Clock:
+    def __init__(self, now: float) -> None:
+        self.now = now
+
+    def __call__(self) -> float:
+        return self.now
+
+
+@pytest.fixture
+def clock():
+    return Clock(MONDAY)
+
+
+@pytest.fixture
+def index(database_url, clock):
+    index = Index(connect(database_url), clock=clock)
+    index.create()
+    for name in ("alice", "bob"):
+        index.add_user(name)
+    yield index
+    index.close()
+
+
+def booked(index, **rules):
+    return Reservations(index, Rules(**rules), SECRET)
+
+
+@pytest.fixture
+def desk(index):
+    return booked(index)
+
+
+def test_a_booking_gives_a_key_for_its_robot_and_its_slot_only(desk, clock):
+    """A key opens its robot from its slot's start to its end, with the seconds left;
+    before, after, on another robot, or forged, it is refused saying why."""
+    made = desk.book("alice", "icreate-1", MONDAY + HOUR, MONDAY + 2 * HOUR)
+    key = made.key
+    with pytest.raises(KeyRefused, match=r"starts at 2030-01-07 10:00:00 UTC, in 60 min"):
+        desk.authorize(key, "icreate-1")
+    clock.now = MONDAY + HOUR
+    access = desk.authorize(key, "icreate-1")
+    assert access.seconds == HOUR and access.reservation.user == "alice"
+    assert desk.authorize(key).seconds == HOUR  # an outside authorizer names no robot
+    with pytest.raises(KeyRefused, match="this key is for icreate-1, not pr2-1"):
+        desk.authorize(key, "pr2-1")
+    clock.now = MONDAY + 2 * HOUR - 1
+    assert desk.authorize(key, "icreate-1").seconds == 1
+    clock.now = MONDAY + 2 * HOUR
+    with pytest.raises(KeyRefused, match=r"ended at 2030-01-07 11:00:00 UTC; book another"):
+        desk.authorize(key, "icreate-1")
+    clock.now = MONDAY + HOUR + 1
+    forged = key[:-4] + ("AAAA" if not key.endswith("AAAA") else "BBBB")
+    for bad in (forged, "labd_rk_999_abc", "nonsense", "", key + "x"):
+        with pytest.raises(KeyRefused, match="the lab knows no such key"):
+            desk.authorize(bad, "icreate-1")
+
+
+def test_keys_are_not_in_the_database_and_another_secret_opens_nothing(index, desk, clock):
+    """The database holds no key (a copy of it opens no robot); a lab with another
+    secret refuses the key; the owner can read their key again, others cannot."""
+    made = desk.book("alice", "icreate-1", MONDAY, MONDAY + HOUR)
+    with index.engine.connect() as db:
+        rows = [tuple(map(str, r)) for r in db.execute(sa.text("SELECT * FROM reservations"))]
+    assert all(made.key not in value and made.key[-20:] not in value for r in rows for value in r)
+    assert desk.key("alice", made.reservation.id) == made.key
+    with pytest.raises(NotYourReservation, match="alice's; only they may read its key"):
+        desk.key("bob", made.reservation.id)
+    other = Reservations(index, Rules(), b"t" * 32)
+    with pytest.raises(KeyRefused, match="no such key"):
+        other.authorize(made.key, "icreate-1")
+
+
+def test_slots_in_the_past_of_no_length_too_long_or_too_far_are_refused(desk, clock):
+    """Each bad slot is refused with what to change."""
+    cases = [
+        (MONDAY - HOUR, MONDAY - 1, "in the past"),
+        (MONDAY + HOUR, MONDAY + HOUR, "must end after it starts"),
+        (MONDAY + HOUR, MONDAY + HOUR - 60, "must end after it starts"),
+        (MONDAY, MONDAY + 2 * HOUR, "at most 60 min here; this one lasts 2 h"),
+        (MONDAY + 15 * 86400, MONDAY + 15 * 86400 + 60, "at most 14 days ahead"),
+        (float("nan"), MONDAY, "as times"),
+    ]
+    for start, end, message in cases:
+        with pytest.raises(ReservationError, match=message):
+            desk.book("alice", "icreate-1", start, end)
+    assert desk.find() == []
+
+
+def test_a_slot_asked_for_a_moment_ago_starts_now(desk, clock):
+    """A request for 'now' arrives a little later: its slot starts when it arrives."""
+    made = desk.book("alice", "icreate-1", MONDAY - 5, MONDAY + 10 * MIN)
+    assert made.reservation.start == MONDAY
+
+
+def test_slots_of_one_robot_never_overlap(index):
+    """An overlapping booking is refused naming the slot in the way; touching slots and
+    other robots are fine."""
+    desk = booked(index, max_minutes_per_day=None)
+    desk.book("alice", "icreate-1", MONDAY + HOUR, MONDAY + 2 * HOUR)
+    with pytest.raises(SlotTaken, match=r"booked from 2030-01-07 10:00:00 UTC to .* by alice"):
+        desk.book("bob", "icreate-1", MONDAY + 90 * MIN, MONDAY + 150 * MIN)
+    with pytest.raises(SlotTaken):
+        desk.book("bob", "icreate-1", MONDAY + 30 * MIN, MONDAY + 61 * MIN)
+    desk.book("bob", "icreate-1", MONDAY + 2 * HOUR, MONDAY + 3 * HOUR)  # starts at its end
+    desk.book("bob", "icreate-1", MONDAY, MONDAY + HOUR)  # ends at its start
+    desk.book("bob", "pr2-1", MONDAY + HOUR, MONDAY + 2 * HOUR)  # another robot
+    assert [(r.user, r.robot) for r in desk.find(robot="icreate-1")] == [
+        ("bob", "icreate-1"),
+        ("alice", "icreate-1"),
+        ("bob", "icreate-1"),
+    ]
+
+
+def test_limits_per_day_and_per_week(index, clock):
+    """A person's slots and minutes per UTC day and per ISO week are capped."""
+    desk = booked(
+        index,
+        max_slots_per_day=2,
+        max_minutes_per_day=90,
+        max_slots_per_week=3,
+        max_minutes_per_week=None,
+        max_slot=2 * HOUR,
+    )
+    desk.book("alice", "icreate-1", MONDAY, MONDAY + 30 * MIN)
+    with pytest.raises(OverLimit, match=r"give alice 100 min of slots on 2030-01-07 .* 60 min"):
+        desk.book("alice", "pr2-1", MONDAY + HOUR, MONDAY + HOUR + 70 * MIN)
+    desk.book("alice", "pr2-1", MONDAY + HOUR, MONDAY + 2 * HOUR)
+    with pytest.raises(OverLimit, match=r"alice has 2 slots on 2030-01-07 \(UTC\), the most"):
+        desk.book("alice", "pr2-1", MONDAY + 3 * HOUR, MONDAY + 3 * HOUR + MIN)
+    desk.book("bob", "pr2-1", MONDAY + 3 * HOUR, MONDAY + 3 * HOUR + MIN)  # bob's own count
+    tuesday = MONDAY + 86400
+    desk.book("alice", "icreate-1", tuesday, tuesday + 10 * MIN)
+    with pytest.raises(OverLimit, match=r"3 slots in the week of 2030-01-07"):
+        desk.book("alice", "icreate-1", tuesday + HOUR, tuesday + HOUR + 10 * MIN)
+    next_monday = MONDAY + 7 * 86400
+    desk.book("alice", "icreate-1", next_monday, next_monday + 10 * MIN)  # a new week
+
+
+def test_minutes_per_week(index):
+    """Minutes per week are summed over the week's days."""
+    desk = booked(index, max_minutes_per_week=100, max_slots_per_day=None)
+    for day in range(2):
+        start = MONDAY + day * 86400
+        desk.book("alice", "icreate-1", start, start + 50 * MIN)
+    with pytest.raises(OverLimit, match=r"over the 100 min a week allows here; 0 min are left"):
+        desk.book("alice", "icreate-1", MONDAY + 2 * 86400, MONDAY + 2 * 86400 + MIN)
+
+
+def test_an_extension_only_into_free_time_and_within_the_rules(desk, clock):
+    """A slot extends if the time after it is free and the longer slot keeps to the
+    rules; not someone else's, not after it ended, not past the next booking."""
+    mine = desk.book("alice", "icreate-1", MONDAY, MONDAY + 20 * MIN).reservation
+    desk.book("bob", "icreate-1", MONDAY + 40 * MIN, MONDAY + HOUR)
+    longer = desk.extend("alice", mine.id, MONDAY + 40 * MIN)
+    assert longer.end == MONDAY + 40 * MIN
+    with pytest.raises(SlotTaken, match="booked by bob from 2030-01-07 09:40:00 UTC; you may"):
+        desk.extend("alice", mine.id, MONDAY + 45 * MIN)
+    with pytest.raises(NotYourReservation, match="only they may extend it"):
+        desk.extend("bob", mine.id, MONDAY + 41 * MIN)
+    with pytest.raises(ReservationError, match="must end after the slot's end"):
+        desk.extend("alice", mine.id, MONDAY + 30 * MIN)
+    lone = desk.book("alice", "pr2-1", MONDAY, MONDAY + 50 * MIN).reservation
+    with pytest.raises(ReservationError, match="extended, the slot would last 70 min"):
+        desk.extend("alice", lone.id, MONDAY + 70 * MIN)
+    clock.now = MONDAY + 50 * MIN
+    with pytest.raises(ReservationError, match=r"ended at .*; book a new slot"):
+        desk.extend("alice", lone.id, MONDAY + 55 * MIN)
+    with pytest.raises(RecordNotFound):
+        desk.extend("alice", 999, MONDAY + 55 * MIN)
+
+
+def test_an_extension_counts_against_the_limits(index):
+    """Extending cannot get around the minutes a day allows."""
+    desk = booked(index, max_minutes_per_day=60)
+    mine = desk.book("alice", "icreate-1", MONDAY, MONDAY + 30 * MIN).reservation
+    desk.book("alice", "pr2-1", MONDAY + HOUR, MONDAY + HOUR + 20 * MIN)
+    with pytest.raises(OverLimit, match="70 min of slots"):
+        desk.extend("alice", mine.id, MONDAY + 50 * MIN)
+    assert desk.extend("alice", mine.id, MONDAY + 40 * MIN).end == MONDAY + 40 * MIN
+
+
+def test_an_early_release_frees_the_rest_and_ends_the_key(desk, clock):
+    """Releasing ends the slot now: someone else can book the rest, the key stops
+    working, the used part stays in the calendar, and the limits count only that part."""
+    made = desk.book("alice", "icreate-1", MONDAY, MONDAY + HOUR)
+    clock.now = MONDAY + 10 * MIN
+    assert desk.authorize(made.key, "icreate-1").seconds == 50 * MIN
+    released = desk.release("alice", made.reservation.id)
+    assert released.end == MONDAY + 10 * MIN and released.booked_end == MONDAY + HOUR
+    with pytest.raises(KeyRefused, match="was released at 2030-01-07 09:10:00 UTC"):
+        desk.authorize(made.key, "icreate-1")
+    desk.book("bob", "icreate-1", MONDAY + 10 * MIN, MONDAY + HOUR)
+    with pytest.raises(ReservationError, match="released already"):
+        desk.release("alice", made.reservation.id)
+    assert [r.user for r in desk.find(robot="icreate-1", released=True)] == ["alice", "bob"]
+    assert [r.user for r in desk.find(robot="icreate-1")] == ["bob"]
+
+
+def test_a_release_before_the_start_cancels_and_others_cannot_release(desk, clock):
+    """Released before it begins, a slot takes no time at all; only its owner releases."""
+    made = desk.book("alice", "icreate-1", MONDAY + HOUR, MONDAY + 2 * HOUR)
+    with pytest.raises(NotYourReservation, match="only they may release it"):
+        desk.release("bob", made.reservation.id)
+    cancelled = desk.release("alice", made.reservation.id)
+    assert cancelled.seconds == 0 and cancelled.state(clock.now) == "released"
+    assert desk.find(released=True) == []
+    desk.book("bob", "icreate-1", MONDAY + HOUR, MONDAY + 2 * HOUR)
+
+
+def test_a_replayed_key_of_an_earlier_slot_opens_nothing_in_a_later_one(desk, clock):
+    """Alice's key of her ended slot does not open the robot in Bob's slot after it."""
+    alice = desk.book("alice", "icreate-1", MONDAY, MONDAY + 10 * MIN)
+    bob = desk.book("bob", "icreate-1", MONDAY + 10 * MIN, MONDAY + 20 * MIN)
+    clock.now = MONDAY + 15 * MIN
+    with pytest.raises(KeyRefused, match="ended"):
+        desk.authorize(alice.key, "icreate-1")
+    assert desk.authorize(bob.key, "icreate-1").reservation.user == "bob"
+    assert desk.current("bob", "icreate-1").id == bob.reservation.id
+    assert desk.current("alice", "icreate-1") is None
+
+
+@pytest.mark.parametrize("rounds", [5])
+def test_racing_overlapping_bookings_exactly_one_wins(index, database_url, rounds):
+    """Two clients book overlapping slots at the same moment, from their own
+    connections: each time exactly one wins and the other is told the slot is taken."""
+    desks = [booked(Index(connect(database_url), clock=index.clock)) for _ in range(2)]
+    try:
+        for n in range(rounds):
+            start = MONDAY + n * HOUR
+            barrier = threading.Barrier(2)
+            results: list[object] = [None, None]
+
+            def book(
+                i: int,
+                start: float = start,
+                barrier: threading.Barrier = barrier,
+                results: list[object] = results,
+            ) -> None:
+                user = ("alice", "bob")[i]
+                barrier.wait()
+                try:
+                    results[i] = desks[i].book(user, "icreate-1", start + i * MIN, start + 30 * MIN)
+                except SlotTaken as err:
+                    results[i] = err
+
+            threads = [threading.Thread(target=book, args=(i,)) for i in range(2)]
+            for t in threads:
+                t.start()
+            for t in threads:
+                t.join(30)
+            won = [r for r in results if not isinstance(r, SlotTaken)]
+            lost = [r for r in results if isinstance(r, SlotTaken)]
+            assert len(won) == 1 and len(lost) == 1, results
+        assert len(desks[0].find(robot="icreate-1")) == rounds
+    finally:
+        for desk in desks:
+            desk.index.close()
+
+
+def test_racing_bookings_of_one_person_keep_to_their_limit(index, database_url):
+    """Two bookings of different robots by one person, at once, with room for one more
+    slot that day: exactly one is accepted."""
+    desks = [
+        booked(Index(connect(database_url), clock=index.clock), max_slots_per_day=1)
+        for _ in range(2)
+    ]
+    barrier = threading.Barrier(2)
+    results: list[object] = [None, None]
+
+    def book(i: int) -> None:
+        barrier.wait()
+        try:
+            results[i] = desks[i].book("alice", ("icreate-1", "pr2-1")[i], MONDAY, MONDAY + MIN)
+        except OverLimit as err:
+            results[i] = err
+
+    threads = [threading.Thread(target=book, args=(i,)) for i in range(2)]
+    try:
+        for t in threads:
+            t.start()
+        for t in threads:
+            t.join(30)
+        assert sum(isinstance(r, OverLimit) for r in results) == 1, results
+    finally:
+        for desk in desks:
+            desk.index.close()
+
+
+def test_the_secret_is_made_once_and_kept_private(tmp_path):
+    """The secret file is made on first use, readable by its owner only, and kept."""
+    path = tmp_path / "keys" / "reservations.secret"
+    first = load_secret(path)
+    assert len(first) == 32 and load_secret(path) == first
+    assert path.stat().st_mode & 0o777 == 0o600
+    path.write_bytes(b"short")
+    with pytest.raises(ReservationError, match="too short"):
+        load_secret(path)
