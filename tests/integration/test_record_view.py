@@ -131,7 +131,7 @@ def test_a_trials_record_in_its_page(lab, watched, tmp_path):
     page = watched.page
     page.goto(url(lab, "/session?then=/submit"))
     page.fill("input[name=token]", token)
-    page.click("form.card button[type=submit]")
+    page.click("#token-signin button[type=submit]")
     page.wait_for_url("**/submit")
     maze = submit(lab, watched, repository(tmp_path, "maze", "icreate-maze", MAZE).path)
     pr2 = submit(lab, watched, repository(tmp_path, "pr2", "pr2-table", PR2).path)
