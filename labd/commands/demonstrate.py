@@ -35,9 +35,17 @@ def add_parser(commands: Any) -> None:
         "demonstrate", help="scripted maze demonstrations, filed in the lab's archive"
     )
     p.add_argument("--seeds", type=int, nargs="+", metavar="N", help="the mazes to drive")
-    p.add_argument("--count", type=int, default=5, help="without --seeds: how many (default 5)")
-    p.add_argument("--user", default="script", help="who the demonstrations are filed under")
-    p.add_argument("--data", type=Path, default=DATA, help="the lab's data folder")
+    p.add_argument(
+        "--count", type=int, default=5, help="without --seeds: how many (default: %(default)s)"
+    )
+    p.add_argument(
+        "--user",
+        default="script",
+        help="who the demonstrations are filed under (default: %(default)s)",
+    )
+    p.add_argument(
+        "--data", type=Path, default=DATA, help="the lab's data folder (default: %(default)s)"
+    )
     p.add_argument("--database", help="SQLAlchemy URL (default: sqlite:///DATA/index.sqlite)")
     json_option(p)
 
