@@ -25,7 +25,7 @@ $(JSSTAMP): $(JS)/package.json $(JS)/package-lock.json
 	cd $(JS) && npm ci --no-audit --no-fund --loglevel=error
 	touch $@
 
-# The pages' scripts and styles (Swagger UI, ReDoc, uPlot, three.js), from npm, served
+# The pages' scripts and styles (Swagger UI, ReDoc, uPlot, three.js, roslibjs), from npm, served
 # by the lab itself: see web/build.mjs.
 $(WEBSTAMP): $(WEB)/package.json $(WEB)/package-lock.json $(WEB)/build.mjs
 	cd $(WEB) && npm ci --no-audit --no-fund --loglevel=error && node build.mjs

@@ -10,6 +10,7 @@ import asyncio
 import contextlib
 import errno
 import logging
+import random
 from collections.abc import Coroutine
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -48,6 +49,10 @@ class LabConfig:
     http_port: int = 8080  # the HTTP API
     # The archive, the queue and its workers; None: only the bridge and its robots.
     service: ServiceConfig | None = None
+    # The share of the maze robot's page sessions shown the camera (interface A); the
+    # others see the perceptual space (B). The seed makes the draws repeatable (tests).
+    interface_ratio: float = 0.5
+    interface_seed: int | None = None
     # Live robots behind the lab's reservations: only a slot's key drives (needs service).
     reservations: bool = False
     # With reservations: clients without a key may connect and watch (never drive).
@@ -96,6 +101,9 @@ class Lab:
         self.http: HttpServer | None = None
         self.site = Site(
             tuple(RobotLink(r.name, r.task, r.live) for r in config.robots),
+            bridge_tls=config.bridge.tls_cert is not None,
+            interface_ratio=config.interface_ratio,
+            rng=random.Random(config.interface_seed),  # noqa: S311 (a study's draw, not a secret)
             reservations=config.reservations,
         )
         self.app: FastAPI | None = None
@@ -139,7 +147,9 @@ class Lab:
             if station.robot.live
         }
         if self.app is not None:  # the pages link to the robots on the port now known
-            self.app.state.site = replace(self.site, bridge_port=self.bridge.port)
+            self.app.state.site = replace(
+                self.site, bridge_port=self.bridge.port, drives=self.drives
+            )
         if self.service is not None and self.http is not None:
             await _listen(
                 self.http.start(), self.config.bridge.host, self.config.http_port, "--http-port"

@@ -267,7 +267,7 @@ class Driving:
             attachments={
                 "manifest.json": ("application/json", _json(session.manifest)),
                 "outcome.json": ("application/json", _json(outcome)),
-                "model.xml": ("application/xml", sim.model_xml().encode()),
+                **sim.model_files(),
             }
         )
         session.recorder = None

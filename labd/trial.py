@@ -30,7 +30,6 @@ from labd.graph.definitions import trial_types
 from labd.graph.types import TypeRegistry
 from labd.recorder import Recorder, first_difference
 from labd.recorder.digest import data_digest
-from labd.recorder.record import media_type
 from labd.recorder.summary import summary_blob
 from labd.replay import replay_with_video
 from labd.sim import registry
@@ -180,11 +179,7 @@ class LabTrial:
         return dict(self.robot.sim.metrics())
 
     def model_files(self) -> dict[str, tuple[str, bytes]]:
-        sim = self.robot.sim
-        files = {"model.xml": ("application/xml", sim.model_xml().encode())}
-        for name, data in sim.task.model_assets.items():
-            files[f"model/{name}"] = (media_type(name), data)
-        return files
+        return self.robot.sim.model_files()
 
     async def next_tick(self) -> None:
         waiter = asyncio.get_running_loop().create_future()

@@ -1,5 +1,6 @@
-// Copies the browser files the lab's pages use from node_modules into
-// labd/web/static/vendor/, which `labd serve` serves: nothing is fetched from a CDN.
+// Copies the browser files the lab's pages use (Swagger UI, ReDoc, uPlot, three.js,
+// roslibjs) from node_modules into labd/web/static/vendor/, which `labd serve` serves:
+// nothing is fetched from a CDN.
 // Run by `make setup` (npm ci, then this); the vendor folder is not committed.
 // three.js comes as one minified module too (esbuild), and every script and style gets
 // a gzip'd twin (NAME.gz) that the lab sends to browsers that accept it
@@ -28,6 +29,7 @@ const FILES = {
   "three/three.core.js": "three/build/three.core.js",
   "three/addons/controls/OrbitControls.js": "three/examples/jsm/controls/OrbitControls.js",
   "three/LICENSE": "three/LICENSE",
+  "roslib/LICENSE": "roslib/LICENSE",
 };
 
 rmSync(vendor, { recursive: true, force: true });
@@ -49,10 +51,20 @@ await build({
   outfile: join(vendor, "three", "three.module.min.js"),
   bundle: true, minify: true, format: "esm", legalComments: "inline", logLevel: "warning",
 });
+for (const controls of ["OrbitControls", "TransformControls"]) {  // the 3D views' handles
+  await build({
+    entryPoints: [join(modules, "three", "examples", "jsm", "controls", `${controls}.js`)],
+    outfile: join(vendor, "three", "addons", "controls", `${controls}.min.js`),
+    bundle: true, minify: true, format: "esm", external: ["three"], logLevel: "warning",
+  });
+}
+// roslibjs (npm roslib 2.x) for the live robots' pages, with its dependencies, as one
+// browser module: the pages reach the robots through the bridge with it, like any client.
 await build({
-  entryPoints: [join(modules, "three", "examples", "jsm", "controls", "OrbitControls.js")],
-  outfile: join(vendor, "three", "addons", "controls", "OrbitControls.min.js"),
-  bundle: true, minify: true, format: "esm", external: ["three"], logLevel: "warning",
+  entryPoints: [join(modules, "roslib", "dist", "RosLib.js")],
+  outfile: join(vendor, "roslib", "roslib.min.js"),
+  bundle: true, minify: true, format: "esm", platform: "browser", legalComments: "inline",
+  logLevel: "warning",
 });
 
 function* files(folder) {

@@ -80,6 +80,14 @@ class Scene(BaseModel):
     qpos: list[list[float]]  # per point, the moving ones
 
 
+class UxEvents(BaseModel):
+    """A live page's user-experience events (``/ux/events``): counts by kind, and the
+    first of them as [t, kind, key, value]."""
+
+    counts: dict[str, int]
+    events: list[list[float | str]]
+
+
 class RecordSummary(BaseModel):
     """A record's summary (``labd.recorder.summary`` describes every field)."""
 
@@ -95,6 +103,7 @@ class RecordSummary(BaseModel):
     camera: Camera | None
     map: FloorMap | None
     scene: Scene | None
+    ux: UxEvents | None = None
 
 
 @router.get(

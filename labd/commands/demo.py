@@ -132,6 +132,8 @@ def main(args: argparse.Namespace) -> int:
             f"""
 Open the lab in a browser: {server}/
   {server}/trials/{first.id}               a trial: its outcome, plots, camera, logs, downloads
+  {server}/robots/icreate-1          drive the maze robot; your drive is filed as a demonstration
+  {server}/robots/pr2-1              move the PR2 from its 3D view
   {server}/docs                      the API, to try in a browser
   {server}/api/trials                the archive
   {server}/api/commits/{first.commit[:12]}   a commit, its trials and reruns

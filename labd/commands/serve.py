@@ -107,6 +107,14 @@ def add_parser(commands: Any) -> None:
         help="a task parameter for every robot (repeatable; default: the tasks' own)",
     )
     serve.add_argument("--no-playground", action="store_true", help="host no playground graph")
+    serve.add_argument(
+        "--interface-ratio",
+        type=float,
+        default=LAB.interface_ratio,
+        metavar="R",
+        help="the share of the maze robot's page sessions shown the camera (interface A);"
+        " the others see the tags and sensing without video (B) (default: %(default)s)",
+    )
     group = serve.add_argument_group("the archive, the queue and its workers")
     group.add_argument(
         "--http-port",
@@ -258,6 +266,8 @@ def config(args: argparse.Namespace) -> LabConfig:
     robots = robot_configs(args)
     if not robots and args.no_playground:
         raise Refused("--no-robots with --no-playground leaves the bridge nothing to serve")
+    if not 0.0 <= args.interface_ratio <= 1.0:
+        raise Refused(f"--interface-ratio {args.interface_ratio:g}: give a share from 0 to 1")
     if args.reservations and args.no_service:
         raise Refused("--reservations needs the archive, where they are kept: drop --no-service")
     if args.reservations and args.authorizer:
@@ -274,6 +284,7 @@ def config(args: argparse.Namespace) -> LabConfig:
         playground=not args.no_playground,
         http_port=args.http_port,
         service=service_config(args),
+        interface_ratio=args.interface_ratio,
         reservations=args.reservations,
         watchers=not args.no_watchers,
     )
@@ -398,6 +409,8 @@ async def serve(config: LabConfig) -> None:
         print(f"  live robots: only a reservation's key drives ({watch})", flush=True)
     if lab.http is not None and lab.service is not None:
         print(f"HTTP API on {lab.http.url()}/api (OpenAPI: {lab.http.url()}/openapi.json)")
+        if lab.robots:
+            print(f"  the robots' pages: {lab.http.url()}/robots", flush=True)
         print(f"  archive: {lab.service.config.database_url}, blobs {lab.service.store.url}")
         print(f"  workers: {len(lab.service.workers)}", flush=True)
         print(

@@ -13,7 +13,9 @@ alone, for any task, with MuJoCo's own compiler:
   detected objects (``/objects``) for the free bodies named like them. What the
   record never says (an object the camera never saw) stays where the model put it;
 - ``floor_map``: a top-down map in the ``odom`` frame when the model has walls (the
-  maze's ``wall*`` boxes, ``tag<id>`` plates and its ``goal`` mark).
+  maze's ``wall*`` boxes, ``tag<id>`` plates and its ``goal`` mark);
+- ``posing``: for a live robot, what a page needs beside ``describe`` to pose the
+  scene from the robot's topics as ``Poser`` does (the live PR2 page, ``live/pr2.js``).
 
 The ``odom`` frame is where the robot's root body was at the start: its pose in the
 world is the body's pose at rest, composed with the first ``/tf`` from ``odom``.
@@ -104,6 +106,41 @@ def describe(model: mujoco.MjModel) -> dict[str, Any]:
             geom["repeat"] = _r(repeat)
         geoms.append(geom)
     return {"bodies": bodies, "geoms": geoms, "textures": texture_data}
+
+
+def posing(
+    model: mujoco.MjModel, qpos: np.ndarray, transforms: Mapping[tuple[str, str], Pose]
+) -> dict[str, Any]:
+    """What a page needs, beside ``describe``, to pose a live robot's scene from its topics:
+
+    - ``qpos``: the joint positions now (objects included), where a page starts;
+    - ``rest``: the model's own (``qpos0``), where ``Poser`` measures planar joints from;
+    - ``joints``: the qpos address of each hinge and slide joint, by name (``/joint_states``);
+    - ``root``, ``odom``: the body that ``/tf`` places from ``odom``, and where ``odom``
+      is in the world (x, y, z and the quaternion x, y, z, w), from ``transforms`` now
+      (parent and child frame -> pose) and the body's pose at ``qpos``.
+    """
+    data = mujoco.MjData(model)
+    data.qpos[:] = qpos
+    mujoco.mj_kinematics(model, data)
+    root, odom = "", _identity()
+    for (parent, child), pose in transforms.items():
+        body = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, child)
+        if parent == "odom" and body > 0:
+            root = child
+            odom = _compose((data.xpos[body].copy(), data.xquat[body].copy()), _inverse(pose))
+            break
+    return {
+        "qpos": _r(qpos, 6),
+        "rest": _r(model.qpos0, 6),
+        "joints": {
+            model.joint(j).name: int(model.jnt_qposadr[j])
+            for j in range(model.njnt)
+            if int(model.jnt_type[j]) in (SLIDE, HINGE)
+        },
+        "root": root,
+        "odom": [*_r(odom[0], 6), *_xyzw(odom[1])],
+    }
 
 
 def _look(model: mujoco.MjModel, g: int) -> tuple[list[float], int | None, list[float]]:

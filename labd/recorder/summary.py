@@ -19,7 +19,9 @@ within a size budget (a small fraction of the record's size). The JSON::
              "goal": [x0, y0, x1, y1], "path": {"t": [...], "x": [...], "y": [...]}} | null,
      "scene": {"bodies": [...], "geoms": [...], "textures": [...],
                "qpos0": [...nq], "moving": [k, ...],   # the joint positions at the
-               "qpos": [[...] per point]} | null}      # start; those that move, per point
+               "qpos": [[...] per point]} | null,     # start; those that move, per point
+     "ux": {"counts": {"key": 12, ...},       # a live page's user-experience events
+            "events": [[t, kind, key, value], ...]} | null}   # (/ux/events), the first 300
 
 Points are the record's control ticks (each ``/lab/episode`` message closes one),
 decimated to at most ``MAX_POINTS`` (``series``). Observations (what the lab
@@ -56,8 +58,10 @@ from labd.recorder.bag import mcap_path
 from labd.recorder.reader import RecordedMessage, read_channels, read_messages
 from labd.recorder.record import read_manifest
 
-VERSION = 1
+VERSION = 2
 MAX_POINTS = 400  # per series: enough for a plot a page wide
+MAX_UX = 300  # user-experience events listed (all are counted)
+UX = "/ux/events"
 MIN_POINTS = 50  # the budget never cuts a series below this
 MAX_FRAMES = 240  # camera thumbnails
 MIN_FRAMES = 24  # the budget keeps at least this many (if the record has them)
@@ -95,6 +99,8 @@ class Reading:
     poser: scene.Poser | None = None
     qpos: list[np.ndarray] = field(default_factory=list)
     root: str | None = None  # the frame /tf gives first from odom: the robot
+    ux: list[list[Any]] = field(default_factory=list)  # [t, kind, key, value]
+    ux_counts: dict[str, int] = field(default_factory=dict)
 
 
 def summarize(
@@ -181,6 +187,8 @@ def read(
             decoded = typestore.deserialize_cdr(message.data, message.schema.name)
             if message.topic == EPISODE:
                 _tick(reading, clock, message, decoded)
+            elif message.topic == UX:
+                _ux(reading, clock.seconds(message.log_time), decoded)
             else:
                 _observe(reading, message, decoded)
     except SummaryError:
@@ -233,6 +241,13 @@ def _tick(reading: Reading, clock: _Clock, message: RecordedMessage, episode: An
     reading.client.snapshot()
     if reading.poser is not None:
         reading.qpos.append(reading.poser.qpos.copy())
+
+
+def _ux(reading: Reading, t: float, event: Any) -> None:
+    kind = str(event.kind)
+    reading.ux_counts[kind] = reading.ux_counts.get(kind, 0) + 1
+    if len(reading.ux) < MAX_UX:
+        reading.ux.append([round(t, 3), kind, str(event.key), str(event.value)[:200]])
 
 
 def _observe(reading: Reading, message: RecordedMessage, decoded: Any) -> None:
@@ -318,6 +333,7 @@ def build(
         "camera": _camera(reading.frames[::every], reading.source, quality, width),
         "map": _map(reading),
         "scene": _scene(reading, ends),
+        "ux": {"counts": reading.ux_counts, "events": reading.ux} if reading.ux_counts else None,
     }
 
 

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import hashlib
 import logging
+import mimetypes
 from collections.abc import Mapping
 from typing import Any
 
@@ -119,6 +120,15 @@ class Simulation:
     def model_xml(self) -> str:
         """The model as MJCF, for the record (what was compiled, not the generator)."""
         return self.task.model_xml
+
+    def model_files(self) -> dict[str, tuple[str, bytes]]:
+        """The model as a record's attachments: ``model.xml`` and the files it names
+        (``model/NAME``: textures), so that MuJoCo compiles it back from the record."""
+        files = {"model.xml": ("application/xml", self.model_xml().encode())}
+        for name, data in self.task.model_assets.items():
+            kind = mimetypes.guess_type(name)[0] or "application/octet-stream"
+            files[f"model/{name}"] = (kind, data)  # image/png, ...
+        return files
 
     def close(self) -> None:
         """Free the physics and its rendering contexts, on the thread that made them.

@@ -1,8 +1,8 @@
 """The lab's web pages, served beside the HTTP API: the archive to browse (``pages``),
 forms to sign in, submit and rerun (``forms``), accounts and tokens (``accounts``),
-reservations and the robots' calendars (``reservations``), and the API's own
-documentation (``/docs``, ``/redoc``), every script and style served by the lab
-(``render``)."""
+reservations and the robots' calendars (``reservations``), the live robots' pages
+(``robots``), and the API's own documentation (``/docs``, ``/redoc``), every script and
+style served by the lab (``render``)."""
 
 from __future__ import annotations
 
@@ -14,7 +14,7 @@ from fastapi.responses import HTMLResponse
 
 from labd.api.app import create_app as create_api
 from labd.service import Service
-from labd.web import accounts, forms, pages, reservations
+from labd.web import accounts, forms, pages, reservations, robots
 from labd.web.assets import Precompressed
 from labd.web.render import STATIC, RobotLink, Site, page
 from labd.web.session import FormRefused
@@ -38,6 +38,8 @@ def install(app: FastAPI, site: Site) -> None:
     app.mount("/static", Precompressed(directory=STATIC), name="static")
     app.include_router(pages.router)
     app.include_router(forms.router)
+    app.include_router(robots.router)
+    app.include_router(robots.api)
     app.include_router(accounts.router)
     app.include_router(reservations.router)
 

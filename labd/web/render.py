@@ -11,6 +11,8 @@ from __future__ import annotations
 import datetime as dt
 import json
 import math
+import random
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -20,6 +22,7 @@ from fastapi.templating import Jinja2Templates
 from starlette.responses import HTMLResponse
 
 from labd import __version__
+from labd.live import Driving
 from labd.web.session import CSRF_COOKIE
 from repository.index import User
 from repository.trial import Outcome, Status
@@ -44,6 +47,13 @@ class Site:
 
     robots: tuple[RobotLink, ...] = ()
     bridge_port: int | None = None
+    bridge_tls: bool = False  # the bridge speaks wss://
+    # Who drives each live robot, by name (``labd.live``): the robots' pages and list.
+    drives: Mapping[str, Driving] = field(default_factory=dict)
+    # The share of robot-page sessions shown the camera (interface A, "video"); the
+    # others get the perceptual space (B). Drawn per page load with ``rng``.
+    interface_ratio: float = 0.5
+    rng: random.Random = field(default_factory=random.Random)
     reservations: bool = False  # live robots are driven only with a reservation's key
     extra: dict[str, Any] = field(default_factory=dict)
 

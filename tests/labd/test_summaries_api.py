@@ -12,6 +12,7 @@ import pytest
 import uvicorn
 
 from labd.api.app import create_app
+from labd.recorder.summary import VERSION
 from repository.errors import RecordNotFound
 from repository.index import Derived
 from repository.trial import Filing
@@ -66,7 +67,7 @@ async def test_a_summary_is_made_once_then_served_from_the_store(api, service, r
     assert first.status_code == 200 and first.headers["content-encoding"] == "gzip"
     assert first.headers["content-type"] == "application/json"
     summary = first.json()
-    assert summary["version"] == 1 and summary["ticks"] == 13 and summary["map"]["walls"]
+    assert summary["version"] == VERSION and summary["ticks"] == 13 and summary["map"]["walls"]
     kept = service.index.derived(trial_id)[SUMMARY]
     assert kept.media_type == SUMMARY_MEDIA_TYPE
     assert gzip.decompress(service.store.read_bytes(kept.digest)) == first.content
@@ -81,7 +82,7 @@ async def test_a_summary_of_an_older_version_is_made_again(api, service, record)
     digest = service.store.put_bytes(old)
     service.index.put_derived(trial_id, Derived(SUMMARY, digest, len(old), SUMMARY_MEDIA_TYPE))
     answer = await api.get(PATH.format(trial_id))
-    assert answer.json()["version"] == 1
+    assert answer.json()["version"] == VERSION
     assert service.index.derived(trial_id)[SUMMARY].digest != digest
 
 
@@ -116,7 +117,7 @@ async def test_a_remote_worker_files_the_summary_of_its_own_trials_only(api, ser
     token = service.index.add_user("farm", worker=True)
     mine = file_trial(service, record, worker="farm@w1")
     theirs = file_trial(service, record, worker="farm@w2")
-    blob = gzip.compress(orjson.dumps({"version": 1}))
+    blob = gzip.compress(orjson.dumps({"version": VERSION}))
     digest = f"sha256:{hashlib.sha256(blob).hexdigest()}"
     headers = worker_headers(token)
     wrong = await api.put(f"/api/blobs/sha256:{'0' * 64}", content=blob, headers=headers)

@@ -1,6 +1,7 @@
 // A look inside a trial's record, on its page: plots (uPlot), the camera as a strip of
 // frames, a top-down map of the maze with the robot's path, and the scene in 3D
-// (three.js), all moved together by one time scrubber.
+// (three.js, drawn and posed by scene.js, which the live PR2 page shares), all moved
+// together by one time scrubber.
 //
 // It reads the record's summary (GET /api/trials/{id}/summary: labd/recorder/summary.py
 // describes it), never the MCAP. Everything it loads comes from this lab.
@@ -215,80 +216,29 @@ function floorMap(map) {
 async function scene3d(info, summary, holder) {
   const THREE = await import("three");
   const { OrbitControls } = await import("three/addons/controls/OrbitControls.min.js");
+  const { buildScene, frame } = await import("/static/scene.js");
   const width = holder.clientWidth || 420, height = Math.round(width * 0.75);
   const renderer = new THREE.WebGLRenderer({ antialias: true });
   renderer.setPixelRatio(Math.min(2, window.devicePixelRatio || 1));
   renderer.setSize(width, height);
   renderer.domElement.id = "record-scene";
   holder.replaceChildren(renderer.domElement, el("div", { class: "muted" }, "drag to turn, scroll to zoom"));
-  const world = new THREE.Scene();
-  world.background = new THREE.Color(0xdfe6ee);
-  world.add(new THREE.HemisphereLight(0xffffff, 0x8a8a8a, 2.2));
-  const sun = new THREE.DirectionalLight(0xffffff, 1.6);
-  sun.position.set(2, 3, 6);
-  world.add(sun);
-  const loader = new THREE.TextureLoader();
-  const textures = await Promise.all(info.textures.map(async (url) => {
-    const texture = await loader.loadAsync(url);
-    texture.colorSpace = THREE.SRGBColorSpace;
-    texture.magFilter = THREE.NearestFilter;
-    texture.wrapS = texture.wrapT = THREE.RepeatWrapping;
-    return texture;
-  }));
-  const groups = info.bodies.map((body) => { const g = new THREE.Group(); g.name = body.name; world.add(g); return g; });
-  const solids = [];
-  for (const geom of info.geoms) {
-    const mesh = shape(THREE, geom, textures);
-    if (!mesh) continue;
-    mesh.position.fromArray(geom.pos);
-    mesh.quaternion.fromArray(geom.quat);
-    (geom.body < 0 ? world : groups[geom.body]).add(mesh);
-    if (geom.shape !== "plane") solids.push(mesh);
-  }
-  // Forward kinematics as MuJoCo does it (mj_kinematics), from the joint positions.
+  const scene = await buildScene(THREE, info);
   const q = info.qpos0.slice();
-  const pos = info.bodies.map(() => new THREE.Vector3()), quat = info.bodies.map(() => new THREE.Quaternion());
-  const v = new THREE.Vector3(), r = new THREE.Quaternion(), axis = new THREE.Vector3();
-  const pose = (index) => {
+  const pose = (index) => {  // the joint positions at a point: those that move, over the first
     const row = info.qpos.length ? info.qpos[Math.min(index, info.qpos.length - 1)] : [];
     info.moving.forEach((k, j) => { q[k] = row[j]; });
-    info.bodies.forEach((body, i) => {
-      const p = pos[i].fromArray(body.pos), o = quat[i].fromArray(body.quat);
-      if (body.parent >= 0) { p.applyQuaternion(quat[body.parent]).add(pos[body.parent]); o.premultiply(quat[body.parent]); }
-      for (const [type, adr, ax, ay, az, jx, jy, jz, ref] of body.joints) {
-        if (type === 0) {  // free: the body's pose in the world
-          p.set(q[adr], q[adr + 1], q[adr + 2]);
-          o.set(q[adr + 4], q[adr + 5], q[adr + 6], q[adr + 3]).normalize();
-          continue;
-        }
-        const anchor = v.set(jx, jy, jz).applyQuaternion(o).add(p).clone();
-        if (type === 2) {  // slide
-          p.add(axis.set(ax, ay, az).applyQuaternion(o).multiplyScalar(q[adr] - ref));
-          continue;
-        }
-        if (type === 3) r.setFromAxisAngle(axis.set(ax, ay, az), q[adr] - ref);
-        else r.set(q[adr + 1], q[adr + 2], q[adr + 3], q[adr]).normalize();  // ball
-        o.multiply(r);
-        p.copy(anchor).sub(v.set(jx, jy, jz).applyQuaternion(o));
-      }
-      groups[i].position.copy(p);
-      groups[i].quaternion.copy(o);
-    });
+    scene.pose(q);
   };
   pose(0);
-  world.updateMatrixWorld(true);
-  const bounds = new THREE.Box3();
-  for (const mesh of solids) bounds.expandByObject(mesh);
-  const camera = new THREE.PerspectiveCamera(45, width / height, 0.02, 200);
-  camera.up.set(0, 0, 1);
-  const centre = bounds.getCenter(new THREE.Vector3()), size = bounds.getSize(new THREE.Vector3()).length();
+  scene.world.updateMatrixWorld(true);
   // a wide scene (a maze) from high up, so that walls hide little; a table from the side
   const view = summary.map ? [-0.15, -0.45, 0.95] : [-0.55, -0.75, 0.6];
-  camera.position.copy(centre).add(new THREE.Vector3(...view).multiplyScalar(size));
+  const { camera, centre } = frame(THREE, scene.solids, view, width / height);
   const controls = new OrbitControls(camera, renderer.domElement);
   controls.target.copy(centre);
   controls.update();
-  const render = () => renderer.render(world, camera);
+  const render = () => renderer.render(scene.world, camera);
   controls.addEventListener("change", render);
 
   let current = -1;
@@ -303,34 +253,23 @@ async function scene3d(info, summary, holder) {
   listeners.push(show);
   api.bodyPose = (name) => {
     const i = info.bodies.findIndex((b) => b.name === name);
-    return i < 0 ? null : [...pos[i].toArray(), ...quat[i].toArray()];
+    return i < 0 ? null : [...scene.pos[i].toArray(), ...scene.quat[i].toArray()];
   };
 }
 
-function shape(THREE, geom, textures) {
-  const [a, b, c] = geom.size;
-  let geometry, upright = false;
-  switch (geom.shape) {
-    case "box": geometry = new THREE.BoxGeometry(2 * a, 2 * b, 2 * c); break;
-    case "sphere": geometry = new THREE.SphereGeometry(a, 20, 12); break;
-    case "ellipsoid": geometry = new THREE.SphereGeometry(1, 20, 12).scale(a, b, c); break;
-    case "cylinder": geometry = new THREE.CylinderGeometry(a, a, 2 * b, 24); upright = true; break;
-    case "capsule": geometry = new THREE.CapsuleGeometry(a, 2 * b, 6, 16); upright = true; break;
-    case "plane": geometry = new THREE.PlaneGeometry(2 * a, 2 * b); break;
-    default: return null;
-  }
-  if (upright) geometry.rotateX(Math.PI / 2);  // MuJoCo's axis is z, three's is y
-  const [red, green, blue, alpha] = geom.rgba;
-  const material = new THREE.MeshLambertMaterial({
-    color: new THREE.Color().setRGB(red, green, blue, THREE.SRGBColorSpace),
-    transparent: alpha < 1, opacity: alpha });
-  if (geom.texture !== undefined) {
-    const texture = textures[geom.texture].clone();
-    texture.repeat.set(geom.repeat[0], geom.repeat[1]);
-    texture.needsUpdate = true;
-    material.map = texture;
-  }
-  return new THREE.Mesh(geometry, material);
+// -- a live page's user-experience events ---------------------------------------------------
+
+function uxEvents(ux) {
+  const counts = Object.entries(ux.counts).map(([kind, n]) => `${kind} ${n}`).join(" · ");
+  const rows = ux.events.map(([t, kind, key, value]) =>
+    el("tr", {}, el("td", { class: "num" }, t.toFixed(2)), el("td", {}, kind), el("td", {}, key),
+       el("td", { class: "mono" }, value)));
+  const total = Object.values(ux.counts).reduce((a, b) => a + b, 0);
+  return el("details", { class: "panel ux", id: "ux-events" },
+    el("summary", {}, `The page's events (/ux/events): ${counts}`),
+    el("table", {}, el("thead", {}, el("tr", {}, ...["s", "kind", "key", "value"].map((h) => el("th", {}, h)))),
+      el("tbody", {}, ...rows)),
+    total > ux.events.length ? el("p", { class: "muted" }, `the first ${ux.events.length} of ${total}`) : "");
 }
 
 // -- putting it together -----------------------------------------------------------------
@@ -365,6 +304,7 @@ async function main() {
     await scene3d(summary.scene, summary, holder);
     mark("scene");
   }
+  if (summary.ux) { view.append(uxEvents(summary.ux)); mark("ux"); }
   if (!summary.plots.length && !summary.camera && !summary.scene) {
     view.append(el("p", { class: "muted" }, "The record holds nothing to plot."));
   }

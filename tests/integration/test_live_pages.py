@@ -1,0 +1,278 @@
+"""The live robots' pages in a real browser, against a real lab with both robots.
+
+The iCreate page drives the robot (a key held, /odom moves) and shows camera frames in
+interface A and the tags in B; a watcher's commands are refused with a status the page
+shows; a page in a background tab stops the camera; the interface is drawn at random per
+session and recorded; the PR2 page draws the robot in 3D and a Cartesian target moves
+its arm; after a drive, the demonstration is in the archive with the page's events.
+Screenshots go to build/screenshots/.
+"""
+
+from __future__ import annotations
+
+import json
+import re
+import time
+
+import httpx
+import pytest
+import roslibpy
+
+from labd.config import BridgeConfig, RobotConfig
+from labd.graph.types import TypeRegistry
+from labd.lab import LabConfig
+from labd.recorder import read_messages
+from labd.service import ServiceConfig
+from repository.index import Filters
+from repository.trial import Kind
+from tests.conftest import ServerThread
+from tests.integration.browser import browser, watched
+from tests.integration.test_browser import shot
+
+__all__ = ["browser", "watched"]
+pytestmark = [pytest.mark.integration, pytest.mark.timeout(300)]
+CAMERA = "/camera/image/compressed"
+
+
+@pytest.fixture(scope="module")
+def lab(tmp_path_factory):
+    """One lab for the module: icreate-1 and pr2-1 live, the archive, no workers."""
+    data = tmp_path_factory.mktemp("live") / "data"
+    config = LabConfig(
+        data=data,
+        bridge=BridgeConfig(port=0),
+        robots=(RobotConfig("icreate-1", "icreate-maze"), RobotConfig("pr2-1", "pr2-table")),
+        playground=False,
+        http_port=0,
+        service=ServiceConfig(data=data, workers=0),
+        interface_seed=7,
+    )
+    server = ServerThread(config).start()
+    yield server
+    server.stop()
+
+
+def url(lab: ServerThread, path: str = "") -> str:
+    assert lab.lab is not None and lab.lab.http is not None
+    return lab.lab.http.url() + path
+
+
+def hold(page, key: str, until: str, timeout: float = 30) -> None:
+    """Hold ``key`` down until the page's condition ``until`` holds."""
+    page.keyboard.down(key)
+    try:
+        page.wait_for_function(until, timeout=timeout * 1000)
+    finally:
+        page.keyboard.up(key)
+
+
+def camera_watchers(lab: ServerThread) -> int:
+    """The clients subscribed to the maze robot's camera (on the lab's loop)."""
+    graph = lab.lab.graphs["icreate-1"]
+    return len(graph.subscribers_of(CAMERA))
+
+
+def ux_events(lab: ServerThread, demo, tmp_path) -> list:
+    """The page's events in a demonstration's record."""
+    record = tmp_path / f"{demo.id}.mcap"
+    lab.lab.service.store.copy_to(demo.mcap, record)
+    types = TypeRegistry.default().typestore
+    return [
+        types.deserialize_cdr(m.data, "lab_msgs/msg/UxEvent")
+        for m in read_messages(record, topics=["/ux/events"])
+    ]
+
+
+def test_the_icreate_page_drives_and_files_a_demonstration(lab, watched, tmp_path):
+    """Interface A shows camera frames; a held key drives (/odom moves); while another
+    client drives, the page shows who, and its key press is refused with a status it
+    shows; a background tab stops the camera; released, the drive is a demonstration in
+    the archive with its interface and the page's events (key presses, clicks, the
+    interface, focus, latency)."""
+    page = watched.page
+    page.goto(url(lab, "/robots/icreate-1?interface=video"))
+    page.wait_for_function("Number(document.getElementById('camera').dataset.frames || 0) >= 3")
+    page.click("#take")
+    page.wait_for_function("document.body.dataset.driving === 'yes'")
+    hold(page, "ArrowUp", "Number(document.getElementById('odom').dataset.x) > 0.1")
+    page.evaluate("window.dispatchEvent(new Event('blur'))")  # the person looks elsewhere
+    shot(watched, "live-icreate-video")
+
+    page.click("#release")
+    page.wait_for_function("document.body.dataset.driving === 'no'")
+
+    # someone else drives (a roslibpy client): the page watches, and is refused
+    other = roslibpy.Ros(host=lab.url + "/robots/icreate-1")
+    other.run(timeout=10)
+    try:
+        answer = roslibpy.Service(other, "/lab/drive", "lab_msgs/srv/Drive").call(
+            roslibpy.ServiceRequest({"session": "s-2", "interface": "", "user": "bob"}), timeout=10
+        )
+        assert answer["success"], answer
+        page.wait_for_function("document.getElementById('driver').textContent.includes('bob')")
+        page.keyboard.press("ArrowUp")
+        page.wait_for_function(
+            "document.getElementById('status').textContent.includes('driven by bob; you are watching')"
+        )
+        assert page.get_attribute("#status", "data-level") in ("warning", "error")
+        assert page.inner_text("#you").endswith("watching")
+        listed = httpx.get(url(lab, "/robots")).text
+        assert re.search(r'class="driver">bob', listed), listed
+    finally:
+        other.close()
+    page.wait_for_function("document.getElementById('driver').textContent === 'nobody'")
+    page.click("#take")
+    page.wait_for_function("document.body.dataset.driving === 'yes'")
+
+    before = lab.call(lambda: camera_watchers(lab))
+    assert before >= 1
+    page.evaluate(
+        """() => { Object.defineProperty(document, 'visibilityState', {value: 'hidden', configurable: true});
+                   document.dispatchEvent(new Event('visibilitychange')); }"""
+    )
+    lab.wait_until(lambda: camera_watchers(lab) == before - 1)
+    time.sleep(2.1)  # a latency event is summed up every 2 s: wait for one past this
+    page.click("#release")
+    page.wait_for_function("document.body.dataset.driving === 'no'")
+    watched.check()
+
+    service = lab.lab.service
+    deadline = time.monotonic() + 30
+    while len(found := service.index.find(Filters(kind=Kind.DEMONSTRATION)).items) < 3:
+        assert time.monotonic() < deadline, f"{len(found)} demonstrations filed, not 3"
+        time.sleep(0.1)
+    mine = [d for d in found if d.submitter == "guest"]
+    assert len(mine) == 2 and {d.task for d in found} == {"icreate-maze"}
+    assert all(d.manifest["driver"]["interface"] == "video" for d in mine)
+    events = [e for demo in mine for e in ux_events(lab, demo, tmp_path)]
+    kinds = {e.kind for e in events}
+    assert {"interface", "key", "click", "focus", "latency"} <= kinds, kinds
+    assert any(e.kind == "key" and e.key == "ArrowUp" for e in events)
+    assert any(e.kind == "interface" and e.key == "video" for e in events)
+    page.evaluate(
+        "() => Object.defineProperty(document, 'visibilityState', {value: 'visible', configurable: true})"
+    )
+    page.goto(url(lab, f"/trials/{mine[0].id}"))
+    assert "video" in page.inner_text("dl.facts")
+    page.wait_for_function("document.getElementById('ux-events') !== null", timeout=60_000)
+    assert "latency" in page.inner_text("#ux-events summary")
+
+
+def test_interface_b_shows_the_tags(lab, watched):
+    """Interface B draws no video: the tags the robot detects are drawn (turning in place
+    until some are in view), with its odometry and the goal."""
+    page = watched.page
+    page.goto(url(lab, "/robots/icreate-1?interface=perception"))
+    assert page.query_selector("#camera") is None
+    page.wait_for_function("document.body.dataset.ready === 'yes'")
+    page.wait_for_function("Number(document.getElementById('perception').dataset.frames || 0) > 2")
+    page.click("#take")
+    page.wait_for_function("document.body.dataset.driving === 'yes'")
+    hold(page, "ArrowLeft", "Number(document.getElementById('perception').dataset.tags) > 0")
+    page.wait_for_function("document.getElementById('goal').textContent.includes('m away')")
+    shot(watched, "live-icreate-perception")
+    page.click("#release")
+    page.wait_for_function("document.body.dataset.driving === 'no'")
+    watched.check()
+
+
+# A gamepad the page polls through the Gamepad API: its left stick is pushed forward
+# (axis 1 at -1) once the test sets window.padForward; "gamepadconnected" is sent by the test.
+GAMEPAD = """
+(() => {
+  const pad = { id: "test pad (STANDARD GAMEPAD)", index: 0, connected: true, mapping: "standard",
+                buttons: Array.from({ length: 17 }, () => ({ pressed: false, value: 0 })),
+                get axes() { return [0, window.padForward ? -1 : 0, 0, 0]; } };
+  navigator.getGamepads = () => [pad, null, null, null];
+  window.connectPad = () => {
+    const event = new Event("gamepadconnected");
+    Object.defineProperty(event, "gamepad", { value: pad });
+    window.dispatchEvent(event);
+  };
+})();
+"""
+
+
+ODOM = "() => ['x', 'y'].map((k) => Number(document.getElementById('odom').dataset[k]))"
+
+
+def test_a_gamepad_drives(lab, watched):
+    """The left stick of a gamepad (the Gamepad API, polled) drives the robot forward,
+    and letting it go stops it; the page names the pad and logs its connection."""
+    page = watched.page
+    page.add_init_script(GAMEPAD)
+    page.goto(url(lab, "/robots/icreate-1?interface=perception"))
+    page.wait_for_function("document.body.dataset.ready === 'yes'")
+    page.evaluate("window.connectPad()")
+    page.wait_for_function("document.getElementById('gamepad').textContent.includes('test pad')")
+    page.click("#take")
+    page.wait_for_function("document.body.dataset.driving === 'yes'")
+    page.wait_for_function("document.getElementById('odom').dataset.y !== undefined")
+    start = page.evaluate(ODOM)
+    page.evaluate("window.padForward = true")
+    page.wait_for_function(
+        f"(() => {{ const [x, y] = ({ODOM})(); return Math.hypot(x - {start[0]}, y - {start[1]}) > 0.1; }})()"
+    )
+    page.evaluate("window.padForward = false")
+
+    # stopped: odometry settles (two readings a second apart agree)
+    def still() -> bool:
+        first = page.evaluate(ODOM)
+        time.sleep(1.0)
+        return first == page.evaluate(ODOM)
+
+    deadline = time.monotonic() + 20
+    while not still():
+        assert time.monotonic() < deadline, "the robot kept moving after the stick was let go"
+    page.click("#release")
+    page.wait_for_function("document.body.dataset.driving === 'no'")
+    watched.check()
+
+
+def test_the_interface_is_drawn_per_session(lab):
+    """Page loads without an override draw both interfaces (the lab's ratio); the
+    override wins; an unknown one is refused; an unknown robot is a 404."""
+    shown = []
+    for _ in range(16):
+        page = httpx.get(url(lab, "/robots/icreate-1")).text
+        config = json.loads(re.search(r'id="live-config">(.*?)</script>', page, re.S)[1])
+        assert config["assigned"] == "random"
+        shown.append(config["interface"])
+    assert set(shown) == {"video", "perception"}, shown
+    assert httpx.get(url(lab, "/robots/icreate-1?interface=perception")).status_code == 200
+    assert httpx.get(url(lab, "/robots/icreate-1?interface=radar")).status_code == 422
+    assert httpx.get(url(lab, "/robots/nope")).status_code == 404
+    listed = httpx.get(url(lab, "/api/robots")).json()
+    assert [r["name"] for r in listed] == ["icreate-1", "pr2-1"]
+
+
+def test_the_pr2_page_moves_an_arm_to_a_target(lab, watched):
+    """The PR2 page draws the robot and the table in 3D from the robot's topics; moving
+    the left arm's Cartesian target with the keyboard moves the arm's tool frame."""
+    page = watched.page
+    page.goto(url(lab, "/robots/pr2-1"))
+    page.wait_for_function("document.body.dataset.ready === 'yes'", timeout=60_000)
+    page.wait_for_function(
+        "Number(document.getElementById('pr2-scene')?.dataset.frames || 0) > 3", timeout=60_000
+    )
+    page.wait_for_function("window.labPr2 && window.labPr2.tool('left') !== null")
+    assert page.evaluate("window.labPr2.bodyPose('torso_lift_link')") is not None
+    page.wait_for_function("Number(document.getElementById('camera').dataset.frames || 0) >= 2")
+    start = page.evaluate("window.labPr2.tool('left')")
+    page.click("#take")
+    page.wait_for_function("document.body.dataset.driving === 'yes'")
+    page.keyboard.press("1")
+    for key in "uuuuuiiii":  # up 10 cm, forward 8 cm
+        page.keyboard.press(key)
+    target = page.evaluate("window.labPr2.target('left')")
+    assert target[2] == pytest.approx(start[2] + 0.10, abs=0.03)
+    page.wait_for_function(
+        """([x, y, z]) => { const t = window.labPr2.tool('left');
+                           return Math.hypot(t[0] - x, t[1] - y, t[2] - z) < 0.03; }""",
+        arg=target,
+        timeout=60_000,
+    )
+    shot(watched, "live-pr2-3d")
+    page.click("#release")
+    page.wait_for_function("document.body.dataset.driving === 'no'")
+    watched.check()
