@@ -131,7 +131,9 @@ class Lab:
         self._loop = asyncio.get_running_loop()
         for name, robot in self.robots.items():
             if robot.live:
-                task = asyncio.create_task(LiveRunner(robot).run(), name=f"live {name}")
+                task = asyncio.create_task(
+                    LiveRunner(robot, prompt=True).run(), name=f"live {name}"
+                )
                 self._runners.append(task)
         await _listen(
             self.bridge.start(), self.config.bridge.host, self.config.bridge.port, "--bridge-port"

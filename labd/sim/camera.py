@@ -3,17 +3,20 @@
 Rendering goes through dm_control's ``physics.render`` on the backend that
 ``MUJOCO_GL`` names (``egl`` on a headless machine: Mesa's CPU rasteriser). The JPEG
 encoder is libjpeg-turbo (``simplejpeg``), whose output is a function of the pixels,
-so identical renders give identical bytes.
+so identical renders give identical bytes. Each camera keeps dm_control's ``Camera``
+(its scene) for the physics it renders, rather than building one a frame as
+``physics.render`` does: a live 640x480 camera's frame costs about a third less.
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 import simplejpeg
+from dm_control.mujoco import engine
 
 from labd.sim.base import Stamp
 
@@ -27,6 +30,8 @@ class Camera:
     width: int = 320
     height: int = 240
     quality: int = 85
+    # dm_control's camera for the physics last rendered (a task's physics is its own)
+    _view: dict[str, Any] = field(default_factory=dict, init=False, compare=False, repr=False)
 
     def focal(self, physics: Any) -> float:
         fovy = math.radians(float(physics.named.model.cam_fovy[self.name]))
@@ -36,7 +41,11 @@ class Camera:
         return (self.width - 1) / 2.0, (self.height - 1) / 2.0
 
     def render(self, physics: Any) -> np.ndarray:
-        pixels: np.ndarray = physics.render(self.height, self.width, camera_id=self.name)
+        view = self._view
+        if view.get("physics") is not physics:
+            view["physics"] = physics
+            view["camera"] = engine.Camera(physics, self.height, self.width, self.name)
+        pixels: np.ndarray = view["camera"].render()
         return pixels
 
     def image(self, physics: Any, stamp: Stamp) -> dict[str, Any]:

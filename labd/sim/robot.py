@@ -16,7 +16,9 @@ Two ways to run:
   connected. A ``geometry_msgs/Twist`` command that is not repeated within half a
   second is replaced by zero, as a real base's watchdog stops it. When an episode
   ends the robot shows it for a few seconds and starts the next one (next seed);
-  ``/lab/reset`` starts a new one at once.
+  ``/lab/reset`` starts a new one at once. With ``prompt`` (the live lab), a command
+  that changes what the robot was told brings the next tick forward (see
+  ``LiveRunner``): a key press moves the robot at once rather than at the next tick.
 
 Commands are checked before anyone receives them (a gatekeeper subscription): a NaN
 is refused with an error to the client that sent it, and never recorded.
@@ -48,6 +50,8 @@ from labd.sim.simulation import Simulation
 TWIST = "geometry_msgs/msg/Twist"
 WATCHDOG = 0.5  # seconds a live Twist command holds
 SHOW_END = 3.0  # seconds a live robot shows an ended episode before the next
+EARLIEST = 0.25  # periods after a tick before a command may bring the next one forward
+PAYBACK = 0.25  # periods a tick is lengthened by while the simulation runs ahead
 
 log = logging.getLogger("labd.sim.robot")
 
@@ -76,6 +80,8 @@ class Robot:
         # Live robots: who may command (labd.live decides); raises to refuse a command.
         self.command_gate: Callable[[Node | None, str], None] | None = None
         self.on_reset: Callable[[], None] | None = None  # a new episode, before it is published
+        # Live robots: a client's command changed what the robot was told (LiveRunner).
+        self.on_command: Callable[[], None] | None = None
         spec = task if isinstance(task, TaskSpec) else registry.get(task)
         self.params = {**(spec.live_params if live else {}), **(params or {})}
         self.sim = self._simulation(seed)
@@ -83,6 +89,7 @@ class Robot:
         self.node = graph.create_node(node_name)
         self.publishers: dict[str, Publisher] = {}
         self.command_times: dict[str, float] = {}  # wall time of each live Twist command
+        self._told: dict[str, dict[str, Any]] = {}  # live: the last command on each topic
         self._watchdog: dict[str, Publisher] = {}  # live: the stop a watchdog sends
         for command in self.sim.task.commands:
             self.node.subscribe(
@@ -120,8 +127,14 @@ class Robot:
     def _commander(self, topic: str) -> Any:
         def take(message: Message) -> None:
             self.sim.task.command(topic, message.data)
-            if self.live and message.type_name == TWIST:
+            if not self.live:
+                return
+            if message.type_name == TWIST:
                 self.command_times[topic] = self.wall_clock()
+            if self._told.get(topic) != message.data:  # a held key's repeats are no change
+                self._told[topic] = message.data
+                if self.on_command is not None:
+                    self.on_command()
 
         return take
 
@@ -131,6 +144,7 @@ class Robot:
         def gate(message: Message, sender: Node | None) -> None:
             if sender is self.node:  # the watchdog's stop: no command to watch any more
                 self.sim.task.command(topic, message.data)
+                self._told[topic] = message.data
                 return
             if self.command_gate is not None:
                 self.command_gate(sender, topic)
@@ -240,6 +254,7 @@ class Robot:
         self.sim = self._simulation(self.sim.seed + 1 if seed is None else seed)
         old.close()
         self.command_times.clear()
+        self._told.clear()
         if self.on_reset is not None:
             self.on_reset()
         if publish:
@@ -269,34 +284,101 @@ class Robot:
 
 
 class LiveRunner:
-    """Steps a live robot on the wall clock, at its control rate, while engaged."""
+    """Steps a live robot on the wall clock, at its control rate, while engaged.
 
-    def __init__(self, robot: Robot) -> None:
+    A command received between two ticks is applied by the next tick; on a fixed grid
+    of ticks that is up to a period later (40 ms at 25 Hz), and it is the next ticks
+    that show the robot moving. With ``prompt`` (the live lab), a command that changes
+    what the robot was told (a key pressed or released; not a held key's repeats)
+    runs the next tick at once, or a quarter period after the last tick if that is
+    later, and the ticks after it follow one period apart from there. The simulation
+    is then ahead of the wall clock by what the tick was brought forward (its
+    ``lead``), never by more than one period: a command that would take it further
+    waits. The lead is given back by making the ticks after the next a quarter of a
+    period longer, so in the long run the robot keeps the wall clock's time and the camera
+    its rate. The command is applied by that tick after the graph has delivered (and
+    recorded) it, so a record replays as before.
+    """
+
+    def __init__(self, robot: Robot, *, prompt: bool = False) -> None:
         self.robot = robot
+        self.prompt = prompt
         self.ticks = 0
+        self.early = 0  # ticks a command brought forward
+        self.lead = 0.0  # seconds the ticks run ahead of the wall clock
         self._ended_at: float | None = None
+        self._commanded = False
+        self._wake: asyncio.Future[None] | None = None
 
     async def run(self) -> None:
         loop = asyncio.get_running_loop()
         robot = self.robot
+        if self.prompt:
+            robot.on_command = self._command
         deadline = loop.time()
+        try:
+            while True:
+                period = robot.sim.control_timestep
+                if not robot.engaged():
+                    await asyncio.sleep(0.1)
+                    deadline = loop.time()
+                    self.lead = 0.0
+                    continue
+                now = loop.time()
+                early = now < deadline
+                if early:  # a command brought this tick forward
+                    self.lead += deadline - now
+                    self.early += 1
+                    deadline = now
+                self._tick(now)
+                # The frames that show the command's effect come a whole period apart.
+                payback = 0.0 if early else min(self.lead, PAYBACK * period)
+                self.lead -= payback
+                deadline += period + payback
+                if deadline < now - 5 * period:  # far behind (a slow render): do not rush
+                    deadline = now
+                    self.lead = 0.0
+                earliest = max(now + EARLIEST * period, deadline - (period - self.lead))
+                await self._pause(loop, deadline, earliest)
+        finally:
+            if robot.on_command == self._command:
+                robot.on_command = None
+
+    def _tick(self, now: float) -> None:
+        robot = self.robot
+        robot.expire_commands(robot.wall_clock())
+        if robot.sim.status == RUNNING:
+            robot.step()
+            self.ticks += 1
+        elif self._ended_at is None:
+            self._ended_at = now
+        elif now - self._ended_at >= SHOW_END:
+            self._ended_at = None
+            robot.reset()
+
+    async def _pause(
+        self, loop: asyncio.AbstractEventLoop, deadline: float, earliest: float
+    ) -> None:
+        """Until ``deadline``, or from ``earliest`` on once a command changed."""
+        self._commanded = False
         while True:
-            period = robot.sim.control_timestep
-            if not robot.engaged():
-                await asyncio.sleep(0.1)
-                deadline = loop.time()
-                continue
-            now = loop.time()
-            robot.expire_commands(robot.wall_clock())
-            if robot.sim.status == RUNNING:
-                robot.step()
-                self.ticks += 1
-            elif self._ended_at is None:
-                self._ended_at = now
-            elif now - self._ended_at >= SHOW_END:
-                self._ended_at = None
-                robot.reset()
-            deadline += period
-            if deadline < now - 5 * period:  # far behind (a slow render): do not rush to catch up
-                deadline = now
-            await asyncio.sleep(max(0.0, deadline - loop.time()))
+            due = min(earliest, deadline) if self._commanded else deadline
+            if loop.time() >= due:
+                return
+            wake = self._wake = loop.create_future()
+            timer = loop.call_at(due, _resolve, wake)
+            try:
+                await wake
+            finally:
+                timer.cancel()
+                self._wake = None
+
+    def _command(self) -> None:
+        self._commanded = True
+        if self._wake is not None:
+            _resolve(self._wake)
+
+
+def _resolve(future: asyncio.Future[None]) -> None:
+    if not future.done():
+        future.set_result(None)

@@ -2,13 +2,15 @@
 
 from __future__ import annotations
 
+import asyncio
+import contextlib
 import math
 
 import pytest
 
 from labd.errors import MessageError
-from labd.graph.graph import Graph
-from labd.sim.robot import WATCHDOG, Robot
+from labd.graph.graph import Graph, Side
+from labd.sim.robot import WATCHDOG, LiveRunner, Robot
 from tests.labd.sim.pointmass import TASK
 
 
@@ -155,6 +157,55 @@ def test_live_watchdog_stops_a_silent_twist(registry):
     robot.expire_commands(now[0] + WATCHDOG * 2)
     assert robot.sim.task.velocity[0] == 0.0
     assert "/lab/reset" in graph.services and "/lab/step" not in graph.services
+
+
+def test_live_a_changed_command_is_reported_and_a_repeat_is_not(registry):
+    """Live: ``on_command`` hears a client's command that changes what the robot was
+    told, not a held key's repeats; after the watchdog's stop the same command is news."""
+    now = [100.0]
+    graph = Graph(registry, name="live")
+    robot = Robot(graph, TASK, {}, live=True, wall_clock=lambda: now[0])
+    heard = []
+    robot.on_command = lambda: heard.append(robot.sim.task.velocity[0])
+    cmd = graph.create_node("/teleop").advertise("/cmd_vel", "geometry_msgs/msg/Twist")
+    for x in (0.5, 0.5, 0.5, 0.0, 0.0, 0.5):
+        cmd.publish({"linear": {"x": x}})
+    robot.expire_commands(now[0] + WATCHDOG * 2)
+    cmd.publish({"linear": {"x": 0.5}})
+    assert heard == [0.5, 0.0, 0.5, 0.5]
+
+
+async def test_live_runner_brings_the_next_tick_forward_for_a_changed_command(registry):
+    """With ``prompt``, a changed command runs the next tick at once instead of on the
+    grid (here 0.5 s apart), and the simulation's lead stays within one period; a
+    repeat of the same command waits for its tick."""
+    graph = Graph(registry, name="live")
+    robot = Robot(graph, "icreate-maze", {"control_rate": 2}, live=True)
+    client = graph.create_node("/teleop", side=Side.CLIENT)
+    cmd = client.advertise("/cmd_vel", "geometry_msgs/msg/Twist")
+    loop = asyncio.get_running_loop()
+    ticks: asyncio.Queue[float] = asyncio.Queue()
+    client.subscribe("/clock", None, lambda m: ticks.put_nowait(loop.time()))
+    runner = LiveRunner(robot, prompt=True)
+    task = asyncio.create_task(runner.run())
+    try:
+        await ticks.get()
+        ticked = await ticks.get()
+        await asyncio.sleep(0.2)  # past the quarter period a command must wait
+        sent = loop.time()
+        cmd.publish({"angular": {"z": 1.0}})
+        pulled = await ticks.get()
+        assert pulled - sent < 0.15 < ticked + 0.5 - sent
+        assert runner.early == 1 and 0 < runner.lead <= 0.5
+        await asyncio.sleep(0.2)
+        cmd.publish({"angular": {"z": 1.0}})
+        assert await ticks.get() - pulled > 0.45
+        assert runner.early == 1
+    finally:
+        task.cancel()
+        with contextlib.suppress(asyncio.CancelledError):
+            await task
+        robot.close()
 
 
 def test_reset_starts_the_next_seed(registry):
