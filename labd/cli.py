@@ -14,6 +14,7 @@
     labd keys rotate               the operator's: sign with a new key
     labd worker --server URL       run a lab's trials on this machine
     labd demo                      what `make demo` runs
+    labd demonstrate               scripted maze demonstrations, filed in the archive
 
 Exit codes are listed in ``labd.commands.common`` and at the end of ``labd --help``.
 """
@@ -31,6 +32,7 @@ from typing import NoReturn
 from labd import __version__
 from labd.commands import (
     demo,
+    demonstrate,
     migrate,
     remote,
     replay,
@@ -80,6 +82,7 @@ def build_parser() -> argparse.ArgumentParser:
     verify.add_parser(commands)
     replay.add_parser(commands)
     demo.add_parser(commands)
+    demonstrate.add_parser(commands)
     worker.add_parser(commands)
     return parser
 
@@ -94,6 +97,7 @@ MAINS: dict[str, Callable[[argparse.Namespace], int]] = {
     "replay": replay.main,
     "keys": verify.main,
     "demo": demo.main,
+    "demonstrate": demonstrate.main,
     "worker": worker.main,
     **dict.fromkeys(remote.COMMANDS, remote.main),
 }

@@ -36,6 +36,7 @@ from repository.index import Derived, Index
 from repository.reservations import Reservations, Rules, load_secret
 from repository.signing import Keyring
 from repository.trial import Ending, Filing, Kind
+from scheduler.data import DataPolicy, LocalArchive
 from scheduler.fetch import FetchPolicy
 from scheduler.host import REPLAY, VIDEO
 from scheduler.queue import Queue, QueueConfig
@@ -60,6 +61,7 @@ class ServiceConfig:
     heartbeat: float = 10.0
     fetch: FetchPolicy = field(default_factory=FetchPolicy)
     run: RunOptions = field(default_factory=RunOptions)
+    data_policy: DataPolicy = field(default_factory=DataPolicy)  # how much [data] a trial pins
     canaries: tuple[int, ...] = ()  # reference trials each worker reruns (canary.py)
     canary_every: float = 3600.0  # seconds between a worker's canary reruns
     rules: Rules = field(default_factory=Rules)  # booking live robots
@@ -101,7 +103,14 @@ class Service:
             self.index, config.rules, load_secret(keys / "reservations.secret")
         )
         self.queue = Queue(self.index, config.queue, self.keyring)
-        self.submissions = Submissions(self.queue, self.host, self.cache, config.fetch)
+        self.submissions = Submissions(
+            self.queue,
+            self.host,
+            self.cache,
+            config.fetch,
+            archive=LocalArchive(self.index, self.store),
+            data_policy=config.data_policy,
+        )
         self.workers: list[Worker] = []
         self._tasks: list[asyncio.Task[None]] = []
         self._stop = asyncio.Event()

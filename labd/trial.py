@@ -25,16 +25,19 @@ from typing import Any
 from labd.bridge.server import BridgeServer
 from labd.config import BridgeConfig
 from labd.errors import InterfaceError, LabError, RecordError
+from labd.exports import write_dataset
 from labd.graph.definitions import trial_types
 from labd.graph.types import TypeRegistry
 from labd.recorder import Recorder, first_difference
+from labd.recorder.digest import data_digest
 from labd.recorder.summary import summary_blob
 from labd.replay import replay_with_video
 from labd.sim import registry
 from labd.sim.base import SUCCEEDED
 from labd.sim.robot import LiveRunner
 from labd.station import Station
-from repository.trial import Value
+from repository.errors import ExportError
+from repository.trial import PinnedRecord, Value
 from scheduler.errors import InvalidRequest, TrialError
 from scheduler.host import Attachments, Episode, Replayed
 
@@ -84,6 +87,20 @@ class LabHost:
     def first_difference(self, a: Path, b: Path, topics: Sequence[str]) -> str | None:
         difference = first_difference(a, b, topics)
         return None if difference is None else str(difference)
+
+    def data_digest(self, record: Path, topics: Sequence[str]) -> str:
+        try:
+            return data_digest(record, topics)
+        except LabError as err:
+            raise TrialError(f"{record.name} cannot be read as a record: {err}") from None
+
+    def dataset(self, records: Sequence[tuple[PinnedRecord, Path]], out: Path) -> None:
+        try:
+            write_dataset([(r.model_dump(mode="json"), path) for r, path in records], out)
+        except (ExportError, LabError) as err:
+            raise TrialError(
+                f"the data the trial learns from could not be converted: {err}"
+            ) from None
 
     def summarize(self, mcap: Path, *, seconds: float) -> bytes:
         """The record's page summary (``labd.recorder.summary``; ``SummaryError``)."""

@@ -28,7 +28,7 @@ import sqlalchemy as sa
 from sqlalchemy.engine import Connection, Engine
 
 from repository.errors import ArchiveError, RecordNotFound, SchemaMismatch
-from repository.trial import Kind, Outcome, Status, Trial
+from repository.trial import Kind, Outcome, PinnedRecord, Status, Trial
 
 SCHEMA_VERSION = 2  # 1: labd 0.1 (status succeeded/failed); 2: status and outcome apart
 HEX = frozenset("0123456789abcdef")
@@ -121,6 +121,7 @@ trials = sa.Table(
     sa.Column("submitter", sa.String(64), nullable=False),
     sa.Column("public", sa.Boolean, nullable=False),
     sa.Column("rerun_of", sa.Integer, sa.ForeignKey("trials.id")),
+    sa.Column("data", sa.JSON),  # the archived records it learns from, pinned (PinnedRecord)
     # the queue
     sa.Column("status", sa.String(16), nullable=False),
     sa.Column("outcome", sa.String(16)),  # finished trials only
@@ -264,6 +265,8 @@ class Filters:
     since: float | None = None  # created at or after (epoch seconds)
     until: float | None = None  # created before
     rerun_of: int | None = None
+    public: bool | None = None
+    has_record: bool | None = None  # with an MCAP record (True) or without (False)
 
 
 def connect(url: str, **engine_options: Any) -> Engine:
@@ -449,6 +452,7 @@ class Index:
         public: bool,
         rerun_of: int | None = None,
         kind: Kind = Kind.TRIAL,
+        data: Sequence[PinnedRecord] | None = None,
         db: Connection | None = None,
     ) -> int:
         values = {
@@ -462,6 +466,7 @@ class Index:
             "submitter": submitter,
             "public": public,
             "rerun_of": rerun_of,
+            "data": [p.model_dump(mode="json") for p in data] if data else None,
             "status": Status.QUEUED.value,
             "reason": "waiting for a worker",
             "created": self.clock(),
@@ -577,6 +582,10 @@ class Index:
             conditions.append(c.created < f.until)
         if f.rerun_of is not None:
             conditions.append(c.rerun_of == f.rerun_of)
+        if f.public is not None:
+            conditions.append(c.public == f.public)
+        if f.has_record is not None:
+            conditions.append(c.mcap.is_not(None) if f.has_record else c.mcap.is_(None))
         return conditions
 
     def commits(self, prefix: str) -> list[str]:

@@ -2,7 +2,8 @@
 
 Schema 2 also keeps the reward metric as a column (``reward``), to sort and rank by, and
 the lab's signature of each record filed from then on (``signature``; records filed
-before have none).
+before have none), and the archived records a trial learns from, pinned when it was
+submitted (``data``; none before).
 
 Schema 1 (labd 0.1) kept one ``status`` for both the lifecycle and the result:
 ``succeeded`` meant the trial ran to its end, whether or not the robot achieved its
@@ -84,6 +85,7 @@ def _from_1(db: Connection, result: Upgrade) -> None:
     db.execute(sa.text("ALTER TABLE trials ADD COLUMN outcome VARCHAR(16)"))
     db.execute(sa.text("ALTER TABLE trials ADD COLUMN reward FLOAT"))
     db.execute(sa.text("ALTER TABLE trials ADD COLUMN signature JSON"))
+    db.execute(sa.text("ALTER TABLE trials ADD COLUMN data JSON"))
     c = trials.c
     rows = db.execute(
         sa.select(c.id, c.status, c.metrics).where(c.status.in_(("succeeded", "failed")))

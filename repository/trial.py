@@ -77,6 +77,31 @@ class TrialRequest(BaseModel):
     seed: Seed = 0
 
 
+class PinnedRecord(BaseModel):
+    """An archived record a controller learns from, pinned when its trial was submitted.
+
+    ``mcap`` is the record's blob (its bytes' sha256, checked whenever it is read) and
+    ``data_digest`` the record's own data digest over ``digest_topics``, checked again
+    before the record is put in the sandbox: a rerun gets exactly these bytes or none.
+    """
+
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    trial: int
+    kind: Kind
+    task: str
+    seed: int
+    outcome: Outcome | None
+    data_digest: str
+    digest_topics: list[str]
+    mcap: str
+    size: int
+
+    def manifest_entry(self) -> dict[str, Any]:
+        """What the trial's manifest says of this record (part of its digest)."""
+        return {"trial": self.trial, "data_digest": self.data_digest, "mcap": self.mcap}
+
+
 class Ending(BaseModel):
     """How a trial ended: ``finished`` with an outcome, or ``cancelled`` without one."""
 
@@ -153,6 +178,7 @@ class Trial(BaseModel):
     submitter: str
     public: bool
     rerun_of: int | None
+    data: list[PinnedRecord] | None = None  # the archived records it learns from
     # where it is
     status: Status
     outcome: Outcome | None
@@ -213,3 +239,4 @@ class Claim(BaseModel):
     seed: int
     rerun_of: int | None
     attempt: int
+    data: list[PinnedRecord] | None = None

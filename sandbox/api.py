@@ -1,8 +1,9 @@
 """The sandbox interface: what the trial runner asks of an isolation backend.
 
-A ``Job`` is one command to run isolated: the controller's code read-only, a scratch
-folder, no network but the one way to the trial's bridge (a unix socket on the host,
-reached inside as ``ws://127.0.0.1:9090``), limits on CPU, memory, processes, open
+A ``Job`` is one command to run isolated: the controller's code read-only, the
+data it learns from read-only (``LAB_DATA_DIR``), a scratch folder, no network but
+the one way to the trial's bridge (a unix socket on the host, reached inside as
+``ws://127.0.0.1:9090``), limits on CPU, memory, processes, open
 files, output and wall time, and every process gone at the end. Backends (Docker,
 bubblewrap) run the same controller runtime, so a trial gives the same data with
 either.
@@ -74,6 +75,7 @@ class Job:
     env: Mapping[str, str] = field(default_factory=dict)  # added to the runtime's
     python_paths: Sequence[Path] = ()  # host folders mounted read-only, put on PYTHONPATH
     limits: Limits = field(default_factory=Limits)
+    data: Path | None = None  # host folder mounted read-only at LAB_DATA_DIR (/mnt/data)
 
 
 @dataclass(frozen=True)

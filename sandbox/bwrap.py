@@ -7,6 +7,7 @@ network, ipc, uts and cgroup namespaces (``--unshare-all``: only a loopback netw
 
     /              the runtime, read-only          /code         the job's code, read-only
     /scratch       a tmpfs of limits.scratch       /mnt/python/N the job's python_paths
+    /mnt/data      the job's data, read-only (LAB_DATA_DIR)
     /proc, /dev    the namespace's own (/dev read-only but a small /dev/shm)
     /run/labd/bridge.sock                          the bridge's unix socket
 

@@ -7,6 +7,7 @@ new privileges, a read-only root, no network (``install()``: the default bridge)
 
     /code          the job's code, bind-mounted read-only
     /mnt/python/N  the job's python_paths, read-only
+    /mnt/data      the job's data folder, read-only (LAB_DATA_DIR)
     /scratch       a tmpfs of limits.scratch (and /dev/shm of at most 64 MiB)
     /run/labd/bridge.sock  the bridge's unix socket
 

@@ -126,12 +126,16 @@ def job_plan(runtime: rt.Runtime, job: Job) -> Plan:
     mounts = [Mount(job.code.resolve(), rt.CODE)]
     for i, path in enumerate(job.python_paths):
         mounts.append(Mount(Path(path).resolve(), f"{rt.PYTHON_PATHS}/{i}"))
+    env = environment(runtime, bridge, len(job.python_paths), job.env)
+    if job.data is not None:
+        mounts.append(Mount(job.data.resolve(), rt.DATA))
+        env["LAB_DATA_DIR"] = rt.DATA
     for mount in mounts:
         if not mount.source.is_dir():
             raise SandboxError(f"{mount.source} is not a folder")
     return Plan(
         argv=launcher_argv(runtime, job.command, bridge, rt.CODE),
-        env=environment(runtime, bridge, len(job.python_paths), job.env),
+        env=env,
         mounts=tuple(mounts),
         bridge_socket=job.bridge_socket.resolve() if job.bridge_socket else None,
         limits=job.limits,

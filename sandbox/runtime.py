@@ -90,6 +90,7 @@ MNT = "/mnt"
 PYTHON_PATHS = f"{MNT}/python"  # the job's python_paths: /mnt/python/0, /mnt/python/1, ...
 REQUIREMENTS_DIR = f"{MNT}/requirements"  # install(): the requirements file, read-only
 TARGET = f"{MNT}/target"  # install(): where pip puts the packages
+DATA = f"{MNT}/data"  # the job's data folder, read-only: LAB_DATA_DIR
 SANDBOX_UID = 64000  # the uid (and gid) a job sees itself as
 MOUNT_POINTS = ("code", "scratch", "proc", "dev", "run", "mnt", "sys")
 

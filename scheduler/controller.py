@@ -7,11 +7,19 @@ requirements = "requirements.txt"        # optional: installed in the build step
 realtime = false                         # optional: true = wall clock, no lockstep
 interfaces = "my_msgs"                   # optional: a ROS package's folder (or a list)
 
+[data]                                   # optional: archived trials to learn from
+trials = [12, 15]                        # by id, and/or a query:
+query = { task = "icreate-maze", kind = "demonstration", outcome = "success", limit = 50 }
+
 ``interfaces`` names the folders of the repository's own interface packages, each laid
 out as a ROS 2 package's: ``msg/*.msg``, ``srv/*.srv``, ``action/*.action``, the
 folder's name being the package's (``my_msgs/msg/Debug.msg`` is ``my_msgs/msg/Debug``).
 Their texts go to the lab side of the trial (``TrialHost.open``), which registers them
 for that trial alone and refuses a malformed or conflicting one with its file and line.
+
+``[data]`` is resolved when the trial is submitted (``scheduler.data``): the query
+becomes a fixed list of records, pinned with their digests, so a rerun learns from the
+same data.
 
 Every file is read through ``scheduler.files.RepositoryFiles``: as regular files of
 the repository, never through a symbolic link (which would be read on the lab's host).
@@ -32,9 +40,32 @@ from scheduler.files import RepositoryFiles, parts_of
 
 FILE = "lab.toml"
 KEYS = ("command", "task", "requirements", "realtime", "interfaces")
+DATA_KEYS = ("trials", "query")
+QUERY_KEYS = ("task", "kind", "outcome", "user", "limit")
+KINDS = ("trial", "demonstration")
+OUTCOMES = ("success", "fail", "error")
 INTERFACE_KINDS = ("msg", "srv", "action")
 MAX_INTERFACE_FILES = 1000
 MAX_INTERFACE_BYTES = 4 * 1024 * 1024  # all of them together
+
+
+@dataclass(frozen=True)
+class DataQuery:
+    """``[data].query``: finished, public trials with these fields, newest first."""
+
+    task: str | None = None
+    kind: str | None = None  # trial or demonstration
+    outcome: str | None = None  # success, fail or error
+    user: str | None = None  # the submitter (a demonstration's driver)
+    limit: int | None = None  # at most this many (the newest); the lab caps it
+
+
+@dataclass(frozen=True)
+class DataSpec:
+    """``[data]``: the archived trials a controller learns from, by id and/or a query."""
+
+    trials: tuple[int, ...] = ()
+    query: DataQuery | None = None
 
 
 @dataclass(frozen=True)
@@ -47,6 +78,7 @@ class ControllerConfig:
     interfaces: tuple[str, ...] = ()  # the interface packages' folders lab.toml names
     # their .msg, .srv and .action files: path in the repository -> text
     interface_files: Mapping[str, str] = field(default_factory=dict)
+    data: DataSpec | None = None  # [data], when lab.toml has it
 
     @property
     def interfaces_sha256(self) -> str | None:
@@ -86,6 +118,7 @@ def load(code: Path | RepositoryFiles) -> ControllerConfig:
         )
     folders, interface_files = _interfaces(files, table.get("interfaces"))
     return ControllerConfig(
+        data=_data(data.get("data")),
         command=_command(table.get("command")),
         task=_optional_str(table, "task"),
         requirements=_requirements(files, table),
@@ -93,6 +126,56 @@ def load(code: Path | RepositoryFiles) -> ControllerConfig:
         text=text,
         interfaces=folders,
         interface_files=interface_files,
+    )
+
+
+def _data(table: Any) -> DataSpec | None:
+    """``[data]``, checked for its shape (what it matches is for ``scheduler.data``)."""
+    if table is None:
+        return None
+    example = 'e.g. trials = [12, 15] or query = { task = "icreate-maze", kind = "demonstration" }'
+    if not isinstance(table, dict):
+        raise ControllerConfigError(f"[data] must be a table, {example}")
+    unknown = sorted(set(table) - set(DATA_KEYS))
+    if unknown:
+        raise ControllerConfigError(
+            f"[data] has no key {unknown[0]!r}; the keys are {', '.join(DATA_KEYS)}"
+        )
+    ids = table.get("trials", [])
+    if not isinstance(ids, list) or not all(
+        isinstance(i, int) and not isinstance(i, bool) and i > 0 for i in ids
+    ):
+        raise ControllerConfigError(f"[data] trials must be a list of trial ids, not {ids!r}")
+    query = table.get("query")
+    if query is not None and not isinstance(query, dict):
+        raise ControllerConfigError(f"[data] query must be an inline table, {example}")
+    if not ids and query is None:
+        raise ControllerConfigError(f"[data] names no trials and no query: {example}")
+    return DataSpec(tuple(dict.fromkeys(ids)), None if query is None else _query(query))
+
+
+def _query(table: dict[str, Any]) -> DataQuery:
+    unknown = sorted(set(table) - set(QUERY_KEYS))
+    if unknown:
+        raise ControllerConfigError(
+            f"[data] query has no key {unknown[0]!r}; the keys are {', '.join(QUERY_KEYS)}"
+        )
+    for key in ("task", "kind", "outcome", "user"):
+        if key in table and not isinstance(table[key], str):
+            raise ControllerConfigError(f"[data] query.{key} must be a string")
+    if table.get("kind", "trial") not in KINDS:
+        raise ControllerConfigError(f"[data] query.kind is {' or '.join(KINDS)}")
+    if table.get("outcome", "success") not in OUTCOMES:
+        raise ControllerConfigError(f"[data] query.outcome is one of {', '.join(OUTCOMES)}")
+    limit = table.get("limit")
+    if limit is not None and (isinstance(limit, bool) or not isinstance(limit, int) or limit < 1):
+        raise ControllerConfigError(f"[data] query.limit must be a positive integer, not {limit!r}")
+    return DataQuery(
+        task=table.get("task"),
+        kind=table.get("kind"),
+        outcome=table.get("outcome"),
+        user=table.get("user"),
+        limit=limit,
     )
 
 

@@ -11,9 +11,11 @@ TrialError                      a trial could not be prepared or run
 ├── RepositoryFileError         a file the lab reads from a checkout is a link, or no file
 │   └── FileNotInRepository     there is nothing at that name
 ├── ControllerConfigError       lab.toml is missing or does not say what the lab needs
-└── RequirementsError           the repository's requirements could not be installed
+├── RequirementsError           the repository's requirements could not be installed
+└── DataUnavailable             a pinned record is gone, damaged, or no longer its digest
 QueueError                      a queue operation was refused
 ├── InvalidRequest              a submission names an unknown task, a bad parameter or seed
+│   └── InvalidData             lab.toml's [data] matches nothing, too much, or what is not public
 ├── QuotaExceeded               a submitter is over a limit the operator set
 ├── NotYours                    a trial may be changed only by its submitter
 └── RemoteError                 talking to a lab's HTTP API went wrong
@@ -163,6 +165,15 @@ class RequirementsError(TrialError):
         super().__init__(f"requirements: {reason}")
 
 
+class DataUnavailable(TrialError):
+    """A record the trial pinned cannot be given to the controller as it was pinned."""
+
+    def __init__(self, trial: int, reason: str) -> None:
+        self.trial = trial
+        self.reason = reason
+        super().__init__(f"the data the trial learns from: trial {trial}'s record {reason}")
+
+
 class QueueError(Exception):
     """A queue operation was refused (no such trial, not yours to cancel...)."""
 
@@ -197,6 +208,15 @@ class NotYours(QueueError):
 
 class InvalidRequest(QueueError):
     """The request itself is wrong (an unknown task, a bad parameter or seed)."""
+
+
+class InvalidData(InvalidRequest):
+    """lab.toml's ``[data]`` cannot be pinned: it matches nothing or too much, names a
+    trial that is not public, has no readable record, or is over the size limit."""
+
+    def __init__(self, reason: str) -> None:
+        self.reason = reason
+        super().__init__(f"lab.toml's [data]: {reason}")
 
 
 class RemoteError(QueueError):

@@ -16,7 +16,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Protocol
 
-from repository.trial import Value
+from repository.trial import PinnedRecord, Value
 
 Attachments = Mapping[str, tuple[str, bytes]]  # name -> (media type, bytes)
 # A record's summary for its page, filed beside it as a derived artifact: gzip'd JSON.
@@ -115,6 +115,15 @@ class TrialHost(Protocol):
 
     def first_difference(self, a: Path, b: Path, topics: Sequence[str]) -> str | None:
         """Where two records part, in words; None if they hold the same data."""
+        ...
+
+    def data_digest(self, record: Path, topics: Sequence[str]) -> str:
+        """The data digest of the MCAP file ``record`` over ``topics``, recomputed."""
+        ...
+
+    def dataset(self, records: Sequence[tuple[PinnedRecord, Path]], out: Path) -> None:
+        """Write the learning formats of ``records`` (checked MCAP files) under ``out``:
+        a LeRobot dataset per task, one episode per record (``scheduler.data``)."""
         ...
 
     def summarize(self, mcap: Path, *, seconds: float) -> bytes | None:

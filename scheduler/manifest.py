@@ -10,10 +10,11 @@ from __future__ import annotations
 import hashlib
 import json
 import platform
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from importlib import metadata
 from typing import Any
 
+from repository.trial import PinnedRecord
 from scheduler.controller import ControllerConfig
 from scheduler.source import Source
 
@@ -31,6 +32,7 @@ def build(
     runtime: str,
     requirements_sha256: str | None,
     model_sha256: str,
+    data: Sequence[PinnedRecord] = (),
 ) -> dict[str, Any]:
     manifest: dict[str, Any] = {
         "schema": SCHEMA,
@@ -56,6 +58,8 @@ def build(
     if controller.interfaces:  # only then, so manifests without keep their digests
         manifest["controller"]["interfaces"] = list(controller.interfaces)
         manifest["controller"]["interfaces_sha256"] = controller.interfaces_sha256
+    if data:  # the records it learns from; without, earlier manifests keep their digests
+        manifest["data"] = [record.manifest_entry() for record in data]
     return manifest
 
 

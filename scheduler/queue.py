@@ -23,7 +23,7 @@ PostgreSQL, and a late worker cannot overwrite what the queue already decided.
 from __future__ import annotations
 
 import logging
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from enum import StrEnum
 from typing import Any
@@ -34,7 +34,7 @@ from sqlalchemy.engine import Connection
 from repository.index import Derived, Index, User, reward_of, to_trial
 from repository.index import trials as T
 from repository.signing import Keyring, record_statement
-from repository.trial import Claim, Filing, Kind, Outcome, Status, Trial
+from repository.trial import Claim, Filing, Kind, Outcome, PinnedRecord, Status, Trial
 from scheduler.canary import Health
 from scheduler.errors import NotYours, QuotaExceeded
 
@@ -85,8 +85,10 @@ class Queue:
         seed: int,
         public: bool,
         rerun_of: int | None = None,
+        data: Sequence[PinnedRecord] | None = None,
     ) -> int:
-        """Queue a trial for ``user``, within their daily limit (QuotaExceeded)."""
+        """Queue a trial for ``user``, within their daily limit (QuotaExceeded); ``data``
+        are the archived records it learns from, pinned (``scheduler.data``)."""
         with self.index.begin() as db:
             _lock_user(db, user.name)
             since = self.clock() - DAY
@@ -110,6 +112,7 @@ class Queue:
                 submitter=user.name,
                 public=public,
                 rerun_of=rerun_of,
+                data=data,
                 db=db,
             )
 
@@ -191,6 +194,7 @@ class Queue:
                 seed=row.seed,
                 rerun_of=row.rerun_of,
                 attempt=row.attempts,
+                data=row.data,
             )
         return None
 

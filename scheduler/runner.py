@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import dataclasses
 import hashlib
 import json
 import logging
@@ -35,11 +36,19 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from repository.trial import Ending, Outcome, Status, Value
+from repository.errors import ArchiveError
+from repository.trial import Ending, Outcome, PinnedRecord, Status, Value
 from sandbox.api import Backend, Exit, InstallError, Job, Limits, Running, SandboxError
 from scheduler import controller as controller_config
 from scheduler import manifest as manifests
-from scheduler.errors import ControllerConfigError, RequirementsError, TrialError
+from scheduler.data import Archive, Blobs, materialize, resolve
+from scheduler.errors import (
+    ControllerConfigError,
+    DataUnavailable,
+    QueueError,
+    RequirementsError,
+    TrialError,
+)
 from scheduler.fetch import FetchPolicy
 from scheduler.files import RepositoryFiles
 from scheduler.host import TrialHost, TrialLab
@@ -58,6 +67,7 @@ class TrialSpec:
     task: str | None = None
     params: Mapping[str, Any] = field(default_factory=dict)
     seed: int = 0
+    data: tuple[PinnedRecord, ...] = ()  # the archived records it learns from, pinned
 
 
 @dataclass(frozen=True)
@@ -163,11 +173,17 @@ async def run_trial(
     cache: Path,
     options: RunOptions | None = None,
     progress: Progress | None = None,
+    archive: Blobs | None = None,
+    resolver: Archive | None = None,
 ) -> TrialResult:
     """Run one trial into the folder ``out``.
 
-    A trial that cannot start (no lab.toml, an unknown task, requirements that do not
-    install...) ends as an ``error`` with the reason, not with an exception.
+    ``archive`` is where the records ``spec.data`` pins are fetched from (a lab's blob
+    store, or its HTTP API); ``resolver`` is where lab.toml's ``[data]`` is resolved
+    when the spec pins nothing yet (``labd run``: a local archive, or a lab's API). A
+    trial that cannot start (no lab.toml, an unknown task, requirements that do not
+    install, pinned data that is gone or changed...) ends as an ``error`` with the
+    reason, not with an exception.
     """
     options = options or RunOptions()
     progress = progress or Progress()
@@ -181,13 +197,22 @@ async def run_trial(
         progress.enter("preparing", options.prepare)
         try:
             prepared = await asyncio.wait_for(
-                _prepare(spec, backend=backend, host=host, work=work, cache=cache, options=options),
+                _prepare(
+                    spec,
+                    backend=backend,
+                    host=host,
+                    work=work,
+                    cache=cache,
+                    options=options,
+                    archive=resolver or archive,
+                    resolver=resolver,
+                ),
                 options.prepare,
             )
         except TimeoutError:
             raise TrialError(
                 f"preparing the trial (checking out, reading lab.toml, installing the"
-                f" requirements) took longer than {options.prepare:g} s"
+                f" requirements, fetching its data) took longer than {options.prepare:g} s"
             ) from None
         trial = _Trial(prepared, backend=backend, options=options, work=work, out=out)
         progress.enter("running", options.run_deadline)
@@ -219,6 +244,7 @@ class _Prepared:
     host: TrialHost
     python_paths: list[Path]
     requirements_sha: str | None
+    data: Path | None = None  # the folder mounted at LAB_DATA_DIR
 
 
 async def _prepare(
@@ -229,6 +255,8 @@ async def _prepare(
     work: Path,
     cache: Path,
     options: RunOptions,
+    archive: Blobs | None,
+    resolver: Archive | None = None,
 ) -> _Prepared:
     code = work / "code"
     source = await asyncio.to_thread(checkout, spec.source, spec.ref, code, cache, options.fetch)
@@ -243,7 +271,25 @@ async def _prepare(
             backend, code, config.requirements, cache
         )
         python_paths.append(target)
-    return _Prepared(spec, source, config, task, values, host, python_paths, requirements_sha)
+    data = None
+    if config.data is not None and not spec.data:
+        if resolver is None:
+            raise ControllerConfigError(
+                "it has [data], but no data was pinned for this trial and there is no archive"
+                " to resolve it against (labd run: --server URL, or --data with a lab's archive)"
+            )
+        try:
+            pinned = await asyncio.to_thread(resolve, config.data, resolver)
+        except (QueueError, ArchiveError) as err:  # nothing to pin, too much, unreachable
+            raise TrialError(str(err)) from None
+        spec = dataclasses.replace(spec, data=tuple(pinned))
+    if spec.data:
+        if archive is None:
+            raise DataUnavailable(
+                spec.data[0].trial, "cannot be fetched: this runner has no archive to read it from"
+            )
+        data = await asyncio.to_thread(materialize, spec.data, archive, host, cache)
+    return _Prepared(spec, source, config, task, values, host, python_paths, requirements_sha, data)
 
 
 async def install_requirements(
@@ -304,6 +350,7 @@ class _Trial:
             runtime=self.backend.runtime_digest(),
             requirements_sha256=p.requirements_sha,
             model_sha256=lab.model_sha256,
+            data=p.spec.data,
         )
         digest = manifests.digest(manifest)
         socket_dir = self.work / "bridge"
@@ -366,6 +413,7 @@ class _Trial:
             env=env,
             python_paths=p.python_paths,
             limits=self.options.limits,
+            data=p.data,
         )
 
     async def _watch(self, running: Running) -> tuple[Exit, Ending]:

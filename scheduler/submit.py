@@ -9,8 +9,12 @@ as ``labd run`` reads it (a missing or broken one is refused with the same messa
 task, when the request names none, is the one it names). Only then is the trial
 queued, pinned to that commit; so a request that fails leaves nothing behind.
 
-A rerun queues the same repository, commit, task, parameters and seed as an earlier
-trial, linked to it, so its record can say whether it reproduced.
+When ``lab.toml`` has ``[data]``, it is resolved here against the archive
+(``scheduler.data``): the trial is queued with the fixed list of records it learns
+from, which the answer shows.
+
+A rerun queues the same repository, commit, task, parameters, seed and pinned data as
+an earlier trial, linked to it, so its record can say whether it reproduced.
 """
 
 from __future__ import annotations
@@ -20,8 +24,10 @@ import tempfile
 from pathlib import Path
 
 from repository.index import Index, User
-from repository.trial import Kind, TrialRequest
+from repository.trial import Kind, PinnedRecord, TrialRequest
 from scheduler import controller
+from scheduler import data as pinning
+from scheduler.data import Archive, DataPolicy
 from scheduler.errors import InvalidRequest
 from scheduler.fetch import FetchPolicy, Resolved, resolve
 from scheduler.host import TrialHost
@@ -32,12 +38,23 @@ log = logging.getLogger("scheduler.submit")
 
 
 class Submissions:
-    def __init__(self, queue: Queue, host: TrialHost, cache: Path, policy: FetchPolicy) -> None:
+    def __init__(
+        self,
+        queue: Queue,
+        host: TrialHost,
+        cache: Path,
+        policy: FetchPolicy,
+        *,
+        archive: Archive | None = None,
+        data_policy: DataPolicy | None = None,
+    ) -> None:
         self.queue = queue
         self.host = host
         self.index: Index = queue.index
         self.cache = cache
         self.policy = policy
+        self.archive = archive  # where [data] is resolved; None: refused
+        self.data_policy = data_policy or DataPolicy()
 
     def submit(self, user: User, request: TrialRequest) -> int:
         """Check, resolve and queue; the new trial's id.
@@ -57,6 +74,11 @@ class Submissions:
             )
         values = self.host.check(task, request.params)
         params = {name: values[name] for name in sorted(request.params)}  # as normalized
+        data: list[PinnedRecord] | None = None
+        if config.data is not None:
+            if self.archive is None:
+                raise InvalidRequest(f"{controller.FILE} has [data], but this lab has no archive")
+            data = pinning.resolve(config.data, self.archive, self.data_policy)
         trial_id = self.queue.submit(
             user,
             repository=resolved.repository,
@@ -66,15 +88,17 @@ class Submissions:
             params=params,
             seed=request.seed,
             public=resolved.public,
+            data=data,
         )
         log.info(
-            "trial %d queued for %s: %s@%s (%s) %s",
+            "trial %d queued for %s: %s@%s (%s) %s, learning from %s",
             trial_id,
             user.name,
             resolved.repository,
             resolved.commit[:12],
             request.ref or "HEAD",
             task,
+            f"trials {', '.join(str(p.trial) for p in data)}" if data else "no data",
         )
         return trial_id
 
@@ -109,6 +133,7 @@ class Submissions:
             seed=old.seed,
             public=old.public,
             rerun_of=old.id,
+            data=old.data,  # the very records it learnt from, whatever was filed since
         )
         log.info("trial %d queued for %s: a rerun of %d", new_id, user.name, old.id)
         return new_id

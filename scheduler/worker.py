@@ -182,6 +182,7 @@ class Worker:
             task=claim.task,
             params=claim.params,
             seed=claim.seed,
+            data=tuple(claim.data or ()),
         )
         self.log.info("trial %d: %s@%s %s", claim.id, claim.repository, claim.commit[:12], spec)
         progress = Progress()
@@ -195,6 +196,7 @@ class Worker:
                 cache=self.config.cache,
                 options=self.config.options,
                 progress=progress,
+                archive=self.store,  # the records the trial learns from
             )
         )
         stuck: list[str] = []

@@ -32,7 +32,7 @@ LAYERS = [
     {"labd.graph"},
     {"labd.sim", "labd.bridge", "labd.recorder"},
     {"labd.station"},
-    {"labd.trial", "labd.replay", "labd.live"},
+    {"labd.trial", "labd.replay", "labd.live", "labd.exports", "labd.scripted"},
     {"labd.service", "labd.authorizer"},
     {"labd.api"},
     {"labd.web"},

@@ -14,7 +14,7 @@ from pydantic import BaseModel, Field
 
 from labd.sim import registry
 from repository.index import CommitPage
-from repository.trial import Kind, Outcome, Status, Trial, Value
+from repository.trial import Kind, Outcome, PinnedRecord, Status, Trial, Value
 from scheduler.queue import Cancel
 
 
@@ -72,6 +72,9 @@ class TrialDetail(TrialSummary):
     """One trial in full: with its manifest and who runs it."""
 
     manifest: dict[str, Any] | None
+    data: list[PinnedRecord] | None = Field(
+        None, description="the archived records it learns from, pinned when it was submitted"
+    )
     digest_topics: list[str] | None
     worker: str | None
     cancel_requested: bool = Field(description="its worker has been asked to stop it")

@@ -1,12 +1,17 @@
-"""What the API makes from a record: exports for learning, kept as derived artifacts.
+"""What the API makes from records: exports for learning, kept as derived artifacts.
 
-    GET /api/trials/{id}/export/parquet             one Parquet file of observation-action pairs
+    GET /api/trials/{id}/export/parquet             one Parquet file, a row per control tick
     GET /api/trials/{id}/export/lerobot             a LeRobot v3.0 dataset, as a zip of its folder
     GET /api/trials/{id}/export/{format}/signature  the lab's signature of that export
+    GET /api/exports/{format}?trials=..&task=..     many trials as one dataset (a zip), one
+                                                    episode per trial: ids and/or a query
 
-An export is made the first time it is asked for, from the record checked against its
-digest, and kept in the blob store beside the record (``repository.index.Derived``): it
-never changes the record or its digests, and later requests are served from the store.
+An export of one trial is made the first time it is asked for, from the record checked
+against its digest, and kept in the blob store beside the record
+(``repository.index.Derived``): it never changes the record or its digests, and later
+requests are served from the store. An export of many trials is made for each request
+(its trials are chosen as lab.toml's ``[data]`` chooses them, ``scheduler.data``, under
+the same limits).
 
 Each export carries the record's signature in its provenance, and is signed itself: the
 lab signs the digests of its files (``repository.signing``), kept in the export as
@@ -22,17 +27,19 @@ import tempfile
 from pathlib import Path
 from typing import Any, Literal
 
-from fastapi import APIRouter
-from fastapi.responses import StreamingResponse
+from fastapi import APIRouter, Query
+from fastapi.responses import FileResponse, StreamingResponse
 from pydantic import BaseModel, Field
+from starlette.background import BackgroundTask
 
 from labd.api.common import Lab, blob_response
 from labd.api.errors import ApiError, responses
-from labd.sim import registry
-from repository.export import export
+from labd.exports import export_records
 from repository.index import Derived
 from repository.signing import EXPORT, file_digests
-from repository.trial import Trial
+from repository.trial import Kind, Outcome, Trial
+from scheduler.controller import DataQuery, DataSpec
+from scheduler.data import LocalArchive, resolve
 from scheduler.host import REPLAY, VIDEO
 
 router = APIRouter(tags=["data"])
@@ -52,6 +59,8 @@ def provenance(trial: Trial, url: str) -> dict[str, Any]:
         "repository": trial.repository,
         "commit": trial.commit,
         "task": trial.task,
+        "kind": trial.kind.value,
+        "seed": trial.seed,
         "outcome": trial.outcome.value if trial.outcome else None,
         "manifest_digest": trial.manifest_digest,
         "data_digest": trial.data_digest,
@@ -101,31 +110,13 @@ def _artifact(service: Lab, trial_id: int, fmt: Format) -> Derived:
 def _make(service: Lab, trial: Trial, fmt: Format) -> Derived:
     assert trial.mcap is not None
     name, media = ARTIFACT[fmt]
-    observations, actions = registry.get(trial.task).topics()
     with tempfile.TemporaryDirectory(prefix="labd-export-") as folder:
         work = Path(folder)
         mcap = work / "trial.mcap"
         service.store.copy_to(trial.mcap, mcap)  # checked against its digest
         out = work / "export"
-        export(
-            mcap,
-            out,
-            fmt,
-            observations=observations,
-            actions=actions,
-            provenance=provenance(trial, f"/api/trials/{trial.id}"),
-        )
-        signed = service.keyring.sign(
-            {
-                "schema": EXPORT,
-                "trial": trial.id,
-                "format": fmt,
-                "data_digest": trial.data_digest,
-                "files": file_digests(out),
-            }
-        )
-        sig_bytes = (json.dumps(signed.to_json(), indent=2, sort_keys=True) + "\n").encode()
-        (out / SIGNATURE).write_bytes(sig_bytes)
+        export_records([(mcap, provenance(trial, f"/api/trials/{trial.id}"))], out, fmt)
+        sig_bytes = _sign(service, out, fmt, [trial])
         if fmt == "parquet":
             artifact = out / "data.parquet"
         else:
@@ -138,6 +129,80 @@ def _make(service: Lab, trial: Trial, fmt: Format) -> Derived:
         trial.id, Derived(name + ".sig", sig_digest, len(sig_bytes), "application/json")
     )
     return item
+
+
+def _sign(service: Lab, out: Path, fmt: str, trials: list[Trial]) -> bytes:
+    """Sign the export in ``out`` (the digests of its files); its signature, also written
+    into the folder as ``labd-signature.json``."""
+    statement: dict[str, Any] = {"schema": EXPORT, "format": fmt, "files": file_digests(out)}
+    if len(trials) == 1:
+        statement.update(trial=trials[0].id, data_digest=trials[0].data_digest)
+    else:
+        statement["trials"] = [{"trial": t.id, "data_digest": t.data_digest} for t in trials]
+    signed = service.keyring.sign(statement)
+    sig_bytes = (json.dumps(signed.to_json(), indent=2, sort_keys=True) + "\n").encode()
+    (out / SIGNATURE).write_bytes(sig_bytes)
+    return sig_bytes
+
+
+@router.get(
+    "/api/exports/{fmt}",
+    response_class=FileResponse,
+    responses={
+        200: {
+            "content": {"application/zip": {}},
+            "description": "a zip of the export's folder: one episode per trial, signed",
+        },
+        **responses(404, 422, 500),
+    },
+)
+def export_many(
+    fmt: Format,
+    service: Lab,
+    *,
+    trials: list[int] = Query(default=[], description="trial ids"),  # noqa: B008
+    task: str | None = None,
+    kind: Kind | None = None,
+    outcome: Outcome | None = None,
+    user: str | None = None,
+    limit: int | None = Query(default=None, ge=1),
+) -> FileResponse:
+    """Many trials as one dataset: ids and/or a query (as lab.toml's ``[data]``), newest
+    first up to ``limit``, one episode per trial, with each one's provenance."""
+    query = None
+    if any(v is not None for v in (task, kind, outcome, user, limit)):
+        query = DataQuery(
+            task=task,
+            kind=kind.value if kind else None,
+            outcome=outcome.value if outcome else None,
+            user=user,
+            limit=limit,
+        )
+    if not trials and query is None:
+        raise ApiError(422, "name trials (trials=12&trials=15) and/or a query (task=..., ...)")
+    archive = LocalArchive(service.index, service.store)
+    pinned = resolve(DataSpec(tuple(trials), query), archive, service.config.data_policy)
+    chosen = [service.index.trial(p.trial) for p in pinned]
+    folder = Path(tempfile.mkdtemp(prefix="labd-export-"))
+    try:
+        records = []
+        for trial in chosen:
+            assert trial.mcap is not None
+            mcap = archive.copy_to(trial.mcap, folder / "records" / f"trial-{trial.id}.mcap")
+            records.append((mcap, provenance(trial, f"/api/trials/{trial.id}")))
+        out = folder / "export"
+        export_records(records, out, fmt)
+        _sign(service, out, fmt, chosen)
+        archive_path = shutil.make_archive(str(folder / f"export-{fmt}"), "zip", out)
+    except BaseException:
+        shutil.rmtree(folder, ignore_errors=True)
+        raise
+    return FileResponse(
+        archive_path,
+        media_type="application/zip",
+        filename=f"export-{len(chosen)}-trials-{fmt}.zip",
+        background=BackgroundTask(shutil.rmtree, folder, ignore_errors=True),
+    )
 
 
 class ReplayVerdict(BaseModel):

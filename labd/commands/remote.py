@@ -9,6 +9,7 @@
     labd rerun COMMIT|TRIAL [--all] [--wait]
     labd cancel TRIAL
     labd export TRIAL --format lerobot|parquet [-o DIR]
+    labd export --task T [--kind K --outcome O --user U --limit N] [--trials ID ...] --format F
     labd tasks
     labd status
 
@@ -28,6 +29,7 @@ import zipfile
 from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
+from urllib.parse import urlencode
 
 import pyarrow.parquet as pq  # type: ignore[import-untyped]
 
@@ -119,16 +121,29 @@ def add_parsers(commands: Any) -> None:
     p.add_argument("trial", type=int, metavar="TRIAL", help="the trial's number")
     server_options(p, write=True)
 
-    p = commands.add_parser("export", help="export a trial as observation-action pairs")
-    p.add_argument("trial", type=int, metavar="TRIAL", help="the trial's number")
-    p.add_argument("--format", required=True, choices=["lerobot", "parquet"], help="the format")
-    p.add_argument("-o", "--output", type=Path, help="the folder (default: trial-N-FORMAT)")
-    server_options(p)
+    _export_parser(commands)
 
     p = commands.add_parser("tasks", help="the lab's tasks and their parameters")
     server_options(p)
 
     p = commands.add_parser("status", help="the lab now: the queue and what workers run")
+    server_options(p)
+
+
+def _export_parser(commands: Any) -> None:
+    p = commands.add_parser(
+        "export", help="export trials for learning: a row per control tick, every camera"
+    )
+    p.add_argument("trial", type=int, nargs="?", metavar="TRIAL", help="one trial's number")
+    p.add_argument("--format", required=True, choices=["lerobot", "parquet"], help="the format")
+    p.add_argument("-o", "--output", type=Path, help="the folder (default: trial-N-FORMAT)")
+    many = p.add_argument_group("many trials as one dataset, one episode each (as [data])")
+    many.add_argument("--trials", type=int, nargs="+", default=[], metavar="ID", help="by id")
+    many.add_argument("--task", help="the query: trials of this task")
+    many.add_argument("--kind", choices=["trial", "demonstration"], help="... of this kind")
+    many.add_argument("--outcome", choices=["success", "fail", "error"], help="... that ended so")
+    many.add_argument("--user", help="... submitted (or driven) by this user")
+    many.add_argument("--limit", type=int, help="... the newest this many")
     server_options(p)
 
 
@@ -266,6 +281,11 @@ def _cancel(client: ApiClient, args: argparse.Namespace) -> int:
 
 def _export(client: ApiClient, args: argparse.Namespace) -> int:
     """The lab makes the export (once; it keeps it beside the record); this downloads it."""
+    query = {k: getattr(args, k) for k in ("task", "kind", "outcome", "user", "limit")}
+    if args.trials or any(v is not None for v in query.values()):
+        return _export_many(client, args, query)
+    if args.trial is None:
+        return fail(args, "name a TRIAL, or trials to export together (--trials, --task ...)")
     out = args.output or Path(f"trial-{args.trial}-{args.format}")
     if out.exists() and (not out.is_dir() or any(out.iterdir())):
         return fail(args, f"{out} already exists: give a new or empty folder (-o)")
@@ -288,6 +308,46 @@ def _export(client: ApiClient, args: argparse.Namespace) -> int:
     info = {"path": str(out), "format": args.format, "frames": frames, "bytes": size}
     emit(args, info, lambda: [f"{out}: {frames} frames ({args.format}, {size:,} bytes)"])
     return ExitCode.SUCCESS
+
+
+def _export_many(client: ApiClient, args: argparse.Namespace, query: dict[str, Any]) -> int:
+    """Many trials as one dataset: the lab chooses them as lab.toml's [data] does."""
+    ids = ([args.trial] if args.trial is not None else []) + list(args.trials)
+    params: list[tuple[str, str | int]] = [("trials", i) for i in ids]
+    params += [(k, v) for k, v in query.items() if v is not None]
+    out = args.output or Path(f"export-{args.format}")
+    if out.exists() and (not out.is_dir() or any(out.iterdir())):
+        return fail(args, f"{out} already exists: give a new or empty folder (-o)")
+    with tempfile.TemporaryDirectory(prefix="labd-export-") as folder:
+        got = Path(folder) / "export.zip"
+        path = f"/api/exports/{args.format}?" + urlencode(params)
+        size = client.download(path, got)
+        out.mkdir(parents=True, exist_ok=True)
+        with zipfile.ZipFile(got) as archive:
+            archive.extractall(out)
+    frames = _frames(out, args.format)
+    episodes = _episodes(out, args.format)
+    info = {
+        "path": str(out),
+        "format": args.format,
+        "frames": frames,
+        "episodes": episodes,
+        "bytes": size,
+    }
+    emit(
+        args,
+        info,
+        lambda: [f"{out}: {episodes} episodes, {frames} frames ({args.format}, {size:,} bytes)"],
+    )
+    return ExitCode.SUCCESS
+
+
+def _episodes(out: Path, fmt: str) -> int:
+    if fmt == "parquet":
+        metadata = pq.ParquetFile(out / "data.parquet").schema_arrow.metadata or {}
+        return len(json.loads(metadata.get(b"labd.episodes", b"[]")))
+    info = json.loads((out / "meta" / "info.json").read_text())
+    return int(info["total_episodes"])
 
 
 def _frames(out: Path, fmt: str) -> int:
@@ -381,7 +441,16 @@ def _queued_lines(row: TrialDetail) -> Iterator[str]:
     yield f"trial {row.id} queued: {what}"
     yield f"  {row.repository} @ {row.commit}{ref}"
     yield f"  seed {row.seed}" + (f", params {_params(row.params)}" if row.params else "")
+    if row.data:
+        yield f"  learns from {_data(row)}"
     yield f"  follow it: labd show {row.id}, or {row.page}"
+
+
+def _data(row: TrialDetail) -> str:
+    """The pinned records, in words: how many, which, and the first digests."""
+    records = row.data or []
+    ids = ", ".join(str(p.trial) for p in records[:12]) + (", ..." if len(records) > 12 else "")
+    return f"{len(records)} pinned records (trials {ids})"
 
 
 def _trial_lines(row: TrialDetail, full: bool = False) -> Iterator[str]:
@@ -395,6 +464,8 @@ def _trial_lines(row: TrialDetail, full: bool = False) -> Iterator[str]:
     yield f"  submitter  {row.submitter}, submitted {_time(row.created)}"
     if row.rerun_of:
         yield f"  rerun of   trial {row.rerun_of}: {row.verdict or 'not compared yet'}"
+    if row.data:
+        yield f"  learns     {_data(row)}"
     if row.metrics:
         yield "  metrics    " + ", ".join(f"{k}={_fmt(v)}" for k, v in row.metrics.items())
     if row.manifest_digest:

@@ -1,7 +1,12 @@
 """``labd run``: the local pre-flight. One trial, no server.
 
     labd run PATH|URL [--ref REF] [--task TASK] [--seed N] [--param NAME=VALUE ...]
-             [--sandbox docker|bwrap] [--out DIR] [--data DIR] [--json]
+             [--sandbox docker|bwrap] [--out DIR] [--data DIR] [--server URL] [--json]
+
+A repository whose lab.toml has ``[data]`` learns from archived records: they are
+resolved and pinned as a lab pins them at submit time, against a lab's archive
+(``--server URL``: its public API) or the local one under ``--data`` (the folder
+``labd serve --data`` keeps), and mounted read-only at ``LAB_DATA_DIR``.
 
 It runs the same trial a lab would (the same sandbox, the same recording), prints the
 outcome, the manifest digest and the data digest, and exits 0 only when the task was
@@ -13,6 +18,7 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import contextlib
 import json
 import secrets
 import time
@@ -24,7 +30,12 @@ from labd.commands.common import assignment, exit_code, fail, json_option
 from labd.config import DATA
 from labd.errors import LabError
 from labd.trial import LabHost, client_library
+from repository.blobs import BlobStore
+from repository.index import Filters, Index
+from repository.trial import Trial
 from sandbox.api import Limits, SandboxError
+from scheduler.client import ApiClient
+from scheduler.data import Archive, LocalArchive, RemoteArchive
 from scheduler.runner import RunOptions, TrialResult, TrialSpec, run_trial
 
 
@@ -60,6 +71,11 @@ def add_parser(commands: Any) -> None:
         default=Limits().wall,
         help="seconds the controller may run (default: %(default)g)",
     )
+    run.add_argument(
+        "--server",
+        metavar="URL",
+        help="resolve lab.toml's [data] against this lab's archive (default: the one in --data)",
+    )
     json_option(run)
 
 
@@ -78,21 +94,66 @@ def main(args: argparse.Namespace) -> int:
         source=args.source, ref=args.ref, task=args.task, params=params, seed=args.seed
     )
     options = RunOptions(limits=Limits(wall=args.wall))
-    result = asyncio.run(
-        run_trial(
-            spec,
-            backend=backend,
-            host=LabHost(),
-            out=out,
-            cache=args.data / "cache",
-            options=options,
+    with contextlib.ExitStack() as stack:
+        resolver = _archive(args, stack)
+        result = asyncio.run(
+            run_trial(
+                spec,
+                backend=backend,
+                host=LabHost(),
+                out=out,
+                cache=args.data / "cache",
+                options=options,
+                resolver=resolver,
+            )
         )
-    )
     if args.json:
         print(json.dumps(result.to_json(), indent=2))
     else:
         report(result, spec)
     return int(exit_code(result.status, result.outcome))
+
+
+def _archive(args: argparse.Namespace, stack: contextlib.ExitStack) -> Archive | None:
+    """Where [data] is resolved: a lab's API, or the archive under --data if it has one
+    (opened only if the repository asks for data)."""
+    if args.server:
+        client: ApiClient = stack.enter_context(ApiClient(args.server))
+        return RemoteArchive(client)
+    index_file = args.data / "index.sqlite"
+    if not index_file.is_file():
+        return None
+    local = _LocalArchive(index_file, args.data / "blobs")
+    stack.callback(local.close)
+    return local
+
+
+class _LocalArchive:
+    """The archive of a lab's data folder, opened when first asked."""
+
+    def __init__(self, index_file: Path, blobs: Path) -> None:
+        self.index_file = index_file
+        self.blobs = blobs
+        self.opened: LocalArchive | None = None
+
+    def _open(self) -> LocalArchive:
+        if self.opened is None:
+            index = Index.open(f"sqlite:///{self.index_file.resolve()}")
+            self.opened = LocalArchive(index, BlobStore(str(self.blobs.resolve())))
+        return self.opened
+
+    def trial(self, trial_id: int) -> Trial:
+        return self._open().trial(trial_id)
+
+    def find(self, filters: Filters, limit: int) -> list[Trial]:
+        return self._open().find(filters, limit)
+
+    def copy_to(self, digest: str, dest: str | Path) -> Path:
+        return self._open().copy_to(digest, dest)
+
+    def close(self) -> None:
+        if self.opened is not None:
+            self.opened.index.close()
 
 
 def report(result: TrialResult, spec: TrialSpec) -> None:
@@ -111,6 +172,10 @@ def report(result: TrialResult, spec: TrialSpec) -> None:
         print(f"  manifest sha256:{result.manifest_digest}")
     if result.data_digest:
         print(f"  data     sha256:{result.data_digest}")
+    pinned = (result.manifest or {}).get("data") or []
+    if pinned:
+        trials = ", ".join(str(p["trial"]) for p in pinned)
+        print(f"  learnt from {len(pinned)} pinned records: trials {trials}")
     if result.mcap:
         print(f"  record   {result.mcap}")
     print(f"  folder   {result.folder}")

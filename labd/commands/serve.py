@@ -28,6 +28,7 @@ from labd.service import ServiceConfig
 from labd.sim import registry
 from repository.errors import ArchiveError, SchemaMismatch
 from repository.reservations import Rules
+from scheduler.data import DataPolicy
 from scheduler.queue import QueueConfig
 from scheduler.runner import RunOptions
 
@@ -146,6 +147,18 @@ def add_parser(commands: Any) -> None:
         "--sandbox",
         choices=["docker", "bwrap"],
         help="isolation backend (default: docker if an engine answers, else bwrap)",
+    )
+    group.add_argument(
+        "--max-data-trials",
+        type=int,
+        default=SERVICE.data_policy.max_trials,
+        help="archived records one trial's [data] may pin (default: %(default)s)",
+    )
+    group.add_argument(
+        "--max-data-mb",
+        type=int,
+        default=SERVICE.data_policy.max_bytes // (1024 * 1024),
+        help="MiB of records one trial's [data] may pin (default: %(default)s)",
     )
     group.add_argument(
         "--lease",
@@ -337,6 +350,7 @@ def service_config(args: argparse.Namespace) -> ServiceConfig | None:
         heartbeat=max(0.5, args.lease / 3),
         fetch=fetch,
         run=RunOptions(fetch=fetch),
+        data_policy=DataPolicy(args.max_data_trials, args.max_data_mb * 1024 * 1024),
         canaries=tuple(args.canary),
         canary_every=args.canary_every,
         rules=rules(args),

@@ -65,6 +65,26 @@ CHUNK_SIZE = 1 << 20  # bytes: minutes of state, or seconds of camera frames, pe
 _SEQUENCE = 0xFFFF_FFFF  # MCAP sequence numbers are uint32
 
 
+MEDIA_TYPES = {
+    ".png": "image/png",
+    ".jpg": "image/jpeg",
+    ".jpeg": "image/jpeg",
+    ".xml": "application/xml",
+    ".json": "application/json",
+    ".toml": "application/toml",
+    ".log": "text/plain",
+    ".txt": "text/plain",
+    ".stl": "model/stl",
+    ".obj": "model/obj",
+}
+
+
+def media_type(name: str) -> str:
+    """The media type of an attachment, by its name's suffix (unknown: octet-stream)."""
+    suffix = name[name.rfind(".") :].lower() if "." in name else ""
+    return MEDIA_TYPES.get(suffix, "application/octet-stream")
+
+
 def canonical_json(value: Mapping[str, Any]) -> str:
     """The JSON text whose sha256 names a manifest: sorted keys, no spaces, UTF-8 kept."""
     return json.dumps(value, sort_keys=True, separators=(",", ":"), ensure_ascii=False)
@@ -152,7 +172,15 @@ class Recorder:
         self.folder.mkdir(parents=True, exist_ok=True)
         self._file = self.path.open("xb")
         self._error: OSError | None = None  # the write that failed: the record is gone
-        self._writer = Writer(self._file, chunk_size=chunk_size, compression=CompressionType.ZSTD)
+        # Checksums of every chunk and of the whole data section, so a reader can tell a
+        # damaged file (``mcap doctor``, the reader's validate_crcs) without the archive.
+        self._writer = Writer(
+            self._file,
+            chunk_size=chunk_size,
+            compression=CompressionType.ZSTD,
+            enable_crcs=True,
+            enable_data_crcs=True,
+        )
         self._schemas: dict[str, int] = {}
         self._lab_channels: dict[Topic, _Channel] = {}  # by side: no enum hash per message
         self._client_channels: dict[Topic, _Channel] = {}

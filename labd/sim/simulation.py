@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import hashlib
 import logging
+import mimetypes
 from collections.abc import Mapping
 from typing import Any
 
@@ -125,7 +126,8 @@ class Simulation:
         (``model/NAME``: textures), so that MuJoCo compiles it back from the record."""
         files = {"model.xml": ("application/xml", self.model_xml().encode())}
         for name, data in self.task.model_assets.items():
-            files[f"model/{name}"] = ("application/octet-stream", data)
+            kind = mimetypes.guess_type(name)[0] or "application/octet-stream"
+            files[f"model/{name}"] = (kind, data)  # image/png, ...
         return files
 
     def close(self) -> None:

@@ -153,8 +153,8 @@ def test_preparing_past_its_deadline_is_an_error(
     result = asyncio.run(run())
     assert result.outcome is Outcome.ERROR
     assert result.reason == (
-        "preparing the trial (checking out, reading lab.toml, installing the requirements)"
-        " took longer than 8 s"
+        "preparing the trial (checking out, reading lab.toml, installing the requirements,"
+        " fetching its data) took longer than 8 s"
     )
 
 

@@ -19,6 +19,7 @@ import time
 from pathlib import Path
 
 import httpx
+import pyarrow.parquet as pq
 import pytest
 import s3fs
 from mcap.reader import make_reader
@@ -191,7 +192,10 @@ def test_submit_list_download_and_rerun_by_commit(lab, tmp_path):
     exported = lab.json("export", str(trial["id"]), "--format", "lerobot", "-o", str(out))
     assert exported["frames"] > 100
     info = json.loads((out / "meta" / "info.json").read_text())
-    provenance = info["labd"]["provenance"]
+    assert exported["frames"] == info["total_frames"] == trial["metrics"]["ticks"]  # every tick
+    assert "observation.images.camera" in info["features"]  # rendered: the example never looked
+    episodes = pq.read_table(out / "meta" / "episodes" / "chunk-000" / "file-000.parquet")
+    provenance = json.loads(episodes.to_pylist()[0]["labd/provenance"])
     assert provenance["commit"] == commit
     assert provenance["manifest"] == page["manifest"]
     assert provenance["data_digest"] == trial["data_digest"]

@@ -1,31 +1,33 @@
-"""Exports of a real record (icreate-maze, lockstep, the Recorder) to Parquet and LeRobot v3.0."""
+"""Exports of real records (icreate-maze, lockstep, the Recorder) to Parquet and LeRobot v3.0:
+one row per tick from tick 0, the task's stable layout, every camera image, provenance."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import av
 import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
 import pytest
-from mcap.writer import Writer as McapWriter
-from mcap_ros2.writer import Writer as Ros2Writer
 
+from labd.exports import export_records, layout
 from labd.graph.graph import Graph, Side
 from labd.graph.types import TypeRegistry
 from labd.recorder import Recorder
+from labd.sim import registry
 from labd.sim.robot import Robot
 from repository.errors import ExportError
-from repository.export import PROVENANCE_KEY, export
+from repository.export import EPISODES_KEY, Source, export
+from scheduler.manifest import versions
 
 TASK = "icreate-maze"
 TICKS = 24
 CAMERA = "/camera/image/compressed"
-OBSERVATIONS = ["/odom", "/joint_states", "/bumper", "/goal", CAMERA]
-ACTIONS = ["/cmd_vel"]
 PROVENANCE = {
     "trial": 7,
     "repository": "https://example.org/lab/maze.git",
@@ -58,15 +60,25 @@ def drive(
     *,
     ticks: int = TICKS,
     first_command: int = 0,
-    camera: bool = True,
+    camera: bool | int = True,
     reset_after: int | None = None,
 ) -> Drive:
-    """Drive icreate-maze in lockstep, publishing ``command(k)`` before each step."""
+    """Drive icreate-maze in lockstep, publishing ``command(k)`` before each step; watch the
+    camera from the start (True), never (False), or from the step of that tick (an int)."""
     graph = Graph(TypeRegistry.default(), name="export-test")
     robot = Robot(graph, TASK, {}, 3)
     task = robot.sim.task
     topics = {o.name for o in task.observations} | {c.name for c in task.commands}
-    recorder = Recorder(graph, folder, digest_topics=topics, manifest=PROVENANCE["manifest"])
+    manifest = {
+        "task": {"name": TASK, "version": registry.get(TASK).version},
+        "parameters": registry.validate(TASK, {}),
+        "seed": 3,
+        "versions": versions(),
+        "model_sha256": robot.sim.model_digest(),
+        "repository": PROVENANCE["repository"],
+        "commit": PROVENANCE["commit"],
+    }
+    recorder = Recorder(graph, folder, digest_topics=topics, manifest=manifest)
     run = Drive(folder / "trial.mcap")
     latest: dict[str, Any] = {}
 
@@ -78,13 +90,15 @@ def drive(
 
     graph.taps.append(tap)
     client = graph.create_node("/controller", side=Side.CLIENT)
-    if camera:
+    if camera is True:
         client.subscribe(CAMERA, None, lambda message: None)
     cmd_vel = client.advertise("/cmd_vel", "geometry_msgs/msg/Twist")
     held: dict[str, Any] = {}
     try:
         robot.publish()
         for tick in range(ticks):
+            if camera is not True and camera is not False and tick == camera:
+                client.subscribe(CAMERA, None, lambda message: None)
             if tick == reset_after:
                 robot.reset(3)
                 held = {}
@@ -107,409 +121,197 @@ def trial(tmp_path_factory: pytest.TempPathFactory) -> Drive:
     return drive(tmp_path_factory.mktemp("trial"))
 
 
-def run_export(trial: Drive, out: Path, fmt: str, **kwargs: Any) -> Any:
-    options: dict[str, Any] = {
-        "observations": OBSERVATIONS,
-        "actions": ACTIONS,
-        "provenance": PROVENANCE,
-    }
-    options.update(kwargs)
-    return export(trial.mcap, out, fmt, **options)
+def known(trial: int = 7) -> dict[str, Any]:
+    """What the archive knows of a record: its trial and digests."""
+    return {"trial": trial, "kind": "trial", "data_digest": "cd" * 32, "outcome": "fail"}
 
 
-# -- parquet ----------------------------------------------------------------------------------
+def rows_of(path: Path) -> list[dict[str, Any]]:
+    return pq.read_table(path).to_pylist()
 
 
-def test_parquet_pairs_each_observation_with_the_command_that_followed(trial, tmp_path):
-    """One row per step: tick k's observations, the command in effect for step k, its reward."""
-    summary = run_export(trial, tmp_path / "out", "parquet")
-    assert summary.files == (tmp_path / "out" / "data.parquet",)
-    assert (summary.frames, summary.episodes, summary.dropped) == (TICKS, 1, 1)  # last: no step
-    rows = pq.read_table(summary.files[0]).to_pylist()
-    assert len(rows) == TICKS
-    assert [r["tick"] for r in rows] == [r["frame_index"] for r in rows] == list(range(TICKS))
+# -- one row per tick --------------------------------------------------------------------------
+
+
+def test_parquet_has_a_row_per_tick_from_tick_0_with_neutral_commands_first(tmp_path):
+    """Ticks before the controller's first command have rows too, with the neutral command
+    (standing still); each row pairs tick k's observations with the command of step k."""
+    run = drive(tmp_path / "trial", first_command=3)
+    summary = export_records([(run.mcap, known())], tmp_path / "out", "parquet")
+    assert (summary.frames, summary.episodes) == (TICKS, 1)  # the last tick has no step
+    rows = rows_of(summary.files[0])
+    assert [r["frame_index"] for r in rows] == [r["index"] for r in rows] == list(range(TICKS))
     assert [r["timestamp"] for r in rows] == pytest.approx([k / 10 for k in range(TICKS)])
     for k, row in enumerate(rows):
-        sent = trial.sent[k]
-        assert row["action./cmd_vel.linear.x"] == sent["linear"]["x"]
-        assert row["action./cmd_vel.angular.z"] == sent["angular"]["z"]
-        assert row["action./cmd_vel.linear.y"] == 0.0
-        seen = trial.observed[k]
+        sent = run.sent[k] or {"linear": {"x": 0.0}, "angular": {"z": 0.0}}
+        assert row["action.cmd_vel.linear.x"] == pytest.approx(sent["linear"]["x"])
+        assert row["action.cmd_vel.angular.z"] == pytest.approx(sent["angular"]["z"])
+        seen = run.observed[k]
         position = seen["/odom"]["pose"]["pose"]["position"]
-        assert row["observation./odom.pose.pose.position.x"] == position["x"]
-        assert row["observation./odom.pose.pose.position.y"] == position["y"]
-        assert row["observation./joint_states.position[1]"] == seen["/joint_states"]["position"][1]
-        assert row["observation./bumper.left"] is seen["/bumper"]["left"]
-        assert row["observation./goal.point.x"] == seen["/goal"]["point"]["x"]  # sent once, held
-        assert row[f"observation.{CAMERA}.data"] == bytes(seen[CAMERA]["data"])
-        assert row[f"observation.{CAMERA}.format"] == "jpeg"
-        assert row["next.reward"] == trial.episodes[k + 1]["reward"]
-        assert row["next.done"] is False
-    assert rows[0][f"observation.{CAMERA}.data"][:2] == b"\xff\xd8"
-    assert len({r["observation./odom.pose.pose.position.x"] for r in rows}) > TICKS // 2  # moved
+        assert row["observation.odom.x"] == pytest.approx(position["x"])
+        assert row["observation.bumper.left"] == float(seen["/bumper"]["left"])
+        assert row["observation.goal.x"] == pytest.approx(seen["/goal"]["point"]["x"])
+        velocity = seen["/joint_states"]["velocity"][
+            seen["/joint_states"]["name"].index("right_wheel_joint")
+        ]
+        assert row["observation.wheel.right.velocity"] == pytest.approx(velocity)
+        assert row["observation.images.camera"] == bytes(seen[CAMERA]["data"])
+        assert row["next.reward"] == pytest.approx(run.episodes[k + 1]["reward"])
+        assert row["task"] == "drive to the goal cell" and row["trial"] == 7
+    assert rows[0]["action.cmd_vel.linear.x"] == 0.0
+    assert len({r["observation.odom.x"] for r in rows}) > TICKS // 2  # it moved
 
 
-def test_a_command_holds_when_the_controller_sent_none(trial, tmp_path):
+def test_a_command_holds_when_the_controller_sent_none(tmp_path):
     """Before steps without a new /cmd_vel, the action is the previous command."""
-    rows = pq.read_table(run_export(trial, tmp_path / "out", "parquet").files[0]).to_pylist()
+    run = drive(tmp_path / "trial")
+    rows = rows_of(export_records([(run.mcap, known())], tmp_path / "out", "parquet").files[0])
     for k in range(2, TICKS, 4):
-        assert rows[k]["action./cmd_vel.linear.x"] == command(k - 1)["linear"]["x"]
-        assert rows[k]["action./cmd_vel.angular.z"] == command(k - 1)["angular"]["z"]
+        assert rows[k]["action.cmd_vel.linear.x"] == pytest.approx(command(k - 1)["linear"]["x"])
 
 
-def test_parquet_carries_provenance_and_typed_columns(trial, tmp_path):
-    """Provenance is JSON in the schema metadata; columns follow the field types."""
-    summary = run_export(trial, tmp_path / "out", "parquet")
-    schema = pq.read_schema(summary.files[0])
-    assert json.loads(schema.metadata[PROVENANCE_KEY.encode()]) == PROVENANCE
-    types = {name: str(schema.field(name).type) for name in schema.names}
-    assert types[f"observation.{CAMERA}.data"] == "binary"
-    assert types["observation./odom.header.frame_id"] == "string"
-    assert types["observation./bumper.right"] == "bool"
-    assert types["observation./odom.header.stamp.sec"] == "int64"
-    assert types["action./cmd_vel.linear.x"] == "double"
-    assert set(summary.observation_names) | set(summary.action_names) == {
-        n for n in schema.names if n.startswith(("observation.", "action."))
-    }
-    assert summary.action_names == tuple(
-        f"action./cmd_vel.{part}.{axis}" for part in ("linear", "angular") for axis in "xyz"
+def test_every_row_has_its_camera_image_rendered_where_the_record_has_none(tmp_path):
+    """A controller that subscribed after tick 5 (or never) still gets an image on every row,
+    rendered by replaying the record: the very JPEG the lab records at that tick."""
+    watched = drive(tmp_path / "watched")
+    late = drive(tmp_path / "late", camera=5)
+    never = drive(tmp_path / "never", camera=False)
+    images = {}
+    for name, run in (("watched", watched), ("late", late), ("never", never)):
+        summary = export_records([(run.mcap, known())], tmp_path / f"out-{name}", "parquet")
+        assert summary.rendered == {"watched": 0, "late": 6, "never": TICKS}[name]
+        images[name] = [r["observation.images.camera"] for r in rows_of(summary.files[0])]
+    assert images["watched"] == images["late"] == images["never"]
+    assert all(image[:2] == b"\xff\xd8" for image in images["never"])
+
+
+def test_exports_of_different_controllers_have_one_layout_and_merge(tmp_path):
+    """Two records whose controllers used different topics (one sent no command at all)
+    export the task's same columns, and export together as two episodes, each with its
+    provenance."""
+    moving = drive(tmp_path / "a", ticks=8, camera=False)
+    idle = drive(tmp_path / "b", ticks=6, first_command=99, camera=False)
+    a = export_records([(moving.mcap, known(1))], tmp_path / "one", "parquet")
+    b = export_records([(idle.mcap, known(2))], tmp_path / "two", "parquet")
+    assert pq.read_schema(a.files[0]).names == pq.read_schema(b.files[0]).names
+    assert a.observation_names == tuple(e.name for e in layout(TASK).observation)
+    both = export_records(
+        [(moving.mcap, known(1)), (idle.mcap, known(2))], tmp_path / "both", "parquet"
     )
-
-
-# -- lerobot ----------------------------------------------------------------------------------
-
-
-def test_lerobot_v3_layout_and_values(trial, tmp_path):
-    """The v3.0 layout: info, stats, tasks, episodes, data with float32 vectors and names."""
-    out = tmp_path / "dataset"
-    summary = run_export(trial, out, "lerobot")
-    assert sorted(str(p.relative_to(out)) for p in out.rglob("*") if p.is_file()) == [
-        "data/chunk-000/file-000.parquet",
-        "meta/episodes/chunk-000/file-000.parquet",
-        "meta/info.json",
-        "meta/stats.json",
-        "meta/tasks.parquet",
-    ]
-    info = json.loads((out / "meta" / "info.json").read_text())
-    assert info["codebase_version"] == "v3.0"
-    assert (info["fps"], info["total_episodes"], info["total_frames"]) == (10, 1, TICKS)
-    assert info["data_path"] == "data/chunk-{chunk_index:03d}/file-{file_index:03d}.parquet"
-    assert info["labd"]["provenance"] == PROVENANCE
-    features = info["features"]
-    state_names = features["observation.state"]["names"]
-    action_names = features["action"]["names"]
-    assert features["observation.state"]["shape"] == [len(state_names)]
-    assert features["action"]["shape"] == [6] and features["action"]["dtype"] == "float32"
-    assert (
-        action_names
-        == list(summary.action_names)
-        == [f"/cmd_vel.{part}.{axis}" for part in ("linear", "angular") for axis in "xyz"]
-    )
-    assert tuple(state_names) == summary.observation_names
-    assert not any("stamp" in name or CAMERA in name for name in state_names)
-    assert "/bumper.left" in state_names and "/goal.point.y" in state_names
-
-    table = pq.read_table(out / info["data_path"].format(chunk_index=0, file_index=0))
-    assert set(table.column_names) == set(features)
-    vector = table.schema.field("observation.state").type
-    assert pa.types.is_fixed_size_list(vector) and vector.value_type == pa.float32()
-    assert vector.list_size == len(state_names)
-    state = np.array(table.column("observation.state").to_pylist(), np.float32)
-    action = np.array(table.column("action").to_pylist(), np.float32)
-    assert state.shape == (TICKS, len(state_names)) and action.shape == (TICKS, 6)
-    x = state_names.index("/odom.pose.pose.position.x")
-    wheel = state_names.index("/joint_states.velocity[0]")
-    for k in range(TICKS):
-        seen, sent = trial.observed[k], trial.sent[k]
-        assert state[k, x] == np.float32(seen["/odom"]["pose"]["pose"]["position"]["x"])
-        assert state[k, wheel] == np.float32(seen["/joint_states"]["velocity"][0])
-        assert action[k, 0] == np.float32(sent["linear"]["x"])
-        assert action[k, 5] == np.float32(sent["angular"]["z"])
-    assert table.column("frame_index").to_pylist() == list(range(TICKS))
-    assert table.column("index").to_pylist() == list(range(TICKS))
-    assert set(table.column("episode_index").to_pylist()) == {0}
-    assert set(table.column("task_index").to_pylist()) == {0}
-    assert table.column("timestamp").to_pylist() == pytest.approx([k / 10 for k in range(TICKS)])
-
-    stats = json.loads((out / "meta" / "stats.json").read_text())
-    assert set(stats) == set(features)
-    assert stats["action"]["count"] == [TICKS]
-    assert stats["action"]["max"][0] == pytest.approx(float(action[:, 0].max()))
-    assert len(stats["observation.state"]["q50"]) == len(state_names)
-    tasks = pq.read_table(out / "meta" / "tasks.parquet")
-    assert tasks.to_pylist() == [{"task_index": 0, "task": TASK}]
-    assert json.loads(tasks.schema.metadata[b"pandas"])["index_columns"] == ["task"]
-    episodes = pq.read_table(out / "meta" / "episodes" / "chunk-000" / "file-000.parquet")
-    episode = episodes.to_pylist()[0]
-    assert (episode["episode_index"], episode["length"], episode["tasks"]) == (0, TICKS, [TASK])
-    assert (episode["dataset_from_index"], episode["dataset_to_index"]) == (0, TICKS)
-    assert episode["stats/action/count"] == [TICKS]
+    rows = rows_of(both.files[0])
+    assert [r["episode_index"] for r in rows] == [0] * 8 + [1] * 6
+    assert [r["frame_index"] for r in rows] == [*range(8), *range(6)]
+    assert {r["action.cmd_vel.linear.x"] for r in rows[8:]} == {0.0}
+    provenance = json.loads(pq.read_schema(both.files[0]).metadata[EPISODES_KEY.encode()])
+    assert [p["trial"] for p in provenance] == [1, 2]
+    assert provenance[0]["commit"] == PROVENANCE["commit"]
+    assert provenance[0]["manifest_digest"] and provenance[0]["seed"] == 3
 
 
 def test_a_reset_starts_a_new_episode(tmp_path):
     """A record with two episodes exports two, each numbered from frame 0."""
     run = drive(tmp_path / "trial", ticks=9, camera=False, reset_after=5)
-    summary = export(
-        run.mcap,
-        tmp_path / "out",
-        "lerobot",
-        observations=["/odom"],
-        actions=ACTIONS,
-        provenance={},
-    )
-    assert (summary.frames, summary.episodes, summary.dropped) == (9, 2, 2)  # ends: no step
-    table = pq.read_table(tmp_path / "out" / "data" / "chunk-000" / "file-000.parquet")
-    assert table.column("episode_index").to_pylist() == [0] * 5 + [1] * 4
-    assert table.column("frame_index").to_pylist() == [0, 1, 2, 3, 4, 0, 1, 2, 3]
-    actions = np.array(table.column("action").to_pylist())
-    assert actions[5, 0] == np.float32(command(5)["linear"]["x"])
-    episodes = pq.read_table(
-        tmp_path / "out" / "meta" / "episodes" / "chunk-000" / "file-000.parquet"
-    )
-    assert episodes.column("length").to_pylist() == [5, 4]
-    assert episodes.column("dataset_from_index").to_pylist() == [0, 5]
+    blind = dataclasses.replace(layout(TASK), cameras=())
+    summary = export([Source(run.mcap, {"trial": 1})], tmp_path / "out", "parquet", blind)
+    assert (summary.frames, summary.episodes) == (9, 2)
+    rows = rows_of(summary.files[0])
+    assert [r["episode_index"] for r in rows] == [0] * 5 + [1] * 4
+    assert [r["frame_index"] for r in rows] == [0, 1, 2, 3, 4, 0, 1, 2, 3]
+    assert rows[5]["action.cmd_vel.linear.x"] == pytest.approx(command(5)["linear"]["x"])
 
 
-# -- which frames, which topics ---------------------------------------------------------------
+# -- lerobot ----------------------------------------------------------------------------------
 
 
-def test_frames_begin_once_every_action_topic_has_a_message(tmp_path):
-    """Ticks before the controller's first command make no frame; the summary counts them."""
-    run = drive(tmp_path / "trial", ticks=8, first_command=3, camera=False)
-    summary = export(
-        run.mcap,
-        tmp_path / "out",
-        "parquet",
-        observations=OBSERVATIONS,
-        actions=ACTIONS,
-        provenance={},
-    )
-    rows = pq.read_table(summary.files[0]).to_pylist()
-    assert [r["tick"] for r in rows] == [3, 4, 5, 6, 7]
-    assert summary.dropped == 4  # ticks 0, 1, 2 and the last, 8
-    assert summary.missing_topics == (CAMERA,)  # no one watched it: left out, listed
-    assert not any(CAMERA in name for name in summary.observation_names)
-
-
-def test_variable_length_fields_become_json_and_strings_stay_strings(tmp_path):
-    """Sequences whose length changes are JSON text; byte arrays binary; strings strings."""
-    path = tmp_path / "synthetic.mcap"
-    with path.open("wb") as stream:
-        writer = Ros2Writer(stream)
-        episode = writer.register_msgdef(
-            "lab_msgs/msg/Episode",
-            "string task\nuint32 tick\nstring status\nfloat64 reward\nbool success",
-        )
-        scan = writer.register_msgdef(
-            "test_msgs/msg/Scan", "float64[] ranges\nstring label\nuint8[] blob\nint32[3] ids"
-        )
-        twist = writer.register_msgdef("test_msgs/msg/Speed", "float32 speed")
-        for tick in range(4):
-            time = tick * 50_000_000
-            writer.write_message(
-                "/scan",
-                scan,
-                {
-                    "ranges": [0.5] * tick,
-                    "label": f"t{tick}",
-                    "blob": bytes([tick]),
-                    "ids": [tick, 2, 3],
-                },
-                time,
-            )
-            writer.write_message(
-                "/lab/episode",
-                episode,
-                {"task": "t", "tick": tick, "status": "running", "reward": 1.0, "success": False},
-                time,
-            )
-            writer.write_message("/speed", twist, {"speed": tick / 4}, time)
-        writer.finish()
-    summary = export(
-        path, tmp_path / "out", "parquet", observations=["/scan"], actions=["/speed"], provenance={}
-    )
-    rows = pq.read_table(summary.files[0]).to_pylist()
-    assert [json.loads(r["observation./scan.ranges"]) for r in rows] == [
-        [0.5] * k for k in range(3)
+def test_lerobot_v3_layout_video_and_provenance(tmp_path):
+    """The v3.0 layout: float32 vectors named as the task's layout, the camera as an AV1
+    video with a frame per row, the instruction as the task, each episode's provenance in
+    its row of meta/episodes, and nothing of labd's in info.json."""
+    first, second = drive(tmp_path / "a", ticks=10), drive(tmp_path / "b", ticks=6, camera=False)
+    out = tmp_path / "dataset"
+    summary = export_records([(first.mcap, known(1)), (second.mcap, known(2))], out, "lerobot")
+    video = out / "videos" / "observation.images.camera" / "chunk-000" / "file-000.mp4"
+    assert sorted(str(p.relative_to(out)) for p in out.rglob("*") if p.is_file()) == [
+        "data/chunk-000/file-000.parquet",
+        "meta/episodes/chunk-000/file-000.parquet",
+        "meta/info.json",
+        "meta/labd.json",
+        "meta/stats.json",
+        "meta/tasks.parquet",
+        str(video.relative_to(out)),
     ]
-    assert [r["observation./scan.label"] for r in rows] == ["t0", "t1", "t2"]
-    assert [r["observation./scan.blob"] for r in rows] == [b"\x00", b"\x01", b"\x02"]
-    assert [r["observation./scan.ids[0]"] for r in rows] == [0, 1, 2]
-    assert [r["action./speed.speed"] for r in rows] == [0.0, 0.25, 0.5]
-    lerobot = export(
-        path, tmp_path / "lr", "lerobot", observations=["/scan"], actions=["/speed"], provenance={}
+    info = json.loads((out / "meta" / "info.json").read_text())
+    assert info["codebase_version"] == "v3.0" and "labd" not in info
+    assert (info["fps"], info["total_episodes"], info["total_frames"]) == (10, 2, 16)
+    features = info["features"]
+    assert features["observation.state"]["names"] == list(summary.observation_names)
+    assert features["action"]["names"] == ["cmd_vel.linear.x", "cmd_vel.angular.z"]
+    camera = features["observation.images.camera"]
+    assert camera["dtype"] == "video" and camera["shape"] == [240, 320, 3]
+    assert camera["info"]["video.codec"] == "av1"
+    with av.open(str(video)) as container:
+        stream = container.streams.video[0]
+        assert stream.codec_context.name in ("libdav1d", "av1", "libaom-av1")
+        assert sum(1 for _ in container.decode(stream)) == 16
+
+    table = pq.read_table(out / info["data_path"].format(chunk_index=0, file_index=0))
+    assert set(table.column_names) == {k for k, f in features.items() if f["dtype"] != "video"}
+    vector = table.schema.field("observation.state").type
+    assert pa.types.is_fixed_size_list(vector) and vector.value_type == pa.float32()
+    state = np.array(table.column("observation.state").to_pylist(), np.float32)
+    x = features["observation.state"]["names"].index("odom.x")
+    assert state[3, x] == np.float32(first.observed[3]["/odom"]["pose"]["pose"]["position"]["x"])
+    assert table.column("frame_index").to_pylist() == [*range(10), *range(6)]
+    assert table.column("timestamp").to_pylist() == pytest.approx(
+        [k / 10 for k in [*range(10), *range(6)]]
     )
-    assert lerobot.observation_names == ("/scan.ids[0]", "/scan.ids[1]", "/scan.ids[2]")
-    assert json.loads((tmp_path / "lr" / "meta" / "info.json").read_text())["fps"] == 20
+    tasks = pq.read_table(out / "meta" / "tasks.parquet").to_pylist()
+    assert tasks == [{"task_index": 0, "task": "drive to the goal cell"}]
+    episodes = pq.read_table(out / "meta" / "episodes" / "chunk-000" / "file-000.parquet")
+    rows = episodes.to_pylist()
+    assert [r["labd/trial"] for r in rows] == [1, 2]
+    assert [r["labd/commit"] for r in rows] == [PROVENANCE["commit"]] * 2
+    assert rows[1]["videos/observation.images.camera/from_timestamp"] == pytest.approx(1.0)
+    assert rows[1]["videos/observation.images.camera/to_timestamp"] == pytest.approx(1.6)
+    assert json.loads(rows[0]["labd/provenance"])["data_digest"] == "cd" * 32
+    stats = json.loads((out / "meta" / "stats.json").read_text())
+    assert np.array(stats["observation.images.camera"]["mean"]).shape == (3, 1, 1)
 
 
-# -- bad input --------------------------------------------------------------------------------
+# -- refusals ---------------------------------------------------------------------------------
 
 
-def test_an_unknown_format_names_the_formats(trial, tmp_path):
-    """An unknown format is refused before anything is written."""
-    with pytest.raises(ExportError, match="parquet, lerobot"):
-        run_export(trial, tmp_path / "out", "hdf5")
-    assert list(tmp_path.iterdir()) == []
+def test_an_unknown_format_names_the_formats(tmp_path):
+    run = drive(tmp_path / "trial", ticks=3, camera=False)
+    with pytest.raises(ExportError, match="unknown format 'csv': the formats are parquet, lerobot"):
+        export_records([(run.mcap, known())], tmp_path / "out", "csv")
 
 
-def test_a_missing_or_unreadable_mcap_is_refused(trial, tmp_path):
-    """No file, a file that is not MCAP and a truncated record are ExportErrors."""
-    with pytest.raises(ExportError, match="no MCAP file"):
-        export(
-            tmp_path / "nope.mcap",
-            tmp_path / "a",
-            "parquet",
-            observations=OBSERVATIONS,
-            actions=ACTIONS,
-            provenance={},
-        )
-    garbage = tmp_path / "garbage.mcap"
-    garbage.write_bytes(b"not an mcap file at all" * 10)
-    truncated = tmp_path / "truncated.mcap"
-    data = trial.mcap.read_bytes()
-    truncated.write_bytes(data[: len(data) // 2])
-    for path in (garbage, truncated):
-        with pytest.raises(ExportError, match="not a complete, readable MCAP file"):
-            export(
-                path,
-                tmp_path / "b",
-                "parquet",
-                observations=OBSERVATIONS,
-                actions=ACTIONS,
-                provenance={},
-            )
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["garbage.mcap", "truncated.mcap"]
+def test_a_missing_or_unreadable_mcap_is_refused(tmp_path):
+    run = drive(tmp_path / "trial", ticks=3, camera=False)
+    with pytest.raises(ExportError, match="no MCAP file at"):
+        export([Source(tmp_path / "none.mcap", {})], tmp_path / "o1", "parquet", layout(TASK))
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(run.mcap.read_bytes()[:300])
+    with pytest.raises(ExportError, match="not a complete, readable MCAP file"):
+        export([Source(cut, {})], tmp_path / "o2", "parquet", layout(TASK))
+    assert not (tmp_path / "o1").exists() and not (tmp_path / "o2").exists()
 
 
-def test_a_record_without_the_named_topics_is_refused(trial, tmp_path):
-    """None of the observation (or action) topics in the record is an ExportError naming them."""
-    with pytest.raises(
-        ExportError, match=r"none of the observation topics /lidar; it records .*/odom"
-    ):
-        run_export(trial, tmp_path / "a", "parquet", observations=["/lidar"])
-    with pytest.raises(ExportError, match="none of the action topics /arm/command"):
-        run_export(trial, tmp_path / "b", "lerobot", actions=["/arm/command"])
-    assert list(tmp_path.iterdir()) == []
+def test_missing_images_that_nothing_renders_are_refused(tmp_path):
+    """Without the lab's renderer, a record lacking a camera's images cannot be exported."""
+    run = drive(tmp_path / "trial", ticks=3, camera=False)
+    with pytest.raises(ExportError, match=r"no image of camera for 3 ticks \(from tick 0\)"):
+        export([Source(run.mcap, {})], tmp_path / "o", "parquet", layout(TASK))
+    assert not (tmp_path / "o").exists()
 
 
-def test_a_failed_export_leaves_no_folder(trial, tmp_path):
-    """An export that fails while writing removes what it wrote."""
-    with pytest.raises(ExportError, match="no fixed-length numeric field"):
-        run_export(trial, tmp_path / "out", "lerobot", observations=[CAMERA])
-    assert list(tmp_path.iterdir()) == []
-
-
-def test_an_existing_output_and_bad_provenance_are_refused(trial, tmp_path):
-    """A non-empty output folder is never overwritten; provenance must be JSON."""
-    out = tmp_path / "out"
-    out.mkdir()
-    (out / "keep.txt").write_text("mine")
+def test_an_existing_output_and_bad_provenance_are_refused(tmp_path):
+    run = drive(tmp_path / "trial", ticks=3, camera=False)
+    taken = tmp_path / "taken"
+    taken.mkdir()
+    (taken / "file").write_text("x")
     with pytest.raises(ExportError, match="already exists"):
-        run_export(trial, out, "parquet")
-    assert [p.name for p in out.iterdir()] == ["keep.txt"]
-    with pytest.raises(ExportError, match="provenance must be JSON"):
-        run_export(trial, tmp_path / "new", "parquet", provenance={"when": object()})
-    empty = tmp_path / "empty"
-    empty.mkdir()
-    assert run_export(trial, empty, "parquet").frames == TICKS  # an empty folder is fine
-
-
-def test_a_record_without_episodes_is_refused(tmp_path):
-    """Without /lab/episode the ticks are unknown: an ExportError says so."""
-    path = tmp_path / "plain.mcap"
-    with path.open("wb") as stream:
-        writer = Ros2Writer(stream)
-        speed = writer.register_msgdef("test_msgs/msg/Speed", "float32 speed")
-        writer.write_message("/speed", speed, {"speed": 1.0}, 0)
-        writer.write_message("/odom", speed, {"speed": 1.0}, 0)
-        writer.finish()
-    with pytest.raises(ExportError, match="no /lab/episode"):
-        export(
-            path,
-            tmp_path / "out",
-            "parquet",
-            observations=["/odom"],
-            actions=["/speed"],
-            provenance={},
-        )
-
-
-def handmade_record(path: Path, entries: list[tuple[str, str, str | None, int, dict]]) -> Path:
-    """An MCAP record of (topic, type, side, log time, value), with labd.side where side is given."""
-    types = TypeRegistry.default()
-    graph = Graph(types)
-    schemas: dict[str, int] = {}
-    channels: dict[tuple[str, str | None], int] = {}
-    with path.open("wb") as stream:
-        writer = McapWriter(stream)
-        writer.start(profile="ros2")
-        for topic, type_name, side, time, value in entries:
-            if type_name not in schemas:
-                text = types.definition_text(type_name).encode()
-                schemas[type_name] = writer.register_schema(type_name, "ros2msg", text)
-            if (topic, side) not in channels:
-                metadata = {} if side is None else {"labd.side": side}
-                channels[topic, side] = writer.register_channel(
-                    topic, "cdr", schemas[type_name], metadata
-                )
-            data = graph.message(type_name, value).cdr()
-            writer.add_message(channels[topic, side], time, data, time)
-        writer.finish()
-    return path
-
-
-def sided_entries(
-    lab: str | None, client: str | None
-) -> list[tuple[str, str, str | None, int, dict]]:
-    """Tick 0 and 1 of a drive where a client wrote on /odom and the lab on /cmd_vel."""
-    odom, twist, episode = (
-        "nav_msgs/msg/Odometry",
-        "geometry_msgs/msg/Twist",
-        "lab_msgs/msg/Episode",
-    )
-
-    def at(x: float) -> dict:
-        return {"pose": {"pose": {"position": {"x": x}}}}
-
-    return [
-        ("/odom", odom, lab, 0, at(1.0)),
-        ("/odom", odom, client, 0, at(42.0)),
-        ("/lab/episode", episode, lab, 0, {"task": TASK, "tick": 0, "status": "running"}),
-        ("/cmd_vel", twist, client, 0, {"linear": {"x": 0.5}}),
-        ("/cmd_vel", twist, lab, 0, {"linear": {"x": 9.0}}),
-        ("/odom", odom, lab, 100_000_000, at(2.0)),
-        ("/lab/episode", episode, lab, 100_000_000, {"task": TASK, "tick": 1, "status": "running"}),
-    ]
-
-
-def test_observations_are_the_labs_and_actions_the_clients(tmp_path):
-    """Channels of the other side on a named topic are not read: no client observation, no lab action."""
-    sided = handmade_record(tmp_path / "sided.mcap", sided_entries("lab", "client"))
-    rows = pq.read_table(
-        export(
-            sided,
-            tmp_path / "a",
-            "parquet",
-            observations=["/odom"],
-            actions=["/cmd_vel"],
-            provenance={},
-        ).files[0]
-    ).to_pylist()
-    assert [
-        (r["observation./odom.pose.pose.position.x"], r["action./cmd_vel.linear.x"]) for r in rows
-    ] == [(1.0, 0.5)]
-    old = handmade_record(tmp_path / "old.mcap", sided_entries(None, None))
-    rows = pq.read_table(
-        export(
-            old,
-            tmp_path / "b",
-            "parquet",
-            observations=["/odom"],
-            actions=["/cmd_vel"],
-            provenance={},
-        ).files[0]
-    ).to_pylist()
-    assert [
-        (r["observation./odom.pose.pose.position.x"], r["action./cmd_vel.linear.x"]) for r in rows
-    ] == [(42.0, 9.0)]  # a record without sides is read by topic alone
+        export_records([(run.mcap, known())], taken, "parquet")
+    with pytest.raises(ExportError, match="the provenance must be JSON"):
+        export([Source(run.mcap, {"x": object()})], tmp_path / "o", "parquet", layout(TASK))

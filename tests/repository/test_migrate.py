@@ -9,9 +9,9 @@ from repository import index as current
 from repository.errors import SchemaMismatch
 from repository.index import Index, connect
 from repository.migrate import schema_of, upgrade
-from repository.trial import Outcome, Status
+from repository.trial import Kind, Outcome, PinnedRecord, Status
 
-NEW_COLUMNS = {"kind", "outcome", "reward", "signature"}
+NEW_COLUMNS = {"kind", "outcome", "reward", "signature", "data"}
 
 
 def schema_1(url: str) -> None:
@@ -110,3 +110,39 @@ def test_the_upgrade_keeps_every_row_and_reads_each_status_anew(database_url):
     engine.dispose()
     assert rewards == [1.0, None, None, None, None, None]
     assert all(t.kind.value == "trial" for t in got)
+    assert all(t.data is None for t in got)  # nothing was pinned before schema 2
+
+
+def test_an_upgraded_index_keeps_the_data_a_trial_pins(database_url):
+    """The upgrade adds the column of pinned data, so a new trial's pinned records are kept."""
+    schema_1(database_url)
+    engine = connect(database_url)
+    upgrade(engine)
+    engine.dispose()
+    pinned = PinnedRecord(
+        trial=1,
+        kind=Kind.TRIAL,
+        task="icreate-maze",
+        seed=0,
+        outcome=Outcome.SUCCESS,
+        data_digest="d" * 64,
+        digest_topics=["/odom"],
+        mcap="sha256:" + "e" * 64,
+        size=10,
+    )
+    index = Index.open(database_url)
+    try:
+        new = index.add_trial(
+            repository="https://example.org/knn.git",
+            ref=None,
+            commit="b" * 40,
+            task="icreate-maze",
+            params={},
+            seed=1,
+            submitter="alice",
+            public=True,
+            data=[pinned],
+        )
+        assert index.trial(new).data == [pinned]
+    finally:
+        index.close()

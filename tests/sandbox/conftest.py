@@ -144,6 +144,7 @@ class Controllers:
         python_paths: Sequence[Path] = (),
         env: dict[str, str] | None = None,
         command: Sequence[str] = ("python", "controller.py"),
+        data: Path | None = None,
     ) -> Running:
         job = Job(
             command=command,
@@ -152,6 +153,7 @@ class Controllers:
             env=env or {},
             python_paths=python_paths,
             limits=limits or Limits(wall=60),
+            data=data,
         )
         return await self.backend.start(job)
 
