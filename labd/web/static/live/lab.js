@@ -146,7 +146,7 @@ async function reservationKey(cfg) {
   const response = await fetch(`/api/robots/${cfg.robot}/key`, { credentials: "same-origin" });
   if (response.ok) return response.json();
   const problem = await response.json().catch(() => ({}));
-  document.getElementById("status").textContent = problem.detail || "no slot of yours runs now";
+  document.getElementById("status").textContent = problem.error || "no slot of yours runs now";
   return null;
 }
 
