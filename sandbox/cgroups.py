@@ -103,20 +103,42 @@ class JobCgroup:
 
         A process forked a moment ago may not have been woken for the first time yet
         (the kernel's TASK_NEW state), and the cpu controller refuses to move it with
-        EINVAL until it has: that is retried for up to ``patience`` seconds.
+        EINVAL until it has: that is retried for up to ``patience`` seconds. Should the
+        cpu controller still refuse, the job runs without its CPU share (its CPU time is
+        still limited by RLIMIT_CPU) and the lab's log says so; the memory and process
+        cgroups are the limits a job cannot run without, so their refusal is an error.
         """
         deadline = time.monotonic() + patience
-        for controller in self.folders:
-            delay = 0.001
-            while True:
-                try:
-                    self._write(controller, "cgroup.procs", pid)
-                    break
-                except OSError as err:
-                    if err.errno != errno.EINVAL or time.monotonic() > deadline:
-                        raise
-                time.sleep(delay)
-                delay = min(delay * 2, 0.05)
+        for controller in list(self.folders):
+            try:
+                self._join(controller, pid, deadline)
+            except OSError as err:
+                folder = self.folders[controller]
+                if controller == "cpu":
+                    log.warning(
+                        "process %d could not join its cpu cgroup %s (%s): it runs without"
+                        " its CPU share",
+                        pid, folder, err,
+                    )  # fmt: skip
+                    with contextlib.suppress(OSError):
+                        folder.rmdir()
+                    del self.folders[controller]
+                    continue
+                raise OSError(
+                    err.errno, f"process {pid} could not join its {controller} cgroup {folder}"
+                ) from err
+
+    def _join(self, controller: str, pid: int, deadline: float) -> None:
+        delay = 0.001
+        while True:
+            try:
+                self._write(controller, "cgroup.procs", pid)
+                return
+            except OSError as err:
+                if err.errno != errno.EINVAL or time.monotonic() > deadline:
+                    raise
+            time.sleep(delay)
+            delay = min(delay * 2, 0.05)
 
     def oom_kills(self) -> int:
         """How many processes the kernel killed in this cgroup for lack of memory."""
