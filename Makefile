@@ -53,6 +53,9 @@ bench: $(STAMP) $(WEBSTAMP)
 	$(PY) bench/bridge.py
 	$(PY) bench/archive.py
 	$(PY) bench/web.py
+	$(PY) bench/replay.py
+	$(PY) bench/live.py
+	$(PY) bench/knn.py
 
 clean:
 	rm -rf $(VENV) $(JS)/node_modules $(WEB)/node_modules labd/web/static/vendor .mypy_cache .ruff_cache .pytest_cache
