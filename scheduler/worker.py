@@ -268,8 +268,14 @@ class Worker:
                 stuck.append(reason)
                 running.cancel()
                 return  # no more renewals: if stopping hangs too, the lease runs out
+            # a renewal that gets no answer must not hold up the progress check above
+            wait = max(3 * self.config.heartbeat, 5.0)
+            renewal = asyncio.to_thread(self.queue.heartbeat, trial_id, self.config.name)
             try:
-                keep = await asyncio.to_thread(self.queue.heartbeat, trial_id, self.config.name)
+                keep = await asyncio.wait_for(renewal, wait)
+            except TimeoutError:
+                self.log.warning("trial %d: heartbeat had no answer within %g s", trial_id, wait)
+                continue
             except QueueError as err:  # a remote lab briefly away: the lease may still hold
                 self.log.warning("trial %d: heartbeat failed: %s", trial_id, err)
                 continue

@@ -57,7 +57,7 @@ class RemoteWorker:
 
 
 @pytest.mark.parametrize("lost", ["killed", "frozen"])
-@pytest.mark.timeout(180)
+@pytest.mark.timeout(300)
 def test_a_remote_worker_lost_mid_trial(served, cache: Path, tmp_path: Path, lost: str):
     """The trial of a worker killed or frozen mid-trial is requeued when its lease runs out,
     run by another worker and filed once; a frozen worker that wakes files nothing."""
@@ -92,7 +92,7 @@ def test_a_remote_worker_lost_mid_trial(served, cache: Path, tmp_path: Path, los
             wait_for(
                 "the thawed worker's filing to be refused",
                 lambda: f"finished trial {trial['id']} after losing it; dropped" in lab.log,
-                60,
+                120,
                 detail=lambda: f"the lab:\n{lab.log}\nthe thawed worker:\n{first.stop()}",
             )
         assert lab.trial(trial["id"]) == done  # filed once: the second worker's record
