@@ -158,13 +158,13 @@ def test_preparing_past_its_deadline_is_an_error(
     )
 
 
-@pytest.mark.timeout(90)
-def test_filing_past_its_deadline_is_an_error(cache, host, s3: S3Server, tmp_path: Path):
-    """A record the stopped store does not take within the filing deadline: the trial is
-    filed as an error saying so, and the worker is free again."""
+def quick_trial_on_s3(
+    tmp_path: Path, s3: S3Server, config: QueueConfig
+) -> tuple[Index, Queue, int, BlobStore]:
+    """A queue with one short maze trial submitted, and a blob store in ``s3``."""
     db = Index.open(f"sqlite:///{tmp_path / 'index.sqlite'}")
     db.add_user("alice")
-    queue = Queue(db, QueueConfig())
+    queue = Queue(db, config)
     repo = GitRepo.create(tmp_path / "quick", controller(3))
     trial = queue.submit(
         db.user("alice"),
@@ -180,6 +180,14 @@ def test_filing_past_its_deadline_is_an_error(cache, host, s3: S3Server, tmp_pat
         "s3://lab-archive/records",
         {"endpoint_url": s3.url, "key": "testing", "secret": "testing"},
     )
+    return db, queue, trial, store
+
+
+@pytest.mark.timeout(90)
+def test_filing_past_its_deadline_is_an_error(cache, host, s3: S3Server, tmp_path: Path):
+    """A record the stopped store does not take within the filing deadline: the trial is
+    filed as an error saying so, and the worker is free again."""
+    db, queue, trial, store = quick_trial_on_s3(tmp_path, s3, QueueConfig())
     config = WorkerConfig(name="w", work=tmp_path / "work", cache=cache, filing=3.0)
     worker = Worker(queue, store, make_backend("bwrap", cache), host, config)
 
@@ -203,24 +211,7 @@ def test_a_filing_slower_than_the_lease_keeps_its_trial(cache, host, s3: S3Serve
     """A record that takes longer to store than a lease lasts (the store is stopped for 4
     leases): its worker keeps renewing the lease while filing, so another worker that
     claims meanwhile never gets the trial, and it is filed once, on its first attempt."""
-    db = Index.open(f"sqlite:///{tmp_path / 'index.sqlite'}")
-    db.add_user("alice")
-    queue = Queue(db, QueueConfig(lease=1.0))
-    repo = GitRepo.create(tmp_path / "quick", controller(3))
-    trial = queue.submit(
-        db.user("alice"),
-        repository=str(repo.path),
-        ref="main",
-        commit=repo.rev(),
-        task="icreate-maze",
-        params={},
-        seed=0,
-        public=True,
-    )
-    store = BlobStore(
-        "s3://lab-archive/records",
-        {"endpoint_url": s3.url, "key": "testing", "secret": "testing"},
-    )
+    db, queue, trial, store = quick_trial_on_s3(tmp_path, s3, QueueConfig(lease=1.0))
     config = WorkerConfig(name="w1", work=tmp_path / "work", cache=cache, heartbeat=0.25)
     worker = Worker(queue, store, make_backend("bwrap", cache), host, config)
     taken: list[object] = []
