@@ -75,7 +75,9 @@ class Robot:
         self.wall_clock = wall_clock  # live watchdogs only; trials never read it
         self.task = task
         self.live = live
-        self.time_limit = time_limit  # overrides the task's; live robots have none otherwise
+        # Overrides the task's. Live robots have none unless their parameters give one
+        # (``labd serve --param time_limit=S``): a person may drive as long as they like.
+        self.time_limit = time_limit
         self.on_tick: Callable[[], None] | None = None  # called after every step
         # Live robots: who may command (labd.live decides); raises to refuse a command.
         self.command_gate: Callable[[Node | None, str], None] | None = None
@@ -118,7 +120,7 @@ class Robot:
 
     def _simulation(self, seed: int) -> Simulation:
         limit = self.time_limit
-        if limit is None and self.live:
+        if limit is None and self.live and "time_limit" not in self.params:
             limit = math.inf
         return Simulation(self.task, self.params, seed, time_limit=limit)
 

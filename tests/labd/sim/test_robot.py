@@ -159,6 +159,25 @@ def test_live_watchdog_stops_a_silent_twist(registry):
     assert "/lab/reset" in graph.services and "/lab/step" not in graph.services
 
 
+def test_live_robots_have_no_time_limit_unless_their_parameters_give_one(registry):
+    """A live robot's episode runs past the task's default time limit (2 s here); one
+    whose parameters give a limit ends there, truncated."""
+    endless = Robot(Graph(registry, name="endless"), TASK, {}, live=True)
+    limited = Robot(Graph(registry, name="limited"), TASK, {"time_limit": 0.5}, live=True)
+    try:
+        ticks = round(2.0 / endless.sim.control_timestep) + 5
+        for _ in range(ticks):
+            endless.step()
+            if limited.sim.running:
+                limited.step()
+        assert endless.sim.running
+        assert limited.sim.status == "truncated"
+        assert limited.sim.tick == round(0.5 / limited.sim.control_timestep)
+    finally:
+        endless.close()
+        limited.close()
+
+
 def test_live_a_changed_command_is_reported_and_a_repeat_is_not(registry):
     """Live: ``on_command`` hears a client's command that changes what the robot was
     told, not a held key's repeats; after the watchdog's stop the same command is news."""
