@@ -227,6 +227,33 @@ async def test_live_runner_brings_the_next_tick_forward_for_a_changed_command(re
         robot.close()
 
 
+async def test_live_runner_steps_on_past_a_tick_that_raises(registry, caplog):
+    """A tick that raises (a bug in what runs on it) is logged once, with its traceback,
+    and the runner steps on: the robot's clock keeps coming."""
+    graph = Graph(registry, name="live")
+    robot = Robot(graph, TASK, {}, live=True)
+
+    def broken() -> None:
+        raise RuntimeError("a bug in a drive")
+
+    robot.on_tick = broken
+    ticks: asyncio.Queue[object] = asyncio.Queue()
+    graph.create_node("/watcher", side=Side.CLIENT).subscribe("/clock", None, ticks.put_nowait)
+    runner = LiveRunner(robot)
+    task = asyncio.create_task(runner.run())
+    try:
+        for _ in range(5):
+            await asyncio.wait_for(ticks.get(), 5)
+        assert runner.errors >= 4 and not task.done()
+        logged = [r for r in caplog.records if "a tick failed" in r.getMessage()]
+        assert len(logged) == 1 and logged[0].exc_info is not None, caplog.records
+    finally:
+        task.cancel()
+        with contextlib.suppress(asyncio.CancelledError):
+            await task
+        robot.close()
+
+
 def test_reset_starts_the_next_seed(registry):
     """/lab/reset on a live robot starts a new episode with the next seed."""
     graph = Graph(registry, name="live")
