@@ -54,6 +54,25 @@ class BridgeConfig:
 
 
 @dataclass(frozen=True)
+class DriveLimits:
+    """What a drive of a live robot may put in the archive (docs/live.md).
+
+    A client's drive is filed under the name the lab knows it by, and only when it is a
+    demonstration at all: it gave a command and lasted ``min_ticks``. Its user (a key's)
+    or, for anyone else, its address may file ``filings_per_minute`` in any minute, over
+    all the lab's robots. A record holds the robot's messages and the driver's commands
+    and ``/ux/events``; past ``max_record`` bytes the driver's events are no longer
+    recorded and the drive ends at the next tick, filed as it stands.
+    """
+
+    max_record: int = 64 * MiB
+    min_ticks: int = 20  # one second at the live robots' 20 ticks a second
+    filings_per_minute: int = 10
+    # Characters of each text a client gives /lab/drive (its session, interface, user).
+    max_text: int = 64
+
+
+@dataclass(frozen=True)
 class RobotConfig:
     """A live robot that ``labd serve`` hosts at ``/robots/NAME``."""
 

@@ -23,11 +23,11 @@ from labd.authorizer import ReservationAuthorizer, ref
 from labd.bridge.auth import Authorizer, HttpAuthorizer, KeyPolicy
 from labd.bridge.rosapi import Rosapi
 from labd.bridge.server import BridgeServer
-from labd.config import DATA, DEFAULT_ROBOTS, BridgeConfig, RobotConfig
+from labd.config import DATA, DEFAULT_ROBOTS, BridgeConfig, DriveLimits, RobotConfig
 from labd.errors import PortInUse
 from labd.graph.graph import Graph
 from labd.graph.types import TypeRegistry
-from labd.live import Demonstration, Driving
+from labd.live import Demonstration, Driving, Filings
 from labd.service import Service, ServiceConfig
 from labd.sim.robot import LiveRunner, Robot
 from labd.station import Station
@@ -57,6 +57,8 @@ class LabConfig:
     reservations: bool = False
     # With reservations: clients without a key may connect and watch (never drive).
     watchers: bool = True
+    # What a drive of a live robot may put in the archive.
+    drives: DriveLimits = field(default_factory=DriveLimits)
 
 
 class Lab:
@@ -134,16 +136,20 @@ class Lab:
                 task = asyncio.create_task(
                     LiveRunner(robot, prompt=True).run(), name=f"live {name}"
                 )
+                task.add_done_callback(_runner_ended)
                 self._runners.append(task)
         await _listen(
             self.bridge.start(), self.config.bridge.host, self.config.bridge.port, "--bridge-port"
         )
+        filings = Filings(self.config.drives.filings_per_minute)  # shared by the robots
         self.drives = {
             name: Driving(
                 station,
                 work=self._live_work(),
                 file=self._file if self.service is not None else None,
                 reserved=self.config.reservations,
+                limits=self.config.drives,
+                filings=filings,
             )
             for name, station in self.stations.items()
             if station.robot.live
@@ -211,6 +217,12 @@ class Lab:
             api.close()
         if self._own_authorizer is not None:
             await self._own_authorizer.aclose()
+
+
+def _runner_ended(task: asyncio.Task[None]) -> None:
+    """A live robot's runner ends only when the lab stops; anything else is a bug, logged."""
+    if not task.cancelled() and task.exception() is not None:
+        log.error("%s stopped: its robot is frozen", task.get_name(), exc_info=task.exception())
 
 
 async def _listen(start: Coroutine[Any, Any, None], host: str, port: int, flag: str) -> None:

@@ -31,7 +31,7 @@ from mcap.exceptions import McapError
 from zstandard import ZstdError
 
 from labd.errors import LabError
-from labd.graph.graph import Side, Topic
+from labd.graph.graph import Node, Side, Topic
 from labd.graph.message import Message
 from labd.graph.types import TypeRegistry
 from labd.recorder import read_manifest
@@ -202,7 +202,7 @@ def _run(path: Path, station: Station, renderers: Sequence[Any], realtime: bool)
     commands = {c.name for c in robot.sim.task.commands}
     produced: list[Entry] = []
 
-    def tap(topic: Topic, message: Message, side: Side) -> None:
+    def tap(topic: Topic, message: Message, side: Side, sender: Node | None) -> None:
         if side is Side.LAB and topic.name not in IGNORED:
             produced.append(Entry(topic.name, message.stamp_ns, message.cdr()))
 

@@ -165,6 +165,7 @@ class BridgeServer:
             url_key=key if policy is not KeyPolicy.NONE else None,
         )
         conn.session = session
+        session.node.address = address
         self.connections.add(conn)
         log.info(
             "client %d connected from %s to %s", session.client_id, ws.remote_address, graph.name

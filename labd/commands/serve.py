@@ -21,7 +21,7 @@ from typing import Any
 from labd import __version__
 from labd.commands import fetching
 from labd.commands.common import assignment, fail
-from labd.config import DEFAULT_ROBOTS, BridgeConfig, RobotConfig
+from labd.config import DEFAULT_ROBOTS, BridgeConfig, DriveLimits, MiB, RobotConfig
 from labd.errors import LabError
 from labd.lab import Lab, LabConfig
 from labd.service import ServiceConfig
@@ -33,6 +33,7 @@ from scheduler.queue import QueueConfig
 from scheduler.runner import RunOptions
 
 BRIDGE = BridgeConfig()
+DRIVES = DriveLimits()
 LAB = LabConfig()
 SERVICE = ServiceConfig()
 RULES = Rules()
@@ -114,6 +115,33 @@ def add_parser(commands: Any) -> None:
         metavar="R",
         help="the share of the maze robot's page sessions shown the camera (interface A);"
         " the others see the tags and sensing without video (B) (default: %(default)s)",
+    )
+    drives = serve.add_argument_group(
+        "what a drive of a live robot files (docs/live.md)", "Limits of 0 mean no limit."
+    )
+    drives.add_argument(
+        "--max-drive-mb",
+        type=int,
+        default=DRIVES.max_record // MiB,
+        metavar="N",
+        help="MiB of a drive's record: there the drive ends, filed as it stands"
+        " (default: %(default)s)",
+    )
+    drives.add_argument(
+        "--min-drive-ticks",
+        type=int,
+        default=DRIVES.min_ticks,
+        metavar="N",
+        help="a client's drive shorter than this (or with no command) files nothing"
+        " (default: %(default)s)",
+    )
+    drives.add_argument(
+        "--drive-filings",
+        type=int,
+        default=DRIVES.filings_per_minute,
+        metavar="N",
+        help="drives a user, or else an address, may file a minute, over all the robots"
+        " (default: %(default)s)",
     )
     group = serve.add_argument_group("the archive, the queue and its workers")
     group.add_argument(
@@ -277,6 +305,8 @@ def config(args: argparse.Namespace) -> LabConfig:
         )
     if args.no_watchers and not args.reservations:
         raise Refused("--no-watchers goes with --reservations")
+    if min(args.max_drive_mb, args.min_drive_ticks, args.drive_filings) < 0:
+        raise Refused("--max-drive-mb, --min-drive-ticks and --drive-filings are 0 or more")
     return LabConfig(
         data=args.data,
         bridge=bridge_config(args),
@@ -287,6 +317,11 @@ def config(args: argparse.Namespace) -> LabConfig:
         interface_ratio=args.interface_ratio,
         reservations=args.reservations,
         watchers=not args.no_watchers,
+        drives=DriveLimits(
+            max_record=args.max_drive_mb * MiB,
+            min_ticks=args.min_drive_ticks,
+            filings_per_minute=args.drive_filings,
+        ),
     )
 
 

@@ -17,7 +17,7 @@ any topic, service or action under the lab's namespaces (``/lab/``, ``/rosapi/``
 provide a service or action a lab node provides: each is an ``OwnedError``. The check
 is made once, when a publisher or provider is made, so publishing stays a plain
 delivery; a claim made after a client advertised revokes the client's publisher.
-Taps (the recorder) hear, with each message, the side of its publisher.
+Taps (the recorder) hear, with each message, the side and the node of its publisher.
 
 Every graph has ``/rosout`` from its creation (``rcl_interfaces/msg/Log``, advertised
 by the lab's ``/labd`` node), as every ROS 2 system does; clients may log there too.
@@ -69,7 +69,8 @@ class Side(enum.Enum):
     CLIENT = "client"  # a bridge client: a trial's controller, a browser, a ROS user
 
 
-Tap = Callable[["Topic", Message, Side], None]  # a message, and its publisher's side
+# A message, its publisher's side, and its publisher's node (None: delivered by the graph).
+Tap = Callable[["Topic", Message, Side, "Node | None"], None]
 
 
 def wall_clock() -> int:
@@ -212,7 +213,7 @@ class Topic:
         if latch:
             self.latched = message
         for tap in self.graph.taps:
-            tap(self, message, side)
+            tap(self, message, side, sender)
         for sub in subs:
             if not sub.gatekeeper and not sub.closed:
                 sub.callback(message)
@@ -311,6 +312,8 @@ class Node:
         self.goals: list[ClientGoal] = []  # goals this node sent that are not finished
         # Who the client is, when its key said so (the lab's reservations); None: anyone.
         self.user: str | None = None
+        # Where a bridge client connects from (limits per address); None: in the lab.
+        self.address: str | None = None
         self.destroyed = False
 
     def advertise(

@@ -27,6 +27,10 @@ recorder stops recording, deletes what it had written, and ``finish`` raises
 ``RecordError`` saying so; the graph and its robot carry on undisturbed, since the
 error never reaches the publisher whose message was being written.
 
+A recorder given ``keep`` records only the messages it accepts, told each one's topic,
+side and publishing node: a live robot's drive keeps the robot's and its driver's
+(``labd.live``), so that no one watching writes into the driver's record.
+
 It runs on every control tick in the lab's event loop, so the per-message work is a
 dictionary look-up, the library's ``add_message`` and, for digest topics, two hash
 updates; compression happens once a chunk is full. The data digest is over topics, not
@@ -41,7 +45,7 @@ import contextlib
 import hashlib
 import json
 import logging
-from collections.abc import Collection, Mapping
+from collections.abc import Callable, Collection, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from types import TracebackType
@@ -53,7 +57,7 @@ from mcap.well_known import MessageEncoding, Profile, SchemaEncoding
 from mcap.writer import CompressionType, Writer
 
 from labd.errors import RecordError
-from labd.graph.graph import Graph, Side, Topic
+from labd.graph.graph import Graph, Node, Side, Topic
 from labd.graph.message import Message
 from labd.recorder import bag
 from labd.recorder.digest import DIGEST_TAG, time_frame, topic_frame
@@ -145,13 +149,19 @@ class _Channel:
         self.prefix = topic_frame(topic) if digest else None  # None: not in the digest
 
 
+# Whether a message is to be recorded, told its topic, itself, and its publisher's side
+# and node (a live robot's record keeps the robot's and its driver's, nobody else's).
+Keep = Callable[[Topic, Message, Side, Node | None], bool]
+
+
 class Recorder:
     """Records every message of ``graph`` into ``folder/trial.mcap`` until ``finish``.
 
-    ``digest_topics`` are the topics the data digest covers. The folder is created if
-    need be; a record already in it is never overwritten (``FileExistsError``). Call
-    ``finish`` in a ``finally``, or use the recorder as a context manager, so the file is
-    complete even when the controller crashed.
+    ``digest_topics`` are the topics the data digest covers; ``keep``, when given,
+    decides which messages are recorded at all. The folder is created if need be; a
+    record already in it is never overwritten (``FileExistsError``). Call ``finish``
+    in a ``finally``, or use the recorder as a context manager, so the file is complete
+    even when the controller crashed; ``discard`` when the record is not wanted.
     """
 
     def __init__(
@@ -162,11 +172,13 @@ class Recorder:
         digest_topics: Collection[str],
         manifest: Mapping[str, Any] | None = None,
         chunk_size: int = CHUNK_SIZE,
+        keep: Keep | None = None,
     ) -> None:
         self.graph = graph
         self.folder = Path(folder)
         self.path = self.folder / bag.MCAP_NAME
         self.digest_topics = frozenset(digest_topics)
+        self.keep = keep
         self.log = logging.getLogger(f"labd.recorder.{graph.name}")
         manifest_text = None if manifest is None else canonical_json(manifest)  # fail early
         self.folder.mkdir(parents=True, exist_ok=True)
@@ -202,8 +214,10 @@ class Recorder:
 
     # -- recording ---------------------------------------------------------------------
 
-    def _tap(self, topic: Topic, message: Message, side: Side) -> None:
+    def _tap(self, topic: Topic, message: Message, side: Side, sender: Node | None) -> None:
         if self._error is not None:
+            return
+        if self.keep is not None and not self.keep(topic, message, side, sender):
             return
         channels = self._lab_channels if side is Side.LAB else self._client_channels
         data = message.cdr()
@@ -263,6 +277,16 @@ class Recorder:
         return self._digest.hexdigest()
 
     @property
+    def size(self) -> int:
+        """Bytes of the file so far: what is written, without the chunk being filled
+        (at most ``chunk_size`` bytes before compression, or one larger message)."""
+        if self._summary is not None:
+            return self._summary.size
+        if self._file.closed:
+            return 0
+        return self._file.tell()
+
+    @property
     def counts(self) -> dict[str, int]:
         """Messages recorded so far, per topic."""
         counts: dict[str, int] = {}
@@ -307,6 +331,15 @@ class Recorder:
             self._fail(err)
             raise RecordError(self.path, err) from err
         return self._summary
+
+    def discard(self) -> None:
+        """Stop recording and delete the record: one that will not be filed."""
+        if self._tap in self.graph.taps:
+            self.graph.taps.remove(self._tap)
+        with contextlib.suppress(OSError):
+            self._file.close()
+            self.path.unlink(missing_ok=True)
+            (self.folder / bag.BAG_METADATA).unlink(missing_ok=True)
 
     def _fail(self, err: OSError) -> None:
         """A write failed: stop recording and delete the record, which cannot be whole."""

@@ -137,7 +137,8 @@ def environment(
     """The dm_control environment of one episode, keeping the model for the record.
 
     Every task has the parameters ``time_limit`` (seconds) and ``control_rate`` (Hz);
-    ``time_limit`` given here overrides the parameter (live robots have none).
+    ``time_limit`` given here overrides the parameter (live robots have none unless
+    their parameters give one).
     """
     task.model_xml = xml
     task.model_assets = dict(assets or {})

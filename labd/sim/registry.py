@@ -29,7 +29,8 @@ class TaskSpec:
 
     ``build(values, seed)`` returns a ``dm_control.rl.control.Environment`` whose task
     is a ``LabTask``, for one episode; ``values`` are already validated.
-    ``time_limit`` overrides the task's own (``float('inf')`` for live robots).
+    ``time_limit`` overrides the task's own (``float('inf')`` for live robots, unless their
+    parameters give one).
     ``live_params`` are defaults for live robots (a faster control rate for a smooth
     camera, say); what a robot's configuration sets still wins.
     """

@@ -52,6 +52,7 @@ WATCHDOG = 0.5  # seconds a live Twist command holds
 SHOW_END = 3.0  # seconds a live robot shows an ended episode before the next
 EARLIEST = 0.25  # periods after a tick before a command may bring the next one forward
 PAYBACK = 0.25  # periods a tick is lengthened by while the simulation runs ahead
+ERROR_EVERY = 10.0  # seconds between two logged tracebacks of a live robot's failing ticks
 
 log = logging.getLogger("labd.sim.robot")
 
@@ -75,10 +76,14 @@ class Robot:
         self.wall_clock = wall_clock  # live watchdogs only; trials never read it
         self.task = task
         self.live = live
-        self.time_limit = time_limit  # overrides the task's; live robots have none otherwise
+        # Overrides the task's. Live robots have none unless their parameters give one
+        # (``labd serve --param time_limit=S``): a person may drive as long as they like.
+        self.time_limit = time_limit
         self.on_tick: Callable[[], None] | None = None  # called after every step
         # Live robots: who may command (labd.live decides); raises to refuse a command.
         self.command_gate: Callable[[Node | None, str], None] | None = None
+        # The episode is about to be replaced (its simulation is still there to read).
+        self.before_reset: Callable[[], None] | None = None
         self.on_reset: Callable[[], None] | None = None  # a new episode, before it is published
         # Live robots: a client's command changed what the robot was told (LiveRunner).
         self.on_command: Callable[[], None] | None = None
@@ -118,7 +123,7 @@ class Robot:
 
     def _simulation(self, seed: int) -> Simulation:
         limit = self.time_limit
-        if limit is None and self.live:
+        if limit is None and self.live and "time_limit" not in self.params:
             limit = math.inf
         return Simulation(self.task, self.params, seed, time_limit=limit)
 
@@ -250,6 +255,8 @@ class Robot:
     def reset(self, seed: int | None = None, *, publish: bool = True) -> None:
         """Start a new episode (the next seed unless one is given) and publish it (unless
         told not to: a recorder about to start publishes it itself)."""
+        if self.before_reset is not None:
+            self.before_reset()
         old = self.sim
         self.sim = self._simulation(self.sim.seed + 1 if seed is None else seed)
         old.close()
@@ -298,6 +305,12 @@ class LiveRunner:
     period longer, so in the long run the robot keeps the wall clock's time and the camera
     its rate. The command is applied by that tick after the graph has delivered (and
     recorded) it, so a record replays as before.
+
+    A tick that raises does not stop the runner: the robot is there for everyone, and
+    one client's drive must not take it from them. The error is logged with its
+    traceback (at most every ``ERROR_EVERY`` seconds, with how many there were) and the
+    next tick comes as usual. What a drive does on a tick guards its own errors
+    (``labd.live``); this is the last line, for bugs.
     """
 
     def __init__(self, robot: Robot, *, prompt: bool = False) -> None:
@@ -307,6 +320,8 @@ class LiveRunner:
         self.early = 0  # ticks a command brought forward
         self.lead = 0.0  # seconds the ticks run ahead of the wall clock
         self._ended_at: float | None = None
+        self.errors = 0  # ticks that raised
+        self._logged_at: float | None = None
         self._commanded = False
         self._wake: asyncio.Future[None] | None = None
 
@@ -330,7 +345,16 @@ class LiveRunner:
                     self.lead += deadline - now
                     self.early += 1
                     deadline = now
-                self._tick(now)
+                try:
+                    self._tick(now)
+                except Exception:  # a bug: logged, and the robot steps on for everyone
+                    self.errors += 1
+                    if self._log_error(now):
+                        log.exception(
+                            "%s: a tick failed (%d so far); the robot steps on",
+                            robot.graph.name,
+                            self.errors,
+                        )
                 # The frames that show the command's effect come a whole period apart.
                 payback = 0.0 if early else min(self.lead, PAYBACK * period)
                 self.lead -= payback
@@ -355,6 +379,13 @@ class LiveRunner:
         elif now - self._ended_at >= SHOW_END:
             self._ended_at = None
             robot.reset()
+
+    def _log_error(self, now: float) -> bool:
+        """Whether a tick's error is to be logged now: not on every tick of a run of them."""
+        if self._logged_at is not None and now - self._logged_at < ERROR_EVERY:
+            return False
+        self._logged_at = now
+        return True
 
     async def _pause(
         self, loop: asyncio.AbstractEventLoop, deadline: float, earliest: float

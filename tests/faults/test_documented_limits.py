@@ -17,7 +17,7 @@ import pytest
 
 from labd.api.app import TrialQuery
 from labd.commands import serve
-from labd.config import BridgeConfig
+from labd.config import BridgeConfig, DriveLimits
 from repository.index import UserLimits
 from sandbox.api import Limits
 from sandbox.jobs import KEEP
@@ -30,6 +30,7 @@ pytestmark = pytest.mark.integration
 DOCS = Path(__file__).resolve().parents[2] / "docs"
 MiB, KiB = 1024 * 1024, 1024
 BRIDGE, SANDBOX, RUN, QUEUE = BridgeConfig(), Limits(), RunOptions(), QueueConfig()
+DRIVES = DriveLimits()
 WORKER = WorkerConfig(name="", work=Path(), cache=Path())
 
 
@@ -70,6 +71,15 @@ ROWS: list[tuple[str, str, Callable[[], object], object]] = [
     ("trials.md", "the controller gets 2 seconds to exit by itself", lambda: RUN.grace, 2),
     ("trials.md", "installing requirements: 15 minutes", lambda: RUN.prepare, 15 * 60),
     ("trials.md", "filing it (5 minutes)", lambda: WORKER.filing, 5 * 60),
+    # docs/live.md: what a drive of a live robot files
+    ("live.md", "`session`, `interface` and `user` are at most 64 characters each",
+     lambda: DRIVES.max_text, 64),
+    ("live.md", "| a client's drive shorter than N ticks files nothing | 20 (1 s at 20 Hz) |",
+     lambda: DRIVES.min_ticks, 20),
+    ("live.md", "files at most N drives a minute, over all the lab's robots | 10 |",
+     lambda: DRIVES.filings_per_minute, 10),
+    ("live.md", "the driver's events past it are not recorded | 64 | `--max-drive-mb` |",
+     lambda: (DRIVES.max_record, serve_args().max_drive_mb), (64 * MiB, 64)),
     # docs/protocol.md: the bridge
     ("protocol.md", "limited per stream (its `queue_length`, default 100)",
      lambda: BRIDGE.default_queue_length, 100),

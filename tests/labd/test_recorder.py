@@ -97,7 +97,9 @@ def record(
         }
     recorder = Recorder(graph, folder, digest_topics=topics, **options)
     run = Run(RecordSummary(folder, {}, "", None, None, 0), robot, topics)
-    graph.taps.append(lambda topic, message, side: run.delivered.append((topic.name, message)))
+    graph.taps.append(
+        lambda topic, message, side, sender: run.delivered.append((topic.name, message))
+    )
     client = graph.create_node("/controller", side=Side.CLIENT)
     if camera:
         client.subscribe("/camera/image/compressed", None, run.images.append)

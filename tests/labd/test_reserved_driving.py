@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import pytest
 
+from labd.config import DriveLimits
 from labd.graph.graph import Side
 from labd.live import Driving, NotDriving, NotReserved
 from labd.station import Station
@@ -61,7 +62,9 @@ def test_the_key_holder_drives_under_their_own_name(live):
     other, other_command = client(station, "/page_2", user="alice")  # a second tab
     with pytest.raises(NotDriving, match="driven by alice"):
         other_command.publish({"linear": {"x": -0.2}})
-    station.robot.step()
+    for _ in range(DriveLimits().min_ticks):  # a drive long enough to be filed
+        station.robot.step()
     alice.destroy()
     [demo] = filed
     assert demo.user == "alice" and demo.manifest["driver"]["user"] == "alice"
+    assert demo.manifest["driver"]["claimed_user"] == "mallory"  # kept apart, unchecked

@@ -82,7 +82,7 @@ def drive(
     run = Drive(folder / "trial.mcap")
     latest: dict[str, Any] = {}
 
-    def tap(topic: Any, message: Any, side: Side) -> None:
+    def tap(topic: Any, message: Any, side: Side, sender: Any) -> None:
         latest[topic.name] = message.data
         if topic.name == "/lab/episode":
             run.observed.append(dict(latest))

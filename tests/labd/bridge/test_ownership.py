@@ -34,7 +34,9 @@ def robot(graph):
 def tapped(graph):
     """Every message delivered on the graph, with its topic and its publisher's side."""
     heard = []
-    graph.taps.append(lambda topic, message, side: heard.append((topic.name, side, message.data)))
+    graph.taps.append(
+        lambda topic, message, side, sender: heard.append((topic.name, side, message.data))
+    )
     return heard
 
 

@@ -99,7 +99,7 @@ def test_taps_hear_the_publishers_side(world):
     """A tap learns, with each message, whether the lab or a client published it."""
     graph, robot, client = world
     heard = []
-    graph.taps.append(lambda topic, message, side: heard.append((topic.name, side)))
+    graph.taps.append(lambda topic, message, side, sender: heard.append((topic.name, side)))
     robot.advertise("/odom", ODOM, own=True).publish({})
     client.advertise("/cmd_vel", "geometry_msgs/msg/Twist").publish({})
     assert heard == [("/odom", Side.LAB), ("/cmd_vel", Side.CLIENT)]

@@ -159,6 +159,25 @@ def test_live_watchdog_stops_a_silent_twist(registry):
     assert "/lab/reset" in graph.services and "/lab/step" not in graph.services
 
 
+def test_live_robots_have_no_time_limit_unless_their_parameters_give_one(registry):
+    """A live robot's episode runs past the task's default time limit (2 s here); one
+    whose parameters give a limit ends there, truncated."""
+    endless = Robot(Graph(registry, name="endless"), TASK, {}, live=True)
+    limited = Robot(Graph(registry, name="limited"), TASK, {"time_limit": 0.5}, live=True)
+    try:
+        ticks = round(2.0 / endless.sim.control_timestep) + 5
+        for _ in range(ticks):
+            endless.step()
+            if limited.sim.running:
+                limited.step()
+        assert endless.sim.running
+        assert limited.sim.status == "truncated"
+        assert limited.sim.tick == round(0.5 / limited.sim.control_timestep)
+    finally:
+        endless.close()
+        limited.close()
+
+
 def test_live_a_changed_command_is_reported_and_a_repeat_is_not(registry):
     """Live: ``on_command`` hears a client's command that changes what the robot was
     told, not a held key's repeats; after the watchdog's stop the same command is news."""
@@ -201,6 +220,33 @@ async def test_live_runner_brings_the_next_tick_forward_for_a_changed_command(re
         cmd.publish({"angular": {"z": 1.0}})
         assert await ticks.get() - pulled > 0.45
         assert runner.early == 1
+    finally:
+        task.cancel()
+        with contextlib.suppress(asyncio.CancelledError):
+            await task
+        robot.close()
+
+
+async def test_live_runner_steps_on_past_a_tick_that_raises(registry, caplog):
+    """A tick that raises (a bug in what runs on it) is logged once, with its traceback,
+    and the runner steps on: the robot's clock keeps coming."""
+    graph = Graph(registry, name="live")
+    robot = Robot(graph, TASK, {}, live=True)
+
+    def broken() -> None:
+        raise RuntimeError("a bug in a drive")
+
+    robot.on_tick = broken
+    ticks: asyncio.Queue[object] = asyncio.Queue()
+    graph.create_node("/watcher", side=Side.CLIENT).subscribe("/clock", None, ticks.put_nowait)
+    runner = LiveRunner(robot)
+    task = asyncio.create_task(runner.run())
+    try:
+        for _ in range(5):
+            await asyncio.wait_for(ticks.get(), 5)
+        assert runner.errors >= 4 and not task.done()
+        logged = [r for r in caplog.records if "a tick failed" in r.getMessage()]
+        assert len(logged) == 1 and logged[0].exc_info is not None, caplog.records
     finally:
         task.cancel()
         with contextlib.suppress(asyncio.CancelledError):
