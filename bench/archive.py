@@ -44,6 +44,7 @@ from scheduler.fetch import FetchPolicy, resolve
 
 ROOT = Path(__file__).resolve().parent.parent
 TASKS = ("icreate-maze", "pr2-table")
+LOCAL = FetchPolicy(schemes=frozenset({"file"}))  # the benchmark submits a local repository
 # (status, outcome): mostly finished, some of each outcome, a few cancelled or waiting
 ENDINGS = (
     [("finished", "success")] * 4
@@ -193,6 +194,7 @@ async def bench_service(folder: Path, trials: int, sandbox: str | None) -> dict[
             workers=workers,
             sandbox=sandbox,
             heartbeat=5.0,
+            fetch=LOCAL,
         )
         service = Service(config)
         http = HttpServer(create_app(service), "127.0.0.1", 0)
@@ -210,9 +212,7 @@ async def bench_service(folder: Path, trials: int, sandbox: str | None) -> dict[
                 for _ in range(5):
                     await wait_idle(service)
                     t = time.perf_counter()
-                    await asyncio.to_thread(
-                        resolve, str(repo), "main", service.cache, FetchPolicy()
-                    )
+                    await asyncio.to_thread(resolve, str(repo), "main", service.cache, LOCAL)
                     resolves.append(time.perf_counter() - t)
                     posted = time.time()
                     reply = (await client.post("/api/trials", json=body)).json()

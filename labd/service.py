@@ -21,7 +21,7 @@ import shutil
 import socket
 import time
 from collections.abc import Callable, Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -66,6 +66,8 @@ class ServiceConfig:
     canary_every: float = 3600.0  # seconds between a worker's canary reruns
     rules: Rules = field(default_factory=Rules)  # booking live robots
     signup: bool = False  # people may make their own accounts on the sign-in page
+    submit_threads: int = 8  # submissions resolved at once (each may wait on a git server)
+    submit_waiting: int = 32  # more that wait for a thread; past these, 503
 
     @property
     def database_url(self) -> str:
@@ -103,13 +105,25 @@ class Service:
             self.index, config.rules, load_secret(keys / "reservations.secret")
         )
         self.queue = Queue(self.index, config.queue, self.keyring)
+        # However local paths are allowed, no submission reaches the lab's own files: its
+        # mirrors of repositories (some private), runtimes, trials at work, keys, blobs.
+        own: tuple[Path, ...] = (self.cache, (config.data / "work").resolve(), keys)
+        if "://" not in config.blobs_url:
+            own += (Path(config.blobs_url).resolve(),)
+        self.fetch = replace(config.fetch, lab_folders=(*config.fetch.lab_folders, *own))
+        self.run_options = config.run
+        if config.run.fetch is not None:
+            fetch = replace(config.run.fetch, lab_folders=self.fetch.lab_folders)
+            self.run_options = replace(config.run, fetch=fetch)
         self.submissions = Submissions(
             self.queue,
             self.host,
             self.cache,
-            config.fetch,
+            self.fetch,
             archive=LocalArchive(self.index, self.store),
             data_policy=config.data_policy,
+            threads=config.submit_threads,
+            waiting=config.submit_waiting,
         )
         self.workers: list[Worker] = []
         self._tasks: list[asyncio.Task[None]] = []
@@ -139,7 +153,7 @@ class Service:
                     work=work,
                     cache=self.cache,
                     heartbeat=self.config.heartbeat,
-                    options=self.config.run,
+                    options=self.run_options,
                     canaries=self.config.canaries,
                     canary_every=self.config.canary_every,
                 ),
@@ -236,6 +250,7 @@ class Service:
                 await task
         if self.workers:
             await asyncio.to_thread(self.queue.release_worker, self.name + "/")
+        self.submissions.close()
         self.index.close()
 
 

@@ -47,6 +47,7 @@ OUTCOMES = ("success", "fail", "error")
 INTERFACE_KINDS = ("msg", "srv", "action")
 MAX_INTERFACE_FILES = 1000
 MAX_INTERFACE_BYTES = 4 * 1024 * 1024  # all of them together
+MAX_TRIAL_ID = 2**63 - 1  # the archive's ids are signed 64-bit integers
 
 
 @dataclass(frozen=True)
@@ -146,6 +147,11 @@ def _data(table: Any) -> DataSpec | None:
         isinstance(i, int) and not isinstance(i, bool) and i > 0 for i in ids
     ):
         raise ControllerConfigError(f"[data] trials must be a list of trial ids, not {ids!r}")
+    beyond = [i for i in ids if i > MAX_TRIAL_ID]
+    if beyond:  # TOML reads any integer; the archive's ids are 64-bit
+        raise ControllerConfigError(
+            f"[data] trials: {beyond[0]} is no trial id (trial ids are 1 to {MAX_TRIAL_ID})"
+        )
     query = table.get("query")
     if query is not None and not isinstance(query, dict):
         raise ControllerConfigError(f"[data] query must be an inline table, {example}")

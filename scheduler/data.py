@@ -160,6 +160,10 @@ def resolve(
 ) -> list[PinnedRecord]:
     """``[data]`` as a fixed list of records, by trial id (``InvalidData``)."""
     policy = policy or DataPolicy()
+    if len(spec.trials) > policy.max_trials:  # refused before looking any of them up
+        raise InvalidData(
+            f"it names {len(spec.trials)} trials, more than this lab's limit of {policy.max_trials}"
+        )
     chosen: dict[int, PinnedRecord] = {}
     for trial_id in spec.trials:
         try:

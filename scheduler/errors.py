@@ -6,6 +6,7 @@ TrialError                      a trial could not be prepared or run
 │   ├── Unreachable             no such host or path, refused, or it needs a credential
 │   ├── RefNotFound             the ref is no branch, tag or commit of it
 │   ├── TooLarge                it is over the lab's size limit
+│   │   └── CheckoutTooLarge    a commit's files add up to more than the lab checks out
 │   ├── FetchTimeout            fetching it took longer than the lab's time limit
 │   └── SubmoduleNotAllowed     a submodule's URL is outside the lab's allow-list
 ├── RepositoryFileError         a file the lab reads from a checkout is a link, or no file
@@ -17,6 +18,7 @@ QueueError                      a queue operation was refused
 ├── InvalidRequest              a submission names an unknown task, a bad parameter or seed
 │   └── InvalidData             lab.toml's [data] matches nothing, too much, or what is not public
 ├── QuotaExceeded               a submitter is over a limit the operator set
+├── Busy                        the lab has as many submissions in hand as it takes
 ├── NotYours                    a trial may be changed only by its submitter
 └── RemoteError                 talking to a lab's HTTP API went wrong
     ├── LabUnreachable          no lab answered at that address
@@ -50,10 +52,15 @@ class SchemeNotAllowed(RepositoryError):
     def __init__(self, source: str, scheme: str, allowed: Iterable[str]) -> None:
         self.scheme = scheme
         self.allowed = tuple(sorted(allowed))
-        what = "local paths and file:// URLs are" if scheme == "file" else f"scheme {scheme!r} is"
-        super().__init__(
-            source, f"{what} not allowed here; this lab accepts {accepted(self.allowed)}"
-        )
+        if scheme == "file":
+            # The same words whatever is at that path: a refusal tells nothing of the host.
+            what = (
+                "local paths and file:// URLs are not allowed here (a lab's operator allows"
+                " them with --allow-local-repos)"
+            )
+        else:
+            what = f"scheme {scheme!r} is not allowed here"
+        super().__init__(source, f"{what}; this lab accepts {accepted(self.allowed)}")
 
 
 class Unreachable(RepositoryError):
@@ -103,6 +110,36 @@ class TooLarge(RepositoryError):
             f"is larger than this lab's limit of {_mib(limit)} (at least {_mib(size)},"
             " all branches and tags); keep large files out of the repository, or ask the"
             " lab's operator for a higher limit",
+        )
+
+
+class CheckoutTooLarge(TooLarge):
+    """A commit whose files (its submodules' included) add up to more bytes, or more
+    files, than the lab writes out for a trial: found from git's trees, before anything
+    is expanded. A repository compresses well (1 GiB of zeros is 1 MiB in git), so this
+    is apart from its size. Counting stops past the limit, so ``size`` is a lower bound."""
+
+    def __init__(
+        self, source: str, commit: str, limit: int, size: int, *, files: bool = False
+    ) -> None:
+        self.commit = commit
+        self.limit = limit
+        self.size = size
+        self.files = files
+        if files:
+            what = f"{limit:,} files"
+            counted = f"{size:,} files"
+        else:
+            what = f"{_mib(limit)} (--max-checkout-mb)"
+            counted = _mib(size)
+        # Counting stopped past the limit: the count says more only when it is well past.
+        more = f" (at least {counted})" if counted != what.split(" (")[0] else ""
+        RepositoryError.__init__(
+            self,
+            source,
+            f"commit {commit[:12]} checks out to more than this lab's limit of {what}{more};"
+            " keep large files, or many, out of the commit, or ask the lab's operator for a"
+            " higher limit",
         )
 
 
@@ -180,6 +217,19 @@ class QueueError(Exception):
 
 class QuotaExceeded(QueueError):
     """A submitter is over a limit the operator set."""
+
+
+class Busy(QueueError):
+    """The lab is resolving as many submissions as it takes at once, and as many wait:
+    try again in ``retry_after`` seconds."""
+
+    def __init__(self, in_hand: int, retry_after: float) -> None:
+        self.in_hand = in_hand
+        self.retry_after = retry_after
+        super().__init__(
+            f"the lab has {in_hand} submissions in hand already, as many as it takes;"
+            f" try again in {retry_after:g} s"
+        )
 
 
 def accepted(schemes: Collection[str]) -> str:

@@ -3,9 +3,10 @@
 ``resolve`` is what a submission calls. It checks the repository against the policy,
 fetches it into a bare mirror under ``cache/mirrors`` and resolves the ref (a branch, a
 tag, a full or abbreviated commit; HEAD by default) to the full commit the trial will
-run and nothing else. ``fetch_commit`` is what a trial's checkout calls: the same,
-except that a commit already in the mirror is used without going to the network, so a
-rerun of an old commit works after its branch has moved on.
+run and nothing else, all within ``resolve_timeout`` (the submitter is waiting).
+``fetch_commit`` is what a trial's checkout calls: the same, except that a commit
+already in the mirror is used without going to the network, so a rerun of an old
+commit works after its branch has moved on.
 
 The mirror cache:
 
@@ -21,7 +22,11 @@ The mirror cache:
 
 The policy is one object the operator builds at start-up. Git is told to speak only
 the allowed protocols (``protocol.allow``), so a redirect to another scheme fails too.
-Fetching runs under a deadline and a size watch: git and everything it started are
+Local paths and ``file://`` URLs (``file``) are off unless the operator allows them: a
+submitter would otherwise reach the lab's host. Even then the lab's own folders
+(``lab_folders``: its mirrors, keys, records...) are refused, whatever path leads there.
+Fetching a repository and its submodules runs under one deadline (waiting for another
+fetch of the same mirror included) and a size watch: git and everything it started are
 killed past either.
 
 How a credential travels: only in the environment of the one git process that fetches
@@ -34,6 +39,8 @@ URL rewrites) is not read unless ``user_config`` is set, as for ``labd run``.
 
 Errors are scheduler.errors.RepositoryError and its subclasses SchemeNotAllowed,
 Unreachable, RefNotFound, TooLarge, FetchTimeout and SubmoduleNotAllowed.
+(``max_checkout_bytes`` and ``max_checkout_files`` are for scheduler.source, which
+expands commits.)
 """
 
 from __future__ import annotations
@@ -53,7 +60,7 @@ import subprocess
 import tempfile
 import time
 from collections.abc import Iterator
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from urllib.parse import unquote, urljoin, urlsplit
 
@@ -71,8 +78,8 @@ from scheduler.errors import (
 )
 
 log = logging.getLogger("scheduler.fetch")
-DEFAULT_SCHEMES = frozenset({"https", "ssh", "git", "file"})
-ALL_SCHEMES = DEFAULT_SCHEMES | {"http"}
+DEFAULT_SCHEMES = frozenset({"https", "ssh", "git"})  # file (local paths): the operator's call
+ALL_SCHEMES = DEFAULT_SCHEMES | {"http", "file"}
 MAX_DEPTH = 8  # submodules of submodules, at most this deep
 POLL = 0.05  # seconds between looks at a running fetch's size
 SCHEME = re.compile(r"^([A-Za-z][A-Za-z0-9+.-]*)://")
@@ -119,14 +126,20 @@ class FetchPolicy:
     ``schemes``: https, http, ssh, git, file (local paths and file:// URLs).
     ``submodules``: URL prefixes of the submodules that may be followed (end a prefix
     with ``/`` to mean a folder); ``("",)`` follows any.
+    ``lab_folders``: folders of the lab itself (its cache of mirrors, its keys...), never
+    taken as a repository even when local paths are allowed.
     """
 
     schemes: frozenset[str] = DEFAULT_SCHEMES
-    max_bytes: int = 512 * MiB
-    timeout: float = 300.0  # seconds for one fetch
+    max_bytes: int = 512 * MiB  # a mirror: all branches and tags, as git stores them
+    max_checkout_bytes: int = 512 * MiB  # a commit's files, expanded (scheduler.source)
+    max_checkout_files: int = 100_000  # and how many files and links they are
+    timeout: float = 300.0  # seconds for fetching a repository and its submodules
+    resolve_timeout: float = 60.0  # the same at submit time, when the submitter waits
     submodules: tuple[str, ...] = ()
     credentials: tuple[Credential, ...] = ()
     user_config: bool = False  # read ~/.gitconfig (helpers, rewrites): one's own machine only
+    lab_folders: tuple[Path, ...] = ()
 
     def credential_for(self, location: Location) -> Credential | None:
         """The credential for this URL: the one with the longest matching prefix."""
@@ -185,9 +198,16 @@ class Fetched:
 
 
 def resolve(repository: str, ref: str | None, cache: Path, policy: FetchPolicy) -> Resolved:
-    """Fetch ``repository`` under ``policy`` and pin ``ref`` (None: HEAD) to a commit."""
-    fetched = fetch_commit(repository, ref, cache, policy, refresh=True)
+    """Fetch ``repository`` under ``policy`` and pin ``ref`` (None: HEAD) to a commit,
+    within the policy's ``resolve_timeout`` (or its ``timeout``, if shorter)."""
+    fetched = fetch_commit(repository, ref, cache, submitting(policy), refresh=True)
     return Resolved(fetched.repository, ref, fetched.commit, fetched.public is True)
+
+
+def submitting(policy: FetchPolicy) -> FetchPolicy:
+    """The policy for what a submission does while its submitter waits: the same, with
+    the shorter of the two deadlines."""
+    return replace(policy, timeout=min(policy.timeout, policy.resolve_timeout))
 
 
 def fetch_commit(
@@ -196,8 +216,12 @@ def fetch_commit(
     """The commit ``ref`` of ``repository`` in the mirror cache, and its submodules'.
 
     Without ``refresh``, a full commit id already in the mirror is taken from there.
+    Everything (waiting for the mirror, fetching, submodules) ends within ``policy.timeout``.
     """
-    return _fetch_commit(repository, ref, cache, policy, refresh=refresh, depth=0)
+    deadline = time.monotonic() + policy.timeout
+    return _fetch_commit(
+        repository, ref, cache, policy, refresh=refresh, depth=0, deadline=deadline
+    )
 
 
 def locate(repository: str, policy: FetchPolicy) -> Location:
@@ -229,7 +253,7 @@ def locate(repository: str, policy: FetchPolicy) -> Location:
             raise SchemeNotAllowed(url, scheme, policy.schemes)
         if scheme == "file" and parts.netloc in ("", "localhost"):
             # file:///home/me/ctl is the folder /home/me/ctl: one repository, one name
-            return Location(str(Path(unquote(parts.path)).resolve()), "file")
+            return _local(url, Path(unquote(parts.path)), policy)
         return Location(url, scheme)
     if SCP.match(text):
         if "ssh" not in policy.schemes:
@@ -237,7 +261,20 @@ def locate(repository: str, policy: FetchPolicy) -> Location:
         return Location(text.rstrip("/"), "ssh")
     if "file" not in policy.schemes:
         raise SchemeNotAllowed(text, "file", policy.schemes)
-    return Location(str(Path(text).expanduser().resolve()), "file")
+    return _local(text, Path(text).expanduser(), policy)
+
+
+def _local(given: str, path: Path, policy: FetchPolicy) -> Location:
+    """A local repository's location: its real path, which must not be the lab's own."""
+    real = path.resolve()
+    for folder in policy.lab_folders:
+        if real.is_relative_to(folder.resolve()):
+            raise RepositoryError(
+                given,
+                "is in the lab's own folders (its mirrors of repositories, caches, keys,"
+                " records or trials at work); give a repository of your own",
+            )
+    return Location(str(real), "file")
 
 
 def _check_folder(location: Location) -> None:
@@ -299,21 +336,28 @@ def git_environment(
 
 
 def _fetch_commit(
-    repository: str, ref: str | None, cache: Path, policy: FetchPolicy, *, refresh: bool, depth: int
+    repository: str,
+    ref: str | None,
+    cache: Path,
+    policy: FetchPolicy,
+    *,
+    refresh: bool,
+    depth: int,
+    deadline: float,
 ) -> Fetched:
     location = locate(repository, policy)
     if ref is not None and NOT_A_NAME.search(ref):
         raise RefNotFound(location.url, ref)
     mirror = mirror_path(cache, location.url)
     public: bool | None = None
-    with _locked(cache, mirror.name):
+    with _locked(cache, mirror.name, deadline, location.url, policy):
         pinned = ref is not None and SHA.match(ref.lower()) is not None
         if refresh or not (pinned and _has_commit(mirror, ref or "")):
-            public = _fetch(location, mirror, policy)
+            public = _fetch(location, mirror, policy, deadline)
             if pinned and not _has_commit(mirror, ref or ""):
                 # Not on any branch or tag (any more): servers may still give it by id.
                 with contextlib.suppress(Unreachable):
-                    _fetch(location, mirror, policy, refspecs=(ref or "",))
+                    _fetch(location, mirror, policy, deadline, refspecs=(ref or "",))
         with git.Repo(mirror) as repo:
             commit = _commit(repo, location.url, ref)
             # A ref update would run the reference-transaction hook: none may run here.
@@ -323,7 +367,9 @@ def _fetch_commit(
     for path, url, sub_commit in gitmodules:
         if depth >= MAX_DEPTH:
             raise RepositoryError(location.url, f"has submodules nested over {MAX_DEPTH} deep")
-        inner = _fetch_commit(url, sub_commit, cache, policy, refresh=refresh, depth=depth + 1)
+        inner = _fetch_commit(
+            url, sub_commit, cache, policy, refresh=refresh, depth=depth + 1, deadline=deadline
+        )
         public = public and inner.public
         submodules.append(Submodule(path, inner.repository, inner.commit, inner.mirror))
         submodules += [
@@ -334,7 +380,11 @@ def _fetch_commit(
 
 
 def _fetch(
-    location: Location, mirror: Path, policy: FetchPolicy, refspecs: tuple[str, ...] = ()
+    location: Location,
+    mirror: Path,
+    policy: FetchPolicy,
+    deadline: float,
+    refspecs: tuple[str, ...] = (),
 ) -> bool:
     """Clone or update ``mirror``; whether that worked without a credential."""
     if location.scheme == "file":
@@ -345,7 +395,6 @@ def _fetch(
         # Over ssh the key is the only way in; over https, try anonymously first.
         attempts = [credential] if location.scheme == "ssh" else [None, credential]
     started = time.monotonic()
-    deadline = started + policy.timeout
     for attempt in attempts:
         try:
             _fetch_once(location, mirror, policy, attempt, deadline=deadline, refspecs=refspecs)
@@ -533,12 +582,23 @@ def _join(base: Location, url: str) -> str:
 
 
 @contextlib.contextmanager
-def _locked(cache: Path, name: str) -> Iterator[None]:
-    """One fetch of a mirror at a time, across threads and processes."""
+def _locked(
+    cache: Path, name: str, deadline: float, source: str, policy: FetchPolicy
+) -> Iterator[None]:
+    """One fetch of a mirror at a time, across threads and processes; waiting for the
+    mirror counts against the deadline (many submissions of one silent server queue
+    here, and each must end in time)."""
     locks = cache / "locks"
     locks.mkdir(parents=True, exist_ok=True)
     with (locks / name).open("a") as handle:
-        fcntl.flock(handle, fcntl.LOCK_EX)
+        while True:
+            try:
+                fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
+                break
+            except BlockingIOError:
+                if time.monotonic() >= deadline:
+                    raise FetchTimeout(source, policy.timeout) from None
+                time.sleep(POLL)  # flock has no timeout of its own
         yield
 
 

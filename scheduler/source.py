@@ -8,7 +8,12 @@ files themselves that names the code whatever its origin.
   fetched into a bare mirror in the cache (scheduler.fetch: no hooks run, submodules
   only from the allow-list, each exported into its path) and the commit the ref
   resolves to is exported. A full commit id already in the mirror is exported without
-  fetching, so reruns work after a branch has moved.
+  fetching, so reruns work after a branch has moved. Before anything is written, the
+  size of the commit's files (its submodules' included) is read from git's trees and
+  held to the policy's ``max_checkout_bytes`` and ``max_checkout_files``: a repository
+  compresses well (1 GiB of zeros is about 1 MiB in git, and one blob or tree may be
+  named by a thousand paths), so its size says little of its checkout's
+  (``CheckoutTooLarge``).
 - With a fetch policy (a lab's worker), a local repository path is taken through the
   mirror cache as well, under that policy: the trial runs the pinned commit, whatever
   the folder holds now. Without one (``labd run``), URLs are fetched under
@@ -18,6 +23,9 @@ files themselves that names the code whatever its origin.
   ``commit`` is HEAD only when the folder has no uncommitted changes, otherwise None
   and ``dirty`` is set. With ``ref`` given, that commit's files are exported instead.
 - A plain folder is copied as it is; it has no commit.
+
+Every export streams ``git archive`` into the folder a file at a time: the lab never
+holds a checkout in memory.
 
 The repository's symbolic links are kept as they are: they are the controller's
 business inside its sandbox. The lab itself follows none of them on the host: files
@@ -29,20 +37,23 @@ while checking out is a ``RepositoryError`` saying what, never another exception
 from __future__ import annotations
 
 import hashlib
-import io
 import logging
 import os
 import posixpath
 import re
 import stat
+import subprocess
+import sys
 import tarfile
+import tempfile
 from dataclasses import dataclass
 from pathlib import Path, PurePosixPath
+from typing import IO
 
 import git
 
-from scheduler.errors import RefNotFound, RepositoryError, TrialError
-from scheduler.fetch import PREFLIGHT, FetchPolicy, fetch_commit
+from scheduler.errors import CheckoutTooLarge, RefNotFound, RepositoryError, TrialError
+from scheduler.fetch import PREFLIGHT, Fetched, FetchPolicy, fetch_commit
 from scheduler.files import TreeWriter, copy_files
 
 log = logging.getLogger("scheduler.source")
@@ -182,6 +193,7 @@ def _from_mirror(
     source: str, ref: str | None, dest: Path, cache: Path, policy: FetchPolicy
 ) -> Source:
     fetched = fetch_commit(source, ref, cache, policy)
+    _check_size(fetched, policy)
     dest.mkdir(parents=True)
     with TreeWriter(dest, fetched.repository) as writer:
         with git.Repo(fetched.mirror) as repo:
@@ -191,6 +203,79 @@ def _from_mirror(
             with git.Repo(sub.mirror) as repo:
                 _export(repo, sub.commit, "", writer, sub.repository, into=sub.path)
     return Source(fetched.repository, fetched.commit, tree_digest(dest), git_tree, "", False)
+
+
+@dataclass(frozen=True)
+class Expanded:
+    """What a commit's checkout takes: its files' bytes and how many files (and links)."""
+
+    bytes: int
+    files: int
+
+    def __add__(self, other: Expanded) -> Expanded:
+        return Expanded(self.bytes + other.bytes, self.files + other.files)
+
+
+def expanded_size(
+    git_dir: Path, commit: str, subdir: str = "", stop_past: Expanded | None = None
+) -> Expanded:
+    """What ``commit``'s files (of ``subdir``) take when checked out: their blobs' sizes
+    added up path by path, read from git's trees (``ls-tree -r -l``), nothing expanded.
+
+    Reading stops as soon as either sum is past ``stop_past``'s: what was counted is then
+    returned, already too much. (A tree can name a subtree a thousand times, and that one
+    another thousand: the count must stop, as the checkout would not.)
+    """
+    command = [_git(), "--git-dir", str(git_dir), "ls-tree", "-r", "-l", "-z", commit]
+    with tempfile.TemporaryFile() as errors:
+        process = subprocess.Popen(  # noqa: S603 - a fixed git command on the lab's mirror
+            [*command, *(["--", subdir] if subdir else [])],
+            stdin=subprocess.DEVNULL,
+            stdout=subprocess.PIPE,
+            stderr=errors,
+        )
+        assert process.stdout is not None
+        bound = stop_past or Expanded(sys.maxsize, sys.maxsize)
+        size = files = 0
+        rest = b""
+        try:
+            while chunk := process.stdout.read(1 << 16):
+                *entries, rest = (rest + chunk).split(b"\0")
+                for entry in entries:
+                    # "<mode> <type> <object> <size>\t<path>"; a gitlink's size is "-"
+                    field = entry.partition(b"\t")[0].split()[-1]
+                    if field.isdigit():
+                        size += int(field)
+                        files += 1
+                    if size > bound.bytes or files > bound.files:
+                        return Expanded(size, files)
+        finally:
+            if process.poll() is None:
+                process.kill()
+            process.wait()
+            process.stdout.close()
+        if process.returncode != 0:
+            errors.seek(0)
+            reason = _last_line(errors.read().decode(errors="replace"))
+            raise RepositoryError(str(git_dir), f"could not list {commit[:12]}: {reason}")
+        return Expanded(size, files)
+
+
+def _check_size(fetched: Fetched, policy: FetchPolicy) -> None:
+    """Refuse a commit whose checkout (its submodules' included) is over the policy's
+    limits, before anything of it is written."""
+    limit = Expanded(policy.max_checkout_bytes, policy.max_checkout_files)
+    parts = [(fetched.mirror, fetched.commit), *((s.mirror, s.commit) for s in fetched.submodules)]
+    total = Expanded(0, 0)
+    for mirror, commit in parts:
+        left = Expanded(limit.bytes - total.bytes, limit.files - total.files)
+        total += expanded_size(mirror, commit, "", left)
+        if total.bytes > limit.bytes:
+            raise CheckoutTooLarge(fetched.repository, fetched.commit, limit.bytes, total.bytes)
+        if total.files > limit.files:
+            raise CheckoutTooLarge(
+                fetched.repository, fetched.commit, limit.files, total.files, files=True
+            )
 
 
 def _resolve(repo: git.Repo, source: str, ref: str) -> str:
@@ -222,35 +307,55 @@ def _export(
 
     Regular files, folders and symbolic links are written, the links as they are;
     nothing else of a tree is (git has nothing else but submodules, exported apart).
+    ``git archive`` is read as a stream, one file at a time, never whole.
     """
-    buffer = io.BytesIO()
-    try:
-        repo.archive(buffer, commit, format="tar", path=subdir or None)
-    except git.GitCommandError as err:
-        raise RepositoryError(
-            source, f"could not export {commit[:12]}: {_git_reason(err)}"
-        ) from None
-    buffer.seek(0)
+    command = [_git(), "--git-dir", str(repo.git_dir), "archive", "--format=tar", commit]
+    with tempfile.TemporaryFile() as errors:
+        process = subprocess.Popen(  # noqa: S603 - a fixed git command on the lab's mirror
+            [*command, *(["--", subdir] if subdir else [])],
+            stdin=subprocess.DEVNULL,
+            stdout=subprocess.PIPE,
+            stderr=errors,
+        )
+        assert process.stdout is not None
+        whole, failed = False, ""
+        try:
+            _untar(process.stdout, subdir, writer, into)
+            while process.stdout.read(1 << 16):  # the archive's padding after its end
+                pass
+            whole = True
+        except tarfile.TarError as err:
+            failed = str(err)
+        finally:
+            if not whole:
+                process.kill()  # it may be blocked writing what is no longer read
+            process.stdout.close()
+            process.wait()
+        if process.returncode > 0:  # git's own failure (a missing commit...): its words
+            errors.seek(0)
+            reason = _last_line(errors.read().decode(errors="replace"))
+            raise RepositoryError(source, f"could not export {commit[:12]}: {reason}")
+        if not whole:
+            raise RepositoryError(source, f"could not export {commit[:12]}: {failed}")
+
+
+def _untar(stream: IO[bytes], subdir: str, writer: TreeWriter, into: str) -> None:
+    """Write the members of the tar ``stream`` through ``writer`` as they come."""
     prefix = f"{subdir}/" if subdir else ""
-    try:
-        with tarfile.open(fileobj=buffer) as archive:
-            for member in archive:
-                name = member.name.rstrip("/")
-                if not name.startswith(prefix) or name == prefix:
-                    continue
-                name = (
-                    posixpath.join(into, name.removeprefix(prefix)) if into else name[len(prefix) :]
-                )
-                if member.isdir():
-                    writer.directory(name)
-                elif member.issym():
-                    writer.symlink(name, member.linkname)
-                elif member.isfile():
-                    data = archive.extractfile(member)
-                    assert data is not None  # a regular file's member has data
-                    writer.file(name, data, executable=bool(member.mode & 0o111))
-    except tarfile.TarError as err:
-        raise RepositoryError(source, f"could not export {commit[:12]}: {err}") from None
+    with tarfile.open(fileobj=stream, mode="r|") as archive:
+        for member in archive:
+            name = member.name.rstrip("/")
+            if not name.startswith(prefix) or name == prefix:
+                continue
+            name = posixpath.join(into, name.removeprefix(prefix)) if into else name[len(prefix) :]
+            if member.isdir():
+                writer.directory(name)
+            elif member.issym():
+                writer.symlink(name, member.linkname)
+            elif member.isfile():
+                data = archive.extractfile(member)
+                assert data is not None  # a regular file's member has data
+                writer.file(name, data, executable=bool(member.mode & 0o111))
 
 
 def _describe(err: BaseException) -> str:
@@ -260,6 +365,16 @@ def _describe(err: BaseException) -> str:
     if isinstance(err, OSError) and err.strerror:
         return err.strerror
     return type(err).__name__
+
+
+def _git() -> str:
+    return str(git.Git.GIT_PYTHON_GIT_EXECUTABLE or "git")
+
+
+def _last_line(stderr: str) -> str:
+    """Git's own last words, without its ``fatal:`` prefix."""
+    lines = [line.strip() for line in stderr.strip().splitlines() if line.strip()]
+    return lines[-1].removeprefix("fatal: ") if lines else "git failed"
 
 
 def _git_reason(err: git.GitCommandError) -> str:

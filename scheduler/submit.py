@@ -9,6 +9,13 @@ as ``labd run`` reads it (a missing or broken one is refused with the same messa
 task, when the request names none, is the one it names). Only then is the trial
 queued, pinned to that commit; so a request that fails leaves nothing behind.
 
+All of it happens while the submitter waits, so it runs within the fetch policy's
+``resolve_timeout`` (a git server that never answers holds a submission that long, no
+longer), and ``submit_async`` runs it in a pool of threads of its own: at most
+``threads`` submissions are resolved at once and ``waiting`` more wait their turn;
+past that a submission is refused at once (``Busy``). So submissions, however slow
+their servers, never take the threads that answer the archive's readers.
+
 When ``lab.toml`` has ``[data]``, it is resolved here against the archive
 (``scheduler.data``): the trial is queued with the fixed list of records it learns
 from, which the answer shows.
@@ -19,8 +26,11 @@ an earlier trial, linked to it, so its record can say whether it reproduced.
 
 from __future__ import annotations
 
+import asyncio
 import logging
 import tempfile
+import threading
+from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
 
 from repository.index import Index, User
@@ -28,8 +38,8 @@ from repository.trial import Kind, PinnedRecord, TrialRequest
 from scheduler import controller
 from scheduler import data as pinning
 from scheduler.data import Archive, DataPolicy
-from scheduler.errors import InvalidRequest
-from scheduler.fetch import FetchPolicy, Resolved, resolve
+from scheduler.errors import Busy, InvalidRequest
+from scheduler.fetch import FetchPolicy, Resolved, resolve, submitting
 from scheduler.host import TrialHost
 from scheduler.queue import Queue
 from scheduler.source import checkout
@@ -47,14 +57,48 @@ class Submissions:
         *,
         archive: Archive | None = None,
         data_policy: DataPolicy | None = None,
+        threads: int = 8,
+        waiting: int = 32,
     ) -> None:
         self.queue = queue
         self.host = host
         self.index: Index = queue.index
         self.cache = cache
-        self.policy = policy
+        self.policy = submitting(policy)  # the submitter waits: the shorter deadline
         self.archive = archive  # where [data] is resolved; None: refused
         self.data_policy = data_policy or DataPolicy()
+        self.threads = threads
+        self.waiting = waiting
+        self._pool = ThreadPoolExecutor(threads, thread_name_prefix="labd-submit")
+        self._lock = threading.Lock()
+        self._in_hand = 0  # submissions running or waiting in the pool
+
+    async def submit_async(self, user: User, request: TrialRequest) -> int:
+        """``submit`` in this lab's own pool of threads; ``Busy`` at once when it has as
+        many submissions in hand as it takes.
+
+        A submission whose caller stops waiting (a client gone) still ends in the pool,
+        and counts until it has: leaving does not make room for more.
+        """
+        with self._lock:
+            if self._in_hand >= self.threads + self.waiting:
+                raise Busy(self._in_hand, retry_after=max(1.0, self.policy.timeout / 2))
+            self._in_hand += 1
+        try:
+            future = self._pool.submit(self.submit, user, request)
+        except BaseException:
+            self._release()
+            raise
+        future.add_done_callback(self._release)
+        return await asyncio.wrap_future(future)
+
+    def _release(self, _: Future[int] | None = None) -> None:
+        with self._lock:
+            self._in_hand -= 1
+
+    def close(self) -> None:
+        """Drop the submissions still waiting; those running end at their deadline."""
+        self._pool.shutdown(wait=False, cancel_futures=True)
 
     def submit(self, user: User, request: TrialRequest) -> int:
         """Check, resolve and queue; the new trial's id.

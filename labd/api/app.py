@@ -36,6 +36,7 @@ from typing import Annotated, Literal
 
 from fastapi import APIRouter, Depends, FastAPI, Query, Request
 from fastapi.responses import JSONResponse, StreamingResponse
+from starlette.concurrency import run_in_threadpool
 
 from labd import __version__
 from labd.api import accounts, errors, records, reservations, summaries, workers
@@ -173,13 +174,17 @@ def tasks() -> TaskList:
     status_code=201,
     tags=["trials"],
     response_model=TrialDetail,
-    responses=responses(400, 401, 403, 413, 422, 429),
+    responses=responses(400, 401, 403, 413, 422, 429, 503),
 )
-def submit(body: TrialRequest, request: Request, service: Lab, user: Writer) -> JSONResponse:
-    """Resolve the ref to a commit now, and queue a trial of that commit."""
-    trial_id = service.submissions.submit(user, body)
+async def submit(body: TrialRequest, request: Request, service: Lab, user: Writer) -> JSONResponse:
+    """Resolve the ref to a commit now, and queue a trial of that commit.
+
+    The resolving (git, within the lab's resolve timeout) runs in the submissions' own
+    threads, never in those that answer readers; 503 when they have all they take.
+    """
+    trial_id = await service.submissions.submit_async(user, body)
     request.app.state.on_submit()
-    return _created(service, trial_id, request)
+    return await run_in_threadpool(_created, service, trial_id, request)
 
 
 @router.get("/api/trials", tags=["trials"], responses=responses(422))

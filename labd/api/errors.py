@@ -30,6 +30,7 @@ from repository.errors import (
     SlotTaken,
 )
 from scheduler.errors import (
+    Busy,
     InvalidRequest,
     NotYours,
     QuotaExceeded,
@@ -87,6 +88,7 @@ STATUS: dict[type[Exception], int] = {
     BadCredentials: 401,
     AccountError: 422,
     QuotaExceeded: 429,
+    Busy: 503,
     InvalidRequest: 422,
     TooLarge: 413,
     RepositoryError: 422,
@@ -102,6 +104,7 @@ MEANING = {
     422: "the request names something wrong (the message says what)",
     429: "over a limit the operator set, or too many failed attempts (see Retry-After)",
     500: "the lab is at fault (the message says what)",
+    503: "the lab has all the submissions it takes in hand (see Retry-After)",
     507: "the lab's storage is full (the message says where)",
 }
 
@@ -126,7 +129,7 @@ async def _known(request: Request, err: Exception) -> JSONResponse:
     if status >= 500:
         log.error("%s %s: %s", request.method, request.url.path, message, exc_info=err)
     headers = {}
-    if isinstance(err, TooMany):
+    if isinstance(err, TooMany | Busy):
         headers["Retry-After"] = str(max(1, round(err.retry_after)))
     return JSONResponse({"error": message}, status_code=status, headers=headers)
 

@@ -4,8 +4,9 @@
    under ``DATA/demo/``, as a user's would be.
 2. A user ``demo`` is made; its token is kept in ``DATA/demo/token`` for later runs.
 3. ``labd serve`` starts (the bridge, the robots, the HTTP API, one worker), on the
-   default ports if they are free and on free ones if not (or on those given), and the
-   lab's address and the token go into ``DATA/demo/env``, a file to ``source``.
+   default ports if they are free and on free ones if not (or on those given), with
+   ``--allow-local-repos`` (the examples are local repositories), and the lab's address
+   and the token go into ``DATA/demo/env``, a file to ``source``.
 4. Each example is submitted by its repository's path and branch, like any other
    repository, and the demo waits for the trials to end and prints their outcomes.
 5. It prints where to look and what to try, every command as it works once the env
@@ -100,6 +101,7 @@ def main(args: argparse.Namespace) -> int:
         str(http_port),
         "--bridge-port",
         str(bridge_port),
+        "--allow-local-repos",  # the examples are submitted by their repositories' paths
     ]
     if args.sandbox:
         command += ["--sandbox", args.sandbox]

@@ -19,13 +19,26 @@ def add_options(group: Any) -> None:
         dest="schemes",
         metavar="SCHEME",
         help="repository URL schemes accepted (repeatable; default: "
-        f"{' '.join(sorted(DEFAULTS.schemes))}; file means local paths)",
+        f"{' '.join(sorted(DEFAULTS.schemes))}; add http for plain HTTP)",
+    )
+    group.add_argument(
+        "--allow-local-repos",
+        action="store_true",
+        help="accept local paths and file:// URLs as repositories: whoever may submit then"
+        " reaches this machine's folders (default: refused; the lab's own are always refused)",
     )
     group.add_argument(
         "--max-repo-mb",
         type=int,
         default=DEFAULTS.max_bytes // MiB,
         help="largest repository fetched, in MiB (default: %(default)s)",
+    )
+    group.add_argument(
+        "--max-checkout-mb",
+        type=int,
+        default=DEFAULTS.max_checkout_bytes // MiB,
+        help="largest commit checked out (its files added up, as written to disk), in MiB"
+        " (default: %(default)s)",
     )
     group.add_argument(
         "--fetch-timeout",
@@ -73,10 +86,22 @@ def policy(args: argparse.Namespace, command: str) -> FetchPolicy:
         if not Path(file).is_file():
             raise SystemExit(f"{command}: --git-ssh-key {prefix}: no key file {file}")
         credentials.append(Credential(prefix, ssh_key=Path(file).resolve()))
+    schemes = frozenset(args.schemes) if args.schemes else DEFAULTS.schemes
+    if "file" in schemes:
+        raise SystemExit(f"{command}: --allow-scheme file: local paths are --allow-local-repos")
+    if args.allow_local_repos:
+        schemes |= {"file"}
+    for flag, value in (
+        ("--max-repo-mb", args.max_repo_mb),
+        ("--max-checkout-mb", args.max_checkout_mb),
+    ):
+        if value <= 0:
+            raise SystemExit(f"{command}: {flag} {value}: give a size of 1 MiB or more")
     return FetchPolicy(
         credentials=tuple(credentials),
-        schemes=frozenset(args.schemes) if args.schemes else DEFAULTS.schemes,
+        schemes=schemes,
         max_bytes=args.max_repo_mb * MiB,
+        max_checkout_bytes=args.max_checkout_mb * MiB,
         timeout=args.fetch_timeout,
         submodules=tuple(args.submodule_allow),
     )

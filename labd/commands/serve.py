@@ -15,6 +15,7 @@ import argparse
 import asyncio
 import ctypes
 import signal
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -196,6 +197,14 @@ def add_parser(commands: Any) -> None:
     )
     fetching.add_options(group)
     group.add_argument(
+        "--resolve-timeout",
+        type=float,
+        default=fetching.DEFAULTS.resolve_timeout,
+        metavar="S",
+        help="seconds a submission may take to fetch its repository and resolve its ref,"
+        " its submitter waiting (default: %(default)g; at most --fetch-timeout)",
+    )
+    group.add_argument(
         "--cache", type=Path, help="git mirrors and controller runtimes (default: DATA/cache)"
     )
     group.add_argument(
@@ -372,7 +381,9 @@ def robot_configs(args: argparse.Namespace) -> tuple[RobotConfig, ...]:
 def service_config(args: argparse.Namespace) -> ServiceConfig | None:
     if args.no_service:
         return None
-    fetch = fetching.policy(args, "labd serve")
+    if args.resolve_timeout <= 0:
+        raise Refused(f"--resolve-timeout {args.resolve_timeout:g}: give more than 0 seconds")
+    fetch = replace(fetching.policy(args, "labd serve"), resolve_timeout=args.resolve_timeout)
     return ServiceConfig(
         data=args.data,
         database=args.database,

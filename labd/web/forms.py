@@ -160,9 +160,10 @@ class SubmitForm(BaseModel):
 
 
 @router.post("/submit", response_class=HTMLResponse, dependencies=[CsrfChecked])
-def submit(
+async def submit(
     request: Request, service: Lab, viewer: Viewer, sent: Annotated[SubmitForm, Form()]
 ) -> Any:
+    """Submit from the form; resolved in the submissions' own threads, as the API's are."""
     form = sent.model_dump()
     if viewer is None:
         return _form(request, viewer, form, "sign in first: submitting needs an account", 401)
@@ -174,7 +175,7 @@ def submit(
             params=_params(sent.params),
             seed=int(sent.seed or 0),
         )
-        trial_id = service.submissions.submit(viewer, body)
+        trial_id = await service.submissions.submit_async(viewer, body)
     except ValidationError as err:
         problems = "; ".join(
             f"{'.'.join(str(x) for x in e['loc'])}: {e['msg']}" for e in err.errors()

@@ -34,7 +34,10 @@ def test_200_concurrent_api_requests(served, database_url: str, tmp_path: Path):
     """Submissions, reruns, cancels, refusals, lists, records and downloads, 200 at once:
     each gets the answer it would get alone, none a 5xx, and every write lands once
     (on SQLite and on PostgreSQL)."""
-    lab = served("--no-robots", "--workers", "1", "--sandbox", "bwrap", "--database", database_url)
+    lab = served(
+        "--no-robots", "--workers", "1", "--sandbox", "bwrap", "--database", database_url,
+        "--allow-local-repos",
+    )  # fmt: skip
     lab.token = lab.add_user("alice", "--max-running", "1", "--max-daily", "1000")
     lab.start()
     repo = GitRepo.create(tmp_path / "quick", FILES)

@@ -58,7 +58,7 @@ def test_a_damaged_blob_is_never_served_nor_filed_again(served, tmp_path: Path):
     """Damaged records and logs get a 500 naming the damage on every route; a worker's
     upload of other bytes under the name is refused; a rerun that reproduced heals the
     blob, and one that did not says the original's record is damaged."""
-    lab = served("--no-robots", "--workers", "1", "--sandbox", "bwrap")
+    lab = served("--no-robots", "--workers", "1", "--sandbox", "bwrap", "--allow-local-repos")
     lab.token = lab.add_user("alice")
     worker = lab.add_user("w1", "--worker")
     lab.start()

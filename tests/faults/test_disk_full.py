@@ -66,7 +66,9 @@ def test_disk_full_while_recording(served, small_disk, tmp_path: Path):
     full, its partial record is deleted and never filed, and the next trial runs."""
     data = tmp_path / "data"
     work = small_disk(data / "work", DISK)
-    lab = served("--no-robots", "--workers", "1", "--sandbox", "bwrap", data=data)
+    lab = served(
+        "--no-robots", "--workers", "1", "--sandbox", "bwrap", "--allow-local-repos", data=data
+    )
     big, small = run_big_then_small(lab, tmp_path, 40)  # 2.5 MiB of noise
     assert (big["status"], big["outcome"]) == ("finished", "error"), big
     assert big["reason"].startswith(
@@ -89,7 +91,10 @@ def test_disk_full_while_filing(served, small_disk, tmp_path: Path):
     lab's disk is full, no part of its record is in the store, a worker's upload is
     refused with 507, and the next trial is filed."""
     blobs = small_disk(tmp_path / "blobs", DISK)
-    lab = served("--no-robots", "--workers", "1", "--sandbox", "bwrap", "--blobs", str(blobs))
+    lab = served(
+        "--no-robots", "--workers", "1", "--sandbox", "bwrap", "--blobs", str(blobs),
+        "--allow-local-repos",
+    )  # fmt: skip
     big, small = run_big_then_small(lab, tmp_path, 24)  # 1.5 MiB of noise
     assert (big["status"], big["outcome"]) == ("finished", "error"), big
     assert big["reason"] == (

@@ -18,6 +18,7 @@ import pytest
 from labd.api.app import TrialQuery
 from labd.commands import serve
 from labd.config import BridgeConfig, DriveLimits
+from labd.service import ServiceConfig
 from repository.index import UserLimits
 from sandbox.api import Limits
 from sandbox.jobs import KEEP
@@ -32,6 +33,7 @@ MiB, KiB = 1024 * 1024, 1024
 BRIDGE, SANDBOX, RUN, QUEUE = BridgeConfig(), Limits(), RunOptions(), QueueConfig()
 DRIVES = DriveLimits()
 WORKER = WorkerConfig(name="", work=Path(), cache=Path())
+SERVICE = ServiceConfig()
 
 
 def limit_of_trial_pages() -> int:
@@ -46,6 +48,13 @@ def serve_heartbeat(lease: float) -> float:
     config = serve.service_config(args)
     assert config is not None
     return config.heartbeat
+
+
+def serve_fetch(*argv: str) -> FetchPolicy:
+    """The fetch policy of ``labd serve`` with these options."""
+    config = serve.service_config(serve_args(*argv))
+    assert config is not None
+    return config.fetch
 
 
 def serve_args(*argv: str) -> argparse.Namespace:
@@ -107,6 +116,17 @@ ROWS: list[tuple[str, str, Callable[[], object], object]] = [
     # docs/service.md: fetching, the queue, the archive
     ("service.md", "| `--max-repo-mb N` | 512 |", lambda: FetchPolicy().max_bytes, 512 * MiB),
     ("service.md", "| `--fetch-timeout S` | 300 |", lambda: FetchPolicy().timeout, 300),
+    ("service.md", "| `--max-checkout-mb N` | 512 |",
+     lambda: (FetchPolicy().max_checkout_bytes, serve_fetch().max_checkout_bytes),
+     (512 * MiB, 512 * MiB)),
+    ("service.md", "refuses one of more than 100,000 files the same way",
+     lambda: FetchPolicy().max_checkout_files, 100_000),
+    ("service.md", "| `--resolve-timeout S` | 60 |",
+     lambda: (FetchPolicy().resolve_timeout, serve_fetch().resolve_timeout), (60, 60)),
+    ("service.md", "| `--allow-local-repos` | off |",
+     lambda: ("file" in FetchPolicy().schemes, "file" in serve_fetch().schemes), (False, False)),
+    ("service.md", "8 at once, 32 more waiting their turn",
+     lambda: (SERVICE.submit_threads, SERVICE.submit_waiting), (8, 32)),
     ("service.md", "(`--lease`, 30 s)", lambda: QUEUE.lease, 30),
     ("service.md", "(`--lease`, 30 s)", lambda: serve_args().lease, 30),
     ("service.md", "renew by heartbeat (every third of the lease)",

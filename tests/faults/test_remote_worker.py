@@ -37,7 +37,8 @@ class RemoteWorker:
         self.data = data
         self.process = subprocess.Popen(
             [sys.executable, "-m", "labd", "--log-level", "INFO", "worker", "--server", lab.server, "--token", token,
-             "--sandbox", "bwrap", "--data", str(data), "--poll", "0.2", "--heartbeat", "1"],
+             "--sandbox", "bwrap", "--data", str(data), "--poll", "0.2", "--heartbeat", "1",
+             "--allow-local-repos"],
             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, start_new_session=True,
         )  # fmt: skip
 
@@ -61,7 +62,7 @@ class RemoteWorker:
 def test_a_remote_worker_lost_mid_trial(served, cache: Path, tmp_path: Path, lost: str):
     """The trial of a worker killed or frozen mid-trial is requeued when its lease runs out,
     run by another worker and filed once; a frozen worker that wakes files nothing."""
-    lab = served("--no-robots", "--workers", "0", "--lease", LEASE)
+    lab = served("--no-robots", "--workers", "0", "--lease", LEASE, "--allow-local-repos")
     lab.token = lab.add_user("alice")
     worker_token = lab.add_user("w1", "--worker")
     lab.start()

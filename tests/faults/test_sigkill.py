@@ -52,7 +52,7 @@ def test_sigkill_while_preparing(served, index: PackageIndex, tmp_path: Path):
     """Killed while the requirements install (the index has not answered): the trial is
     requeued, installs on its second attempt, runs and is filed once."""
     lab = served("--no-robots", "--workers", "1", "--sandbox", "bwrap", "--lease", "3",
-                 env={"PIP_INDEX_URL": index.url})  # fmt: skip
+                 "--allow-local-repos", env={"PIP_INDEX_URL": index.url})  # fmt: skip
     lab.token = lab.add_user("alice")
     lab.start()
     target = lab.submit(GitRepo.create(tmp_path / "t", controller(3, requirements=True)).path)
@@ -72,7 +72,8 @@ def test_sigkill_while_preparing(served, index: PackageIndex, tmp_path: Path):
 def test_sigkill_while_running(served, tmp_path: Path):
     """Killed while the controller steps: the trial is requeued, runs again from the start
     and is filed once, with the same data as an uninterrupted run."""
-    lab = served("--no-robots", "--workers", "1", "--sandbox", "bwrap", "--lease", "3")
+    lab = served("--no-robots", "--workers", "1", "--sandbox", "bwrap", "--lease", "3",
+                 "--allow-local-repos")  # fmt: skip
     lab.token = lab.add_user("alice")
     lab.start()
     target = lab.submit(GitRepo.create(tmp_path / "t", controller(40, 0.1)).path)
@@ -93,7 +94,7 @@ def test_sigkill_while_filing(served, s3: S3Server, tmp_path: Path):
     """Killed while the record uploads to a stopped S3 server: the trial is requeued, and
     once the store answers again it runs and is filed once; the bucket holds its record."""
     lab = served("--no-robots", "--workers", "1", "--sandbox", "bwrap", "--lease", "3",
-                 "--blobs", "s3://lab-archive/records", "--blobs-option",
+                 "--allow-local-repos", "--blobs", "s3://lab-archive/records", "--blobs-option",
                  f"endpoint_url={s3.url}")  # fmt: skip
     lab.token = lab.add_user("alice")
     lab.start()

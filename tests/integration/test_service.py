@@ -71,7 +71,7 @@ class Lab:
             sys.executable, "-m", "labd", "serve", "--data", str(self.data),
             "--cache", str(self.cache), "--http-port", "0", "--bridge-port", "0",
             "--no-robots", "--workers", "1", "--sandbox", "bwrap",
-            "--lease", "3", *self.extra,
+            "--lease", "3", "--allow-local-repos", *self.extra,
         ]  # fmt: skip
         self.process = subprocess.Popen(
             command,
@@ -316,7 +316,8 @@ def test_a_worker_on_another_machine(make_lab, tmp_path, cache):
     (data / "cache").symlink_to(cache)
     worker = subprocess.Popen(
         [sys.executable, "-m", "labd", "worker", "--server", lab.server, "--token",
-         worker_token, "--sandbox", "bwrap", "--data", str(data), "--poll", "0.2"],
+         worker_token, "--sandbox", "bwrap", "--data", str(data), "--poll", "0.2",
+         "--allow-local-repos"],
         stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
     )  # fmt: skip
     try:

@@ -45,6 +45,11 @@ def test_a_complete_file(tmp_path):
             "inside the repository",
         ),
         ('[controller]\ncommand = ["x"]\nrequirements = "missing.txt"\n', "not in the repository"),
+        (
+            '[controller]\ncommand = ["x"]\n[data]\ntrials = [9223372036854775808]\n',
+            "[data] trials: 9223372036854775808 is no trial id (trial ids are 1 to"
+            " 9223372036854775807)",
+        ),
     ],
 )
 def test_broken_files_say_what_is_wrong(tmp_path, text, expected):

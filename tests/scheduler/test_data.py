@@ -147,3 +147,18 @@ def test_a_record_that_is_not_as_pinned_is_never_mounted(archive, tmp_path):
     assert not (tmp_path / "cache" / "data").exists() or not any(
         p.name.endswith("json") for p in (tmp_path / "cache" / "data").rglob("*")
     )
+
+
+def test_more_trial_ids_than_the_cap_are_refused_before_any_is_looked_up():
+    """[data] naming more trials than max_trials is InvalidData at once: no id is looked
+    up in the archive (an archive that fails every lookup shows it)."""
+
+    class Untouchable:
+        def trial(self, trial_id: int) -> object:
+            raise AssertionError(f"trial {trial_id} was looked up")
+
+    spec = DataSpec(tuple(range(1, 1002)))
+    with pytest.raises(
+        InvalidData, match="it names 1001 trials, more than this lab's limit of 200"
+    ):
+        resolve(spec, Untouchable(), DataPolicy())  # type: ignore[arg-type]

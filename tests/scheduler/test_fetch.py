@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import base64
+import fcntl
 import os
 import socket
 import time
@@ -160,8 +161,7 @@ def test_schemes_outside_the_policy_are_refused_before_any_fetch(robot, cache):
     """Schemes the operator did not list, transports and URLs with secrets are refused."""
     with pytest.raises(
         SchemeNotAllowed,
-        match="scheme 'ftp' is not allowed here; this lab accepts https, ssh, git URLs"
-        " and local paths",
+        match=r"scheme 'ftp' is not allowed here; this lab accepts https, ssh, git URLs$",
     ):
         resolve("ftp://example.org/robot.git", None, cache, FetchPolicy())
     with pytest.raises(SchemeNotAllowed, match="scheme 'http' is not allowed"):
@@ -181,6 +181,59 @@ def test_schemes_outside_the_policy_are_refused_before_any_fetch(robot, cache):
         resolve(f"https://bot:{TOKEN}@example.org/robot.git", None, cache, POLICY)
     assert TOKEN not in str(caught.value)
     assert not cache.exists()
+
+
+def test_local_paths_are_refused_by_default_in_the_same_words_whatever_is_there(
+    robot, cache, tmp_path
+):
+    """By default a local path or file:// URL is refused before anything on the host is
+    looked at: a repository, a plain folder and nothing at all get the same words, which
+    name the flag that allows them."""
+    missing = tmp_path / "nothing-here"
+    words = set()
+    for source in (str(robot.path), robot.url, str(tmp_path), str(missing), f"file://{missing}"):
+        with pytest.raises(SchemeNotAllowed) as caught:
+            resolve(source, None, cache, FetchPolicy())
+        assert "--allow-local-repos" in str(caught.value)
+        words.add(str(caught.value).replace(source, "PATH", 1))
+    assert len(words) == 1, words
+    assert not cache.exists()
+
+
+def test_the_labs_own_folders_are_never_a_repository(robot, cache, tmp_path):
+    """With local paths allowed, a path in one of the policy's lab folders (a mirror of
+    the cache, by any path that leads there) is refused, and other local paths are not."""
+    policy = FetchPolicy(schemes=SCHEMES, lab_folders=(cache,))
+    fetched = resolve(str(robot.path), None, cache, policy)
+    mirror = mirror_path(cache, fetched.repository)
+    (tmp_path / "door").symlink_to(mirror)
+    for source in (str(mirror), f"file://{mirror}", str(tmp_path / "door"), f"{cache}/../cache"):
+        with pytest.raises(RepositoryError, match="is in the lab's own folders"):
+            resolve(source, None, cache, policy)
+
+
+def test_waiting_for_another_fetch_of_the_mirror_counts_against_the_deadline(robot, cache):
+    """A fetch that finds its mirror held by another one (a silent server's) ends at its
+    own deadline, however long the other holds it."""
+    policy = FetchPolicy(schemes=SCHEMES, timeout=0.5)
+    name = mirror_path(cache, str(robot.path.resolve())).name
+    (cache / "locks").mkdir(parents=True)
+    with (cache / "locks" / name).open("a") as held:
+        fcntl.flock(held, fcntl.LOCK_EX)
+        started = time.monotonic()
+        with pytest.raises(FetchTimeout, match=r"limit of 0\.5 s"):
+            resolve(str(robot.path), None, cache, policy)
+        assert time.monotonic() - started < 5
+
+
+@pytest.mark.integration
+def test_a_submission_resolves_within_the_resolve_timeout(server, cache):
+    """``resolve`` (a submitter waits) stops at ``resolve_timeout`` when it is the shorter."""
+    policy = FetchPolicy(schemes=SCHEMES, timeout=300, resolve_timeout=0.5)
+    started = time.monotonic()
+    with pytest.raises(FetchTimeout, match=r"limit of 0\.5 s"):
+        resolve(server.stalled_url(), None, cache, policy)
+    assert time.monotonic() - started < 10
 
 
 def big_repository(path: Path, megabytes: int) -> GitRepo:

@@ -217,7 +217,7 @@ async def test_one_worker_files_every_hostile_trial_and_runs_the_next(
             limits=OPTIONS.limits,
             first_step=OPTIONS.first_step,
             stall=OPTIONS.stall,
-            fetch=FetchPolicy(),
+            fetch=FetchPolicy(schemes=frozenset({"file"})),  # the repositories are local
         ),
     )
     worker = Worker(jobs, BlobStore(str(tmp_path / "blobs")), backend, host, config)

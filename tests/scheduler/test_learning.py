@@ -34,6 +34,7 @@ from labd.trial import LabHost
 from repository.index import Filters, Index
 from repository.trial import Kind, Status, TrialRequest
 from scheduler.data import LocalArchive
+from scheduler.fetch import FetchPolicy
 from scheduler.runner import RunOptions, TrialSpec, run_trial
 from scheduler.worker import Worker, WorkerConfig
 from tests.helpers.githttp import GitRepo
@@ -79,7 +80,9 @@ async def test_a_knn_controller_learns_from_pinned_demonstrations_and_reruns(
     """Demonstrations filed, the kNN submitted with them pinned, run sandboxed: it reaches
     the goal of a demonstrated maze, better than random; more demonstrations are filed;
     the rerun pins the same ones and reproduces."""
-    service = Service(ServiceConfig(data=tmp_path / "lab", database=database_url, workers=0))
+    local = FetchPolicy(schemes=frozenset({"file"}))  # the kNN is submitted by its path
+    config = ServiceConfig(data=tmp_path / "lab", database=database_url, workers=0, fetch=local)
+    service = Service(config)
     service.index.add_user("knn", max_running=5)
     user = service.index.user("knn")
     station = Station(TypeRegistry.default(), "icreate-1", TASK, {}, 100, live=True,

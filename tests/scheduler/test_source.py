@@ -6,11 +6,13 @@ import hashlib
 import os
 import shutil
 import subprocess
+import tracemalloc
 
 import pytest
 
-from scheduler.errors import RepositoryError
-from scheduler.source import checkout, tree_digest
+from scheduler.errors import CheckoutTooLarge, RepositoryError
+from scheduler.fetch import FetchPolicy
+from scheduler.source import Expanded, checkout, expanded_size, tree_digest
 from tests.helpers.githttp import GitRepo, Link
 
 
@@ -220,3 +222,71 @@ def test_the_tree_digest_orders_paths_by_their_components(tmp_path):
     ]
     expected = "sha256:" + hashlib.sha256("".join(entries).encode()).hexdigest()
     assert tree_digest(tmp_path) == expected
+
+
+def test_a_commit_over_the_checkout_limit_is_refused_before_anything_is_written(tmp_path):
+    """A commit whose files add up past max_checkout_bytes (here 8 paths sharing one
+    512 KiB blob: 4 MiB checked out, a few KiB in git) is CheckoutTooLarge, naming the
+    commit and the limit, and nothing is written; under the limit it checks out."""
+    block = bytes(512 * 1024)
+    repo = GitRepo.create(tmp_path / "copies", {f"copy-{n}.bin": block for n in range(8)})
+    small = FetchPolicy(schemes=frozenset({"file"}), max_checkout_bytes=1024 * 1024)
+    with pytest.raises(CheckoutTooLarge) as caught:
+        checkout(str(repo.path), None, tmp_path / "out", tmp_path / "cache", small)
+    message = str(caught.value)
+    assert repo.rev()[:12] in message and "limit of 1.0 MiB" in message
+    assert not (tmp_path / "out").exists()
+    enough = FetchPolicy(schemes=frozenset({"file"}), max_checkout_bytes=4 * 1024 * 1024 + 1)
+    checkout(str(repo.path), None, tmp_path / "out", tmp_path / "cache", enough)
+    assert sorted(p.name for p in (tmp_path / "out").iterdir()) == [
+        f"copy-{n}.bin" for n in range(8)
+    ]
+
+
+def test_the_expanded_size_counts_every_path_and_no_gitlink(tmp_path):
+    """expanded_size adds each path's blob (a shared blob once per path, a link's target
+    text), counts a submodule's gitlink as nothing, and stops early past its bound."""
+    repo = GitRepo.create(tmp_path / "r", {"a": "12345", "b/c": "12345", "l": Link("a")})
+    repo.add_submodule("lib", "../lib", repo.rev())
+    git_dir, commit = repo.path / ".git", repo.rev()
+    gitmodules = len(repo.git("show", f"{commit}:.gitmodules")) + 1  # and its last newline
+    assert expanded_size(git_dir, commit) == Expanded(5 + 5 + 1 + gitmodules, 4)
+    assert expanded_size(git_dir, commit, "b") == Expanded(5, 1)
+    assert expanded_size(git_dir, commit, stop_past=Expanded(10**9, 0)).files == 1
+
+
+def test_a_commit_of_too_many_files_is_refused_before_anything_is_written(tmp_path):
+    """A tree naming one subtree 300 times, each naming one blob 300 times (90,000 files
+    checked out, a few KiB in git), is refused past max_checkout_files without counting
+    every path, and nothing is written."""
+    repo = GitRepo.create(tmp_path / "bomb", {"lab.toml": ""})
+    blob = repo.git("hash-object", "-w", "--stdin", input="x")
+    inner = repo.git("mktree", input="".join(f"100644 blob {blob}\tf{n}\n" for n in range(300)))
+    outer = repo.git("mktree", input="".join(f"040000 tree {inner}\td{n}\n" for n in range(300)))
+    repo.git("read-tree", "--prefix=bomb/", outer)
+    repo.git("commit", "-q", "-m", "90,000 files")
+    policy = FetchPolicy(schemes=frozenset({"file"}), max_checkout_files=1000)
+    with pytest.raises(
+        CheckoutTooLarge,
+        match=r"more than this lab's limit of 1,000 files \(at least 1,001 files\)",
+    ):
+        checkout(str(repo.path), None, tmp_path / "out", tmp_path / "cache", policy)
+    assert not (tmp_path / "out").exists()
+
+
+def test_an_export_streams_a_large_file_without_holding_it(tmp_path):
+    """A 64 MiB file is checked out whole while the lab's own memory holds at most a few
+    MiB of it (git archive is read as a stream, not into a buffer)."""
+    size = 64 * 1024 * 1024
+    repo = GitRepo.create(tmp_path / "big", {"lab.toml": "", "zeros.bin": bytes(size)})
+    policy = FetchPolicy(schemes=frozenset({"file"}))
+    fetched_once = checkout(str(repo.path), None, tmp_path / "warm", tmp_path / "cache", policy)
+    tracemalloc.start()
+    try:
+        source = checkout(str(repo.path), None, tmp_path / "out", tmp_path / "cache", policy)
+        _, peak = tracemalloc.get_traced_memory()
+    finally:
+        tracemalloc.stop()
+    assert source.tree == fetched_once.tree
+    assert (tmp_path / "out" / "zeros.bin").stat().st_size == size
+    assert peak < 8 * 1024 * 1024, f"{peak / 1024 / 1024:.1f} MiB held while checking out"

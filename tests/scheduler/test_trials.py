@@ -21,7 +21,9 @@ from labd.recorder import data_digest, read_channels, read_messages
 from labd.replay import replay
 from repository.trial import Outcome
 from sandbox.api import Limits, MiB
+from scheduler.fetch import FetchPolicy
 from scheduler.runner import RunOptions, TrialSpec, run_trial
+from tests.helpers.githttp import GitRepo
 from tests.sandbox.test_isolation import host_addresses
 from tests.scheduler.conftest import BACKENDS, make_backend
 
@@ -269,3 +271,19 @@ def test_a_controller_cannot_forge_the_robots_data(backend, cache, host, tmp_pat
         for m in read_messages(forged.folder, topics=["/rosout"], side=Side.LAB)
     ]
     assert sum("/odom belongs to the lab" in line for line in lab_log) == 4  # the attempts, as logs
+
+
+def test_a_commit_over_the_checkout_limit_ends_as_an_error(cache, host, tmp_path):
+    """A trial whose commit checks out past the worker's limit (8 paths sharing a 512 KiB
+    blob, 4 MiB against 1 MiB) ends as an error naming the commit and the limit."""
+    files = {"lab.toml": '[controller]\ncommand = ["python", "c.py"]\n', "c.py": "print(1)\n"}
+    repo = GitRepo.create(tmp_path / "copies", files)
+    repo.commit({f"copy-{n}.bin": bytes(512 * 1024) for n in range(8)}, "4 MiB of copies")
+    policy = FetchPolicy(schemes=frozenset({"file"}), max_checkout_bytes=1 * MiB)
+    result = run(
+        make_backend("bwrap", cache), cache, host, tmp_path, repo.path,
+        task="icreate-maze", options=RunOptions(fetch=policy),
+    )  # fmt: skip
+    assert result.outcome is Outcome.ERROR, result.reason
+    assert "checks out to more than this lab's limit of 1.0 MiB" in result.reason
+    assert f"commit {repo.rev()[:12]}" in result.reason
