@@ -26,6 +26,9 @@ class BridgeConfig:
     # address's keys without asking the authorizer (guessing keys).
     auth_failures: int = 10
     auth_failure_window: float = 60.0
+    # Seconds between asking the authorizer again about each connected client's key
+    # (a revoked key disconnects its client within this); None or 0: never.
+    key_recheck: float | None = 5.0
     tls_cert: Path | None = None
     tls_key: Path | None = None
     # Frames above max_message_size are refused with a status; the connection stays.

@@ -59,6 +59,8 @@ class LabConfig:
     watchers: bool = True
     # What a drive of a live robot may put in the archive.
     drives: DriveLimits = field(default_factory=DriveLimits)
+    # Proxies whose X-Forwarded-For the HTTP API believes (addresses or networks).
+    trusted_proxies: tuple[str, ...] = ()
 
 
 class Lab:
@@ -113,13 +115,20 @@ class Lab:
             self.service = Service(config.service, self.types)
             self.app = create_app(self.service, self.site)
             self.app.state.on_reservation = self._reservation_changed
-            self.http = HttpServer(self.app, config.bridge.host, config.http_port)
+            self.http = HttpServer(
+                self.app,
+                config.bridge.host,
+                config.http_port,
+                trusted_proxies=config.trusted_proxies,
+            )
         self._own_authorizer: HttpAuthorizer | None = None
         policies: dict[str, KeyPolicy] = {}
         if config.reservations:
             if self.service is None or authorizer is not None or config.bridge.authorizer_url:
                 raise ValueError("reservations need the archive, and no other authorizer")
-            authorizer = ReservationAuthorizer(self.service.reservations)
+            assert self.app is not None
+            keys: ReservationAuthorizer = self.app.state.keys  # shared with /api/auth
+            authorizer = keys
             live = KeyPolicy.OPTIONAL if config.watchers else KeyPolicy.REQUIRED
             policies = {
                 name: live if name in self.robots and self.robots[name].live else KeyPolicy.NONE
@@ -217,6 +226,8 @@ class Lab:
             api.close()
         if self._own_authorizer is not None:
             await self._own_authorizer.aclose()
+        if self.app is not None:
+            self.app.state.keys.close()
 
 
 def _runner_ended(task: asyncio.Task[None]) -> None:

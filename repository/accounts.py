@@ -5,8 +5,13 @@ argon2id hash (argon2-cffi, its recommended parameters; an older hash is re-hash
 the next sign-in). A signed-in browser holds a random session id in a cookie; only its
 sha256 is kept here, with the session's CSRF token (the one its forms carry) and when it
 expires. Scripts use API tokens: a user has any number, each with a label, and lists and
-revokes their own; the operator revokes or rotates anyone's (``labd users``). Revoking
-every token of a user also ends their browser sessions.
+revokes their own; the operator revokes or rotates anyone's (``labd users``).
+
+Revoking a user (every token) also ends their browser sessions and re-keys their booked
+slots, so no key they held opens a robot any more. A new password (their own change, or
+the operator's reset) ends every other browser session of theirs: whoever signed in
+with the old one is signed out. API tokens survive a new password: they are revoked on
+their own (the tokens page, ``labd users revoke``).
 
 Nothing here can tell a token or a session id back: only hashes are stored.
 """
@@ -21,9 +26,11 @@ from dataclasses import dataclass
 import sqlalchemy as sa
 from argon2 import PasswordHasher
 from argon2.exceptions import InvalidHashError, VerificationError
+from sqlalchemy.engine import Connection
 
 from repository.errors import AccountError, BadCredentials, RecordNotFound
 from repository.index import Index, User, passwords, token_hash, tokens, users, web_sessions
+from repository.reservations import rekey
 
 log = logging.getLogger("repository.accounts")
 MIN_PASSWORD = 10
@@ -77,15 +84,30 @@ class Accounts:
         self.set_password(name, password)
         return self.index.user(name)
 
-    def set_password(self, name: str, password: str) -> None:
+    def set_password(self, name: str, password: str, *, keep: str | None = None) -> int:
+        """Set ``name``'s password (the operator's reset, or their own change) and end
+        their browser sessions but the one whose cookie is ``keep``; how many ended."""
         check_password(password)
         self.index.user(name)  # RecordNotFound if there is no such user
         digest = self.hasher.hash(password)
         with self.index.begin() as db:
-            db.execute(sa.delete(passwords).where(passwords.c.user == name))
-            db.execute(
-                sa.insert(passwords).values(user=name, hash=digest, changed=self.index.clock())
-            )
+            self._store(db, name, digest)
+            ended = sa.delete(web_sessions).where(web_sessions.c.user == name)
+            if keep is not None:
+                ended = ended.where(web_sessions.c.sha256 != token_hash(keep))
+            count = int(db.execute(ended).rowcount)
+        log.info("user %s: password set; %d other sessions ended", name, count)
+        return count
+
+    def change_password(self, name: str, current: str, new: str, *, keep: str | None) -> int:
+        """``name`` changes their own password, proving the current one (BadCredentials
+        if wrong); their other sessions end (``set_password``)."""
+        self.check_password(name, current)
+        return self.set_password(name, new, keep=keep)
+
+    def _store(self, db: Connection, name: str, digest: str) -> None:
+        db.execute(sa.delete(passwords).where(passwords.c.user == name))
+        db.execute(sa.insert(passwords).values(user=name, hash=digest, changed=self.index.clock()))
 
     def check_password(self, name: str, password: str) -> User:
         """The user, if the password is theirs (else BadCredentials, for either mistake)."""
@@ -99,8 +121,9 @@ class Accounts:
             raise BadCredentials() from None
         if stored is None:
             raise BadCredentials()
-        if self.hasher.check_needs_rehash(stored):
-            self.set_password(name, password)
+        if self.hasher.check_needs_rehash(stored):  # the same password: sessions stay
+            with self.index.begin() as db:
+                self._store(db, name, self.hasher.hash(password))
         return self.index.user(name)
 
     def has_password(self, name: str) -> bool:
@@ -150,7 +173,8 @@ class Accounts:
         return Token(row.id, row.user, row.label, row.created, row.revoked or now)
 
     def revoke_all(self, name: str) -> int:
-        """Revoke every token of ``name`` and end their browser sessions; how many tokens."""
+        """Revoke every token of ``name``, end their browser sessions and re-key their
+        booked slots (the keys they hold open nothing); how many tokens."""
         self.index.user(name)
         now = self.index.clock()
         with self.index.begin() as db:
@@ -166,7 +190,13 @@ class Accounts:
                 .values(token_sha256=token_hash(secrets.token_urlsafe(24)))
             )
             db.execute(sa.delete(web_sessions).where(web_sessions.c.user == name))
-        log.warning("user %s: every token revoked (%d) and sessions ended", name, count)
+            slots = rekey(db, name, now)
+        log.warning(
+            "user %s: every token revoked (%d), sessions ended, keys of %d slots replaced",
+            name,
+            count,
+            slots,
+        )
         return int(count)
 
     def rotate(self, name: str) -> str:

@@ -15,7 +15,9 @@ ArchiveError                 the archive could not do what was asked
     ├── NotYourReservation   only the person who booked it may change it or read its key
     └── KeyRefused           a key that does not open this robot now (expired, not yet
         │                    valid, released, another robot's)
-        └── UnknownKey       a key the lab never made (forged, mistyped, guessed)
+        └── UnknownKey       a key the lab never made (forged, mistyped, guessed, or
+            │                one its owner's revocation replaced)
+            └── MalformedKey not even shaped like a key (non-ASCII, wrong length)
 """
 
 from __future__ import annotations
@@ -116,5 +118,18 @@ class KeyRefused(ReservationError):
 
 
 class UnknownKey(KeyRefused):
+    def __init__(
+        self, reason: str = "the lab knows no such key; fetch your slot's key again"
+    ) -> None:
+        super().__init__(reason)
+
+
+class MalformedKey(UnknownKey):
+    """Not a key's shape: ``labd_rk_``, the reservation's number and 43 characters of
+    URL-safe base64, all ASCII. Refused before anything is looked up."""
+
     def __init__(self) -> None:
-        super().__init__("the lab knows no such key; fetch your slot's key again")
+        super().__init__(
+            "this is not a key of this lab (labd_rk_, a number, _, 43 ASCII characters);"
+            " copy it again"
+        )

@@ -17,6 +17,7 @@ from __future__ import annotations
 import datetime as dt
 import hashlib
 import math
+import re
 import secrets
 import time
 from collections.abc import Iterator, Mapping, Sequence
@@ -31,6 +32,9 @@ from repository.errors import ArchiveError, RecordNotFound, SchemaMismatch
 from repository.trial import Kind, Outcome, PinnedRecord, Status, Trial
 
 SCHEMA_VERSION = 2  # 1: labd 0.1 (status succeeded/failed); 2: status and outcome apart
+# A user name: ASCII letters and digits, then also '.', '-' or '_' (so never ".", ".."
+# or a name that looks like another in other scripts); unique without case.
+NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]{0,63}", re.ASCII)
 HEX = frozenset("0123456789abcdef")
 
 metadata = sa.MetaData()
@@ -381,8 +385,18 @@ class Index:
         secret = "labd_" + secrets.token_urlsafe(24)
         now = self.clock()
         with self.begin() as db:
+            if db.dialect.name == "postgresql":  # SQLite's writers already take turns
+                db.execute(sa.text("SELECT pg_advisory_xact_lock(hashtext('labd:users'))"))
             if db.execute(sa.select(users.c.name).where(users.c.name == name)).first():
                 raise ArchiveError(f"user {name!r} exists already; choose another name")
+            same = db.execute(
+                sa.select(users.c.name).where(sa.func.lower(users.c.name) == name.lower())
+            ).scalar()
+            if same is not None:
+                raise ArchiveError(
+                    f"user name {name!r} is taken: names are told apart without case, and"
+                    f" {same!r} exists; choose another name"
+                )
             db.execute(
                 sa.insert(users).values(
                     name=name,
@@ -423,6 +437,21 @@ class Index:
                 return None
             mine = db.execute(sa.select(tokens.c.id).where(tokens.c.user == row.name)).first()
         return _user(row) if mine is None else None
+
+    def name_collisions(self) -> list[list[str]]:
+        """Users whose names are the same without case (made by a labd before names were
+        told apart without case): each group, by name. They keep working as they are;
+        no new name may join them."""
+        folded = sa.func.lower(users.c.name)
+        with self.engine.connect() as db:
+            shared = sa.select(folded).group_by(folded).having(sa.func.count() > 1)
+            rows = db.execute(
+                sa.select(users.c.name).where(folded.in_(shared)).order_by(folded, users.c.name)
+            ).all()
+        groups: dict[str, list[str]] = {}
+        for (name,) in rows:
+            groups.setdefault(name.lower(), []).append(name)
+        return list(groups.values())
 
     def users_list(self) -> list[User]:
         """Every user, by name."""
@@ -725,9 +754,14 @@ def _moment(seconds: float | None) -> dt.datetime | None:
 
 
 def check_name(name: str) -> None:
-    """A user name the lab accepts (ArchiveError saying what is allowed if not)."""
-    if not name or len(name) > 64 or not all(c.isalnum() or c in "-_." for c in name):
-        raise ArchiveError(f"user name {name!r}: use 1 to 64 letters, digits, '-', '_' or '.'")
+    """A user name the lab accepts for a new user (ArchiveError saying what is allowed
+    if not): ASCII only, so that no name can pass for another (alice with a Cyrillic or
+    a fullwidth a), and starting with a letter or digit (never '.' or '..')."""
+    if NAME.fullmatch(name) is None:
+        raise ArchiveError(
+            f"user name {name!r}: use 1 to 64 ASCII letters, digits, '-', '_' or '.',"
+            " starting with a letter or a digit"
+        )
 
 
 def token_hash(token: str) -> str:

@@ -5,9 +5,10 @@ robot from the slot's start to its end, and no other robot, at no other time
 (``authorize``). The rules are the operator's (``Rules``) and every booking, extension
 and release goes through them:
 
-- a slot lasts more than nothing and at most ``max_slot``; it starts now or later
-  (a slot booked for a moment ago starts when the request arrives), and at most
-  ``horizon`` ahead;
+- a slot lasts more than nothing and at most ``max_slot`` (a day at most); it starts
+  now or later (a slot booked for a moment ago starts when the request arrives), and at
+  most ``horizon`` ahead (a year at most): so every time a booking can hold is a date
+  people can read, and a time out of the calendar is refused before it is looked at;
 - no two slots of a robot overlap;
 - a person has at most so many slots, and so many minutes of slots, per day and per
   week (UTC calendar days, ISO weeks from Monday; a slot counts on the day it starts);
@@ -24,7 +25,9 @@ racing for overlapping slots, exactly one wins, on either database.
 Keys are never stored: a key is the reservation's id and an HMAC of it (with a random
 nonce kept in the row) under the lab's secret (``load_secret``, a file beside the
 signing keys, not in the database), so a copy of the database opens no robot, and the
-owner can fetch their key again at any time.
+owner can fetch their key again at any time. A key is parsed strictly (ASCII, its exact
+shape) before anything is looked up. Revoking a person (``rekey``) gives their slots new
+nonces: every key they held opens nothing from then on, and the slots stay booked.
 """
 
 from __future__ import annotations
@@ -36,6 +39,7 @@ import hmac
 import logging
 import math
 import os
+import re
 import secrets
 from dataclasses import dataclass
 from pathlib import Path
@@ -46,6 +50,7 @@ from sqlalchemy.engine import Connection
 
 from repository.errors import (
     KeyRefused,
+    MalformedKey,
     NotYourReservation,
     OverLimit,
     RecordNotFound,
@@ -60,6 +65,11 @@ R = reservations.c
 DAY = 86400.0
 KEY_PREFIX = "labd_rk_"
 SECRET_BYTES = 32
+# A key: the prefix, the reservation's number, and its HMAC-SHA256 in URL-safe base64
+# without padding (43 characters); ASCII only, so no other digits or letters pass.
+KEY = re.compile(r"labd_rk_([1-9][0-9]{0,11})_([A-Za-z0-9_-]{43})", re.ASCII)
+MAX_SLOT = DAY  # the longest ``max_slot`` an operator may set
+MAX_HORIZON = 365 * DAY  # the furthest ``horizon`` an operator may set
 
 State = Literal["upcoming", "current", "ended", "released"]
 
@@ -75,6 +85,14 @@ class Rules:
     max_minutes_per_week: float | None = 480.0
     horizon: float = 14 * DAY  # how far ahead a slot may start, in seconds
     grace: float = 60.0  # a slot may be asked for this long ago (it then starts now)
+
+    def __post_init__(self) -> None:
+        if not 0 < self.max_slot <= MAX_SLOT:
+            raise ValueError(f"a slot may last more than 0 and at most {duration(MAX_SLOT)}")
+        if not 0 < self.horizon <= MAX_HORIZON:
+            raise ValueError(
+                f"slots may be booked more than 0 and at most {duration(MAX_HORIZON)} ahead"
+            )
 
 
 @dataclass(frozen=True)
@@ -133,8 +151,7 @@ class Reservations:
     def book(self, user: str, robot: str, start: float, end: float) -> Booking:
         """Book ``robot`` for ``user`` from ``start`` to ``end`` (epoch seconds)."""
         now = self.index.clock()
-        if not (math.isfinite(start) and math.isfinite(end)):
-            raise ReservationError("give the slot's start and end as times")
+        self._check_times(now, start, end)
         if end <= start:
             raise ReservationError(
                 f"a slot must end after it starts: {when(start)} to {when(end)} lasts"
@@ -197,7 +214,8 @@ class Reservations:
                 raise ReservationError(
                     f"reservation {found.id} ended at {when(found.end)}; book a new slot"
                 )
-            if not math.isfinite(end) or end <= found.end:
+            self._check_times(now, found.start, end)
+            if end <= found.end:
                 raise ReservationError(
                     f"an extension must end after the slot's end, {when(found.end)}"
                 )
@@ -294,11 +312,7 @@ class Reservations:
         """What ``key`` opens now (on ``robot``, if given); KeyRefused saying why not."""
         reservation_id, mac = _parse(key)
         with self.index.engine.connect() as db:
-            row = (
-                None
-                if reservation_id is None
-                else db.execute(sa.select(reservations).where(R.id == reservation_id)).first()
-            )
+            row = db.execute(sa.select(reservations).where(R.id == reservation_id)).first()
         if row is None or not hmac.compare_digest(mac, self._mac(row.id, row.nonce)):
             raise UnknownKey()
         found = _reservation(row)
@@ -331,6 +345,26 @@ class Reservations:
         return f"{KEY_PREFIX}{reservation_id}_{self._mac(reservation_id, nonce)}"
 
     # -- rules --------------------------------------------------------------------------
+
+    def _check_times(self, now: float, start: float, end: float) -> None:
+        """Refuse times no rule could allow before any rule formats them: not numbers,
+        more than a year ago, or past the latest end a booking may have now."""
+        rules = self.rules
+        latest = now + rules.horizon + rules.max_slot
+        for moment in (start, end):
+            if not math.isfinite(moment):
+                raise ReservationError("give the slot's start and end as times")
+            if moment < now - MAX_HORIZON:
+                raise ReservationError(
+                    f"the slot's times are more than a year in the past (it is {when(now)}"
+                    " now); book a time from now on"
+                )
+            if moment > latest:
+                raise ReservationError(
+                    f"a slot may start at most {duration(rules.horizon)} ahead and last at"
+                    f" most {duration(rules.max_slot)}, so it ends by {when(latest)}; this"
+                    f" one would end at {when(end)}: book an earlier or shorter slot"
+                )
 
     def _check_length(self, seconds: float, *, extending: bool = False) -> None:
         if seconds > self.rules.max_slot:
@@ -442,13 +476,29 @@ def _lock(db: Connection) -> None:
         db.execute(sa.text("SELECT pg_advisory_xact_lock(hashtext('labd:reservations'))"))
 
 
-def _parse(key: str) -> tuple[int | None, str]:
-    if not key.startswith(KEY_PREFIX) or len(key) > 128:
-        return None, ""
-    number, _, mac = key[len(KEY_PREFIX) :].partition("_")
-    if not number.isdigit() or len(number) > 12:
-        return None, ""
-    return int(number), mac
+def rekey(db: Connection, user: str, now: float) -> int:
+    """Give ``user``'s slots that have not ended new nonces, in the transaction ``db``:
+    every key made for them so far opens nothing (the slots stay booked; their owner
+    fetches the new keys). How many slots were re-keyed."""
+    rows = db.execute(
+        sa.select(R.id).where(R.user == user, R.end > now, R.released.is_(None))
+    ).all()
+    for (reservation_id,) in rows:
+        db.execute(
+            sa.update(reservations)
+            .where(R.id == reservation_id)
+            .values(nonce=secrets.token_hex(16))
+        )
+    return len(rows)
+
+
+def _parse(key: str) -> tuple[int, str]:
+    """The reservation's number and the MAC of a key shaped exactly as the lab makes
+    them (``MalformedKey`` for anything else: other digits, letters, lengths)."""
+    found = KEY.fullmatch(key)
+    if found is None:
+        raise MalformedKey()
+    return int(found.group(1)), found.group(2)
 
 
 def _reservation(row: Any) -> Reservation:
@@ -473,8 +523,12 @@ def _day_start(seconds: float) -> float:
 
 
 def when(seconds: float) -> str:
-    """A time as people read it in messages: ``2026-05-01 10:00:30 UTC``."""
-    return f"{_moment(seconds):%Y-%m-%d %H:%M:%S} UTC"
+    """A time as people read it in messages: ``2026-05-01 10:00:30 UTC`` (a time out of
+    the calendar's years 1 to 9999 says so, rather than failing the message)."""
+    try:
+        return f"{_moment(seconds):%Y-%m-%d %H:%M:%S} UTC"
+    except (OverflowError, OSError, ValueError):
+        return f"{seconds:.6g} s from 1970 (out of the calendar)"
 
 
 def duration(seconds: float) -> str:
@@ -485,6 +539,7 @@ def duration(seconds: float) -> str:
     if minutes < 120:
         return f"{minutes} min"
     if minutes % (24 * 60) == 0:
-        return f"{minutes // (24 * 60)} days"
+        days = minutes // (24 * 60)
+        return f"{days} day" if days == 1 else f"{days} days"
     hours, rest = divmod(minutes, 60)
     return f"{hours} h {rest} min" if rest else f"{hours} h"

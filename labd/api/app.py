@@ -58,6 +58,7 @@ from labd.api.models import (
     trial_summary,
 )
 from labd.api.throttle import Throttle
+from labd.authorizer import ReservationAuthorizer
 from labd.service import Service
 from labd.sim import registry
 from repository.index import Filters
@@ -84,6 +85,7 @@ def create_app(
     app.state.on_submit = on_submit or service.wake
     app.state.robots = tuple(robots)
     app.state.throttle = Throttle(service.index.clock)
+    app.state.keys = ReservationAuthorizer(service.reservations)  # /api/auth and the bridge
     app.state.on_reservation = None  # the lab's bridge is told of extended or released slots
     errors.install(app)
     parts = (

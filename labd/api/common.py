@@ -44,6 +44,13 @@ def _service(request: Request) -> Service:
 Lab = Annotated[Service, Depends(_service)]
 
 
+def client_address(request: Request) -> str:
+    """The address a request came from, as the throttles count it: the socket's peer,
+    or the address a trusted proxy (``labd serve --trusted-proxy``) put in
+    ``X-Forwarded-For``; never that header from anyone else (``labd.api.server``)."""
+    return request.client.host if request.client else "unknown"
+
+
 def web_session(service: Service, request: Request) -> WebSession | None:
     """The signed-in session of the request's cookie, if it has a live one."""
     cookie = request.cookies.get(SESSION_COOKIE)

@@ -34,9 +34,10 @@ from fastapi.responses import JSONResponse, Response
 from icalendar import Calendar, Event
 from pydantic import BaseModel, ConfigDict, Field
 
-from labd.api.common import Lab, Writer
+from labd.api.common import Lab, Writer, client_address
 from labd.api.errors import ApiError, responses
 from labd.api.throttle import Throttle
+from labd.authorizer import ReservationAuthorizer
 from repository.errors import KeyRefused, UnknownKey
 from repository.reservations import Reservation, State, when
 
@@ -334,23 +335,25 @@ def ics(robot: str, slots: list[Reservation], request: Request) -> bytes:
         **responses(422, 429),
     },
 )
-def auth(
+async def auth(
     request: Request,
-    service: Lab,
     key: Annotated[str, Query(max_length=256, description="the key to check")],
     callback: Annotated[str | None, Query(max_length=200, description="JSONP")] = None,
     robot: Annotated[str | None, Query(description="the robot it is presented to")] = None,
 ) -> Response:
     """The rosjs paper's authorizer: how many seconds ``key`` may stay connected (the
-    time left in its slot; 0 for a key that opens nothing now). An outside bridge asks
-    this with ``labd serve --authorizer URL``; the lab's own bridge asks in process."""
+    time left in its slot; 0 for a key that opens nothing now, or that is not a key).
+    An outside bridge asks this with ``labd serve --authorizer URL``; the lab's own
+    bridge asks the same object in process. It runs on the event loop, with no thread
+    of the API's own pool (``labd.authorizer`` says where the lookup runs)."""
     if callback is not None and not CALLBACK.fullmatch(callback):
         raise ApiError(422, "callback must be a JavaScript function name, such as authorize")
-    address = request.client.host if request.client else "unknown"
+    address = client_address(request)
     throttle: Throttle = request.app.state.throttle
-    throttle.check("key", address, "keys from your address")
+    throttle.check("key", address, "failed keys from your address")
+    keys: ReservationAuthorizer = request.app.state.keys
     try:
-        access = service.reservations.authorize(key, robot)
+        access = await keys.check(key, robot)
         answer = AuthAnswer(seconds=round(access.seconds, 3), reason=None)
     except KeyRefused as err:
         if isinstance(err, UnknownKey):

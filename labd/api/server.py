@@ -2,6 +2,9 @@
 
 The socket is bound before uvicorn starts, so port 0 works and the real port is known.
 uvicorn's own signal handling is turned off: ``labd serve`` handles SIGINT and SIGTERM.
+``X-Forwarded-For`` is believed only from the proxies the operator names
+(``trusted_proxies``, ``labd serve --trusted-proxy``); by default from nobody, so a
+client cannot pick the address the throttles count it under.
 """
 
 from __future__ import annotations
@@ -25,10 +28,18 @@ class _Server(uvicorn.Server):
 
 
 class HttpServer:
-    def __init__(self, app: Any, host: str = "127.0.0.1", port: int = 8080) -> None:
+    def __init__(
+        self,
+        app: Any,
+        host: str = "127.0.0.1",
+        port: int = 8080,
+        *,
+        trusted_proxies: tuple[str, ...] = (),
+    ) -> None:
         self.app = app
         self.host = host
         self.port = port
+        self.trusted_proxies = trusted_proxies
         self._server: _Server | None = None
         self._task: asyncio.Task[None] | None = None
 
@@ -49,7 +60,14 @@ class HttpServer:
         sock.setblocking(False)
         self.port = sock.getsockname()[1]
         config = uvicorn.Config(
-            self.app, log_level="warning", lifespan="off", access_log=False, timeout_notify=5
+            self.app,
+            log_level="warning",
+            lifespan="off",
+            access_log=False,
+            timeout_notify=5,
+            # uvicorn's default trusts X-Forwarded-For from 127.0.0.1 (or $FORWARDED_ALLOW_IPS)
+            proxy_headers=bool(self.trusted_proxies),
+            forwarded_allow_ips=list(self.trusted_proxies),
         )
         self._server = _Server(config)
         self._task = asyncio.create_task(self._server.serve(sockets=[sock]), name="http")

@@ -1,11 +1,21 @@
-"""Failed attempts, counted: guessing passwords and keys is slowed down and logged.
+"""Attempts, counted: guessing passwords and keys, and making accounts in bulk, are
+slowed down and logged.
 
-Each kind of attempt (a password for a user, any password from an address, a key from
-an address) may fail ``limit`` times in ``window`` seconds; past that the next attempt
-is refused at once (``TooMany``, 429 with ``Retry-After``), without checking it, until
-the oldest failure leaves the window. Only failures count, so a person who types their
-password right is never slowed down by the limit, and each lock-out is logged once
-with what was guessed at and from where.
+Each kind of attempt may happen ``limit`` times in ``window`` seconds; past that the
+next one is refused at once (``TooMany``, 429 with ``Retry-After``), without checking
+it, until the oldest leaves the window. Each lock-out is logged once with what was
+guessed at and from where. What counts, and per what:
+
+- ``password``: wrong passwords for one name *from one address*. Never per name alone:
+  then anyone could lock anyone out by typing five wrong passwords for their name, and
+  the owner, from their own address, signs in while the guesser is refused;
+- ``address``: failed sign-ins (and refused sign-ups) from one address, any names;
+- ``key``: keys the lab never made, from one address (``/api/auth``);
+- ``signup``: accounts made from one address (every one counts, not only failures).
+
+Only failures count for the first three, so a person who types their password right
+is never slowed down by them. The address is the socket's peer, or what a proxy the
+operator trusts says (``labd.api.common.client_address``).
 """
 
 from __future__ import annotations
@@ -27,10 +37,16 @@ class Limit:
 
 
 LIMITS = {
-    "password": Limit(5, 300.0),  # per user name
-    "address": Limit(20, 300.0),  # sign-ins per client address
+    "password": Limit(5, 300.0),  # wrong passwords per user name and client address
+    "address": Limit(20, 300.0),  # failed sign-ins and sign-ups per client address
     "key": Limit(20, 60.0),  # /api/auth keys per client address
+    "signup": Limit(5, 3600.0),  # accounts made per client address
 }
+
+
+def name_at(name: str, address: str) -> str:
+    """Who the ``password`` limit counts: a name tried from an address."""
+    return f"{name!r} from {address}"
 
 
 class Throttle:
@@ -42,16 +58,15 @@ class Throttle:
         self._failures: dict[tuple[str, str], deque[float]] = {}
 
     def check(self, kind: str, who: str, what: str) -> None:
-        """Refuse (``TooMany``) if ``who`` failed too often lately; ``what`` is the
-        attempt as the message names it ("sign-ins for alice")."""
+        """Refuse (``TooMany``) if ``who`` tried too often lately; ``what`` is the
+        attempts as the message names them ("failed sign-ins for alice")."""
         wait = self._wait(kind, who)
         if wait > 0:
-            raise TooMany(
-                f"too many failed {what}; wait {wait:.0f} s and try again", retry_after=wait
-            )
+            raise TooMany(f"too many {what}; wait {wait:.0f} s and try again", retry_after=wait)
 
     def fail(self, kind: str, who: str) -> None:
-        """Count a failure; log when ``who`` reaches the limit."""
+        """Count an attempt of ``kind`` (a failure, or for ``signup`` an account made);
+        log when ``who`` reaches the limit."""
         rule = self.limits[kind]
         if len(self._failures) > 10_000:  # many guessers: forget those whose time is up
             for kind_who in list(self._failures):

@@ -36,6 +36,11 @@ class AuthError(BridgeError):
         super().__init__(reason)
 
 
+class AuthUnavailable(AuthError):
+    """The key could not be checked (the authorizer is away or broken): a new client is
+    refused, a connected one keeps the time it was granted."""
+
+
 class KeyPolicy(enum.Enum):
     NONE = "none"  # no key is asked for
     REQUIRED = "required"  # the first frame (or the URL) must carry a valid key
@@ -94,11 +99,13 @@ class HttpAuthorizer:
         try:
             response = await self._client.get(self.url, params={"key": key, "robot": graph})
         except httpx.HTTPError as err:
-            raise AuthError(f"the authorizer could not be reached ({type(err).__name__})") from None
+            raise AuthUnavailable(
+                f"the authorizer could not be reached ({type(err).__name__})"
+            ) from None
         if response.status_code in (401, 403, 404):
             raise AuthError("the key is not known")
         if response.status_code != 200:
-            raise AuthError(f"the authorizer answered HTTP {response.status_code}")
+            raise AuthUnavailable(f"the authorizer answered HTTP {response.status_code}")
         return Grant(parse_answer(response.text))
 
     async def aclose(self) -> None:

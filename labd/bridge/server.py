@@ -4,7 +4,10 @@ Each connection gets a ``Session`` on the graph its path names (``/`` the first
 graph, ``/robots/NAME`` the graph called NAME), a reader that feeds it frames, and a
 writer that drains its outbox. The server adds what only I/O can do: TLS, keepalive
 pings, the frame size limit, the connection limit, and the authorizer's call (with a
-limit on refused keys per address, so keys cannot be guessed at speed).
+limit on refused keys per address, so keys cannot be guessed at speed). Every
+``key_recheck`` seconds it asks the authorizer again about each connected client's key,
+so a key withdrawn where the lab cannot see it (its owner revoked by ``labd users``, in
+another process) disconnects its client, and a slot moved elsewhere moves its end.
 """
 
 from __future__ import annotations
@@ -25,7 +28,7 @@ from websockets.asyncio.server import Server, ServerConnection, serve, unix_serv
 from websockets.exceptions import ConnectionClosed
 from websockets.http11 import Request, Response
 
-from labd.bridge.auth import AuthError, Authorizer, KeyPolicy
+from labd.bridge.auth import AuthError, Authorizer, AuthUnavailable, KeyPolicy
 from labd.bridge.ops import CAPABILITIES
 from labd.bridge.render import OutFrame
 from labd.bridge.session import Session
@@ -36,6 +39,7 @@ log = logging.getLogger("labd.bridge.server")
 YIELD_EVERY = 64  # frames a reader handles before letting other clients run
 BATCH_FRAMES = 64  # frames the writer joins into one socket write, at most
 BATCH_BYTES = 256 * 1024  # ... and bytes
+MAX_REASON = 123  # bytes of a close frame's reason
 
 
 class BridgeServer:
@@ -64,6 +68,7 @@ class BridgeServer:
         self.connections: set[_Connection] = set()
         self._ids = itertools.count(1)
         self._server: Server | None = None
+        self._recheck: asyncio.Task[None] | None = None
         self.unix_path: Path | None = None
 
     @property
@@ -99,8 +104,15 @@ class BridgeServer:
             self._handle, self.config.host, self.config.port, ssl=context, **options
         )
         log.info("bridge listening on %s (graphs: %s)", self.url(), ", ".join(self.graphs))
+        if self.authorizer is not None and self.config.key_recheck:
+            self._recheck = asyncio.create_task(self._recheck_keys(), name="key recheck")
 
     async def close(self) -> None:
+        if self._recheck is not None:
+            self._recheck.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await self._recheck
+            self._recheck = None
         if self._server is not None:
             self._server.close()
             await self._server.wait_closed()
@@ -116,6 +128,15 @@ class BridgeServer:
                 session.reauthorize(seconds, reason)
                 count += 1
         return count
+
+    async def _recheck_keys(self) -> None:
+        """Every ``key_recheck`` seconds, ask again about the key of each client it opened."""
+        assert self.config.key_recheck
+        while True:
+            await asyncio.sleep(self.config.key_recheck)
+            keyed = [conn for conn in self.connections if conn.key is not None]
+            if keyed:
+                await asyncio.gather(*(conn.recheck() for conn in keyed))
 
     def _graph_for(self, path: str) -> Graph | None:
         name = self._name_for(path)
@@ -183,6 +204,15 @@ class BridgeServer:
             log.info("client %d left (%s)", session.client_id, ws.close_code)
 
 
+def close_reason(reason: str) -> str:
+    """``reason`` cut to what a close frame carries (123 bytes of UTF-8, RFC 6455 5.5):
+    websockets refuses a longer one, and the client would never hear of its close."""
+    data = reason.encode()
+    if len(data) <= MAX_REASON:
+        return reason
+    return data[: MAX_REASON - 3].decode(errors="ignore") + "..."
+
+
 class _Failures:
     """Refused keys per address in a sliding window: past the limit, an address's keys
     are refused without asking the authorizer, and that is logged."""
@@ -233,6 +263,7 @@ class _Connection:
         self.address = address
         self.failures = failures
         self.session: Session | None = None
+        self.key: str | None = None  # the key that opened the session, once granted
         self._ready = asyncio.Event()
         self._tasks: set[asyncio.Task[None]] = set()
 
@@ -241,7 +272,7 @@ class _Connection:
         self._ready.set()
 
     def close(self, code: int, reason: str) -> None:
-        self._spawn(self.ws.close(code, reason))
+        self._spawn(self.ws.close(code, close_reason(reason)))
 
     def authorize(self, key: str) -> None:
         self._spawn(self._authorize(key))
@@ -262,7 +293,36 @@ class _Connection:
             log.info("a key for %s from %s was refused: %s", self.graph, self.address, err)
             self.session.refuse(err.reason)
             return
+        except Exception:  # a fault of the authorizer: the client hears of it at once
+            log.exception("checking a key for %s from %s failed", self.graph, self.address)
+            self.session.refuse("the key could not be checked (a fault of the lab, logged)")
+            return
+        self.key = key
         self.session.grant(grant.seconds, user=grant.user, ref=grant.ref)
+
+    async def recheck(self) -> None:
+        """Ask the authorizer again about this client's key: refused now, the client is
+        disconnected saying why; granted, its end follows the authorizer's answer."""
+        session = self.session
+        if session is None or self.key is None or self.authorizer is None:
+            return
+        try:
+            grant = await self.authorizer.authorize(self.key, self.graph)
+        except AuthUnavailable as err:  # no answer is no refusal: the client keeps its time
+            log.warning("re-checking the key of client %d: %s", session.client_id, err)
+            return
+        except AuthError as err:
+            log.info(
+                "client %d: its key no longer opens %s: %s", session.client_id, self.graph, err
+            )
+            session.reauthorize(0, f"your key no longer opens {self.graph}: {err.reason}")
+            return
+        except Exception:  # the authorizer is away or broken: the client keeps its time
+            log.exception("re-checking the key of client %d failed", session.client_id)
+            return
+        ends = session.expires_at
+        if ends is not None and abs(session.timers.time() + grant.seconds - ends) > 1.0:
+            session.reauthorize(grant.seconds, "")
 
     def _spawn(self, coro: Coroutine[Any, Any, None]) -> None:
         task = asyncio.ensure_future(coro)

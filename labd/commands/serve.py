@@ -14,6 +14,7 @@ from __future__ import annotations
 import argparse
 import asyncio
 import ctypes
+import ipaddress
 import signal
 from dataclasses import replace
 from pathlib import Path
@@ -28,7 +29,7 @@ from labd.lab import Lab, LabConfig
 from labd.service import ServiceConfig
 from labd.sim import registry
 from repository.errors import ArchiveError, SchemaMismatch
-from repository.reservations import Rules
+from repository.reservations import MAX_HORIZON, MAX_SLOT, Rules
 from scheduler.data import DataPolicy
 from scheduler.queue import QueueConfig
 from scheduler.runner import RunOptions
@@ -72,6 +73,15 @@ def add_parser(commands: Any) -> None:
         "--authorizer",
         metavar="URL",
         help='require keys, checked at URL?key=KEY (answers {"seconds": N}; default: none)',
+    )
+    serve.add_argument(
+        "--key-recheck",
+        type=float,
+        default=BRIDGE.key_recheck,
+        metavar="S",
+        help="seconds between asking the authorizer again about each connected client's"
+        " key: a withdrawn key disconnects its client within this (default: %(default)g;"
+        " 0: never)",
     )
     serve.add_argument("--tls-cert", type=Path, help="certificate (PEM) to serve wss://")
     serve.add_argument("--tls-key", type=Path, help="private key (PEM) of --tls-cert")
@@ -152,6 +162,15 @@ def add_parser(commands: Any) -> None:
         help="HTTP API port (default: %(default)s; 0: any free port)",
     )
     group.add_argument("--database", help="SQLAlchemy URL (default: sqlite:///DATA/index.sqlite)")
+    group.add_argument(
+        "--trusted-proxy",
+        action="append",
+        default=[],
+        metavar="ADDR",
+        dest="trusted_proxies",
+        help="a reverse proxy (an address or network) whose X-Forwarded-For names the"
+        " client; repeatable (default: none: the throttles count the socket's address)",
+    )
     group.add_argument(
         "--blobs",
         help="blob store: a folder or an fsspec URL such as s3://bucket/prefix"
@@ -331,13 +350,34 @@ def config(args: argparse.Namespace) -> LabConfig:
             min_ticks=args.min_drive_ticks,
             filings_per_minute=args.drive_filings,
         ),
+        trusted_proxies=trusted_proxies(args),
     )
 
 
+def trusted_proxies(args: argparse.Namespace) -> tuple[str, ...]:
+    """The proxies ``--trusted-proxy`` names, each an address or a network."""
+    for proxy in args.trusted_proxies:
+        try:
+            ipaddress.ip_network(proxy, strict=False)
+        except ValueError:
+            raise Refused(
+                f"--trusted-proxy {proxy}: give the proxy's address (127.0.0.1) or network"
+                " (10.0.0.0/8)"
+            ) from None
+    return tuple(args.trusted_proxies)
+
+
 def rules(args: argparse.Namespace) -> Rules:
-    """The booking rules the options set (0: no limit)."""
+    """The booking rules the options set (0: no limit), within the lab's bounds."""
     if args.max_slot <= 0 or args.book_ahead <= 0:
         raise Refused("--max-slot and --book-ahead must be more than 0")
+    if not args.max_slot <= MAX_SLOT / 60:
+        raise Refused(f"--max-slot may be at most {MAX_SLOT / 60:g} minutes (a day)")
+    if not args.book_ahead <= MAX_HORIZON / 86400:
+        raise Refused(
+            f"--book-ahead may be at most {MAX_HORIZON / 86400:g} days: bookings further"
+            " ahead are refused"
+        )
 
     def limit(value: float | None) -> float | None:
         if value is not None and value < 0:
@@ -407,6 +447,8 @@ def service_config(args: argparse.Namespace) -> ServiceConfig | None:
 def bridge_config(args: argparse.Namespace) -> BridgeConfig:
     if (args.tls_cert is None) != (args.tls_key is None):
         raise Refused("--tls-cert and --tls-key go together")
+    if not args.key_recheck >= 0:
+        raise Refused("--key-recheck is 0 (never) or more seconds")
     protected = tuple(args.protected) if args.protected else BRIDGE.protected_prefixes
     return BridgeConfig(
         host=args.host,
@@ -416,6 +458,7 @@ def bridge_config(args: argparse.Namespace) -> BridgeConfig:
         tls_cert=args.tls_cert,
         tls_key=args.tls_key,
         max_connections=args.max_connections,
+        key_recheck=args.key_recheck or None,
     )
 
 
@@ -464,6 +507,12 @@ async def serve(config: LabConfig) -> None:
             f" (public keys: {lab.http.url()}/api/keys)",
             flush=True,
         )
+        for names in lab.service.index.name_collisions():
+            print(
+                f"  warning: the users {' and '.join(names)} differ only in case (made by an"
+                " older labd); they keep working, and no new name may join them",
+                flush=True,
+            )
     stop = asyncio.Event()
     loop = asyncio.get_running_loop()
     for sig in (signal.SIGINT, signal.SIGTERM):

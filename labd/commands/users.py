@@ -2,9 +2,12 @@
 
     labd users add NAME [--password] [--worker] [--max-running N] [--max-daily N]
     labd users list
-    labd users password NAME          set (or reset) the password to sign in on the pages
+    labd users password NAME          set (or reset) the password to sign in on the pages;
+                                      every browser signed in as NAME is signed out
     labd users revoke NAME [--token ID]
-                                      revoke one token, or every token and browser session
+                                      revoke one token; or every token, browser session
+                                      and reservation key (connected clients are cut off
+                                      within labd serve's --key-recheck)
     labd users rotate NAME            revoke every token and print one new token
 
 They write to the lab's database directly (the operator's commands, run where the lab
@@ -58,7 +61,11 @@ def add_parser(commands: Any) -> None:
     users = commands.add_parser("users", help="the lab's users, their passwords and tokens")
     actions = users.add_subparsers(dest="action", required=True)
     add = actions.add_parser("add", help="add a user and print their token")
-    add.add_argument("name", help="letters, digits, '-', '_' or '.'")
+    add.add_argument(
+        "name",
+        help="ASCII letters, digits, '-', '_' or '.', starting with a letter or a digit;"
+        " new without case",
+    )
     add.add_argument(
         "--max-running",
         type=int,
@@ -85,13 +92,17 @@ def add_parser(commands: Any) -> None:
     listing = actions.add_parser("list", help="every user, with their tokens (never the tokens)")
     _where(listing)
 
-    password = actions.add_parser("password", help="set a user's password for the pages")
+    password = actions.add_parser(
+        "password", help="set a user's password for the pages (their sign-ins end)"
+    )
     password.add_argument("name", help="the user")
     _password_options(password)
     _where(password)
 
     revoke = actions.add_parser(
-        "revoke", help="revoke a user's tokens (all, and their sign-ins, or --token ID)"
+        "revoke",
+        help="revoke a user's tokens (all, with their sign-ins and reservation keys, or"
+        " --token ID)",
     )
     revoke.add_argument("name", help="the user")
     revoke.add_argument("--token", type=int, metavar="ID", help="only this token (its #id)")
@@ -172,8 +183,12 @@ def _list(args: argparse.Namespace, index: Index, accounts: Accounts) -> int:
 
 
 def _password(args: argparse.Namespace, index: Index, accounts: Accounts) -> int:
-    accounts.set_password(args.name, _read_password(args))
-    emit(args, {"name": args.name, "password": True}, lambda: [f"{args.name}: password set"])
+    ended = accounts.set_password(args.name, _read_password(args))
+    emit(
+        args,
+        {"name": args.name, "password": True, "sessions_ended": ended},
+        lambda: [f"{args.name}: password set; {ended} signed-in browsers signed out"],
+    )
     return 0
 
 
@@ -187,7 +202,10 @@ def _revoke(args: argparse.Namespace, index: Index, accounts: Accounts) -> int:
     emit(
         args,
         {"name": args.name, "revoked": count},
-        lambda: [f"{args.name}: {count} tokens revoked, and every sign-in ended"],
+        lambda: [
+            f"{args.name}: {count} tokens revoked, every sign-in ended, and the keys of"
+            " their booked slots replaced"
+        ],
     )
     return 0
 

@@ -10,8 +10,9 @@
 A submission goes through the same checks as ``POST /api/trials`` (the same request
 model, the same submissions object), and a refusal is shown on the form with what the
 person typed kept, so they can correct it. Every form that changes something carries
-the CSRF token (``labd.web.session``). Failed sign-ins are counted per name and per
-address (``labd.api.throttle``): past the limit they are refused unchecked for a while.
+the CSRF token (``labd.web.session``). Failed sign-ins are counted per name and address,
+and per address (``labd.api.throttle``): past the limit they are refused unchecked for a
+while; a guesser elsewhere never locks the owner out.
 """
 
 from __future__ import annotations
@@ -23,9 +24,9 @@ from fastapi import APIRouter, Form, Request
 from fastapi.responses import HTMLResponse, RedirectResponse
 from pydantic import BaseModel, ValidationError
 
-from labd.api.common import SESSION_COOKIE, Lab
+from labd.api.common import SESSION_COOKIE, Lab, client_address
 from labd.api.errors import TooMany
-from labd.api.throttle import Throttle
+from labd.api.throttle import Throttle, name_at
 from labd.sim import registry
 from labd.web.render import page
 from labd.web.session import CsrfChecked, Viewer, set_session_cookie
@@ -82,11 +83,11 @@ class SigninForm(BaseModel):
 def signin(
     request: Request, service: Lab, viewer: Viewer, sent: Annotated[SigninForm, Form()]
 ) -> Any:
-    address = request.client.host if request.client else "unknown"
+    address = client_address(request)
     throttle: Throttle = request.app.state.throttle
     name, password, token, then = sent.name.strip(), sent.password, sent.token, sent.then
     try:
-        throttle.check("address", address, "sign-ins from your address")
+        throttle.check("address", address, "failed sign-ins from your address")
         if token.strip():
             user = service.index.user_by_token(token.strip())
             if user is None:
@@ -96,11 +97,15 @@ def signin(
                     request, service, viewer, then, "the lab does not know that token", status=401
                 )
         else:
-            throttle.check("password", name, f"sign-ins for {name or 'that name'}")
+            throttle.check(
+                "password",
+                name_at(name, address),
+                f"failed sign-ins for {name or 'that name'} from your address",
+            )
             try:
                 user = service.accounts.check_password(name, password)
             except BadCredentials as err:
-                throttle.fail("password", name)
+                throttle.fail("password", name_at(name, address))
                 throttle.fail("address", address)
                 log.info("failed sign-in for %r from %s", name, address)
                 return _signin(request, service, viewer, then, str(err), status=401, name=name)

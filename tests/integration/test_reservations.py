@@ -14,7 +14,7 @@ import pytest
 from websockets.exceptions import ConnectionClosed
 from websockets.sync.client import connect as connect_ws
 
-from labd.bridge.auth import AuthError, Grant
+from labd.bridge.auth import AuthError, AuthUnavailable, Grant
 from labd.config import BridgeConfig, RobotConfig
 from labd.lab import LabConfig
 from labd.service import ServiceConfig
@@ -224,3 +224,85 @@ def test_guessing_keys_on_the_bridge_is_cut_short(make_server, caplog):
         "authorization refused: too many refused keys from your address; try again in"
     )
     assert any("3 keys refused from 127.0.0.1" in r.message for r in caplog.records)
+
+
+class Faulty:
+    """An authorizer with a bug: it raises something other than AuthError."""
+
+    async def authorize(self, key: str, graph: str) -> Grant:
+        raise TypeError("comparing strings with non-ASCII characters is not supported")
+
+
+class Long:
+    """An authorizer whose refusals are longer than a close frame carries."""
+
+    async def authorize(self, key: str, graph: str) -> Grant:
+        raise AuthError("this key is refused, and here is why, at great length: " + "é" * 100)
+
+
+def test_a_faulty_authorizer_or_a_long_reason_still_closes_the_client_at_once(make_server, caplog):
+    """An authorizer that crashes closes its client at once, saying the key could not be
+    checked (the traceback is logged); a refusal longer than a close frame carries (123
+    bytes) is cut to fit, rather than leaving the client hanging."""
+    faulty = make_server(BridgeConfig(port=0, auth_timeout=30), authorizer=Faulty())
+    with connect_ws(faulty.url) as ws:
+        ws.send(json.dumps({"op": "auth", "key": "k"}))
+        started = time.monotonic()
+        code, reason = closed_reason(ws)
+    assert time.monotonic() - started < 5
+    assert (code, reason) == (
+        1008,
+        "authorization refused: the key could not be checked (a fault of the lab, logged)",
+    )
+    assert any(r.exc_info and r.exc_info[0] is TypeError for r in caplog.records)
+    long = make_server(BridgeConfig(port=0, auth_timeout=30), authorizer=Long())
+    with connect_ws(long.url + "?key=k") as ws:
+        code, reason = closed_reason(ws)
+    assert code == 1008 and reason.startswith("authorization refused: this key is refused")
+    assert reason.endswith("é...") and len(reason.encode()) <= 123
+
+
+class Revocable:
+    """An authorizer whose keys can be withdrawn, or given more time, by the test."""
+
+    def __init__(self) -> None:
+        self.seconds = 60.0
+        self.asked = 0
+        self.away = False
+
+    async def authorize(self, key: str, graph: str) -> Grant:
+        self.asked += 1
+        if self.away:
+            raise AuthUnavailable("the authorizer could not be reached (ConnectError)")
+        if self.seconds <= 0:
+            raise AuthError("the lab knows no such key; fetch your slot's key again")
+        return Grant(self.seconds, user="alice", ref="reservation:1")
+
+
+def test_connected_keys_are_checked_again_and_a_withdrawn_one_disconnects(make_server):
+    """Every key_recheck seconds the bridge asks again about a connected client's key: a
+    new end moves the client's expiry; an authorizer away leaves the client connected;
+    a refusal disconnects it, naming the robot and the reason."""
+    revocable = Revocable()
+    server = make_server(BridgeConfig(port=0, key_recheck=0.2), authorizer=revocable)
+    with connect_ws(server.url) as ws:
+        ws.send(json.dumps({"op": "auth", "key": "k"}))
+        ws.send(json.dumps({"op": "call_service", "id": 1, "service": "/rosapi/nodes"}))
+        frames_until(ws, lambda f: f.get("id") == 1)
+        [conn] = server.lab.bridge.connections
+        first = conn.session.expires_at
+        revocable.seconds = 600.0
+        server.wait_until(lambda: conn.session.expires_at > first + 500)
+        revocable.away = True
+        asked = revocable.asked
+        server.wait_until(lambda: revocable.asked >= asked + 2)
+        ws.send(json.dumps({"op": "call_service", "id": 2, "service": "/rosapi/nodes"}))
+        frames_until(ws, lambda f: f.get("id") == 2)  # still connected
+        revocable.away = False
+        revocable.seconds = 0
+        code, reason = closed_reason(ws)
+    assert (code, reason) == (
+        1008,
+        "your key no longer opens playground: the lab knows no such key; fetch your slot's"
+        " key again",
+    )

@@ -194,8 +194,13 @@ async def test_the_authorizer_answers_the_papers_protocol(api, people, clock):
     assert jsonp.text == 'lab.authorize({"seconds":1500.0,"reason":null});'
     bad = await api.get("/api/auth", params={"key": key, "callback": "alert(1)//"})
     assert bad.status_code == 422 and "callback must be a JavaScript function name" in bad.text
-    unknown = await api.get("/api/auth", params={"key": "labd_rk_1_forged"})
-    assert unknown.json()["seconds"] == 0 and "no such key" in unknown.json()["reason"]
+    forged = await api.get("/api/auth", params={"key": "labd_rk_1_" + "A" * 43})
+    assert forged.json()["seconds"] == 0 and "no such key" in forged.json()["reason"]
+    for odd in ("labd_rk_1_forged", "labd_rk_1_١٢٣", "labd_rk_²_x", "labd_rk_\uff11_" + "A" * 43):
+        answer = await api.get("/api/auth", params={"key": odd})
+        assert answer.status_code == 200, (odd, answer.text)
+        assert answer.json()["seconds"] == 0
+        assert answer.json()["reason"].startswith("this is not a key of this lab"), answer.text
     clock.now += 25 * 60
     late = (await api.get("/api/auth", params={"key": key})).json()
     assert late["seconds"] == 0 and "ended at 2030-01-07 09:40:00 UTC" in late["reason"]

@@ -13,8 +13,9 @@ import pytest
 from labd.api.throttle import LIMITS
 from labd.commands import serve
 from labd.config import BridgeConfig
+from labd.lab import LabConfig
 from repository.accounts import MIN_PASSWORD, SESSION_AGE
-from repository.reservations import Rules
+from repository.reservations import MAX_HORIZON, MAX_SLOT, Rules
 
 DOCS = Path(__file__).resolve().parents[2] / "docs"
 BRIDGE, RULES = BridgeConfig(), Rules()
@@ -29,6 +30,12 @@ def served(*argv: str) -> Rules:
     return config.rules
 
 
+def served_lab(*argv: str) -> LabConfig:
+    parser = argparse.ArgumentParser()
+    serve.add_parser(parser.add_subparsers(dest="command"))
+    return serve.config(parser.parse_args(["serve", *argv]))
+
+
 ROWS: list[tuple[str, str, Callable[[], object], object]] = [
     ("reservations.md", "| `--max-slot MIN` | 60 |", lambda: (RULES.max_slot, served().max_slot), (3600, 3600)),
     ("reservations.md", "| `--max-slots-per-day N` | 4 |", lambda: served().max_slots_per_day, 4),
@@ -40,8 +47,16 @@ ROWS: list[tuple[str, str, Callable[[], object], object]] = [
     ("reservations.md", "one asked for up to a minute ago", lambda: RULES.grace, 60),
     ("reservations.md", "a password of at least 10 characters", lambda: MIN_PASSWORD, 10),
     ("reservations.md", "and its end (14 days)", lambda: SESSION_AGE, 14 * 86400),
-    ("reservations.md", "five wrong passwords for one name within five minutes",
+    ("reservations.md", "five wrong passwords for one name from one address within five minutes",
      lambda: (LIMITS["password"].limit, LIMITS["password"].window), (5, 300)),
+    ("reservations.md", "At most **5 accounts an hour are made from one address**",
+     lambda: (LIMITS["signup"].limit, LIMITS["signup"].window), (5, 3600)),
+    ("reservations.md", "how far ahead a slot may start (at most 365)", lambda: MAX_HORIZON, 365 * 86400),
+    ("reservations.md", "at most this long (at most 1,440: a day)", lambda: MAX_SLOT, 1440 * 60),
+    ("reservations.md", "(`labd serve --trusted-proxy ADDR`, an address or network, repeatable; default none)",
+     lambda: served_lab().trusted_proxies, ()),
+    ("protocol.md", "every 5 s (`labd serve --key-recheck S`; 0: never)",
+     lambda: (BRIDGE.key_recheck, served_lab().bridge.key_recheck), (5, 5)),
     ("reservations.md", "or twenty failed sign-ins from one address",
      lambda: (LIMITS["address"].limit, LIMITS["address"].window), (20, 300)),
     ("protocol.md", "gets a status of level `warning` 60 s before its key's time ends",

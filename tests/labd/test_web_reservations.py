@@ -49,13 +49,13 @@ def service(tmp_path, clock):
     service.index.close()
 
 
-async def client_of(service, **site):
+async def client_of(service, address="198.51.100.7", **site):
     robots = (RobotLink("icreate-1", "icreate-maze", True), RobotLink("pr2-1", "pr2-table", True))
     app = create_app(service, Site(robots, **site), on_submit=lambda: None)
     changed = []
     app.state.on_reservation = changed.append
     client = httpx.AsyncClient(
-        transport=httpx.ASGITransport(app=app, client=("198.51.100.7", 5000)),
+        transport=httpx.ASGITransport(app=app, client=(address, 5000)),
         base_url="http://lab.test",
     )
     client.changed = changed
@@ -96,15 +96,24 @@ async def test_password_sign_in_and_out(web, alice):
     assert 'id="me"' not in (await web.get("/")).text
 
 
-async def test_guessing_passwords_is_refused_for_a_while_and_logged(web, alice, clock, caplog):
-    """Five wrong passwords for a name and the sixth attempt, right or not, is refused
-    unchecked for five minutes; it is logged; after that the right one works."""
+async def test_guessing_passwords_is_refused_for_a_while_and_logged(
+    web, service, alice, clock, caplog
+):
+    """Five wrong passwords for a name from one address and the sixth attempt from
+    there, right or not, is refused unchecked for five minutes; it is logged; the owner
+    at another address signs in meanwhile; after that the right one works."""
     for _ in range(5):
         assert (await sign_in(web, password="guess guess guess")).status_code == 401
     blocked = await sign_in(web)
     assert blocked.status_code == 429
-    assert "too many failed sign-ins for alice; wait 300 s and try again" in blocked.text
-    assert any("5 failed password attempts for alice" in r.message for r in caplog.records)
+    assert (
+        "too many failed sign-ins for alice from your address; wait 300 s and try again"
+        in blocked.text
+    )
+    logged = "5 failed password attempts for 'alice' from 198.51.100.7"
+    assert any(logged in r.message for r in caplog.records)
+    async with await client_of(service, address="203.0.113.9") as owner:
+        assert (await sign_in(owner)).status_code == 303
     clock.now += 301
     assert (await sign_in(web)).status_code == 303
 
@@ -126,7 +135,7 @@ async def test_sign_up_only_where_the_operator_allows_it(tmp_path, clock):
         short = await web.post("/signup", data={**form, "password": "short", "again": "short"})
         assert "at least 10 characters" in short.text
         bad = await web.post("/signup", data={**form, "name": "no spaces"})
-        assert "use 1 to 64 letters" in bad.text
+        assert "use 1 to 64 ASCII letters" in bad.text
         made = await web.post("/signup", data=form)
         assert made.status_code == 303 and made.headers["location"] == "/reservations"
         assert 'id="me">carol</a>' in (await web.get("/reservations")).text
@@ -206,3 +215,25 @@ async def test_the_calendar_page_is_public_and_links_its_feed(web, service, cloc
     assert made.key not in page.text
     missing = await web.get("/reservations/r2d2")
     assert missing.status_code == 404 and "icreate-1, pr2-1" in missing.text
+
+
+async def test_changing_my_password(web, service, alice):
+    """A signed-in person changes their password on /password: a wrong current password
+    or two new ones that differ are refused saying so; the change signs out their other
+    session and keeps this one."""
+    other, _ = service.accounts.open_session(service.index.user("alice"))
+    assert (await web.get("/password")).status_code == 303  # sign in first
+    assert (await sign_in(web)).status_code == 303
+    csrf = csrf_of((await web.get("/password")).text)
+    form = {"current": PASSWORD, "password": "a new long password", "again": "a new long password"}
+    wrong = await web.post("/password", data={**form, "current": "not it at all", "csrf": csrf})
+    assert wrong.status_code == 401 and "that is not your current password" in wrong.text
+    differ = await web.post("/password", data={**form, "again": "something else", "csrf": csrf})
+    assert differ.status_code == 422 and "the two new passwords differ" in differ.text
+    assert service.accounts.session(other) is not None
+    done = await web.post("/password", data={**form, "csrf": csrf})
+    assert done.status_code == 303 and done.headers["location"] == "/password?done=1"
+    shown = await web.get(done.headers["location"])
+    assert "Your password is changed; your other sign-ins (1) have ended." in shown.text
+    assert service.accounts.session(other) is None
+    assert service.accounts.check_password("alice", "a new long password").name == "alice"

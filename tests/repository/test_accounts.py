@@ -8,8 +8,15 @@ import sqlalchemy as sa
 from argon2 import PasswordHasher
 
 from repository.accounts import Accounts
-from repository.errors import AccountError, ArchiveError, BadCredentials, RecordNotFound
+from repository.errors import (
+    AccountError,
+    ArchiveError,
+    BadCredentials,
+    RecordNotFound,
+    UnknownKey,
+)
 from repository.index import Index, connect, passwords, web_sessions
+from repository.reservations import Reservations, Rules
 
 
 class Clock:
@@ -125,3 +132,81 @@ def test_sessions_expire_and_end_and_keep_only_a_hash(accounts, index, clock):
     again, _ = accounts.open_session(index.user("alice"))
     accounts.end_session(again)
     assert accounts.session(again) is None
+
+
+def test_a_new_password_ends_the_other_sessions_and_keeps_the_tokens(accounts, index):
+    """Alice's own change keeps the session she changed it from and ends her others;
+    the operator's reset ends them all; a wrong current password changes nothing; her
+    tokens work throughout; an upgraded hash (the same password) ends nothing."""
+    token = index.add_user("alice")
+    accounts.set_password("alice", "correct horse battery")
+    here, _ = accounts.open_session(index.user("alice"))
+    there, _ = accounts.open_session(index.user("alice"))
+    with pytest.raises(BadCredentials):
+        accounts.change_password("alice", "not the password", "another long one", keep=here)
+    assert accounts.session(there) is not None
+    assert (
+        accounts.change_password("alice", "correct horse battery", "another long one", keep=here)
+        == 1
+    )
+    assert accounts.session(here) is not None and accounts.session(there) is None
+    assert accounts.check_password("alice", "another long one").name == "alice"
+    with pytest.raises(BadCredentials):
+        accounts.check_password("alice", "correct horse battery")
+    stronger = Accounts(index, hasher=PasswordHasher(time_cost=2, memory_cost=2048))
+    stronger.check_password("alice", "another long one")  # re-hashed: the session stays
+    assert accounts.session(here) is not None
+    assert accounts.set_password("alice", "the operator's reset") == 1
+    assert accounts.session(here) is None
+    assert index.user_by_token(token).name == "alice"
+
+
+def test_revoking_a_user_replaces_the_keys_of_their_slots(accounts, index, tmp_path):
+    """``labd users revoke NAME`` (revoke_all) makes every reservation key of theirs open
+    nothing, and leaves their slots booked and others' keys working."""
+    index.add_user("alice")
+    index.add_user("bob")
+    desk = Reservations(index, Rules(), b"k" * 32)
+    now = index.clock()
+    alices = desk.book("alice", "icreate-1", now, now + 600)
+    bobs = desk.book("bob", "pr2-1", now, now + 600)
+    accounts.revoke_all("alice")
+    with pytest.raises(UnknownKey):
+        desk.authorize(alices.key)
+    assert desk.authorize(bobs.key).reservation.user == "bob"
+    assert [r.user for r in desk.find(robot="icreate-1")] == ["alice"]
+
+
+@pytest.mark.parametrize(
+    "name",
+    ["\u0430lice", "\uff41lice", ".", "..", ".alice", "-x", "al ice", "alice\n", "a" * 65, ""],
+)
+def test_names_that_could_pass_for_others_are_refused(index, name):
+    """A new name is ASCII letters, digits, '.', '-', '_', starting with a letter or a
+    digit: look-alikes in other scripts and dot names are refused naming the rule."""
+    with pytest.raises(ArchiveError, match="use 1 to 64 ASCII letters, digits"):
+        index.add_user(name)
+
+
+def test_names_are_unique_without_case_and_old_collisions_are_found(index):
+    """'Alice' beside 'alice' is refused; names an older labd let collide are kept,
+    listed by name_collisions, and no third spelling may join them."""
+    index.add_user("alice")
+    with pytest.raises(ArchiveError, match="'ALICE' is taken: names are told apart without case"):
+        index.add_user("ALICE")
+    with index.begin() as db:  # as an older labd could have made them
+        for name in ("Bob", "bob"):
+            db.execute(
+                sa.insert(index.users).values(
+                    name=name,
+                    token_sha256=name,
+                    created=0,
+                    max_running=1,
+                    max_daily=1,
+                    worker=False,
+                )
+            )
+    assert index.name_collisions() == [["Bob", "bob"]]
+    with pytest.raises(ArchiveError, match="is taken"):
+        index.add_user("BOB")
+    assert index.user("Bob").name == "Bob" and index.user("bob").name == "bob"

@@ -11,14 +11,16 @@ import sqlalchemy as sa
 
 from repository.errors import (
     KeyRefused,
+    MalformedKey,
     NotYourReservation,
     OverLimit,
     RecordNotFound,
     ReservationError,
     SlotTaken,
+    UnknownKey,
 )
 from repository.index import Index, connect
-from repository.reservations import Booking, Reservations, Rules, load_secret
+from repository.reservations import Booking, Reservations, Rules, load_secret, rekey, when
 
 # Monday 2030-01-07 09:00 UTC: tests start on a known day of a known week.
 MONDAY = dt.datetime(2030, 1, 7, 9, 0, tzinfo=dt.UTC).timestamp()
@@ -79,9 +81,93 @@ def test_a_booking_gives_a_key_for_its_robot_and_its_slot_only(desk, clock):
         desk.authorize(key, "icreate-1")
     clock.now = MONDAY + HOUR + 1
     forged = key[:-4] + ("AAAA" if not key.endswith("AAAA") else "BBBB")
-    for bad in (forged, "labd_rk_999_abc", "nonsense", "", key + "x"):
-        with pytest.raises(KeyRefused, match="the lab knows no such key"):
+    for bad in (forged, "labd_rk_999_" + "A" * 43):
+        with pytest.raises(UnknownKey, match="the lab knows no such key"):
             desk.authorize(bad, "icreate-1")
+    for bad in ("labd_rk_999_abc", "nonsense", "", key + "x"):
+        with pytest.raises(MalformedKey, match="this is not a key of this lab"):
+            desk.authorize(bad, "icreate-1")
+
+
+@pytest.mark.parametrize(
+    "spelling",
+    [
+        "labd_rk_{n}_١٢٣",  # Arabic-Indic digits where the MAC goes
+        "labd_rk_²_{mac}",  # a superscript two: isdigit() says yes, int() says no
+        "labd_rk_{fullwidth}_{mac}",  # the reservation's number in fullwidth digits
+        "labd_rk_{arabic}_{mac}",  # ... and in Arabic-Indic ones
+        "labd_rk_{n}_{mac}\n",  # a newline after it
+        "labd_rk_0{n}_{mac}",  # a leading zero
+        "labd_rk_{n}_{mac_e}",  # one letter of the MAC outside ASCII
+    ],
+)
+def test_a_key_is_parsed_strictly(desk, clock, spelling):
+    """Only the exact ASCII shape of a key is looked at: any other digits or letters,
+    even where int() would read the same number, are MalformedKey, never a crash."""
+    made = desk.book("alice", "icreate-1", MONDAY, MONDAY + HOUR)
+    n = str(made.reservation.id)
+    mac = made.key.rsplit("_", 1)[1]
+    odd = spelling.format(
+        n=n,
+        mac=mac,
+        mac_e=mac[:-1] + "é",
+        fullwidth="".join(chr(0xFF10 + int(d)) for d in n),  # FULLWIDTH DIGIT ...
+        arabic="".join(chr(0x0660 + int(d)) for d in n),  # ARABIC-INDIC DIGIT ...
+    )
+    with pytest.raises(MalformedKey):
+        desk.authorize(odd, "icreate-1")
+    assert desk.authorize(made.key, "icreate-1").seconds == HOUR
+
+
+def test_rekeying_a_person_ends_their_keys_and_keeps_their_slots(index, desk, clock):
+    """``rekey`` (a revoked person) makes every key of their current and coming slots
+    open nothing; the slots stay booked, their new keys work, others' keys are untouched."""
+    now_slot = desk.book("alice", "icreate-1", MONDAY, MONDAY + HOUR)
+    later = desk.book("alice", "pr2-1", MONDAY + 2 * HOUR, MONDAY + 3 * HOUR)
+    bobs = desk.book("bob", "pr2-1", MONDAY, MONDAY + HOUR)
+    with index.begin() as db:
+        assert rekey(db, "alice", clock.now) == 2
+    for old in (now_slot, later):
+        with pytest.raises(UnknownKey):
+            desk.authorize(old.key)
+    assert desk.authorize(desk.key("alice", now_slot.reservation.id)).seconds == HOUR
+    assert desk.authorize(bobs.key).seconds == HOUR
+    assert [r.id for r in desk.find(user="alice")] == [
+        now_slot.reservation.id,
+        later.reservation.id,
+    ]
+
+
+@pytest.mark.parametrize(
+    ("start", "end", "message"),
+    [
+        (MONDAY, MONDAY - 1e300, "more than a year in the past"),
+        (MONDAY, MONDAY + 1e12, "ends by 2030-01-21 10:00:00 UTC"),
+        (MONDAY, MONDAY + 1e300, "out of the calendar"),
+        (253402300740.0, 253402302540.0, "at most 14 days ahead"),  # 9999-12-31 23:59
+        (-62135596800.0, MONDAY, "more than a year in the past"),  # the year 1
+        (MONDAY, float("inf"), "as times"),
+    ],
+)
+def test_times_out_of_the_calendar_are_refused_saying_why(desk, clock, start, end, message):
+    """A booking or an extension with a time out of any calendar (year 9999, 10^12 s,
+    -10^300) is a ReservationError naming the span allowed, never an OverflowError."""
+    with pytest.raises(ReservationError, match=message):
+        desk.book("alice", "icreate-1", start, end)
+    made = desk.book("alice", "icreate-1", MONDAY, MONDAY + 30 * MIN)
+    with pytest.raises(ReservationError):
+        desk.extend("alice", made.reservation.id, end)
+    assert when(1e300) == "1e+300 s from 1970 (out of the calendar)"
+
+
+def test_the_operator_cannot_set_an_unbounded_horizon_or_slot():
+    """Rules refuse a horizon over a year and a slot over a day (so every booking's
+    times are dates people can read)."""
+    with pytest.raises(ValueError, match="at most 365 days ahead"):
+        Rules(horizon=366 * 86400)
+    with pytest.raises(ValueError, match=r"at most 1 day$"):
+        Rules(max_slot=86400 + 1)
+    assert Rules(horizon=365 * 86400, max_slot=86400).horizon == 365 * 86400
 
 
 def test_keys_are_not_in_the_database_and_another_secret_opens_nothing(index, desk, clock):
