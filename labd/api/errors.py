@@ -30,6 +30,7 @@ from repository.errors import (
     SlotTaken,
 )
 from scheduler.errors import (
+    FilingRefused,
     InvalidRequest,
     NotYours,
     QuotaExceeded,
@@ -80,6 +81,7 @@ STATUS: dict[type[Exception], int] = {
     BlobError: 500,  # a blob that no longer matches its digest: the store is damaged
     ArchiveError: 422,
     NotYours: 403,
+    FilingRefused: 422,
     NotYourReservation: 403,
     SlotTaken: 409,
     OverLimit: 429,
