@@ -38,6 +38,7 @@ from repository.signing import Keyring
 from repository.trial import Ending, Filing, Kind
 from scheduler.data import DataPolicy, LocalArchive
 from scheduler.fetch import FetchPolicy
+from scheduler.filing import FilingCheck
 from scheduler.host import REPLAY, VIDEO
 from scheduler.queue import Queue, QueueConfig
 from scheduler.runner import RunOptions
@@ -104,7 +105,11 @@ class Service:
         self.reservations = Reservations(
             self.index, config.rules, load_secret(keys / "reservations.secret")
         )
-        self.queue = Queue(self.index, config.queue, self.keyring)
+        # Every filing, of the workers here and of remote ones, is held to its record
+        # before the lab signs it (scheduler.filing).
+        self.queue = Queue(
+            self.index, config.queue, self.keyring, check=FilingCheck(self.store, self.host)
+        )
         # However local paths are allowed, no submission reaches the lab's own files: its
         # mirrors of repositories (some private), runtimes, trials at work, keys, blobs.
         own: tuple[Path, ...] = (self.cache, (config.data / "work").resolve(), keys)

@@ -17,10 +17,15 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import importlib.util
+import json
 import logging
+import struct
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
+
+from mcap.exceptions import McapError
+from zstandard import ZstdError
 
 from labd.bridge.server import BridgeServer
 from labd.config import BridgeConfig
@@ -28,18 +33,19 @@ from labd.errors import InterfaceError, LabError, RecordError
 from labd.exports import write_dataset
 from labd.graph.definitions import trial_types
 from labd.graph.types import TypeRegistry
-from labd.recorder import Recorder, first_difference
-from labd.recorder.digest import data_digest
+from labd.recorder import Recorder, first_difference, read_attachments, read_manifest
+from labd.recorder.digest import EPISODE, data_digest
 from labd.recorder.summary import summary_blob
 from labd.replay import replay_with_video
 from labd.sim import registry
 from labd.sim.base import SUCCEEDED
 from labd.sim.robot import LiveRunner
 from labd.station import Station
+from repository.blobs import digest_of
 from repository.errors import ExportError
 from repository.trial import PinnedRecord, Value
 from scheduler.errors import InvalidRequest, TrialError
-from scheduler.host import Attachments, Episode, Replayed
+from scheduler.host import OUTCOME, Attachments, Episode, RecordFacts, Replayed
 
 log = logging.getLogger("labd.trial")
 MAX_CLIENTS = 16  # bridge connections a trial's controller may open
@@ -94,6 +100,40 @@ class LabHost:
         except LabError as err:
             raise TrialError(f"{record.name} cannot be read as a record: {err}") from None
 
+    def read_record(self, record: Path, topics: Sequence[str]) -> RecordFacts:
+        """What the record holds of what a filing or a signature says of it: its manifest,
+        its data digest over ``topics``, its ``outcome.json`` and its attachments' digests,
+        read within the archive's limits (``TrialError`` if it is no readable record)."""
+        attachments: dict[str, str] = {}
+        outcome = None
+        try:
+            manifest = read_manifest(record)
+            digest = data_digest(record, topics)
+            for attachment in read_attachments(record):  # one at a time: a few MiB each
+                attachments[attachment.name] = digest_of(attachment.data)
+                if attachment.name == OUTCOME:
+                    outcome = json.loads(attachment.data)
+        except (McapError, ZstdError, struct.error, EOFError, ValueError) as err:
+            raise TrialError(f"{record.name} cannot be read as a record: {err}") from None
+        if manifest is not None and not isinstance(manifest, dict):
+            raise TrialError(f"{record.name}: its manifest is not a JSON object")
+        return RecordFacts(
+            manifest, digest, outcome if isinstance(outcome, dict) else None, attachments
+        )
+
+    def task_version(self, task: str) -> str:
+        try:
+            return registry.get(task).version
+        except LabError as err:
+            raise InvalidRequest(str(err)) from None
+
+    def digest_topics(self, task: str) -> list[str]:
+        try:
+            observations, commands = registry.get(task).topics()
+        except LabError as err:
+            raise InvalidRequest(str(err)) from None
+        return digest_topics(observations, commands)
+
     def dataset(self, records: Sequence[tuple[PinnedRecord, Path]], out: Path) -> None:
         try:
             write_dataset([(r.model_dump(mode="json"), path) for r, path in records], out)
@@ -147,8 +187,9 @@ class LabTrial:
         self._live: asyncio.Task[None] | None = None
         self._finished: str | None = None
         task_obj = self.robot.sim.task
-        names = {o.name for o in task_obj.observations} | {c.name for c in task_obj.commands}
-        self._digest_topics = sorted(names | {"/clock", "/lab/episode"})
+        self._digest_topics = digest_topics(
+            [o.name for o in task_obj.observations], [c.name for c in task_obj.commands]
+        )
 
     # -- what the runner reads ----------------------------------------------------------
 
@@ -224,6 +265,12 @@ class LabTrial:
             self.station.close()
             self._finished = digest
         return digest
+
+
+def digest_topics(observations: Sequence[str], commands: Sequence[str]) -> list[str]:
+    """The topics a trial's data digest covers: the task's observations and commands, the
+    clock and the episode's ticks; sorted."""
+    return sorted({*observations, *commands, "/clock", EPISODE})
 
 
 def client_library() -> Path:

@@ -60,11 +60,11 @@ import numpy as np
 import pyarrow as pa  # type: ignore[import-untyped]
 import pyarrow.parquet as pq  # type: ignore[import-untyped]
 from mcap.exceptions import McapError
-from mcap.reader import NonSeekingReader
 from mcap_ros2.decoder import DecoderFactory
 from zstandard import ZstdError
 
 from repository.errors import ExportError
+from repository.mcapfile import messages
 
 FORMATS = ("parquet", "lerobot")
 EPISODE = "/lab/episode"  # lab_msgs/msg/Episode, after each tick's observations
@@ -342,9 +342,7 @@ def read_episodes(source: Source, layout: Layout) -> list[Episode]:
     factory = DecoderFactory()
     try:
         with path.open("rb") as stream:
-            for schema, channel, message in NonSeekingReader(stream).iter_messages(
-                log_time_order=False
-            ):
+            for schema, channel, message in messages(stream):
                 topic = channel.topic
                 if channel.id not in decoders:
                     side = channel.metadata.get(SIDE_KEY)

@@ -20,6 +20,7 @@ QueueError                      a queue operation was refused
 ├── QuotaExceeded               a submitter is over a limit the operator set
 ├── Busy                        the lab has as many submissions in hand as it takes
 ├── NotYours                    a trial may be changed only by its submitter
+├── FilingRefused               a worker's filing says what its record does not hold
 └── RemoteError                 talking to a lab's HTTP API went wrong
     ├── LabUnreachable          no lab answered at that address
     └── ApiRefused              the lab answered with an error (its status and words)
@@ -30,7 +31,7 @@ are the ones the lab records, which never hold one.
 
 from __future__ import annotations
 
-from collections.abc import Collection, Iterable
+from collections.abc import Collection, Iterable, Sequence
 
 MiB = 1024 * 1024
 
@@ -254,6 +255,19 @@ class NotYours(QueueError):
         self.owner = owner
         self.action = action
         super().__init__(f"trial {trial_id} is {owner}'s; only they may {action} it")
+
+
+class FilingRefused(QueueError):
+    """A worker filed a trial with what its record does not hold (``scheduler.filing``):
+    nothing was filed or signed; ``problems`` say each difference."""
+
+    def __init__(self, trial_id: int, problems: Sequence[str]) -> None:
+        self.trial_id = trial_id
+        self.problems = tuple(problems)
+        super().__init__(
+            f"trial {trial_id} was not filed (nor signed): the filing does not say what"
+            f" its record holds: {'; '.join(self.problems)}"
+        )
 
 
 class InvalidRequest(QueueError):

@@ -24,6 +24,19 @@ SUMMARY = "summary.json"
 SUMMARY_MEDIA_TYPE = "application/gzip"
 REPLAY = "replay.json"  # a record's replay verdict, beside it
 VIDEO = "video.mp4"  # the task's camera, rendered during the replay
+OUTCOME = "outcome.json"  # a record's attachment: its status, outcome, reason, metrics
+LOGS = {"stdout": "controller.stdout.log", "stderr": "controller.stderr.log"}  # attachments
+
+
+@dataclass(frozen=True)
+class RecordFacts:
+    """What a record's file holds of what a filing (or a signature) says of it, read from
+    the file: never taken from whoever offers it."""
+
+    manifest: dict[str, Any] | None  # the manifest metadata record
+    data_digest: str  # over the topics asked for, recomputed
+    outcome: dict[str, Any] | None  # the ``OUTCOME`` attachment, parsed
+    attachments: dict[str, str]  # name -> sha256:HEX of its bytes
 
 
 @dataclass(frozen=True)
@@ -119,6 +132,20 @@ class TrialHost(Protocol):
 
     def data_digest(self, record: Path, topics: Sequence[str]) -> str:
         """The data digest of the MCAP file ``record`` over ``topics``, recomputed."""
+        ...
+
+    def read_record(self, record: Path, topics: Sequence[str]) -> RecordFacts:
+        """The manifest, the data digest over ``topics`` and the outcome the MCAP file
+        ``record`` holds, read within the archive's limits (``TrialError`` if it cannot
+        be read as a record)."""
+        ...
+
+    def task_version(self, task: str) -> str:
+        """The version of ``task`` this lab runs (``InvalidRequest`` for an unknown one)."""
+        ...
+
+    def digest_topics(self, task: str) -> list[str]:
+        """The topics a trial of ``task``'s data digest covers, sorted."""
         ...
 
     def dataset(self, records: Sequence[tuple[PinnedRecord, Path]], out: Path) -> None:

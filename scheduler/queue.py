@@ -23,7 +23,7 @@ PostgreSQL, and a late worker cannot overwrite what the queue already decided.
 from __future__ import annotations
 
 import logging
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from enum import StrEnum
 from typing import Any
@@ -36,10 +36,13 @@ from repository.index import trials as T
 from repository.signing import Keyring, record_statement
 from repository.trial import Claim, Filing, Kind, Outcome, PinnedRecord, Status, Trial
 from scheduler.canary import Health
-from scheduler.errors import NotYours, QuotaExceeded
+from scheduler.errors import FilingRefused, NotYours, QuotaExceeded
 
 log = logging.getLogger("scheduler.queue")
 DAY = 86400.0
+# Holds a worker's filing to its record before anything is stored: (trial, filing, the
+# trial it reruns) -> None, or FilingRefused (``scheduler.filing.FilingCheck``).
+Check = Callable[[Trial, Filing, Trial | None], None]
 
 
 @dataclass(frozen=True)
@@ -60,14 +63,20 @@ class Cancel(StrEnum):
 
 
 class Queue:
-    """The queue over ``index``; with a ``keyring``, every filed record is signed."""
+    """The queue over ``index``; with a ``keyring``, every filed record is signed, and
+    with a ``check``, every worker's filing is first held to its record."""
 
     def __init__(
-        self, index: Index, config: QueueConfig | None = None, keyring: Keyring | None = None
+        self,
+        index: Index,
+        config: QueueConfig | None = None,
+        keyring: Keyring | None = None,
+        check: Check | None = None,
     ) -> None:
         self.index = index
         self.config = config or QueueConfig()
         self.keyring = keyring
+        self.check = check
         self.clock = index.clock
         self.health: dict[str, Health] = {}  # what each worker last said of itself
 
@@ -242,7 +251,25 @@ class Queue:
         return not stop
 
     def finish(self, trial_id: int, worker: str, filing: Filing) -> bool:
-        """Store the ending of a trial this worker holds; False if it lost the lease."""
+        """Store the ending of a trial this worker holds; False if it lost the lease.
+
+        With a ``check``, the filing is first held to the record it names, outside any
+        transaction (reading a record takes a while): ``FilingRefused`` if the record
+        does not bear it out, and then nothing is stored or signed.
+        """
+        if self.check is not None:
+            trial = self.index.trial(trial_id)
+            if trial.worker != worker or trial.status is not Status.RUNNING:
+                log.warning(
+                    "worker %s finished trial %d after losing it; dropped", worker, trial_id
+                )
+                return False
+            original = self.index.trial(trial.rerun_of) if trial.rerun_of is not None else None
+            try:
+                self.check(trial, filing, original)
+            except FilingRefused as err:
+                log.warning("worker %s: %s", worker, err)
+                raise
         values = filing.model_dump(mode="json")
         values["finished"] = self.clock()
         values["reward"] = reward_of(filing.metrics)
@@ -319,6 +346,8 @@ class Queue:
                 data_digest=row.data_digest,
                 digest_topics=row.digest_topics,
                 mcap=row.mcap,
+                mcap_size=row.mcap_size,
+                metrics=row.metrics,
                 finished=row.finished,
             )
         )

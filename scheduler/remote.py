@@ -22,9 +22,10 @@ from repository.index import Derived
 from repository.trial import Claim, Filing, Trial
 from scheduler.canary import Health
 from scheduler.client import ApiClient, version
-from scheduler.errors import RemoteError
+from scheduler.errors import ApiRefused, FilingRefused, RemoteError
 
-PROTOCOL = 2  # 1: labd 0.1 (status succeeded/failed); 2: status and outcome apart
+PROTOCOL = 3  # 1: labd 0.1 (status succeeded/failed); 2: status and outcome apart;
+# 3: the lab holds a filing to its record (422 if not borne out), no metrics without one
 PROTOCOL_HEADER = "X-Labd-Worker-Protocol"
 VERSION_HEADER = "X-Labd-Version"
 
@@ -63,9 +64,16 @@ class RemoteLab:
         return self.api.post(path, Kept, json={"worker": worker}).keep
 
     def finish(self, trial_id: int, worker: str, filing: Filing) -> bool:
+        """File the trial; ``FilingRefused`` (the lab's words) if the lab's check of the
+        filing against its record refused it (422), as ``Queue.finish`` raises it."""
         path = f"/api/workers/trials/{trial_id}/finish"
         body = {"worker": worker, "filing": filing.model_dump(mode="json")}
-        return self.api.post(path, Filed, json=body).filed
+        try:
+            return self.api.post(path, Filed, json=body).filed
+        except ApiRefused as err:
+            if err.status == 422:
+                raise FilingRefused(trial_id, [err.message]) from None
+            raise
 
     def report(self, health: Health) -> None:
         body = {"worker": health.worker, "state": health.state, "detail": health.detail}

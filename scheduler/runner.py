@@ -51,7 +51,7 @@ from scheduler.errors import (
 )
 from scheduler.fetch import FetchPolicy
 from scheduler.files import RepositoryFiles
-from scheduler.host import TrialHost, TrialLab
+from scheduler.host import LOGS, OUTCOME, TrialHost, TrialLab
 from scheduler.outcome import judge, storage_failure
 from scheduler.source import Source, checkout
 
@@ -455,7 +455,7 @@ class _Trial:
     ) -> dict[str, tuple[str, bytes]]:
         files: dict[str, tuple[str, bytes]] = {
             "manifest.json": ("application/json", _json(manifest)),
-            "outcome.json": (
+            OUTCOME: (
                 "application/json",
                 _json(
                     {
@@ -471,15 +471,15 @@ class _Trial:
             **self.lab.model_files(),
         }
         if exit_ is not None:
-            files["controller.stdout.log"] = ("text/plain", exit_.stdout)
-            files["controller.stderr.log"] = ("text/plain", exit_.stderr)
+            files[LOGS["stdout"]] = ("text/plain", exit_.stdout)
+            files[LOGS["stderr"]] = ("text/plain", exit_.stderr)
         return files
 
     def _write_files(self, manifest: dict[str, Any], exit_: Exit | None) -> None:
         """The record's folder beside the MCAP: the manifest and the controller's logs."""
         if exit_ is not None:
-            write_whole(self.out / "controller.stdout.log", exit_.stdout)
-            write_whole(self.out / "controller.stderr.log", exit_.stderr)
+            write_whole(self.out / LOGS["stdout"], exit_.stdout)
+            write_whole(self.out / LOGS["stderr"], exit_.stderr)
         write_whole(self.out / "manifest.json", _json(manifest))
 
 

@@ -39,8 +39,8 @@ from repository.index import Derived
 from repository.trial import Claim, Ending, Filing, Status, Trial
 from sandbox.api import Backend
 from scheduler.canary import CHECKING, OK, OUT, Canaries, Health
-from scheduler.errors import QueueError
-from scheduler.host import REPLAY, SUMMARY, SUMMARY_MEDIA_TYPE, VIDEO, TrialHost
+from scheduler.errors import FilingRefused, QueueError
+from scheduler.host import LOGS, REPLAY, SUMMARY, SUMMARY_MEDIA_TYPE, VIDEO, TrialHost
 from scheduler.outcome import storage_failure
 from scheduler.runner import Progress, RunOptions, TrialResult, TrialSpec, run_trial
 
@@ -234,7 +234,7 @@ class Worker:
         finally:
             await _stopped(beat)
         try:
-            filed = await asyncio.to_thread(self.queue.finish, claim.id, self.config.name, filing)
+            filed, filing = await asyncio.to_thread(self._finish, claim.id, filing)
             self.log.info(
                 "trial %d %s: %s",
                 claim.id,
@@ -248,6 +248,18 @@ class Worker:
         finally:
             self._current = None
             shutil.rmtree(out, ignore_errors=True)
+
+    def _finish(self, trial_id: int, filing: Filing) -> tuple[bool, Filing]:
+        """File the trial; a filing the lab refuses (its record does not bear it out: a
+        bug of this worker's, or another lab version's) is filed again as an error saying
+        why, without the record. Whether it was filed, and what was."""
+        try:
+            return self.queue.finish(trial_id, self.config.name, filing), filing
+        except FilingRefused as err:
+            self.log.error("trial %d: %s", trial_id, err)
+            problems = "; ".join(err.problems)
+            refused = Filing.error(f"the lab refused the worker's record of the trial: {problems}")
+            return self.queue.finish(trial_id, self.config.name, refused), refused
 
     async def _heartbeat(
         self,
@@ -310,8 +322,11 @@ class Worker:
             if result is not None and mcap.exists():
                 record["mcap"] = self.store.put_file(mcap)
                 record["mcap_size"] = mcap.stat().st_size
-            for stream in ("stdout", "stderr"):
-                path = out / f"controller.{stream}.log"
+            else:  # no record to bear them out: the lab refuses digests and metrics alone
+                for name in ("data_digest", "digest_topics", "metrics"):
+                    record.pop(name, None)
+            for stream, name in LOGS.items():
+                path = out / name
                 if result is not None and path.exists():
                     record[stream] = self.store.put_file(path)
         except OSError as err:

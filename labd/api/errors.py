@@ -31,6 +31,7 @@ from repository.errors import (
 )
 from scheduler.errors import (
     Busy,
+    FilingRefused,
     InvalidRequest,
     NotYours,
     QuotaExceeded,
@@ -81,6 +82,7 @@ STATUS: dict[type[Exception], int] = {
     BlobError: 500,  # a blob that no longer matches its digest: the store is damaged
     ArchiveError: 422,
     NotYours: 403,
+    FilingRefused: 422,
     NotYourReservation: 403,
     SlotTaken: 409,
     OverLimit: 429,

@@ -12,7 +12,9 @@ Workers need a worker's token (``labd users add NAME --worker``) and must speak 
 lab's worker protocol (``scheduler.remote.PROTOCOL``): a worker of another version is
 refused with a 409 naming both, before it can claim or file anything. A filing sets
 only what a worker knows (``repository.trial.Filing``); everything else stays the
-queue's.
+queue's. The lab reads the record a filing names before it files and signs it
+(``scheduler.filing``): a filing its record does not bear out is a 422 naming each
+difference, and nothing is filed or signed.
 """
 
 from __future__ import annotations
@@ -120,7 +122,9 @@ def heartbeat(trial_id: int, body: WorkerName, service: Lab, user: WorkerUser) -
 
 @router.post("/api/workers/trials/{trial_id}/finish", responses=responses(422))
 def finish(trial_id: int, body: FinishBody, service: Lab, user: WorkerUser) -> Filed:
-    """File a trial's ending; ``filed`` false if this worker no longer held it."""
+    """File a trial's ending, held to the record it names first (422 if the record says
+    otherwise: nothing filed, nothing signed); ``filed`` false if this worker no longer
+    held it."""
     filing = body.filing
     for key in ("mcap", "stdout", "stderr"):
         digest = getattr(filing, key)

@@ -6,41 +6,46 @@
     labd keys rotate --data DIR                          the operator's: sign with a new key
 
 ``--key`` is a PEM public key, or what the lab's ``/api/keys`` answers (every key it
-used); ``--server URL`` fetches that instead. A record is checked by recomputing its
-manifest digest and data digest from the MCAP file itself; an export by recomputing the
-digest of every file. The exit code is 0 when everything checks, 6 when something does
-not (the message says what was changed), 2 for a usage error.
+used); ``--server URL`` fetches that instead. A record is checked whole: the sha256 and
+size of its file against those the lab signed (``repository.signing``), and then what
+it holds against what the lab signed of it, recomputed from the file: the manifest
+digest, the data digest and, for a trial, the outcome and metrics its ``outcome.json``
+says. So a record whose bytes changed is refused, and the message says which of those
+parts changed too, or that the change is elsewhere (a log, the model, a topic outside
+the data digest, bytes added). A file is read within the archive's limits
+(``repository.mcapfile``), so a chunk that would decompress to gigabytes is refused
+unread. An export is checked by recomputing the digest of every file. The exit code is
+0 when everything checks, 6 when something does not (the message says what was
+changed), 2 for a usage error (a key file that is not the lab's keys, say).
 """
 
 from __future__ import annotations
 
 import argparse
-import hashlib
 import json
-import struct
 from pathlib import Path
 from typing import Any
 
-from mcap.exceptions import McapError
-from zstandard import ZstdError
+from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PublicKey
 
 from labd.commands.common import ExitCode, emit, fail, json_option
 from labd.config import DATA
-from labd.recorder import canonical_json, data_digest, read_manifest
+from labd.trial import LabHost
 from repository.errors import ArchiveError
 from repository.signing import (
     EXPORT,
-    RECORD,
+    RECORDS,
     Keyring,
     Signature,
     SignatureError,
+    file_digest,
     file_digests,
-    key_id,
-    load_public,
+    load_keys,
     verify,
 )
 from scheduler.client import ApiClient
-from scheduler.errors import RemoteError
+from scheduler.errors import RemoteError, TrialError
+from scheduler.filing import Claims, record_differences
 
 SIDECAR = ".sig.json"  # a record's signature, beside it: trial-12.mcap.sig.json
 EXPORT_SIGNATURE = "labd-signature.json"
@@ -83,45 +88,54 @@ class Mismatch(Exception):
     """The signature is the lab's, but what it vouches for was changed."""
 
 
-def check(target: Path, keys: dict[str, Any], signature: Path | None = None) -> dict[str, Any]:
+def check(
+    target: Path, keys: dict[str, Ed25519PublicKey], signature: Path | None = None
+) -> dict[str, Any]:
     """Verify ``target`` (a record or an export); what was checked (``Mismatch`` if not)."""
     if target.is_dir():
         return _export(target, keys)
     return _record(target, keys, signature or target.with_name(target.name + SIDECAR))
 
 
-def _record(mcap: Path, keys: dict[str, Any], sidecar: Path) -> dict[str, Any]:
+def _signature(path: Path) -> Signature:
+    try:
+        data = json.loads(path.read_bytes())
+    except (ValueError, UnicodeDecodeError) as err:
+        raise ValueError(f"{path} is not a labd signature (it is not JSON: {err})") from None
+    if not isinstance(data, dict):
+        raise ValueError(f"{path} is not a labd signature (not a JSON object)")
+    return Signature.from_json(data)
+
+
+def _record(mcap: Path, keys: dict[str, Ed25519PublicKey], sidecar: Path) -> dict[str, Any]:
     if not sidecar.exists():
         raise ValueError(
             f"no signature for {mcap}: expected {sidecar} (`labd download` writes it; a"
             " record is signed when a lab files it, never by labd run)"
         )
-    signed = Signature.from_json(json.loads(sidecar.read_text()))
+    signed = _signature(sidecar)
     verify(signed, keys)
     statement = signed.statement
-    if statement.get("schema") != RECORD:
+    if statement.get("schema") not in RECORDS:
         raise ValueError(f"{sidecar} signs {statement.get('schema')}, not a record")
-    try:
-        manifest = read_manifest(mcap)
-        data = data_digest(mcap, statement.get("digest_topics") or [])
-    except (McapError, ZstdError, struct.error, UnicodeDecodeError, ValueError) as err:
+    if not isinstance(statement.get("mcap"), str):
         raise Mismatch(
-            f"{mcap} can no longer be read as the record the lab signed: {err}"
-        ) from None
-    changed = []
-    if manifest is None:
-        changed.append("the record holds no manifest")
-    else:
-        digest = hashlib.sha256(canonical_json(manifest).encode()).hexdigest()
-        if digest != statement["manifest_digest"]:
-            changed.append(
-                f"the manifest (its digest is {digest}, signed {statement['manifest_digest']})"
-            )
-    if data != statement["data_digest"]:
-        changed.append(
-            "the observations and actions (the data digest is"
-            f" {data}, signed {statement['data_digest']})"
+            f"the lab signed trial {statement.get('trial')} without a record (it ended"
+            f" {statement.get('outcome') or statement.get('status')}): it vouches for no file"
         )
+    changed = _bytes_changed(mcap, statement)
+    try:
+        facts = LabHost().read_record(mcap, statement.get("digest_topics") or [])
+    except TrialError as err:
+        changed.append(f"it can no longer be read as the record the lab signed ({err})")
+    else:
+        changed += record_differences(_claims(statement), facts)
+        if len(changed) == 1 and changed[0].startswith("the file's bytes"):
+            changed.append(
+                "its manifest, its observations and actions and its outcome are as"
+                " signed, so what changed is elsewhere: an attachment (a log, the model),"
+                " a topic outside the data digest, or bytes added"
+            )
     if changed:
         raise Mismatch(f"{mcap} was changed after the lab signed it: " + "; ".join(changed))
     return {
@@ -136,16 +150,45 @@ def _record(mcap: Path, keys: dict[str, Any], sidecar: Path) -> dict[str, Any]:
     }
 
 
-def _export(folder: Path, keys: dict[str, Any]) -> dict[str, Any]:
+def _bytes_changed(mcap: Path, statement: dict[str, Any]) -> list[str]:
+    """The file's sha256 and size against those signed (a /1 statement signed no size)."""
+    digest, size = file_digest(mcap), mcap.stat().st_size
+    signed_size = statement.get("mcap_size")
+    if digest == statement["mcap"] and signed_size in (None, size):
+        return []
+    said = f"{statement['mcap']}" + (f", {signed_size:,} bytes" if signed_size else "")
+    return [
+        f"the file's bytes differ from what the lab signed ({digest}, {size:,} bytes; the"
+        f" lab signed {said})"
+    ]
+
+
+def _claims(statement: dict[str, Any]) -> Claims:
+    """What a record statement says the file holds. A trial's record says its outcome
+    and metrics in ``outcome.json`` (a demonstration's says them in its own words)."""
+    trial = statement.get("kind") == "trial"
+    metrics = statement.get("metrics")
+    return Claims(
+        statement.get("manifest_digest"),
+        statement.get("data_digest"),
+        status=statement.get("status") if trial else None,
+        outcome=statement.get("outcome") if trial else None,
+        metrics=metrics if trial and isinstance(metrics, dict) else None,
+    )
+
+
+def _export(folder: Path, keys: dict[str, Ed25519PublicKey]) -> dict[str, Any]:
     path = folder / EXPORT_SIGNATURE
     if not path.exists():
         raise ValueError(f"{folder} holds no {EXPORT_SIGNATURE}: not a signed export")
-    signed = Signature.from_json(json.loads(path.read_text()))
+    signed = _signature(path)
     verify(signed, keys)
     statement = signed.statement
     if statement.get("schema") != EXPORT:
         raise ValueError(f"{path} signs {statement.get('schema')}, not an export")
-    signed_files: dict[str, str] = statement["files"]
+    signed_files = statement.get("files")
+    if not isinstance(signed_files, dict):
+        raise ValueError(f"{path} signs no list of files")
     present = file_digests(folder, skip=frozenset({EXPORT_SIGNATURE}))
     changed = sorted(n for n in signed_files if n in present and present[n] != signed_files[n])
     missing = sorted(set(signed_files) - set(present))
@@ -157,28 +200,40 @@ def _export(folder: Path, keys: dict[str, Any]) -> dict[str, Any]:
             if names
         ]
         raise Mismatch(f"{folder} is not the export the lab signed: " + "; ".join(parts))
+    trials = _trials(statement)
+    which = (
+        f"trial {trials[0]}" if "trial" in statement else f"trials {', '.join(map(str, trials))}"
+    )
     return {
         "verified": True,
         "kind": "export",
-        "trial": statement["trial"],
+        "trial": trials[0] if "trial" in statement else None,
+        "trials": trials,
         "key": signed.key,
         "summary": (
-            f"{folder}: verified: the {statement['format']} export of trial"
-            f" {statement['trial']}, {len(signed_files)} files, signed by {signed.key}"
+            f"{folder}: verified: the {statement.get('format')} export of {which},"
+            f" {len(signed_files)} files, signed by {signed.key}"
         ),
     }
 
 
-def _keys(args: argparse.Namespace) -> dict[str, Any]:
+def _trials(statement: dict[str, Any]) -> list[Any]:
+    """The trials an export statement names: ``trial`` (one) or ``trials`` (many)."""
+    if "trial" in statement:
+        return [statement["trial"]]
+    listed = statement.get("trials")
+    if not isinstance(listed, list):
+        return []
+    return [t.get("trial") for t in listed if isinstance(t, dict)]
+
+
+def _keys(args: argparse.Namespace) -> dict[str, Ed25519PublicKey]:
     if args.key is not None:
-        text = args.key.read_text()
-        if text.lstrip().startswith("{"):
-            return dict(json.loads(text)["keys"])
-        public = load_public(text)
-        return {key_id(public): public}
+        return load_keys(args.key.read_bytes(), str(args.key))
     if args.server:
         with ApiClient(args.server) as client:
-            return dict(client.request("GET", "/api/keys").json()["keys"])
+            answer = client.request("GET", "/api/keys")
+        return load_keys(answer.content, f"{args.server}/api/keys")
     raise ValueError("give the lab's keys: --key FILE (from its /api/keys), or --server URL")
 
 

@@ -19,7 +19,8 @@ it once, when the trial is filed (``summary``, with ``series`` and ``scene``).
     └── metadata.yaml    rosbag2 bag metadata, format 9, storage mcap
 
 The modules import nothing from the rest of the lab but the graph, and the graph nothing
-from them.
+from them; they read MCAP files through the archive's ``repository.mcapfile``, which
+bounds what a file may make a reader hold.
 """
 
 from __future__ import annotations
@@ -30,6 +31,7 @@ from labd.recorder.reader import (
     SIDE_KEY,
     RecordedChannel,
     RecordedMessage,
+    read_attachments,
     read_channels,
     read_messages,
 )
@@ -57,6 +59,7 @@ __all__ = [
     "canonical_json",
     "data_digest",
     "first_difference",
+    "read_attachments",
     "read_channels",
     "read_manifest",
     "read_messages",

@@ -20,7 +20,6 @@ from collections.abc import Iterable
 from pathlib import Path
 from typing import Any, NamedTuple
 
-from mcap.reader import make_reader
 from rosbags.interfaces import (
     Qos,
     QosDurability,
@@ -31,6 +30,8 @@ from rosbags.interfaces import (
 )
 from rosbags.rosbag2.metadata import dump_qos_v9
 from ruamel.yaml import YAML
+
+from repository.mcapfile import seeking
 
 MCAP_NAME = "trial.mcap"
 BAG_METADATA = "metadata.yaml"
@@ -156,7 +157,7 @@ def write_bag_metadata(mcap: str | Path) -> Path:
     """
     mcap = Path(mcap)
     with mcap.open("rb") as stream:
-        records = [m for m in make_reader(stream).iter_metadata() if m.name == BAG_RECORD]
+        records = [m for m in seeking(stream).iter_metadata() if m.name == BAG_RECORD]
     if not records:
         raise ValueError(f"{mcap} has no {BAG_RECORD} metadata record: labd did not write it")
     info = YAML(typ="safe").load(records[-1].metadata[BAG_RECORD_KEY])

@@ -13,20 +13,24 @@ tells observations from actions without knowing the task::
 A topic that both sides published on (``/rosout``) has two channels. Records made
 before sides were kept have none in their metadata: their channels' side is None, and
 a side filter leaves them out.
+
+Records are read within the archive's limits (``repository.mcapfile``): a file whose
+chunk or record is over ``MAX_PART`` is a ``RecordFileError``, never a reader holding
+what the file declares.
 """
 
 from __future__ import annotations
 
-from collections.abc import Collection, Generator
+from collections.abc import Collection, Generator, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import NamedTuple
 
-from mcap.reader import NonSeekingReader, make_reader
-from mcap.records import Channel, Schema
+from mcap.records import Attachment, Channel, Schema
 
 from labd.graph.graph import Side
 from labd.recorder.bag import mcap_path
+from repository.mcapfile import messages, seeking
 
 SIDE_KEY = "labd.side"  # channel metadata: "lab" or "client"
 _SIDES = {side.value: side for side in Side}
@@ -61,7 +65,7 @@ class RecordedMessage(NamedTuple):
 def read_channels(path: str | Path) -> list[RecordedChannel]:
     """The channels of a finished record (its folder or MCAP file), by channel id."""
     with mcap_path(path).open("rb") as stream:
-        summary = make_reader(stream).get_summary()
+        summary = seeking(stream).get_summary()
     if summary is None:
         raise ValueError(f"{path} has no summary section: the record was not finished")
     counts = summary.statistics.channel_message_counts if summary.statistics else {}
@@ -77,6 +81,13 @@ def read_channels(path: str | Path) -> list[RecordedChannel]:
     ]
 
 
+def read_attachments(path: str | Path) -> Iterator[Attachment]:
+    """The attachments of a finished record (its folder or MCAP file), one at a time, by
+    the summary's index; each one read within the archive's limit."""
+    with mcap_path(path).open("rb") as stream:
+        yield from seeking(stream).iter_attachments()
+
+
 def read_messages(
     path: str | Path, *, topics: Collection[str] | None = None, side: Side | None = None
 ) -> Generator[RecordedMessage, None, None]:
@@ -86,9 +97,7 @@ def read_messages(
     """
     sides: dict[int, Side | None] = {}
     with mcap_path(path).open("rb") as stream:
-        reader = NonSeekingReader(stream)
-        wanted = None if topics is None else list(topics)
-        for schema, channel, message in reader.iter_messages(wanted, log_time_order=False):
+        for schema, channel, message in messages(stream, topics):
             if channel.id not in sides:
                 sides[channel.id] = side_of(channel)
             channel_side = sides[channel.id]

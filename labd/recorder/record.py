@@ -52,7 +52,6 @@ from types import TracebackType
 from typing import Any, Self
 
 from mcap.records import Metadata
-from mcap.stream_reader import StreamReader
 from mcap.well_known import MessageEncoding, Profile, SchemaEncoding
 from mcap.writer import CompressionType, Writer
 
@@ -62,6 +61,7 @@ from labd.graph.message import Message
 from labd.recorder import bag
 from labd.recorder.digest import DIGEST_TAG, time_frame, topic_frame
 from labd.recorder.reader import SIDE_KEY
+from repository.mcapfile import records
 
 MANIFEST = "manifest"  # the metadata record holding the manifest ...
 MANIFEST_KEY = "json"  # ... as canonical JSON under this key
@@ -98,10 +98,12 @@ def read_manifest(path: str | Path) -> dict[str, Any] | None:
     """The manifest stored in a record (its folder or MCAP file); None if it has none.
 
     The recorder writes it first, so the file is read from its start only as far as the
-    manifest: a record cut short later still names what it was.
+    manifest: a record cut short later still names what it was. Chunks are skipped
+    unopened (a manifest is never in one), each read within ``repository.mcapfile``'s
+    limit.
     """
     with bag.mcap_path(path).open("rb") as stream:
-        for record in StreamReader(stream, skip_magic=False).records:
+        for record in records(stream, chunks=False):
             if isinstance(record, Metadata) and record.name == MANIFEST:
                 value: dict[str, Any] = json.loads(record.metadata[MANIFEST_KEY])
                 return value

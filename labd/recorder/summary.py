@@ -47,7 +47,6 @@ from typing import Any
 import numpy as np
 import orjson
 from mcap.exceptions import McapError
-from mcap.reader import make_reader
 from PIL import Image, UnidentifiedImageError
 
 from labd.errors import SummaryError
@@ -57,6 +56,7 @@ from labd.recorder import scene, series
 from labd.recorder.bag import mcap_path
 from labd.recorder.reader import RecordedMessage, read_channels, read_messages
 from labd.recorder.record import read_manifest
+from repository.mcapfile import seeking
 
 VERSION = 2
 MAX_POINTS = 400  # per series: enough for a plot a page wide
@@ -221,7 +221,7 @@ class _Clock:
 
 def _attachments(path: str | Path) -> dict[str, bytes]:
     with mcap_path(path).open("rb") as stream:
-        return {a.name: a.data for a in make_reader(stream).iter_attachments()}
+        return {a.name: a.data for a in seeking(stream).iter_attachments()}
 
 
 def _tick(reading: Reading, clock: _Clock, message: RecordedMessage, episode: Any) -> None:

@@ -20,6 +20,7 @@ from labd.commands import serve
 from labd.config import BridgeConfig, DriveLimits
 from labd.service import ServiceConfig
 from repository.index import UserLimits
+from repository.mcapfile import MAX_PART
 from sandbox.api import Limits
 from sandbox.jobs import KEEP
 from scheduler.fetch import FetchPolicy
@@ -137,6 +138,8 @@ ROWS: list[tuple[str, str, Callable[[], object], object]] = [
      lambda: UserLimits().max_running, 2),
     ("service.md", "`max_daily` (default 500)", lambda: UserLimits().max_daily, 500),
     ("service.md", "`limit` up to 500", limit_of_trial_pages, 500),
+    ("service.md", "Records are read within one limit: **256 MiB**, the most one part of",
+     lambda: MAX_PART, 256 * MiB),
 ]  # fmt: skip
 
 

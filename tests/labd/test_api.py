@@ -20,6 +20,7 @@ from labd.service import Service, ServiceConfig
 from repository.trial import Filing
 from scheduler.fetch import FetchPolicy
 from scheduler.remote import PROTOCOL, PROTOCOL_HEADER, VERSION_HEADER
+from tests.fakes import file_unchecked
 from tests.helpers.githttp import GitRepo
 
 
@@ -196,7 +197,7 @@ def file_record(service, trial_id, data: bytes, **columns):
         metrics={"reward": 1.0, "success": True},
         **columns,
     )
-    assert service.queue.finish(trial_id, "w", filing)
+    assert file_unchecked(service, trial_id, "w", filing)
     return digest
 
 

@@ -12,6 +12,7 @@ from labd.service import Service, ServiceConfig
 from labd.web import RobotLink, Site, create_app
 from repository.trial import Filing
 from scheduler.fetch import FetchPolicy
+from tests.fakes import file_unchecked
 from tests.helpers.githttp import GitRepo
 
 SCRIPT = "<script>alert('owned')</script>"
@@ -65,7 +66,7 @@ def queue(service, repo, **kwargs):
 def finish(service, trial_id, filing):
     claim = service.queue.claim("w")
     assert claim is not None and claim.id == trial_id
-    assert service.queue.finish(trial_id, "w", filing)
+    assert file_unchecked(service, trial_id, "w", filing)
 
 
 async def test_every_page_renders(web, service, token, repo):
