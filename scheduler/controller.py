@@ -35,6 +35,7 @@ from dataclasses import dataclass, field
 from pathlib import Path, PurePosixPath
 from typing import Any
 
+from repository.trial import MAX_ID
 from scheduler.errors import ControllerConfigError, FileNotInRepository, RepositoryFileError
 from scheduler.files import RepositoryFiles, parts_of
 
@@ -143,9 +144,11 @@ def _data(table: Any) -> DataSpec | None:
         )
     ids = table.get("trials", [])
     if not isinstance(ids, list) or not all(
-        isinstance(i, int) and not isinstance(i, bool) and i > 0 for i in ids
+        isinstance(i, int) and not isinstance(i, bool) and 0 < i <= MAX_ID for i in ids
     ):
-        raise ControllerConfigError(f"[data] trials must be a list of trial ids, not {ids!r}")
+        raise ControllerConfigError(
+            f"[data] trials must be a list of trial ids (1 to {MAX_ID}), not {ids!r}"
+        )
     query = table.get("query")
     if query is not None and not isinstance(query, dict):
         raise ControllerConfigError(f"[data] query must be an inline table, {example}")
