@@ -45,6 +45,7 @@ from labd.api.errors import ApiError, responses
 from labd.api.models import (
     CancelView,
     CommitView,
+    Health,
     Id,
     Keys,
     LabStatus,
@@ -157,6 +158,20 @@ def status(service: Lab) -> LabStatus:
             for h in sorted(service.queue.health.values(), key=lambda h: h.worker)
         ],
     )
+
+
+@router.get("/healthz", tags=["lab"])
+def healthz() -> Health:
+    """The lab's process answers (for a supervisor: restart it if this fails)."""
+    return Health(status="ok")
+
+
+@router.get("/readyz", tags=["lab"], responses=responses(503))
+def readyz(service: Lab) -> Health:
+    """The lab can take writes: its index's files are the ones it opened (503 with what
+    happened and what to do, if not; ``repository.wal``)."""
+    service.index.check()
+    return Health(status="ready")
 
 
 @router.get("/api/keys", tags=["lab"])

@@ -2,8 +2,9 @@
 
 Each expected error of the lab's packages maps to an HTTP status here, and every error
 body is ``{"error": "..."}`` (``ErrorBody``), so handlers raise what went wrong and never
-build error responses themselves. A 5xx is logged with its traceback; anything not in
-the table is a bug: a 500 whose body says so, logged with its traceback.
+build error responses themselves. A 5xx is logged with its traceback (a 503, "not
+ready", in one line); anything not in the table is a bug: a 500 whose body says so,
+logged with its traceback.
 """
 
 from __future__ import annotations
@@ -24,6 +25,7 @@ from repository.errors import (
     BadCredentials,
     BlobError,
     BlobNotFound,
+    IndexLost,
     NotYourReservation,
     OverLimit,
     RecordNotFound,
@@ -79,6 +81,7 @@ STATUS: dict[type[Exception], int] = {
     RecordNotFound: 404,
     BlobNotFound: 404,
     BlobError: 500,  # a blob that no longer matches its digest: the store is damaged
+    IndexLost: 503,  # the index's files changed under the lab: writes wait for a restart
     ArchiveError: 422,
     NotYours: 403,
     NotYourReservation: 403,
@@ -103,6 +106,7 @@ MEANING = {
     422: "the request names something wrong (the message says what)",
     429: "over a limit the operator set, or too many failed attempts (see Retry-After)",
     500: "the lab is at fault (the message says what)",
+    503: "the lab is not ready: its index's files changed under it (the message says what to do)",
     507: "the lab's storage is full (the message says where)",
 }
 
@@ -125,7 +129,9 @@ def answer(path: str, method: str, err: Exception) -> JSONResponse:
     """The answer to an expected error: its status from the table, ``ErrorBody``."""
     status = status_of(err)
     message = err.message if isinstance(err, ApiError) else str(err)
-    if status >= 500:
+    if status == 503:  # not ready: said loudly once where it was found, not per request
+        log.warning("%s %s refused: the lab is not ready", method, path)
+    elif status >= 500:
         log.error("%s %s: %s", method, path, message, exc_info=err)
     headers = {}
     if isinstance(err, TooMany):
@@ -172,8 +178,9 @@ async def _invalid(_: Request, err: RequestValidationError) -> JSONResponse:
 
 def declare_validation(router: APIRouter) -> APIRouter:
     """Say in the OpenAPI document that a route with parameters answers a malformed one
-    with 422 and ``ErrorBody`` (what ``_invalid`` sends), not FastAPI's own shape, and
-    that a route with a body answers one over its size limit with 413."""
+    with 422 and ``ErrorBody`` (what ``_invalid`` sends), not FastAPI's own shape, that
+    a route with a body answers one over its size limit with 413, and that any route
+    answers 503 while the index is not writable."""
     for route in router.routes:
         if not isinstance(route, APIRoute):
             continue
@@ -186,6 +193,8 @@ def declare_validation(router: APIRouter) -> APIRouter:
             route.responses[422] = responses(422)[422]
         if dependant.body_params and 413 not in route.responses:
             route.responses[413] = responses(413)[413]
+        if 503 not in route.responses:  # any route may write to the index (/readyz)
+            route.responses[503] = responses(503)[503]
     return router
 
 

@@ -101,6 +101,12 @@ class CancelView(BaseModel):
     trial: TrialDetail
 
 
+class Health(BaseModel):
+    """``/healthz``: the process answers (ok); ``/readyz``: it takes writes (ready)."""
+
+    status: str
+
+
 class Keys(BaseModel):
     """The lab's public keys (PEM) by id; ``current`` signs new records."""
 

@@ -305,3 +305,38 @@ def _declared_4xx(spec: dict[str, Any], method: str, path: str, answer: httpx.Re
             declared = operations.get(method.lower(), {}).get("responses", {})
             return str(answer.status_code) in declared
     return answer.status_code == 404
+
+
+# -- the index's WAL deleted while the lab serves ---------------------------------------
+
+
+def test_a_deleted_wal_is_detected_and_writes_are_refused(lab: Served, tmp_path: Path) -> None:
+    """Once the index's SQLite WAL is deleted under a serving lab, writes are refused with
+    503 saying what happened and what to do, /readyz answers the same, the log says so,
+    and after a crash the restarted lab still has every trial and user written before."""
+    repo = GitRepo.create(tmp_path / "r", controller(3)).path
+    filed = [lab.submit(repo)["id"] for _ in range(3)]
+    assert httpx.get(f"{lab.server}/readyz", timeout=30).status_code == 200
+    wal = lab.data / "index.sqlite-wal"
+    assert wal.exists()
+    wal.unlink()
+    answer = httpx.post(
+        f"{lab.server}/api/trials",
+        json={"repository": str(repo), "task": "icreate-maze"},
+        headers={"Authorization": f"Bearer {lab.token}"},
+        timeout=60,
+    )
+    ready = httpx.get(f"{lab.server}/readyz", timeout=30)
+    print(f"\nafter the WAL was deleted: submit {answer.status_code} {answer.text[:300]};"
+          f" /readyz {ready.status_code}")  # fmt: skip
+    assert answer.status_code == 503, answer.text
+    refusal = answer.json()["error"]
+    assert f"{wal} was deleted or replaced" in refusal
+    assert "nothing is lost" in refusal and "restart labd serve" in refusal
+    assert ready.status_code == 503 and ready.json() == {"error": refusal}
+    assert refusal in lab.log
+    lab.kill()  # a crash: the WAL's content is wherever the lab put it
+    lab.start()
+    kept = [t["id"] for t in lab.get("/api/trials")["trials"]]
+    assert sorted(kept) == filed
+    assert lab.submit(repo)["id"] == filed[-1] + 1  # alice and her token are still there
