@@ -244,8 +244,8 @@ def load_page(context: Any, url: str) -> tuple[Any, Load]:
     )
     page.on("pageerror", lambda e: errors.append(str(e)))
     page.goto(url)
-    page.wait_for_function(
-        "(document.getElementById('record').dataset.drawn || '').includes('scene')",
+    page.wait_for_function(  # a function: the page's CSP refuses eval (labd/web/headers.py)
+        "() => (document.getElementById('record').dataset.drawn || '').includes('scene')",
         timeout=60_000,
     )
     drawn = page.evaluate("window.labRecord.drawn")

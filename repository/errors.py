@@ -6,6 +6,8 @@ ArchiveError                 the archive could not do what was asked
 │   └── BlobCorrupt          a blob's bytes no longer match its digest
 ├── RecordNotFound           no trial, commit or user by that name
 ├── SchemaMismatch           the index was written by another version of labd
+├── IndexLost                the index's files changed under the running lab (its WAL
+│                            deleted): writes are refused until the lab restarts
 ├── ExportError              a record could not be exported (format, content)
 ├── AccountError             an account could not be made or changed (name, password)
 │   └── BadCredentials       a wrong user name or password
@@ -71,6 +73,15 @@ class SchemaMismatch(ArchiveError):
                 f" reads schema {expected}: run the newer labd"
             )
         super().__init__(what)
+
+
+class IndexLost(ArchiveError):
+    """The files of the index were deleted or replaced while the lab had them open
+    (``repository.wal``): the lab refuses writes until it is restarted."""
+
+    def __init__(self, reason: str) -> None:
+        self.reason = reason
+        super().__init__(reason)
 
 
 class ExportError(ArchiveError):

@@ -23,6 +23,7 @@ import time
 from collections.abc import Iterator, Mapping, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any, Literal
 
 import sqlalchemy as sa
@@ -30,6 +31,7 @@ from sqlalchemy.engine import Connection, Engine
 
 from repository.errors import ArchiveError, RecordNotFound, SchemaMismatch
 from repository.trial import Kind, Outcome, PinnedRecord, Status, Trial
+from repository.wal import IndexFiles
 
 SCHEMA_VERSION = 2  # 1: labd 0.1 (status succeeded/failed); 2: status and outcome apart
 # A user name: ASCII letters and digits, then also '.', '-' or '_' (so never ".", ".."
@@ -323,6 +325,7 @@ class Index:
         self.trials = trials
         self.users = users
         self.tokens = tokens
+        self.files: IndexFiles | None = None  # a SQLite file's, watched once created
 
     @classmethod
     def open(cls, url: str, *, clock: Any = time.time, **engine_options: Any) -> Index:
@@ -354,14 +357,27 @@ class Index:
             found = db.execute(sa.select(meta.c.value).where(meta.c.key == "schema")).scalar()
             if found is None:
                 db.execute(sa.insert(meta).values(key="schema", value=str(SCHEMA_VERSION)))
+        database = self.engine.url.database
+        if self.engine.dialect.name == "sqlite" and database and database != ":memory:":
+            self.files = self.files or IndexFiles(Path(database))
 
     def close(self) -> None:
+        if self.files is not None:
+            self.files.close()
         self.engine.dispose()
         self.writer.dispose()
 
+    def check(self) -> None:
+        """Raise ``IndexLost`` if the index's files are no longer the ones it opened
+        (``repository.wal``); writes are refused from then on."""
+        if self.files is not None:
+            self.files.check()
+
     @contextmanager
     def begin(self) -> Iterator[Connection]:
-        """A transaction that may read and then write."""
+        """A transaction that may read and then write (never on files that changed
+        under the lab: ``check``)."""
+        self.check()
         with self.writer.begin() as db:
             yield db
 

@@ -24,6 +24,10 @@ from typing import Annotated, Any, Self
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 MAX_SEED = 2**63 - 1
+# The largest id a row of the index can have (trials, tokens, reservations): their id
+# columns are INTEGER, 32 bits on PostgreSQL; an id past it names no row anywhere.
+MAX_ID = 2**31 - 1
+MAX_SIZE = 2**63 - 1  # bytes: the largest size the index's BIGINT columns hold
 Value = bool | int | float | str  # a task parameter's value
 
 
@@ -154,7 +158,7 @@ class Filing(Ending):
     backend: str | None = None
     wall_seconds: float | None = None
     mcap: str | None = None
-    mcap_size: int | None = None
+    mcap_size: int | None = Field(None, ge=0, le=MAX_SIZE)
     stdout: str | None = None
     stderr: str | None = None
     reproduced: bool | None = None  # reruns only: an identical data digest

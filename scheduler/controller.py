@@ -35,6 +35,7 @@ from dataclasses import dataclass, field
 from pathlib import Path, PurePosixPath
 from typing import Any
 
+from repository.trial import MAX_ID
 from scheduler.errors import ControllerConfigError, FileNotInRepository, RepositoryFileError
 from scheduler.files import RepositoryFiles, parts_of
 
@@ -47,7 +48,6 @@ OUTCOMES = ("success", "fail", "error")
 INTERFACE_KINDS = ("msg", "srv", "action")
 MAX_INTERFACE_FILES = 1000
 MAX_INTERFACE_BYTES = 4 * 1024 * 1024  # all of them together
-MAX_TRIAL_ID = 2**63 - 1  # the archive's ids are signed 64-bit integers
 
 
 @dataclass(frozen=True)
@@ -147,10 +147,10 @@ def _data(table: Any) -> DataSpec | None:
         isinstance(i, int) and not isinstance(i, bool) and i > 0 for i in ids
     ):
         raise ControllerConfigError(f"[data] trials must be a list of trial ids, not {ids!r}")
-    beyond = [i for i in ids if i > MAX_TRIAL_ID]
-    if beyond:  # TOML reads any integer; the archive's ids are 64-bit
+    beyond = [i for i in ids if i > MAX_ID]
+    if beyond:  # TOML reads any integer; the archive's ids are 32-bit (PostgreSQL's)
         raise ControllerConfigError(
-            f"[data] trials: {beyond[0]} is no trial id (trial ids are 1 to {MAX_TRIAL_ID})"
+            f"[data] trials: {beyond[0]} is no trial id (trial ids are 1 to {MAX_ID})"
         )
     query = table.get("query")
     if query is not None and not isinstance(query, dict):

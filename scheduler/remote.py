@@ -19,7 +19,7 @@ from pathlib import Path
 from pydantic import BaseModel, ConfigDict, Field
 
 from repository.index import Derived
-from repository.trial import Claim, Filing, Trial
+from repository.trial import MAX_SIZE, Claim, Filing, Trial
 from scheduler.canary import Health
 from scheduler.client import ApiClient, version
 from scheduler.errors import ApiRefused, FilingRefused, RemoteError
@@ -119,7 +119,7 @@ class DerivedItem(BaseModel):
     model_config = ConfigDict(extra="forbid")
     name: str = Field(min_length=1, max_length=64)
     digest: str = Field(pattern=r"^sha256:[0-9a-f]{64}$")
-    size: int = Field(ge=0)
+    size: int = Field(ge=0, le=MAX_SIZE)
     media_type: str = Field(min_length=1, max_length=128)
 
 

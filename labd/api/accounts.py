@@ -17,6 +17,7 @@ from pydantic import BaseModel, Field
 
 from labd.api.common import Lab, Writer
 from labd.api.errors import responses
+from labd.api.models import Id
 from repository.accounts import Token
 
 router = APIRouter(tags=["accounts"])
@@ -83,7 +84,7 @@ def new_token(body: NewTokenRequest, service: Lab, user: Writer) -> NewToken:
 
 
 @router.post("/api/tokens/{token_id}/revoke", responses=responses(401, 403, 404))
-def revoke_token(token_id: int, service: Lab, user: Writer) -> TokenView:
+def revoke_token(token_id: Id, service: Lab, user: Writer) -> TokenView:
     """Revoke one of my tokens: it stops working at once."""
     return token_view(service.accounts.revoke_token(user.name, token_id))
 

@@ -41,10 +41,13 @@ from starlette.concurrency import run_in_threadpool
 from labd import __version__
 from labd.api import accounts, errors, records, reservations, summaries, workers
 from labd.api.common import Lab, Writer, blob_response
+from labd.api.edges import Edges
 from labd.api.errors import ApiError, responses
 from labd.api.models import (
     CancelView,
     CommitView,
+    Health,
+    Id,
     Keys,
     LabStatus,
     TaskList,
@@ -99,6 +102,7 @@ def create_app(
     )
     for part in parts:
         app.include_router(errors.declare_validation(part))
+    app.add_middleware(Edges)
     return app
 
 
@@ -122,9 +126,9 @@ class TrialQuery:
     user: Annotated[str | None, Query(description="the submitter")] = None
     since: dt.datetime | None = None
     until: dt.datetime | None = None
-    rerun_of: int | None = None
+    rerun_of: Id | None = None
     limit: Annotated[int, Query(ge=1, le=500)] = 50
-    before: Annotated[int | None, Query(description="the `next` of the page before")] = None
+    before: Annotated[Id | None, Query(description="the `next` of the page before")] = None
 
 
 @router.get("/api/status", tags=["lab"])
@@ -157,6 +161,20 @@ def status(service: Lab) -> LabStatus:
             for h in sorted(service.queue.health.values(), key=lambda h: h.worker)
         ],
     )
+
+
+@router.get("/healthz", tags=["lab"])
+def healthz() -> Health:
+    """The lab's process answers (for a supervisor: restart it if this fails)."""
+    return Health(status="ok")
+
+
+@router.get("/readyz", tags=["lab"], responses=responses(503))
+def readyz(service: Lab) -> Health:
+    """The lab can take writes: its index's files are the ones it opened (503 with what
+    happened and what to do, if not; ``repository.wal``)."""
+    service.index.check()
+    return Health(status="ready")
 
 
 @router.get("/api/keys", tags=["lab"])
@@ -210,7 +228,7 @@ def list_trials(request: Request, service: Lab, q: Annotated[TrialQuery, Depends
 
 
 @router.get("/api/trials/{trial_id}", tags=["trials"], responses=responses(404))
-def show(trial_id: int, request: Request, service: Lab) -> TrialDetail:
+def show(trial_id: Id, request: Request, service: Lab) -> TrialDetail:
     """One trial: its outcome, what was asked, what came out, its manifest."""
     return trial_detail(service.index.trial(trial_id), _base(request))
 
@@ -224,7 +242,7 @@ def show(trial_id: int, request: Request, service: Lab) -> TrialDetail:
         **responses(404, 500),
     },
 )
-def data(trial_id: int, service: Lab) -> StreamingResponse:
+def data(trial_id: Id, service: Lab) -> StreamingResponse:
     """The trial's MCAP record, checked against its digest before it is sent."""
     trial = service.index.trial(trial_id)
     if not trial.mcap:
@@ -243,7 +261,7 @@ def data(trial_id: int, service: Lab) -> StreamingResponse:
         **responses(404, 422, 500),
     },
 )
-def logs(trial_id: int, stream: Literal["stdout", "stderr"], service: Lab) -> StreamingResponse:
+def logs(trial_id: Id, stream: Literal["stdout", "stderr"], service: Lab) -> StreamingResponse:
     """The controller's ``stdout`` or ``stderr``."""
     trial = service.index.trial(trial_id)
     digest = trial.stdout if stream == "stdout" else trial.stderr
@@ -259,7 +277,7 @@ def logs(trial_id: int, stream: Literal["stdout", "stderr"], service: Lab) -> St
     response_model=TrialDetail,
     responses=responses(401, 403, 404, 429),
 )
-def rerun(trial_id: int, request: Request, service: Lab, user: Writer) -> JSONResponse:
+def rerun(trial_id: Id, request: Request, service: Lab, user: Writer) -> JSONResponse:
     """Queue a new trial from the same commit, task, parameters and seed."""
     new_id = service.submissions.rerun(user, trial_id)
     request.app.state.on_submit()
@@ -267,7 +285,7 @@ def rerun(trial_id: int, request: Request, service: Lab, user: Writer) -> JSONRe
 
 
 @router.post("/api/trials/{trial_id}/cancel", tags=["trials"], responses=responses(401, 403, 404))
-def cancel(trial_id: int, request: Request, service: Lab, user: Writer) -> CancelView:
+def cancel(trial_id: Id, request: Request, service: Lab, user: Writer) -> CancelView:
     """Cancel a queued trial, or stop a running one (its worker ends it shortly).
 
     ``done`` says which: ``cancelled``, ``stopping``, or ``ended`` when the trial had

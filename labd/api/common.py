@@ -57,14 +57,15 @@ def web_session(service: Service, request: Request) -> WebSession | None:
     return service.accounts.session(cookie) if cookie else None
 
 
-def _writer(
-    request: Request,
-    service: Lab,
-    credentials: Annotated[HTTPAuthorizationCredentials | None, Depends(bearer)],
-    cookie: Annotated[str | None, Depends(session_cookie)],
+def identify(
+    service: Service, method: str, token: str | None, cookie: str | None, csrf: str
 ) -> User:
-    if credentials is not None:
-        user = service.index.user_by_token(credentials.credentials)
+    """The user a write comes from: its token, else its signed-in session (whose CSRF
+    token ``csrf`` must be, for anything but reading); ``Unauthorized`` or ``Forbidden``
+    saying what to do. ``labd.api.edges`` asks this before a body is read, the routes'
+    ``Writer`` again."""
+    if token is not None:
+        user = service.index.user_by_token(token)
         if user is None:
             raise Unauthorized(
                 "the token is not valid here (unknown or revoked); make a new one on the"
@@ -75,8 +76,7 @@ def _writer(
         session = service.accounts.session(cookie)
         if session is None:
             raise Unauthorized("your sign-in has ended; sign in again")
-        sent = request.headers.get(CSRF_HEADER, "")
-        if request.method not in SAFE and not same(sent, session.csrf):
+        if method not in SAFE and not same(csrf, session.csrf):
             raise Forbidden(
                 f"a signed-in page's request must carry its CSRF token in {CSRF_HEADER}"
                 " (the page's <meta name=csrf-token>); reload the page and try again"
@@ -87,6 +87,17 @@ def _writer(
         "(make one on the tokens page, or the operator makes one with `labd users add "
         "NAME`; labd commands take --token or LABD_TOKEN)",
     )
+
+
+def _writer(
+    request: Request,
+    service: Lab,
+    credentials: Annotated[HTTPAuthorizationCredentials | None, Depends(bearer)],
+    cookie: Annotated[str | None, Depends(session_cookie)],
+) -> User:
+    token = credentials.credentials if credentials is not None else None
+    csrf = request.headers.get(CSRF_HEADER, "")
+    return identify(service, request.method, token, cookie, csrf)
 
 
 Writer = Annotated[User, Depends(_writer)]

@@ -8,14 +8,25 @@ A trial's headline is its outcome: ``success``, ``fail`` or ``error`` once finis
 from __future__ import annotations
 
 import datetime as dt
-from typing import Any
+from typing import Annotated, Any
 
-from pydantic import BaseModel, Field
+from pydantic import BaseModel, Field, StringConstraints
 
 from labd.sim import registry
 from repository.index import CommitPage
-from repository.trial import Kind, Outcome, PinnedRecord, Status, Trial, Value
+from repository.trial import MAX_ID, Kind, Outcome, PinnedRecord, Status, Trial, Value
 from scheduler.queue import Cancel
+
+# What a client names a record by, checked where it comes in: an id past the index's
+# range, or a digest that is not one, is a 422 saying so, never a query that fails.
+Id = Annotated[
+    int, Field(ge=1, le=MAX_ID, description=f"an id of the archive's index (1 to {MAX_ID})")
+]
+Digest = Annotated[
+    str,
+    StringConstraints(pattern=r"^sha256:[0-9a-f]{64}$"),
+    Field(description="a blob's name: sha256: and the 64 lowercase hex digits of its bytes"),
+]
 
 
 class ErrorBody(BaseModel):
@@ -88,6 +99,12 @@ class CancelView(BaseModel):
 
     done: Cancel = Field(description="cancelled (it was queued), stopping (it runs) or ended")
     trial: TrialDetail
+
+
+class Health(BaseModel):
+    """``/healthz``: the process answers (ok); ``/readyz``: it takes writes (ready)."""
+
+    status: str
 
 
 class Keys(BaseModel):

@@ -34,10 +34,11 @@ from starlette.background import BackgroundTask
 
 from labd.api.common import Lab, blob_response
 from labd.api.errors import ApiError, responses
+from labd.api.models import Id
 from labd.exports import export_records
 from repository.index import Derived
 from repository.signing import EXPORT, file_digests
-from repository.trial import Kind, Outcome, Trial
+from repository.trial import MAX_ID, Kind, Outcome, Trial
 from scheduler.controller import DataQuery, DataSpec
 from scheduler.data import LocalArchive, resolve
 from scheduler.host import REPLAY, VIDEO
@@ -80,7 +81,7 @@ def provenance(trial: Trial, url: str) -> dict[str, Any]:
         **responses(404, 422, 500),
     },
 )
-def export_record(trial_id: int, fmt: Format, service: Lab) -> StreamingResponse:
+def export_record(trial_id: Id, fmt: Format, service: Lab) -> StreamingResponse:
     """The trial's observation-action pairs as Parquet, or as a LeRobot dataset (zip)."""
     item = _artifact(service, trial_id, fmt)
     filename = f"trial-{trial_id}.parquet" if fmt == "parquet" else f"trial-{trial_id}-lerobot.zip"
@@ -88,7 +89,7 @@ def export_record(trial_id: int, fmt: Format, service: Lab) -> StreamingResponse
 
 
 @router.get("/api/trials/{trial_id}/export/{fmt}/signature", responses=responses(404, 422, 500))
-def export_signature(trial_id: int, fmt: Format, service: Lab) -> dict[str, Any]:
+def export_signature(trial_id: Id, fmt: Format, service: Lab) -> dict[str, Any]:
     """The lab's signature of the export: the digests of its files, signed."""
     _artifact(service, trial_id, fmt)
     signed = service.index.derived(trial_id)[ARTIFACT[fmt][0] + ".sig"]
@@ -160,12 +161,12 @@ def export_many(
     fmt: Format,
     service: Lab,
     *,
-    trials: list[int] = Query(default=[], description="trial ids"),  # noqa: B008
+    trials: list[Id] = Query(default=[], description="trial ids"),  # noqa: B008
     task: str | None = None,
     kind: Kind | None = None,
     outcome: Outcome | None = None,
     user: str | None = None,
-    limit: int | None = Query(default=None, ge=1),
+    limit: int | None = Query(default=None, ge=1, le=MAX_ID),
 ) -> FileResponse:
     """Many trials as one dataset: ids and/or a query (as lab.toml's ``[data]``), newest
     first up to ``limit``, one episode per trial, with each one's provenance."""
@@ -217,7 +218,7 @@ class ReplayVerdict(BaseModel):
 
 
 @router.get("/api/trials/{trial_id}/replay", responses=responses(404, 500))
-def replay_verdict(trial_id: int, service: Lab) -> ReplayVerdict:
+def replay_verdict(trial_id: Id, service: Lab) -> ReplayVerdict:
     """The verdict of replaying the trial's record from its actions (made when filed)."""
     service.index.trial(trial_id)
     item = service.index.derived(trial_id).get(REPLAY)
@@ -234,7 +235,7 @@ def replay_verdict(trial_id: int, service: Lab) -> ReplayVerdict:
         **responses(404, 500),
     },
 )
-def video(trial_id: int, service: Lab) -> StreamingResponse:
+def video(trial_id: Id, service: Lab) -> StreamingResponse:
     """The task's camera through the whole trial, rendered during its replay."""
     service.index.trial(trial_id)
     item = service.index.derived(trial_id).get(VIDEO)

@@ -36,6 +36,7 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from labd.api.common import Lab, Writer, client_address
 from labd.api.errors import ApiError, responses
+from labd.api.models import Id
 from labd.api.throttle import Throttle
 from labd.authorizer import ReservationAuthorizer
 from repository.errors import KeyRefused, UnknownKey
@@ -210,7 +211,7 @@ def book(body: BookRequest, request: Request, service: Lab, user: Writer) -> JSO
 
 
 @router.get("/api/reservations/{reservation_id}", responses=responses(404))
-def show(reservation_id: int, request: Request, service: Lab) -> ReservationView:
+def show(reservation_id: Id, request: Request, service: Lab) -> ReservationView:
     """One slot: who, which robot, when."""
     return view(service.reservations.get(reservation_id), request, service.index.clock())
 
@@ -220,7 +221,7 @@ def show(reservation_id: int, request: Request, service: Lab) -> ReservationView
     responses=responses(400, 401, 403, 404, 409, 422, 429),
 )
 def extend(
-    reservation_id: int, body: ExtendRequest, request: Request, service: Lab, user: Writer
+    reservation_id: Id, body: ExtendRequest, request: Request, service: Lab, user: Writer
 ) -> ReservationView:
     """Make my slot end later, if the time after it is free and the rules allow."""
     if (body.end is None) == (body.minutes is None):
@@ -233,7 +234,7 @@ def extend(
 
 
 @router.post("/api/reservations/{reservation_id}/release", responses=responses(401, 403, 404, 422))
-def release(reservation_id: int, request: Request, service: Lab, user: Writer) -> ReservationView:
+def release(reservation_id: Id, request: Request, service: Lab, user: Writer) -> ReservationView:
     """End my slot now (or cancel it, before it began): the rest is free for others, and
     a client connected with its key is disconnected."""
     released = service.reservations.release(user.name, reservation_id)
@@ -242,7 +243,7 @@ def release(reservation_id: int, request: Request, service: Lab, user: Writer) -
 
 
 @router.get("/api/reservations/{reservation_id}/key", responses=responses(401, 403, 404))
-def key(reservation_id: int, request: Request, service: Lab, user: Writer) -> JSONResponse:
+def key(reservation_id: Id, request: Request, service: Lab, user: Writer) -> JSONResponse:
     """The key of my slot, for a script or a page to connect with."""
     secret = service.reservations.key(user.name, reservation_id)
     found = service.reservations.get(reservation_id)

@@ -22,6 +22,7 @@ from pydantic import BaseModel
 
 from labd.api.common import Lab
 from labd.api.errors import ApiError, responses
+from labd.api.models import Id
 from labd.errors import SummaryError
 from labd.recorder.summary import VERSION
 from repository.index import Derived
@@ -114,7 +115,7 @@ class RecordSummary(BaseModel):
         **responses(404, 500),
     },
 )
-def summary(trial_id: int, service: Lab, request: Request) -> Response:
+def summary(trial_id: Id, service: Lab, request: Request) -> Response:
     """Plots, camera thumbnails, a map and a 3D scene of the trial's record: what its
     page draws, in a small fraction of the record's size."""
     trial = service.index.trial(trial_id)

@@ -31,6 +31,7 @@ from pydantic import BaseModel
 from labd import __version__
 from labd.api.common import Lab, Writer, blob_response
 from labd.api.errors import ApiError, Conflict, Forbidden, responses
+from labd.api.models import Digest, Id
 from repository.index import Derived, User
 from repository.trial import Claim, Trial
 from scheduler.canary import Health
@@ -115,13 +116,13 @@ def claim(body: WorkerName, service: Lab, user: WorkerUser) -> Claim | Response:
 
 
 @router.post("/api/workers/trials/{trial_id}/heartbeat")
-def heartbeat(trial_id: int, body: WorkerName, service: Lab, user: WorkerUser) -> Kept:
+def heartbeat(trial_id: Id, body: WorkerName, service: Lab, user: WorkerUser) -> Kept:
     """Renew the lease; ``keep`` false means stop (cancelled, or the lease was lost)."""
     return Kept(keep=service.queue.heartbeat(trial_id, _named(user, body.worker)))
 
 
 @router.post("/api/workers/trials/{trial_id}/finish", responses=responses(422))
-def finish(trial_id: int, body: FinishBody, service: Lab, user: WorkerUser) -> Filed:
+def finish(trial_id: Id, body: FinishBody, service: Lab, user: WorkerUser) -> Filed:
     """File a trial's ending, held to the record it names first (422 if the record says
     otherwise: nothing filed, nothing signed); ``filed`` false if this worker no longer
     held it."""
@@ -134,7 +135,7 @@ def finish(trial_id: int, body: FinishBody, service: Lab, user: WorkerUser) -> F
 
 
 @router.post("/api/workers/trials/{trial_id}/derived", responses=responses(404, 422))
-def derived(trial_id: int, body: DeriveBody, service: Lab, user: WorkerUser) -> Filed:
+def derived(trial_id: Id, body: DeriveBody, service: Lab, user: WorkerUser) -> Filed:
     """Keep what a worker made of a trial it filed (its page summary, its replay's verdict
     and video), the blob uploaded first and checked against its digest; ``filed`` false
     if the trial is not this worker's."""
@@ -158,13 +159,13 @@ def health(body: HealthBody, service: Lab, user: WorkerUser) -> Response:
 
 
 @router.get("/api/workers/trials/{trial_id}", responses=responses(404))
-def record(trial_id: int, service: Lab, user: WorkerUser) -> Trial:
+def record(trial_id: Id, service: Lab, user: WorkerUser) -> Trial:
     """A trial's whole record, as the index keeps it (a worker compares a rerun with it)."""
     return service.index.trial(trial_id)
 
 
 @router.put("/api/blobs/{digest}", status_code=201, responses=responses(413, 422, 507))
-async def put_blob(digest: str, request: Request, service: Lab, user: WorkerUser) -> Stored:
+async def put_blob(digest: Digest, request: Request, service: Lab, user: WorkerUser) -> Stored:
     """Store the body under ``digest``, if it is what the body hashes to."""
     try:
         return await _store(digest, request, service)
@@ -199,6 +200,6 @@ blobs = APIRouter(tags=["data"])
     response_class=StreamingResponse,
     responses={200: {"content": {"application/octet-stream": {}}}, **responses(404, 500)},
 )
-def get_blob(digest: str, service: Lab) -> StreamingResponse:
+def get_blob(digest: Digest, service: Lab) -> StreamingResponse:
     """A blob of the archive (records and logs are public), checked before it is sent."""
     return blob_response(service, digest, "application/octet-stream", None)

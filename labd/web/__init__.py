@@ -2,20 +2,21 @@
 forms to sign in, submit and rerun (``forms``), accounts and tokens (``accounts``),
 reservations and the robots' calendars (``reservations``), the live robots' pages
 (``robots``), and the API's own documentation (``/docs``, ``/redoc``), every script and
-style served by the lab (``render``)."""
+style served by the lab (``render``), every answer with the headers that keep other
+sites out (``headers``)."""
 
 from __future__ import annotations
 
 from collections.abc import Callable
 
 from fastapi import FastAPI, Request
-from fastapi.openapi.docs import get_redoc_html, get_swagger_ui_html
 from fastapi.responses import HTMLResponse
 
 from labd.api.app import create_app as create_api
 from labd.service import Service
 from labd.web import accounts, forms, pages, reservations, robots
 from labd.web.assets import Precompressed
+from labd.web.headers import SecurityHeaders
 from labd.web.render import STATIC, RobotLink, Site, page
 from labd.web.session import FormRefused
 
@@ -49,21 +50,11 @@ def install(app: FastAPI, site: Site) -> None:
         return page(request, "error.html", context, status_code=err.status)
 
     @app.get("/docs", include_in_schema=False)
-    def swagger() -> HTMLResponse:
-        return get_swagger_ui_html(
-            openapi_url="/openapi.json",
-            title="labd API",
-            swagger_js_url="/static/vendor/swagger-ui/swagger-ui-bundle.js",
-            swagger_css_url="/static/vendor/swagger-ui/swagger-ui.css",
-            swagger_favicon_url="/static/favicon.svg",
-        )
+    def swagger(request: Request) -> HTMLResponse:
+        return page(request, "docs.html", {})
 
     @app.get("/redoc", include_in_schema=False)
-    def redoc() -> HTMLResponse:
-        return get_redoc_html(
-            openapi_url="/openapi.json",
-            title="labd API",
-            redoc_js_url="/static/vendor/redoc/redoc.standalone.js",
-            redoc_favicon_url="/static/favicon.svg",
-            with_google_fonts=False,
-        )
+    def redoc(request: Request) -> HTMLResponse:
+        return page(request, "redoc.html", {})
+
+    app.add_middleware(SecurityHeaders)

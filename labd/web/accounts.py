@@ -27,6 +27,7 @@ from pydantic import BaseModel
 
 from labd.api.common import SESSION_COOKIE, Lab, client_address
 from labd.api.errors import TooMany
+from labd.api.models import Id
 from labd.api.throttle import Throttle, name_at
 from labd.web.forms import local, signed_in
 from labd.web.render import page
@@ -195,7 +196,7 @@ def new_token(
 
 
 @router.post("/tokens/{token_id}/revoke", dependencies=[CsrfChecked])
-def revoke(request: Request, token_id: int, service: Lab, viewer: Viewer) -> Any:
+def revoke(request: Request, token_id: Id, service: Lab, viewer: Viewer) -> Any:
     if viewer is None:
         return RedirectResponse("/session?then=/tokens", status_code=303)
     try:

@@ -26,6 +26,7 @@ from pydantic import BaseModel, ValidationError
 
 from labd.api.common import SESSION_COOKIE, Lab, client_address
 from labd.api.errors import TooMany
+from labd.api.models import Id
 from labd.api.throttle import Throttle, name_at
 from labd.sim import registry
 from labd.web.render import page
@@ -206,7 +207,7 @@ def _params(text: str) -> dict[str, Value]:
 
 
 @router.post("/trials/{trial_id}/rerun", dependencies=[CsrfChecked])
-def rerun(request: Request, trial_id: int, service: Lab, viewer: Viewer) -> Any:
+def rerun(request: Request, trial_id: Id, service: Lab, viewer: Viewer) -> Any:
     if viewer is None:
         return RedirectResponse(f"/session?then=/trials/{trial_id}", status_code=303)
     try:

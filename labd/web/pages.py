@@ -23,7 +23,7 @@ from fastapi import APIRouter, Depends, Query, Request
 from fastapi.responses import HTMLResponse
 
 from labd.api.common import Lab
-from labd.api.models import trial_detail
+from labd.api.models import Id, trial_detail
 from labd.sim import registry
 from labd.web.render import Site, page
 from labd.web.session import Viewer
@@ -90,7 +90,7 @@ class TrialsQuery:
     until: str = ""
     kind: str = ""
     order: str = "time"
-    before: int | None = None
+    before: Id | None = None
     page: Annotated[int, Query(ge=1)] = 1
 
 
@@ -180,7 +180,7 @@ def _day(text: str | None, name: str, *, end: bool = False) -> float | None:
 
 
 @router.get("/trials/{trial_id}", response_class=HTMLResponse)
-def trial(request: Request, trial_id: int, service: Lab, viewer: Viewer) -> HTMLResponse:
+def trial(request: Request, trial_id: Id, service: Lab, viewer: Viewer) -> HTMLResponse:
     try:
         record = service.index.trial(trial_id)
     except RecordNotFound:

@@ -121,6 +121,7 @@ def page(
             "vendor_ready": (VENDOR / "README").exists(),
             "viewer_ready": (STATIC / "record.js").exists(),
             "csrf": getattr(request.state, "csrf", ""),
+            "csp_nonce": getattr(request.state, "csp_nonce", ""),  # labd.web.headers
             **context,
         },
         status_code=status_code,

@@ -26,6 +26,7 @@ from pydantic import BaseModel
 
 from labd.api.common import Lab
 from labd.api.errors import ApiError
+from labd.api.models import Id
 from labd.api.reservations import changed, check_robot, robots
 from labd.web.render import page
 from labd.web.session import CsrfChecked, Viewer
@@ -129,7 +130,7 @@ def book(request: Request, service: Lab, viewer: Viewer, sent: Annotated[BookFor
 @router.post("/reservations/{reservation_id}/extend", dependencies=[CsrfChecked])
 def extend(
     request: Request,
-    reservation_id: int,
+    reservation_id: Id,
     service: Lab,
     viewer: Viewer,
     minutes: Annotated[str, Form()] = "15",
@@ -152,7 +153,7 @@ def extend(
 
 
 @router.post("/reservations/{reservation_id}/release", dependencies=[CsrfChecked])
-def release(request: Request, reservation_id: int, service: Lab, viewer: Viewer) -> Any:
+def release(request: Request, reservation_id: Id, service: Lab, viewer: Viewer) -> Any:
     if viewer is None:
         return RedirectResponse("/session?then=/reservations", status_code=303)
     try:

@@ -16,11 +16,14 @@ from pathlib import Path
 import pytest
 
 from labd.api.app import TrialQuery
+from labd.api.edges import BODY_LIMIT
+from labd.api.workers import MAX_BLOB
 from labd.commands import serve
 from labd.config import BridgeConfig, DriveLimits
 from labd.service import ServiceConfig
 from repository.index import UserLimits
 from repository.mcapfile import MAX_PART
+from repository.trial import MAX_ID
 from sandbox.api import Limits
 from sandbox.jobs import KEEP
 from scheduler.fetch import FetchPolicy
@@ -140,6 +143,9 @@ ROWS: list[tuple[str, str, Callable[[], object], object]] = [
     ("service.md", "`limit` up to 500", limit_of_trial_pages, 500),
     ("service.md", "Records are read within one limit: **256 MiB**, the most one part of",
      lambda: MAX_PART, 256 * MiB),
+    ("service.md", "Every JSON body and form is held to 1 MiB", lambda: BODY_LIMIT, MiB),
+    ("service.md", "and a worker's blob upload to 4 GiB", lambda: MAX_BLOB, 4096 * MiB),
+    ("service.md", "whole numbers from 1 to 2,147,483,647", lambda: MAX_ID, 2**31 - 1),
 ]  # fmt: skip
 
 

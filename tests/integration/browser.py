@@ -4,11 +4,17 @@ Playwright never downloads a browser here: it is pointed at ``/usr/bin/chromium`
 (``.ci/run`` installs it), started headless with the flags this machine needs. Each
 page a test opens records its console errors and every request that would leave
 127.0.0.1; ``Watched.check()`` fails the test if there was any.
+
+The lab's pages forbid evaluating strings as JavaScript (their Content-Security-Policy,
+``labd/web/headers.py``), and Playwright polls a ``wait_for_function`` expression with
+``eval``; ``csp_safe`` makes a page's ``wait_for_function`` pass an expression as a
+function instead (as ``() => (EXPRESSION)``), which the policy does not touch.
 """
 
 from __future__ import annotations
 
 import os
+import re
 import shutil
 from collections.abc import Iterator
 from dataclasses import dataclass, field
@@ -32,6 +38,8 @@ FLAGS = [
     "--enable-unsafe-swiftshader",
 ]
 LOCAL = {"127.0.0.1", "localhost"}
+# a function's text (not an expression that calls one, such as "(() => x)()")
+FUNCTION = re.compile(r"\s*(async\s+)?(function\b|\(\s*[\w\s,]*\)\s*=>|\w+\s*=>)")
 
 
 @dataclass
@@ -48,6 +56,19 @@ class Watched:
         assert self.errors == [], self.errors
         assert [f for f in self.failed if f not in self.expected] == [], self.failed
         assert self.outside == [], self.outside
+
+
+def csp_safe(page: Any) -> Any:
+    """``page``, its ``wait_for_function`` taking expressions under a CSP (docstring)."""
+    original = page.wait_for_function
+
+    def wait_for_function(expression: str, *args: Any, **kwargs: Any) -> Any:
+        if not FUNCTION.match(expression):
+            expression = f"() => ({expression})"
+        return original(expression, *args, **kwargs)
+
+    page.wait_for_function = wait_for_function
+    return page
 
 
 def chromium_or_skip() -> str:
@@ -73,7 +94,7 @@ def browser() -> Iterator[Any]:
 def watched(browser: Any, tmp_path: Path) -> Iterator[Watched]:
     """A fresh page whose console errors and outside requests are kept."""
     context = browser.new_context(viewport={"width": 1280, "height": 900})
-    page = context.new_page()
+    page = csp_safe(context.new_page())
     seen = Watched(page)
 
     def console(message: Any) -> None:

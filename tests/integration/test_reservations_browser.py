@@ -20,7 +20,7 @@ from repository.accounts import Accounts
 from repository.index import Filters
 from repository.trial import Kind
 from tests.conftest import ServerThread
-from tests.integration.browser import FLAGS, Watched, browser, watched
+from tests.integration.browser import FLAGS, Watched, browser, csp_safe, watched
 
 __all__ = ["FLAGS", "browser", "watched"]
 pytestmark = [pytest.mark.integration, pytest.mark.timeout(180)]
@@ -80,7 +80,7 @@ def test_book_drive_be_warned_and_disconnected_while_another_cannot_drive(
     alice = watched.page
     sign_in(lab, alice, "alice")
     bob_context = browser.new_context()
-    bob = bob_context.new_page()
+    bob = csp_safe(bob_context.new_page())
     try:
         sign_in(lab, bob, "bob")
 

@@ -47,8 +47,7 @@ def test_a_complete_file(tmp_path):
         ('[controller]\ncommand = ["x"]\nrequirements = "missing.txt"\n', "not in the repository"),
         (
             '[controller]\ncommand = ["x"]\n[data]\ntrials = [9223372036854775808]\n',
-            "[data] trials: 9223372036854775808 is no trial id (trial ids are 1 to"
-            " 9223372036854775807)",
+            "[data] trials: 9223372036854775808 is no trial id (trial ids are 1 to 2147483647)",
         ),
     ],
 )
