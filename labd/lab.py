@@ -23,7 +23,7 @@ from labd.authorizer import ReservationAuthorizer, ref
 from labd.bridge.auth import Authorizer, HttpAuthorizer, KeyPolicy
 from labd.bridge.rosapi import Rosapi
 from labd.bridge.server import BridgeServer
-from labd.config import DATA, DEFAULT_ROBOTS, BridgeConfig, RobotConfig
+from labd.config import DATA, DEFAULT_ROBOTS, BridgeConfig, HttpConfig, RobotConfig
 from labd.errors import PortInUse
 from labd.graph.graph import Graph
 from labd.graph.types import TypeRegistry
@@ -47,6 +47,7 @@ class LabConfig:
     # A graph without a robot, where clients reach each other and /rosapi.
     playground: bool = True
     http_port: int = 8080  # the HTTP API
+    http: HttpConfig = field(default_factory=HttpConfig)
     # The archive, the queue and its workers; None: only the bridge and its robots.
     service: ServiceConfig | None = None
     # The share of the maze robot's page sessions shown the camera (interface A); the

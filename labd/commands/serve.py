@@ -21,7 +21,7 @@ from typing import Any
 from labd import __version__
 from labd.commands import fetching
 from labd.commands.common import assignment, fail
-from labd.config import DEFAULT_ROBOTS, BridgeConfig, RobotConfig
+from labd.config import DEFAULT_ROBOTS, BridgeConfig, HttpConfig, RobotConfig
 from labd.errors import LabError
 from labd.lab import Lab, LabConfig
 from labd.service import ServiceConfig
@@ -33,6 +33,7 @@ from scheduler.queue import QueueConfig
 from scheduler.runner import RunOptions
 
 BRIDGE = BridgeConfig()
+HTTP = HttpConfig()
 LAB = LabConfig()
 SERVICE = ServiceConfig()
 RULES = Rules()
@@ -80,6 +81,22 @@ def add_parser(commands: Any) -> None:
         help="bridge clients at once (default: %(default)s)",
     )
     serve.add_argument(
+        "--max-connections-per-address",
+        type=int,
+        default=BRIDGE.max_connections_per_address,
+        metavar="N",
+        help="bridge clients at once from one address, its share of --max-connections"
+        " (default: %(default)s; 0: no share; behind a proxy, every client has its address)",
+    )
+    serve.add_argument(
+        "--header-timeout",
+        type=float,
+        default=HTTP.header_timeout,
+        metavar="SECONDS",
+        help="time a client has to send an HTTP request's head, or the bridge's"
+        " handshake (default: %(default)g)",
+    )
+    serve.add_argument(
         "--robot",
         action="append",
         type=assignment,
@@ -121,6 +138,13 @@ def add_parser(commands: Any) -> None:
         type=int,
         default=LAB.http_port,
         help="HTTP API port (default: %(default)s; 0: any free port)",
+    )
+    group.add_argument(
+        "--http-connections-per-address",
+        type=int,
+        default=HTTP.max_connections_per_address,
+        metavar="N",
+        help="HTTP connections open at once from one address (default: %(default)s; 0: no limit)",
     )
     group.add_argument("--database", help="SQLAlchemy URL (default: sqlite:///DATA/index.sqlite)")
     group.add_argument(
@@ -277,12 +301,17 @@ def config(args: argparse.Namespace) -> LabConfig:
         )
     if args.no_watchers and not args.reservations:
         raise Refused("--no-watchers goes with --reservations")
+    if args.header_timeout <= 0:
+        raise Refused(f"--header-timeout {args.header_timeout:g}: give a time over 0 seconds")
+    if args.max_connections_per_address < 0 or args.http_connections_per_address < 0:
+        raise Refused("the limits per address are a number of connections, or 0 for none")
     return LabConfig(
         data=args.data,
         bridge=bridge_config(args),
         robots=robots,
         playground=not args.no_playground,
         http_port=args.http_port,
+        http=http_config(args),
         service=service_config(args),
         interface_ratio=args.interface_ratio,
         reservations=args.reservations,
@@ -370,6 +399,15 @@ def bridge_config(args: argparse.Namespace) -> BridgeConfig:
         tls_cert=args.tls_cert,
         tls_key=args.tls_key,
         max_connections=args.max_connections,
+        max_connections_per_address=args.max_connections_per_address,
+        handshake_timeout=args.header_timeout,
+    )
+
+
+def http_config(args: argparse.Namespace) -> HttpConfig:
+    return HttpConfig(
+        header_timeout=args.header_timeout,
+        max_connections_per_address=args.http_connections_per_address,
     )
 
 
