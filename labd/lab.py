@@ -61,7 +61,10 @@ class LabConfig:
 
 
 class Lab:
-    """Owns everything ``labd serve`` runs; ``start`` and ``close`` it on one event loop."""
+    """Owns everything ``labd serve`` runs; ``start`` and ``close`` it on one event loop,
+    the robots' loop: the robots, the bridge, the queue's workers. The HTTP API and the
+    pages run on a thread and a loop of their own (``labd.api.server``), and hand what
+    touches a live robot to this loop (``Site.robots``)."""
 
     def __init__(
         self,
@@ -112,7 +115,8 @@ class Lab:
             self.service = Service(config.service, self.types)
             self.app = create_app(self.service, self.site)
             self.app.state.on_reservation = self._reservation_changed
-            self.http = HttpServer(self.app, config.bridge.host, config.http_port)
+            self.app.state.on_submit = self._submitted
+            self.http = HttpServer(self.app, config.bridge.host, config.http_port, config.http)
         self._own_authorizer: HttpAuthorizer | None = None
         policies: dict[str, KeyPolicy] = {}
         if config.reservations:
@@ -151,7 +155,7 @@ class Lab:
         }
         if self.app is not None:  # the pages link to the robots on the port now known
             self.app.state.site = replace(
-                self.site, bridge_port=self.bridge.port, drives=self.drives
+                self.site, bridge_port=self.bridge.port, drives=self.drives, robots_loop=self._loop
             )
         if self.service is not None and self.http is not None:
             await _listen(
@@ -175,6 +179,11 @@ class Lab:
         )
         self._filings.add(filing)
         filing.add_done_callback(self._filed)
+
+    def _submitted(self) -> None:
+        """A trial was queued (the API, on its own thread): wake the workers, on this loop."""
+        if self._loop is not None and self.service is not None:
+            self._loop.call_soon_threadsafe(self.service.wake)
 
     def _reservation_changed(self, reservation: Reservation) -> None:
         """A slot was extended or released (the API, from any thread): the clients
