@@ -102,6 +102,7 @@ MEANING = {
     422: "the request names something wrong (the message says what)",
     429: "over a limit the operator set, or too many failed attempts (see Retry-After)",
     500: "the lab is at fault (the message says what)",
+    503: "the lab is busy with as much of this as it takes at once; retry later",
     507: "the lab's storage is full (the message says where)",
 }
 
