@@ -15,9 +15,11 @@ from pathlib import Path
 
 import pytest
 
+from labd import logs
+from labd.api import builds
 from labd.api.app import TrialQuery
 from labd.commands import serve
-from labd.config import BridgeConfig
+from labd.config import BridgeConfig, HttpConfig
 from repository.index import UserLimits
 from sandbox.api import Limits
 from sandbox.jobs import KEEP
@@ -30,6 +32,7 @@ pytestmark = pytest.mark.integration
 DOCS = Path(__file__).resolve().parents[2] / "docs"
 MiB, KiB = 1024 * 1024, 1024
 BRIDGE, SANDBOX, RUN, QUEUE = BridgeConfig(), Limits(), RunOptions(), QueueConfig()
+HTTP = HttpConfig()
 WORKER = WorkerConfig(name="", work=Path(), cache=Path())
 
 
@@ -94,6 +97,10 @@ ROWS: list[tuple[str, str, Callable[[], object], object]] = [
     ("protocol.md", "(20 lines a second, bursts of 50)",
      lambda: (BRIDGE.log_rate, BRIDGE.log_burst), (20, 50)),
     ("protocol.md", "no key within 10 s closes the connection", lambda: BRIDGE.auth_timeout, 10),
+    ("protocol.md", "A client has 10 s from connecting to send its WebSocket handshake",
+     lambda: BRIDGE.handshake_timeout, 10),
+    ("protocol.md", "holds at most 32 of those connections, and at most 32 more still in",
+     lambda: BRIDGE.max_connections_per_address, 32),
     # docs/service.md: fetching, the queue, the archive
     ("service.md", "| `--max-repo-mb N` | 512 |", lambda: FetchPolicy().max_bytes, 512 * MiB),
     ("service.md", "| `--fetch-timeout S` | 300 |", lambda: FetchPolicy().timeout, 300),
@@ -107,6 +114,19 @@ ROWS: list[tuple[str, str, Callable[[], object], object]] = [
      lambda: UserLimits().max_running, 2),
     ("service.md", "`max_daily` (default 500)", lambda: UserLimits().max_daily, 500),
     ("service.md", "`limit` up to 500", limit_of_trial_pages, 500),
+    # docs/service.md: many clients, and slow ones
+    ("service.md", "| a request's line and headers | within 10 s |",
+     lambda: (HTTP.header_timeout, serve_args().header_timeout), (10, 10)),
+    ("service.md", "| HTTP connections per address | 256 connections at once |",
+     lambda: HTTP.max_connections_per_address, 256),
+    ("service.md", "| an idle kept connection | 5 s |", lambda: HTTP.keep_alive, 5),
+    ("service.md", "| bridge connections per address | 32 |",
+     lambda: serve_args().max_connections_per_address, 32),
+    ("service.md", "written five times at once, then twice a second",
+     lambda: (logs.BURST, logs.RATE), (5, 2)),
+    ("service.md", "and one export at a time, with at most 8 more waiting their turn",
+     lambda: (builds.BUILDS, builds.WAITING), (1, 8)),
+    ("service.md", "at most 1 GiB of them is kept", lambda: builds.KEEP_BYTES, 1024 * MiB),
 ]  # fmt: skip
 
 
