@@ -84,6 +84,7 @@ class HttpServer:
         config = uvicorn.Config(
             self.app,
             log_level="warning",
+            log_config=None,  # uvicorn's records go to the lab's log, and its repeat limit
             lifespan="off",
             access_log=False,
             timeout_notify=5,
@@ -92,7 +93,9 @@ class HttpServer:
             ws="none",  # the bridge serves WebSockets, on its own port
         )
         server = self._server = _Server(config)
-        self._thread = threading.Thread(target=self._serve, args=(server, sock), name="http")
+        self._thread = threading.Thread(
+            target=self._serve, args=(server, sock), name="http", daemon=True
+        )
         self._thread.start()
         waited = 0.0
         while not server.started:

@@ -23,6 +23,7 @@ import contextlib
 import hashlib
 import itertools
 import resource
+import socket
 import statistics
 import time
 from collections.abc import Iterator
@@ -38,6 +39,7 @@ from websockets.exceptions import InvalidStatus
 
 from labd.config import BridgeConfig, HttpConfig
 from scheduler.remote import PROTOCOL, PROTOCOL_HEADER
+from tests.faults.conftest import wait_for
 
 pytestmark = pytest.mark.integration
 
@@ -286,6 +288,29 @@ async def slow_client(port: int, stop: asyncio.Event, held: list[float]) -> None
             held.append(time.monotonic() - began)
             writer.close()
         await asyncio.sleep(2.0)  # then it comes back
+
+
+BAD = 2_000  # requests that are not HTTP
+
+
+@pytest.mark.timeout(120)
+def test_a_flood_of_bad_requests_is_logged_a_few_times_a_second(served):
+    """2,000 requests that are not HTTP, one after another: each is answered 400, and
+    the lab's log grows by under 4 KiB (the warning a few times a second, then how
+    many like it were held back)."""
+    lab = served("--no-robots", "--workers", "0").start()
+    started_log = len(lab.log.encode())
+    port = port_of(lab.server)
+    began = time.monotonic()
+    for _ in range(BAD):
+        with socket.create_connection((ATTACKER, port)) as sock:
+            sock.sendall(b"BAD\x00 / HTTP/1.1\r\n\r\n")
+            assert sock.recv(64).startswith(b"HTTP/1.1 400 ")
+    seconds = time.monotonic() - began
+    wait_for("the log to say how many it held back", lambda: "more like it" in lab.log, 10)
+    log_bytes = len(lab.log.encode()) - started_log
+    print(f"bad requests: {BAD} in {seconds:.1f} s, log {log_bytes} bytes")
+    assert log_bytes < 4096, lab.log[-4000:]
 
 
 # -- 3. readers of pages and the scene --------------------------------------------------------
