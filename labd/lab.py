@@ -64,7 +64,7 @@ class Lab:
     """Owns everything ``labd serve`` runs; ``start`` and ``close`` it on one event loop,
     the robots' loop: the robots, the bridge, the queue's workers. The HTTP API and the
     pages run on a thread and a loop of their own (``labd.api.server``), and hand what
-    touches a live robot to this loop (``Site.robots``)."""
+    touches a live robot to this loop (``Site.robots_loop``)."""
 
     def __init__(
         self,

@@ -38,8 +38,8 @@ from scheduler.runner import RunOptions
 log = logging.getLogger("labd.serve")
 # Seconds a thread holding the interpreter keeps it while another waits. The robots'
 # loop shares the interpreter with the pages' thread and the threads of uploads and
-# exports; at Python's default (5 ms) a 1 GiB upload left the camera 0.85 s without a
-# frame, at 1 ms 0.15 s (tests/faults/test_dos.py).
+# exports; during a 1 GiB upload the camera went up to 0.85 s without a frame at
+# Python's default (5 ms), 0.08-0.76 s at 1 ms on a loaded machine (docs/faults.md).
 SWITCH_INTERVAL = 0.001
 BRIDGE = BridgeConfig()
 HTTP = HttpConfig()
