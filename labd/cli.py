@@ -44,6 +44,7 @@ from labd.commands import (
     worker,
 )
 from labd.commands.common import EPILOG
+from labd.logs import limit_repeats
 
 log = logging.getLogger("labd")
 
@@ -124,6 +125,7 @@ def _main(argv: Sequence[str] | None) -> int:
         stream=sys.stderr,
         format="%(asctime)s %(levelname)s %(name)s: %(message)s",
     )
+    limit_repeats()  # a message repeated in a tight loop must not fill the disk
     return MAINS[args.command](args)
 
 

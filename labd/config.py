@@ -36,6 +36,11 @@ class BridgeConfig:
     max_message_size: int = 16 * MiB
     max_frame_size: int = 64 * MiB
     max_connections: int = 200
+    # Connections one address may hold (0: no share of its own), and as many again still
+    # in their handshake: one address cannot take every slot. Unix sockets (a trial's
+    # private bridge) have no address and no share.
+    max_connections_per_address: int = 32
+    handshake_timeout: float = 10.0  # seconds a client has to send its handshake
     max_queue_bytes: int = 32 * MiB  # per client, topic messages waiting to be sent
     default_queue_length: int = 100  # per subscription, when the client gives none
     ping_interval: float | None = 20.0
@@ -73,6 +78,18 @@ class DriveLimits:
     filings_per_minute: int = 10
     # Characters of each text a client gives /lab/drive (its session, interface, user).
     max_text: int = 64
+
+
+@dataclass(frozen=True)
+class HttpConfig:
+    """How the HTTP API and pages let clients in."""
+
+    # Seconds a client has to send a request's head (its line and headers), from when it
+    # connects or starts the next request on a kept connection (slowloris).
+    header_timeout: float = 10.0
+    # Connections one address may hold open at once (0: no limit).
+    max_connections_per_address: int = 256
+    keep_alive: float = 5.0  # seconds an idle kept connection stays open
 
 
 @dataclass(frozen=True)

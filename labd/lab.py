@@ -23,7 +23,7 @@ from labd.authorizer import ReservationAuthorizer, ref
 from labd.bridge.auth import Authorizer, HttpAuthorizer, KeyPolicy
 from labd.bridge.rosapi import Rosapi
 from labd.bridge.server import BridgeServer
-from labd.config import DATA, DEFAULT_ROBOTS, BridgeConfig, DriveLimits, RobotConfig
+from labd.config import DATA, DEFAULT_ROBOTS, BridgeConfig, DriveLimits, HttpConfig, RobotConfig
 from labd.errors import PortInUse
 from labd.graph.graph import Graph
 from labd.graph.types import TypeRegistry
@@ -47,6 +47,7 @@ class LabConfig:
     # A graph without a robot, where clients reach each other and /rosapi.
     playground: bool = True
     http_port: int = 8080  # the HTTP API
+    http: HttpConfig = field(default_factory=HttpConfig)
     # The archive, the queue and its workers; None: only the bridge and its robots.
     service: ServiceConfig | None = None
     # The share of the maze robot's page sessions shown the camera (interface A); the
@@ -64,7 +65,10 @@ class LabConfig:
 
 
 class Lab:
-    """Owns everything ``labd serve`` runs; ``start`` and ``close`` it on one event loop."""
+    """Owns everything ``labd serve`` runs; ``start`` and ``close`` it on one event loop,
+    the robots' loop: the robots, the bridge, the queue's workers. The HTTP API and the
+    pages run on a thread and a loop of their own (``labd.api.server``), and hand what
+    touches a live robot to this loop (``Site.robots_loop``)."""
 
     def __init__(
         self,
@@ -115,10 +119,12 @@ class Lab:
             self.service = Service(config.service, self.types)
             self.app = create_app(self.service, self.site)
             self.app.state.on_reservation = self._reservation_changed
+            self.app.state.on_submit = self._submitted
             self.http = HttpServer(
                 self.app,
                 config.bridge.host,
                 config.http_port,
+                config.http,
                 trusted_proxies=config.trusted_proxies,
             )
         self._own_authorizer: HttpAuthorizer | None = None
@@ -165,7 +171,7 @@ class Lab:
         }
         if self.app is not None:  # the pages link to the robots on the port now known
             self.app.state.site = replace(
-                self.site, bridge_port=self.bridge.port, drives=self.drives
+                self.site, bridge_port=self.bridge.port, drives=self.drives, robots_loop=self._loop
             )
         if self.service is not None and self.http is not None:
             await _listen(
@@ -189,6 +195,11 @@ class Lab:
         )
         self._filings.add(filing)
         filing.add_done_callback(self._filed)
+
+    def _submitted(self) -> None:
+        """A trial was queued (the API, on its own thread): wake the workers, on this loop."""
+        if self._loop is not None and self.service is not None:
+            self._loop.call_soon_threadsafe(self.service.wake)
 
     def _reservation_changed(self, reservation: Reservation) -> None:
         """A slot was extended or released (the API, from any thread): the clients

@@ -111,8 +111,9 @@ MEANING = {
     429: "over a limit the operator set, or too many failed attempts (see Retry-After)",
     500: "the lab is at fault (the message says what)",
     503: (
-        "the lab cannot take it now: it has all the submissions it takes in hand (see"
-        " Retry-After), or its index's files changed under it (the message says what to do)"
+        "the lab cannot take it now: it has all the submissions or exports it takes in hand"
+        " (see Retry-After), or its index's files changed under it (the message says what to"
+        " do)"
     ),
     507: "the lab's storage is full (the message says where)",
 }

@@ -9,9 +9,11 @@
 An export of one trial is made the first time it is asked for, from the record checked
 against its digest, and kept in the blob store beside the record
 (``repository.index.Derived``): it never changes the record or its digests, and later
-requests are served from the store. An export of many trials is made for each request
-(its trials are chosen as lab.toml's ``[data]`` chooses them, ``scheduler.data``, under
-the same limits).
+requests are served from the store. An export of many trials (its trials chosen as
+lab.toml's ``[data]`` chooses them, ``scheduler.data``, under the same limits) is kept
+on disk under the trials' ids and data digests (``labd.api.builds``), and served from
+there while the same trials are asked for. Each export is built once however many ask
+at once, and one at a time: anyone may ask, and a build takes seconds of CPU.
 
 Each export carries the record's signature in its provenance, and is signed itself: the
 lab signs the digests of its files (``repository.signing``), kept in the export as
@@ -21,17 +23,20 @@ lab signs the digests of its files (``repository.signing``), kept in the export 
 
 from __future__ import annotations
 
+import hashlib
 import json
 import shutil
 import tempfile
 from pathlib import Path
-from typing import Any, Literal
+from typing import Annotated, Any, Literal
 
-from fastapi import APIRouter, Query
+from anyio import to_thread
+from fastapi import APIRouter, Depends, Query, Request
 from fastapi.responses import FileResponse, StreamingResponse
 from pydantic import BaseModel, Field
-from starlette.background import BackgroundTask
 
+from labd import __version__
+from labd.api.builds import Builds
 from labd.api.common import Lab, blob_response
 from labd.api.errors import ApiError, responses
 from labd.api.models import Id
@@ -44,6 +49,17 @@ from scheduler.data import LocalArchive, resolve
 from scheduler.host import REPLAY, VIDEO
 
 router = APIRouter(tags=["data"])
+
+
+async def _builds(request: Request, service: Lab) -> Builds:
+    """The app's export builds (made on the API's loop, so once)."""
+    builds: Builds | None = getattr(request.app.state, "builds", None)
+    if builds is None:
+        builds = request.app.state.builds = Builds(service.config.data / "exports")
+    return builds
+
+
+Building = Annotated[Builds, Depends(_builds)]
 Format = Literal["parquet", "lerobot"]
 ARTIFACT: dict[str, tuple[str, str]] = {  # format -> (derived name, media type)
     "parquet": ("export.parquet", "application/vnd.apache.parquet"),
@@ -78,26 +94,49 @@ def provenance(trial: Trial, url: str) -> dict[str, Any]:
             "content": {"application/vnd.apache.parquet": {}, "application/zip": {}},
             "description": "the export: a Parquet file, or a zip of a LeRobot dataset",
         },
-        **responses(404, 422, 500),
+        **responses(404, 422, 500, 503),
     },
 )
-def export_record(trial_id: Id, fmt: Format, service: Lab) -> StreamingResponse:
+async def export_record(
+    trial_id: Id, fmt: Format, service: Lab, builds: Building
+) -> StreamingResponse:
     """The trial's observation-action pairs as Parquet, or as a LeRobot dataset (zip)."""
-    item = _artifact(service, trial_id, fmt)
+    item = await _artifact(service, builds, trial_id, fmt)
     filename = f"trial-{trial_id}.parquet" if fmt == "parquet" else f"trial-{trial_id}-lerobot.zip"
-    return blob_response(service, item.digest, item.media_type, filename)
+    return await to_thread.run_sync(blob_response, service, item.digest, item.media_type, filename)
 
 
-@router.get("/api/trials/{trial_id}/export/{fmt}/signature", responses=responses(404, 422, 500))
-def export_signature(trial_id: Id, fmt: Format, service: Lab) -> dict[str, Any]:
+@router.get(
+    "/api/trials/{trial_id}/export/{fmt}/signature", responses=responses(404, 422, 500, 503)
+)
+async def export_signature(
+    trial_id: Id, fmt: Format, service: Lab, builds: Building
+) -> dict[str, Any]:
     """The lab's signature of the export: the digests of its files, signed."""
-    _artifact(service, trial_id, fmt)
-    signed = service.index.derived(trial_id)[ARTIFACT[fmt][0] + ".sig"]
-    data: dict[str, Any] = json.loads(service.store.read_bytes(signed.digest))
-    return data
+    await _artifact(service, builds, trial_id, fmt)
+
+    def read() -> dict[str, Any]:
+        signed = service.index.derived(trial_id)[ARTIFACT[fmt][0] + ".sig"]
+        data: dict[str, Any] = json.loads(service.store.read_bytes(signed.digest))
+        return data
+
+    return await to_thread.run_sync(read)
 
 
-def _artifact(service: Lab, trial_id: int, fmt: Format) -> Derived:
+async def _artifact(service: Lab, builds: Builds, trial_id: int, fmt: Format) -> Derived:
+    """The trial's export, built the first time it is asked for (once, however many ask)."""
+    made = await to_thread.run_sync(_made, service, trial_id, fmt)
+    if made is not None:
+        return made
+
+    def build() -> Derived:  # unless the build before this one's turn made it
+        return _made(service, trial_id, fmt) or _make(service, service.index.trial(trial_id), fmt)
+
+    return await builds.once(f"trial-{trial_id}-{fmt}", build)
+
+
+def _made(service: Lab, trial_id: int, fmt: Format) -> Derived | None:
+    """The trial's export as kept beside its record, or None if not made yet."""
     trial = service.index.trial(trial_id)
     if not trial.mcap:
         raise ApiError(404, f"trial {trial_id} has no record to export")
@@ -105,7 +144,7 @@ def _artifact(service: Lab, trial_id: int, fmt: Format) -> Derived:
     name = ARTIFACT[fmt][0]
     if name in made and name + ".sig" in made:
         return made[name]
-    return _make(service, trial, fmt)
+    return None
 
 
 def _make(service: Lab, trial: Trial, fmt: Format) -> Derived:
@@ -154,12 +193,13 @@ def _sign(service: Lab, out: Path, fmt: str, trials: list[Trial]) -> bytes:
             "content": {"application/zip": {}},
             "description": "a zip of the export's folder: one episode per trial, signed",
         },
-        **responses(404, 422, 500),
+        **responses(404, 422, 500, 503),
     },
 )
-def export_many(
+async def export_many(
     fmt: Format,
     service: Lab,
+    builds: Building,
     *,
     trials: list[Id] = Query(default=[], description="trial ids"),  # noqa: B008
     task: str | None = None,
@@ -169,7 +209,8 @@ def export_many(
     limit: int | None = Query(default=None, ge=1, le=MAX_ID),
 ) -> FileResponse:
     """Many trials as one dataset: ids and/or a query (as lab.toml's ``[data]``), newest
-    first up to ``limit``, one episode per trial, with each one's provenance."""
+    first up to ``limit``, one episode per trial, with each one's provenance. Made once
+    for the same trials (as their ids and data digests say) and kept."""
     query = None
     if any(v is not None for v in (task, kind, outcome, user, limit)):
         query = DataQuery(
@@ -181,11 +222,43 @@ def export_many(
         )
     if not trials and query is None:
         raise ApiError(422, "name trials (trials=12&trials=15) and/or a query (task=..., ...)")
-    archive = LocalArchive(service.index, service.store)
-    pinned = resolve(DataSpec(tuple(trials), query), archive, service.config.data_policy)
-    chosen = [service.index.trial(p.trial) for p in pinned]
-    folder = Path(tempfile.mkdtemp(prefix="labd-export-"))
+    spec = DataSpec(tuple(trials), query)
+
+    def choose() -> list[Trial]:
+        archive = LocalArchive(service.index, service.store)
+        pinned = resolve(spec, archive, service.config.data_policy)
+        return [service.index.trial(p.trial) for p in pinned]
+
+    chosen = await to_thread.run_sync(choose)
+    key = _many_key(service, fmt, chosen)
+    path = await to_thread.run_sync(builds.kept, key)
+    if path is None:
+
+        def build() -> Path:  # unless the build before this one's turn made it
+            return builds.kept(key) or _make_many(service, builds, key, fmt, chosen)
+
+        path = await builds.once(key, build)
+    return FileResponse(
+        path, media_type="application/zip", filename=f"export-{len(chosen)}-trials-{fmt}.zip"
+    )
+
+
+def _many_key(service: Lab, fmt: str, chosen: list[Trial]) -> str:
+    """What names an export of many trials: its format, its trials and their data, the
+    key that signs it and the lab's version (a newer lab may export differently)."""
+    named = {
+        "format": fmt,
+        "trials": [[t.id, t.data_digest] for t in chosen],
+        "key": service.keyring.current,
+        "labd": __version__,
+    }
+    return hashlib.sha256(json.dumps(named, sort_keys=True).encode()).hexdigest()[:32]
+
+
+def _make_many(service: Lab, builds: Builds, key: str, fmt: Format, chosen: list[Trial]) -> Path:
+    folder = builds.scratch()
     try:
+        archive = LocalArchive(service.index, service.store)
         records = []
         for trial in chosen:
             assert trial.mcap is not None
@@ -194,16 +267,10 @@ def export_many(
         out = folder / "export"
         export_records(records, out, fmt)
         _sign(service, out, fmt, chosen)
-        archive_path = shutil.make_archive(str(folder / f"export-{fmt}"), "zip", out)
-    except BaseException:
+        made = shutil.make_archive(str(folder / f"export-{fmt}"), "zip", out)
+        return builds.keep(key, Path(made))
+    finally:
         shutil.rmtree(folder, ignore_errors=True)
-        raise
-    return FileResponse(
-        archive_path,
-        media_type="application/zip",
-        filename=f"export-{len(chosen)}-trials-{fmt}.zip",
-        background=BackgroundTask(shutil.rmtree, folder, ignore_errors=True),
-    )
 
 
 class ReplayVerdict(BaseModel):

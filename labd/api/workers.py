@@ -19,7 +19,9 @@ difference, and nothing is filed or signed.
 
 from __future__ import annotations
 
+import asyncio
 import hashlib
+import shutil
 import tempfile
 from pathlib import Path
 from typing import Annotated
@@ -50,6 +52,7 @@ from scheduler.remote import (
 )
 
 MAX_BLOB = 4 << 30
+WRITE_BATCH = 4 << 20  # bytes of an upload written and hashed at once, on a thread
 WORKER_MADE = frozenset({SUMMARY, REPLAY, VIDEO})  # what a worker may file beside a record
 
 
@@ -174,22 +177,53 @@ async def put_blob(digest: Digest, request: Request, service: Lab, user: WorkerU
 
 
 async def _store(digest: str, request: Request, service: Lab) -> Stored:
-    sha = hashlib.sha256()
-    size = 0
-    with tempfile.TemporaryDirectory(prefix="labd-upload-") as folder:
-        path = Path(folder) / "blob"
-        with path.open("wb") as out:
+    """Stream the body to a file and hash it as it comes, then store the file: the disk
+    and the hashing work on threads, in batches, so that the server's loop keeps taking
+    other requests during an upload of gigabytes."""
+    folder = Path(await asyncio.to_thread(tempfile.mkdtemp, prefix="labd-upload-"))
+    try:
+        upload = await asyncio.to_thread(_Upload, folder / "blob")
+        try:
+            batch: list[bytes] = []
+            waiting = 0
             async for chunk in request.stream():
-                size += len(chunk)
-                if size > MAX_BLOB:
+                if upload.size + waiting + len(chunk) > MAX_BLOB:
                     raise ApiError(413, f"a blob may be at most {MAX_BLOB >> 30} GiB")
-                sha.update(chunk)
-                out.write(chunk)
-        actual = f"sha256:{sha.hexdigest()}"
+                batch.append(chunk)
+                waiting += len(chunk)
+                if waiting >= WRITE_BATCH:
+                    await asyncio.to_thread(upload.write, batch)
+                    batch, waiting = [], 0
+            await asyncio.to_thread(upload.write, batch)
+        finally:
+            await asyncio.to_thread(upload.close)
+        actual = f"sha256:{upload.sha.hexdigest()}"
         if actual != digest:
             raise ApiError(422, f"the body hashes to {actual}, not {digest}")
-        stored = service.store.put_file(path)
+        stored = await asyncio.to_thread(service.store.put_file, upload.path)
+    finally:
+        await asyncio.to_thread(shutil.rmtree, folder, True)
     return Stored(digest=stored)
+
+
+class _Upload:
+    """A blob being uploaded: its file, its hash and its size so far (used from one
+    thread at a time)."""
+
+    def __init__(self, path: Path) -> None:
+        self.path = path
+        self.sha = hashlib.sha256()
+        self.size = 0
+        self._out = path.open("wb")
+
+    def write(self, chunks: list[bytes]) -> None:
+        for chunk in chunks:
+            self.sha.update(chunk)
+            self._out.write(chunk)
+            self.size += len(chunk)
+
+    def close(self) -> None:
+        self._out.close()
 
 
 blobs = APIRouter(tags=["data"])

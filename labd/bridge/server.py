@@ -3,11 +3,13 @@
 Each connection gets a ``Session`` on the graph its path names (``/`` the first
 graph, ``/robots/NAME`` the graph called NAME), a reader that feeds it frames, and a
 writer that drains its outbox. The server adds what only I/O can do: TLS, keepalive
-pings, the frame size limit, the connection limit, and the authorizer's call (with a
-limit on refused keys per address, so keys cannot be guessed at speed). Every
-``key_recheck`` seconds it asks the authorizer again about each connected client's key,
-so a key withdrawn where the lab cannot see it (its owner revoked by ``labd users``, in
-another process) disconnects its client, and a slot moved elsewhere moves its end.
+pings, the frame size limit, the connection limit and each address's share of it
+(``labd.addresses``: one address cannot take every slot, nor hold many descriptors in
+slow handshakes), the handshake timeout, and the authorizer's call (with a limit on
+refused keys per address, so keys cannot be guessed at speed). Every ``key_recheck``
+seconds it asks the authorizer again about each connected client's key, so a key
+withdrawn where the lab cannot see it (its owner revoked by ``labd users``, in another
+process) disconnects its client, and a slot moved elsewhere moves its end.
 """
 
 from __future__ import annotations
@@ -27,7 +29,9 @@ from urllib.parse import parse_qs, urlsplit
 from websockets.asyncio.server import Server, ServerConnection, serve, unix_serve
 from websockets.exceptions import ConnectionClosed
 from websockets.http11 import Request, Response
+from websockets.protocol import Event
 
+from labd.addresses import PerAddress, address_of
 from labd.bridge.auth import AuthError, Authorizer, AuthUnavailable, KeyPolicy
 from labd.bridge.ops import CAPABILITIES
 from labd.bridge.render import OutFrame
@@ -66,6 +70,9 @@ class BridgeServer:
             raise ValueError("a graph that takes keys needs an authorizer")
         self.failures = _Failures(config.auth_failures, config.auth_failure_window)
         self.connections: set[_Connection] = set()
+        # Each address's connections: those let in, and those still in their handshake.
+        self.admitted = PerAddress(config.max_connections_per_address)
+        self.opening = PerAddress(config.max_connections_per_address)
         self._ids = itertools.count(1)
         self._server: Server | None = None
         self._recheck: asyncio.Task[None] | None = None
@@ -93,6 +100,8 @@ class BridgeServer:
             "ping_interval": self.config.ping_interval,
             "ping_timeout": self.config.ping_timeout,
             "close_timeout": self.config.close_timeout,
+            "open_timeout": self.config.handshake_timeout,
+            "create_connection": _counted(self),
             "compression": None,  # deflate costs more CPU than it saves on loopback and LAN
         }
         if unix_path is not None:
@@ -163,6 +172,16 @@ class BridgeServer:
                 http.HTTPStatus.SERVICE_UNAVAILABLE,
                 "the bridge has all the connections it allows; retry later\n",
             )
+        assert isinstance(connection, _CountedConnection)
+        if not self.admitted.take(connection.address):
+            share = self.config.max_connections_per_address
+            log.info("a connection from %s was refused: its share is full", connection.address)
+            return connection.respond(
+                http.HTTPStatus.SERVICE_UNAVAILABLE,
+                f"{share} connections from your address are open, its share of the bridge"
+                f" ({self.config.max_connections} in all); close one, or retry later\n",
+            )
+        connection.admitted = True
         return None
 
     async def _handle(self, ws: ServerConnection) -> None:
@@ -211,6 +230,63 @@ def close_reason(reason: str) -> str:
     if len(data) <= MAX_REASON:
         return reason
     return data[: MAX_REASON - 3].decode(errors="ignore") + "..."
+
+
+class _CountedConnection(ServerConnection):
+    """A connection counted under its client's address from accept to close: in its
+    handshake (``BridgeServer.opening``), then once let in (``BridgeServer.admitted``)."""
+
+    bridge: BridgeServer
+    address: str | None = None
+    admitted = False
+    _opening = False
+
+    def connection_made(self, transport: asyncio.BaseTransport) -> None:
+        super().connection_made(transport)
+        self.address = address_of(transport.get_extra_info("peername"))
+        if self.bridge.opening.take(self.address):
+            self._opening = True
+            return
+        # As many handshakes under way from this address as it may hold connections:
+        # refused before its request is read, so slow handshakes hold few descriptors.
+        assert isinstance(transport, asyncio.Transport)
+        transport.write(_TOO_MANY_OPENING)
+        transport.close()
+
+    def connection_lost(self, exc: Exception | None) -> None:
+        self._opened()
+        if self.admitted:
+            self.admitted = False
+            self.bridge.admitted.give(self.address)
+        super().connection_lost(exc)
+
+    def _opened(self) -> None:
+        if self._opening:
+            self._opening = False
+            self.bridge.opening.give(self.address)
+
+    def process_event(self, event: Event) -> None:
+        if self.request is None:  # the handshake request: no longer opening
+            self._opened()
+        super().process_event(event)
+
+
+def _plain_response(status: str, text: str) -> bytes:
+    """A whole HTTP response, for a connection refused before its request is read."""
+    body = text.encode()
+    head = f"HTTP/1.1 {status}\r\nContent-Type: text/plain; charset=utf-8\r\n"
+    return head.encode() + b"Connection: close\r\nContent-Length: %d\r\n\r\n" % len(body) + body
+
+
+_TOO_MANY_OPENING = _plain_response(
+    "503 Service Unavailable",
+    "too many connections from your address are opening; retry later\n",
+)
+
+
+def _counted(bridge: BridgeServer) -> type[_CountedConnection]:
+    """The connection class of ``bridge``'s server."""
+    return type("Counted", (_CountedConnection,), {"bridge": bridge})
 
 
 class _Failures:

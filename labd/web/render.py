@@ -8,6 +8,7 @@ the npm packages there at set-up), so the pages work with no internet.
 
 from __future__ import annotations
 
+import asyncio
 import datetime as dt
 import json
 import math
@@ -55,6 +56,9 @@ class Site:
     interface_ratio: float = 0.5
     rng: random.Random = field(default_factory=random.Random)
     reservations: bool = False  # live robots are driven only with a reservation's key
+    # The loop the live robots step on, when the pages run on another (``labd.lab``):
+    # what touches a robot is done there, between two ticks. None: the pages' own.
+    robots_loop: asyncio.AbstractEventLoop | None = None
     extra: dict[str, Any] = field(default_factory=dict)
 
 

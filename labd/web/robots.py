@@ -19,10 +19,14 @@ experimenters. The page sends the assignment as its drive's ``interface``
 
 from __future__ import annotations
 
+import asyncio
+import copy
 import secrets
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, TypeVar
 
+import mujoco
 import numpy as np
 import orjson
 from fastapi import APIRouter, Request
@@ -32,10 +36,12 @@ from pydantic import BaseModel
 from labd.api.errors import ApiError, responses
 from labd.live import Driving
 from labd.recorder import scene
+from labd.sim.simulation import Simulation
 from labd.web.pages import missing, site
 from labd.web.render import RobotLink, Site, page
 from labd.web.session import Viewer
 
+T = TypeVar("T")
 router = APIRouter(include_in_schema=False)
 api = APIRouter(tags=["robots"])
 
@@ -204,25 +210,44 @@ async def robot_scene(request: Request, name: str) -> Response:
     drive = lab.drives.get(name)
     if drive is None:
         raise ApiError(404, f"no live robot {name} here")
-    # on the lab's event loop, between two ticks: the physics is not moving meanwhile
+    scenes: Scenes = request.app.state.__dict__.setdefault("robot_scenes", Scenes())
     return Response(
-        orjson.dumps(_scene(request, drive)),
+        await scenes.scene(lab, drive),
         media_type="application/json",
         headers={"Cache-Control": "no-store"},
     )
 
 
-def _scene(request: Request, drive: Driving) -> dict[str, Any]:
-    """``describe``'s scene (kept per episode: drawing its textures takes a while) and
-    how to pose it now."""
+async def on_robots_loop(lab: Site, work: Callable[[], T]) -> T:
+    """``work()`` done on the loop the live robots step on, between two of their ticks."""
+    loop = lab.robots_loop
+    if loop is None or loop is asyncio.get_running_loop():
+        return work()
+
+    async def there() -> T:
+        return work()
+
+    return await asyncio.wrap_future(asyncio.run_coroutine_threadsafe(there(), loop))
+
+
+@dataclass(frozen=True)
+class _Snapshot:
+    """A live robot's state at one tick, taken on the robots' loop (a tenth of a
+    millisecond), to pose its scene elsewhere."""
+
+    sim: Simulation  # its episode: a new one has a new model
+    model: mujoco.MjModel | None  # a copy of the episode's model, when asked for
+    tick: int
+    seed: int
+    qpos: np.ndarray
+    transforms: dict[tuple[str, str], tuple[np.ndarray, np.ndarray]]
+
+
+def _snapshot(drive: Driving, known: Simulation | None) -> _Snapshot:
+    """The robot's state now, and a copy of its model unless its episode is ``known``
+    (the model is freed when the episode ends, so it is copied here, not read later)."""
     sim = drive.robot.sim
     physics = sim.physics
-    described: dict[str, tuple[Any, dict[str, Any]]] = request.app.state.__dict__.setdefault(
-        "robot_scenes", {}
-    )
-    kept = described.get(drive.name)
-    if kept is None or kept[0] is not sim:
-        kept = described[drive.name] = (sim, scene.describe(physics.model.ptr))
     tf = sim.task.observe(physics, "/tf", {"sec": 0, "nanosec": 0}) or {"transforms": []}
     transforms = {}
     for item in tf["transforms"]:
@@ -231,5 +256,76 @@ def _scene(request: Request, drive: Driving) -> dict[str, Any]:
             np.array([t["x"], t["y"], t["z"]]),
             np.array([q["w"], q["x"], q["y"], q["z"]]),
         )
-    posed = scene.posing(physics.model.ptr, np.array(physics.data.qpos), transforms)
-    return {**kept[1], **posed, "seed": sim.seed}
+    return _Snapshot(
+        sim=sim,
+        model=None if sim is known else copy.copy(physics.model.ptr),
+        tick=sim.tick,
+        seed=sim.seed,
+        qpos=np.array(physics.data.qpos),
+        transforms=transforms,
+    )
+
+
+@dataclass
+class _Episode:
+    sim: Simulation
+    model: mujoco.MjModel
+    described: asyncio.Task[dict[str, Any]]
+
+
+class Scenes:
+    """Each live robot's scene for its pages, made off the robots' loop: described once
+    per episode (drawing its textures takes 40-400 ms) and posed once per tick, however
+    many pages ask; requests that come meanwhile wait for the one under way, and a page
+    that leaves cancels nothing.
+
+    It lives on the pages' loop and is used only there; the robots' loop only takes
+    snapshots (``_snapshot``).
+    """
+
+    def __init__(self) -> None:
+        self._episodes: dict[str, _Episode] = {}
+        self._posed: dict[str, tuple[Simulation, int, asyncio.Task[bytes]]] = {}
+
+    async def scene(self, lab: Site, drive: Driving) -> bytes:
+        """The robot's scene now, as the JSON body of ``LiveScene``."""
+        sim = drive.robot.sim  # read from this thread: which episode, and its tick
+        kept = self._posed.get(drive.name)
+        if kept is None or kept[0] is not sim or kept[1] != sim.tick:
+            posing = asyncio.ensure_future(self._pose(lab, drive))
+            kept = self._posed[drive.name] = (sim, sim.tick, posing)
+            posing.add_done_callback(lambda done: self._forget_posed(drive.name, done))
+        return await asyncio.shield(kept[2])
+
+    async def _pose(self, lab: Site, drive: Driving) -> bytes:
+        episode = self._episodes.get(drive.name)
+        known = episode.sim if episode is not None else None
+        shot = await on_robots_loop(lab, lambda: _snapshot(drive, known))
+        if episode is None or episode.sim is not shot.sim:
+            assert shot.model is not None
+            describing = asyncio.ensure_future(asyncio.to_thread(scene.describe, shot.model))
+            episode = self._episodes[drive.name] = _Episode(shot.sim, shot.model, describing)
+            describing.add_done_callback(lambda done: self._forget_episode(drive.name, done))
+        described = await episode.described
+        return await asyncio.to_thread(_body, episode.model, described, shot)
+
+    # A task that failed is forgotten, so the next request tries again (and the failure,
+    # retrieved here, is raised to the requests that waited on it).
+    def _forget_posed(self, name: str, done: asyncio.Task[bytes]) -> None:
+        kept = self._posed.get(name)
+        if _failed(done) and kept is not None and kept[2] is done:
+            del self._posed[name]
+
+    def _forget_episode(self, name: str, done: asyncio.Task[dict[str, Any]]) -> None:
+        kept = self._episodes.get(name)
+        if _failed(done) and kept is not None and kept.described is done:
+            del self._episodes[name]
+
+
+def _failed(task: asyncio.Task[Any]) -> bool:
+    return task.cancelled() or task.exception() is not None
+
+
+def _body(model: mujoco.MjModel, described: dict[str, Any], shot: _Snapshot) -> bytes:
+    posed = scene.posing(model, shot.qpos, shot.transforms)
+    return orjson.dumps({**described, **posed, "seed": shot.seed})

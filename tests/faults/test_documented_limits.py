@@ -15,11 +15,13 @@ from pathlib import Path
 
 import pytest
 
+from labd import logs
+from labd.api import builds
 from labd.api.app import TrialQuery
 from labd.api.edges import BODY_LIMIT
 from labd.api.workers import MAX_BLOB
 from labd.commands import serve
-from labd.config import BridgeConfig, DriveLimits
+from labd.config import BridgeConfig, DriveLimits, HttpConfig
 from labd.service import ServiceConfig
 from repository.index import UserLimits
 from repository.mcapfile import MAX_PART
@@ -36,6 +38,7 @@ DOCS = Path(__file__).resolve().parents[2] / "docs"
 MiB, KiB = 1024 * 1024, 1024
 BRIDGE, SANDBOX, RUN, QUEUE = BridgeConfig(), Limits(), RunOptions(), QueueConfig()
 DRIVES = DriveLimits()
+HTTP = HttpConfig()
 WORKER = WorkerConfig(name="", work=Path(), cache=Path())
 SERVICE = ServiceConfig()
 
@@ -117,6 +120,10 @@ ROWS: list[tuple[str, str, Callable[[], object], object]] = [
     ("protocol.md", "(20 lines a second, bursts of 50)",
      lambda: (BRIDGE.log_rate, BRIDGE.log_burst), (20, 50)),
     ("protocol.md", "no key within 10 s closes the connection", lambda: BRIDGE.auth_timeout, 10),
+    ("protocol.md", "A client has 10 s from connecting to send its WebSocket handshake",
+     lambda: BRIDGE.handshake_timeout, 10),
+    ("protocol.md", "holds at most 32 of those connections, and at most 32 more still in",
+     lambda: BRIDGE.max_connections_per_address, 32),
     # docs/service.md: fetching, the queue, the archive
     ("service.md", "| `--max-repo-mb N` | 512 |", lambda: FetchPolicy().max_bytes, 512 * MiB),
     ("service.md", "| `--fetch-timeout S` | 300 |", lambda: FetchPolicy().timeout, 300),
@@ -146,6 +153,19 @@ ROWS: list[tuple[str, str, Callable[[], object], object]] = [
     ("service.md", "Every JSON body and form is held to 1 MiB", lambda: BODY_LIMIT, MiB),
     ("service.md", "and a worker's blob upload to 4 GiB", lambda: MAX_BLOB, 4096 * MiB),
     ("service.md", "whole numbers from 1 to 2,147,483,647", lambda: MAX_ID, 2**31 - 1),
+    # docs/service.md: many clients, and slow ones
+    ("service.md", "| a request's line and headers | within 10 s |",
+     lambda: (HTTP.header_timeout, serve_args().header_timeout), (10, 10)),
+    ("service.md", "| HTTP connections per address | 256 connections at once |",
+     lambda: HTTP.max_connections_per_address, 256),
+    ("service.md", "| an idle kept connection | 5 s |", lambda: HTTP.keep_alive, 5),
+    ("service.md", "| bridge connections per address | 32 |",
+     lambda: serve_args().max_connections_per_address, 32),
+    ("service.md", "written five times at once, then twice a second",
+     lambda: (logs.BURST, logs.RATE), (5, 2)),
+    ("service.md", "and one export at a time, with at most 8 more waiting their turn",
+     lambda: (builds.BUILDS, builds.WAITING), (1, 8)),
+    ("service.md", "at most 1 GiB of them is kept", lambda: builds.KEEP_BYTES, 1024 * MiB),
 ]  # fmt: skip
 
 
