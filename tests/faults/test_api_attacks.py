@@ -108,7 +108,7 @@ def _whole(answer: bytes) -> bool:
 
 @pytest.fixture
 def lab(served: Callable[..., Served]) -> Served:
-    lab = served("--no-robots", "--workers", "0")
+    lab = served("--no-robots", "--workers", "0", "--allow-local-repos")
     lab.start()
     lab.token = lab.add_user("alice")
     return lab
