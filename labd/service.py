@@ -68,7 +68,7 @@ class ServiceConfig:
     rules: Rules = field(default_factory=Rules)  # booking live robots
     signup: bool = False  # people may make their own accounts on the sign-in page
     submit_threads: int = 8  # submissions resolved at once (each may wait on a git server)
-    submit_waiting: int = 32  # more that wait for a thread; past these, 503
+    submit_waiting: int = 64  # more that wait for a thread; past these, 503
 
     @property
     def database_url(self) -> str:

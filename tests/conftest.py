@@ -1,4 +1,5 @@
-"""Shared fixtures: the type registry, graphs, sessions, and a real bridge server."""
+"""Shared fixtures: the type registry, graphs, sessions, a real bridge server, the
+sandboxes (one runtime for the session) and the lab's side of a trial."""
 
 from __future__ import annotations
 
@@ -8,6 +9,7 @@ import secrets
 import threading
 from collections.abc import Callable, Iterator
 from concurrent.futures import Future
+from pathlib import Path
 from typing import Any, TypeVar
 
 import orjson
@@ -21,7 +23,11 @@ from labd.config import BridgeConfig
 from labd.graph.graph import Graph
 from labd.graph.types import TypeRegistry
 from labd.lab import Lab, LabConfig
+from labd.trial import LabHost
+from sandbox.api import Backend
+from sandbox.docker import DockerBackend
 from tests.fakes import ManualTimers, RecordingTransport, drain
+from tests.helpers.sandboxes import BACKENDS, make_backend, runtime_cache
 
 T = TypeVar("T")
 
@@ -206,3 +212,24 @@ def database_url(request: pytest.FixtureRequest, tmp_path: Any) -> Iterator[str]
         with admin.connect() as db:
             db.execute(sa.text(f'DROP DATABASE IF EXISTS "{name}" WITH (FORCE)'))
         admin.dispose()
+
+
+@pytest.fixture(scope="session")
+def cache(request: pytest.FixtureRequest) -> Path:
+    """The runtime cache (pytest's cache folder), shared by every sandbox of the session."""
+    return runtime_cache(request.config)
+
+
+@pytest.fixture(scope="session", params=BACKENDS)
+def backend(request: pytest.FixtureRequest, cache: Path) -> Iterator[Backend]:
+    """Each sandbox backend in turn, made once per session on the shared runtime."""
+    made = make_backend(request.param, cache)
+    yield made
+    if isinstance(made, DockerBackend):
+        made.close()
+
+
+@pytest.fixture(scope="session")
+def host() -> LabHost:
+    """The lab's side of a trial."""
+    return LabHost()

@@ -25,14 +25,10 @@ import psutil
 import pytest
 
 from tests.faults.slow import PackageIndex, S3Server
-from tests.scheduler.conftest import backend, cache, host
 
 __all__ = [
     "Served",
-    "backend",
-    "cache",
     "gone",
-    "host",
     "index",
     "s3",
     "served",

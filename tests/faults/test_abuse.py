@@ -28,7 +28,7 @@ from labd.recorder import read_channels
 from repository.trial import Outcome
 from scheduler.runner import TrialSpec, run_trial
 from tests.faults.test_crowd import Healthy
-from tests.scheduler.conftest import make_backend
+from tests.helpers.sandboxes import make_backend
 
 pytestmark = pytest.mark.integration
 ABUSER = Path(__file__).resolve().parent / "abuser"

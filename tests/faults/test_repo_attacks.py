@@ -219,7 +219,7 @@ def silent_git_server() -> Iterator[str]:
         listener.close()
 
 
-SUBMISSIONS = 60
+SUBMISSIONS = 80  # past the pool's 8 at once and 64 waiting
 READS = ("/api/trials", "/trials", "/api/status", "/")
 
 
@@ -261,9 +261,9 @@ async def crowd(
 def test_submissions_to_a_silent_git_server_leave_anonymous_reads_quick(
     lab: Callable[..., Served],
 ) -> None:
-    """60 submissions of a repository whose server never answers: anonymous reads keep a
-    p99 under 1 s, and each submission ends at the resolution deadline (or is told the
-    lab is busy), well before the fetch time limit."""
+    """80 submissions of a repository whose server never answers: anonymous reads keep a
+    p99 under 1 s, and each submission ends at the resolution deadline, or is told the
+    lab is busy past the 72 it takes in hand, well before the fetch time limit."""
     served = lab("--resolve-timeout", "3")
     with silent_git_server() as url:
         started = time.monotonic()
@@ -286,7 +286,7 @@ def test_submissions_to_a_silent_git_server_leave_anonymous_reads_quick(
         else:
             assert answer.status_code == 422, answer.text
             assert "took longer than this lab's limit of 3 s" in answer.json()["error"]
-    assert any(isinstance(a, httpx.Response) and a.status_code == 422 for a in answers)
+    assert statuses.get(422, 0) >= 72 and statuses.get(503, 0) > 0, statuses
     assert took < 60, "the submissions were not ended by the resolution deadline"
     assert served.get("/api/trials")["trials"] == []
 

@@ -20,7 +20,7 @@ import pytest
 
 from sandbox.api import Exit, Job, Limits, MiB
 from sandbox.jobs import KEEP
-from tests.scheduler.conftest import make_backend
+from tests.helpers.sandboxes import make_backend
 
 pytestmark = pytest.mark.integration
 

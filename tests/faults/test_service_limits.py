@@ -30,7 +30,7 @@ from scheduler.worker import Worker, WorkerConfig
 from tests.faults.conftest import gone
 from tests.faults.slow import PackageIndex, S3Server, controller
 from tests.helpers.githttp import GitRepo
-from tests.scheduler.conftest import make_backend
+from tests.helpers.sandboxes import make_backend
 
 pytestmark = pytest.mark.integration
 

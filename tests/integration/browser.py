@@ -79,10 +79,23 @@ def chromium_or_skip() -> str:
     pytest.skip(f"no Chromium at {CHROMIUM}")
 
 
+def assets_or_skip() -> None:
+    """The pages' scripts (labd/web/static/vendor) are built (``make setup`` builds them
+    from npm): without them every page test would wait out its timeouts."""
+    built = Path(__file__).resolve().parents[2] / "labd" / "web" / "static" / "vendor" / ".built"
+    if built.exists():
+        return
+    message = f"the pages' scripts are not built ({built} is missing): run make setup"
+    if os.environ.get("CI"):
+        pytest.fail(message)
+    pytest.skip(message)
+
+
 @pytest.fixture(scope="module")
 def browser() -> Iterator[Any]:
     """Chromium, for one test module: Playwright's sync API keeps an event loop running
     while it is open, which the asyncio tests of later modules must not find."""
+    assets_or_skip()
     executable = chromium_or_skip()
     with sync_playwright() as playwright:
         launched = playwright.chromium.launch(executable_path=executable, args=FLAGS)

@@ -18,9 +18,9 @@ from labd.service import ServiceConfig
 from scheduler.fetch import FetchPolicy
 from tests.conftest import ServerThread
 from tests.helpers.githttp import GitRepo
+from tests.helpers.sandboxes import make_backend
 from tests.integration.browser import Watched, browser, watched
 from tests.integration.test_commands import shared_cache
-from tests.scheduler.conftest import make_backend
 
 __all__ = ["browser", "watched"]
 pytestmark = [pytest.mark.integration, pytest.mark.timeout(300)]

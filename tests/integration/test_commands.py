@@ -15,8 +15,8 @@ import pytest
 
 from repository.index import connect
 from repository.migrate import schema_of
+from tests.helpers.sandboxes import make_backend
 from tests.repository.test_migrate import schema_1
-from tests.scheduler.conftest import make_backend
 
 pytestmark = [pytest.mark.integration, pytest.mark.timeout(300)]
 ROOT = Path(__file__).resolve().parents[2]

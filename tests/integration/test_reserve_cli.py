@@ -55,7 +55,9 @@ def test_users_add_list_password_revoke_rotate(tmp_path, capsys, monkeypatch):
         "alice: token #2 (rotated by the operator (labd users rotate)) revoked",
     )
     code, out, _ = run(capsys, "users", "revoke", "alice", *data)
-    assert out.strip() == "alice: 0 tokens revoked, and every sign-in ended"
+    assert out.strip() == (
+        "alice: 0 tokens revoked, every sign-in ended, and the keys of their booked slots replaced"
+    )
     monkeypatch.setattr("sys.stdin", io.StringIO("short\n"))
     code, _, err = run(capsys, "users", "password", "alice", "--password-stdin", *data)
     assert code == 2 and "at least 10 characters" in err

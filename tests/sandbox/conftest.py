@@ -1,8 +1,9 @@
-"""Fixtures for the sandbox tests: one runtime for the session, both backends, a bridge.
+"""Fixtures for the sandbox tests: the session's runtime, a bridge, controllers to run.
 
-The runtime is built once per session into a temporary cache (a minute when cold). The
-folders the sandboxes mount live under a base folder that other uids may traverse, as
-the bwrap backend requires of the lab's data folder.
+The runtime and both backends are the ones every test shares (tests/conftest.py): built
+once into pytest's cache folder (a minute when cold). The folders the sandboxes mount live
+under a base folder that other uids may traverse, as the bwrap backend requires of the
+lab's data folder.
 """
 
 from __future__ import annotations
@@ -21,14 +22,11 @@ from pathlib import Path
 import pytest
 import websockets.asyncio.server as ws_server
 
-import sandbox
+from labd.trial import client_library
 from sandbox.api import Backend, Exit, Job, Limits, Running
 from sandbox.bwrap import BwrapRun, processes_of
 from sandbox.docker import LABEL, DockerBackend, DockerRun
-from sandbox.runtime import SANDBOX_UID, Runtime, build_runtime
-
-BACKENDS = ("docker", "bwrap")
-CONTROLLERS_NAME = "labd-test-controllers"
+from sandbox.runtime import Runtime, build_runtime
 
 
 @pytest.fixture(scope="session")
@@ -41,48 +39,15 @@ def workdir() -> Iterator[Path]:
 
 
 @pytest.fixture(scope="session")
-def extra_packages(workdir: Path) -> list[Path]:
-    """A stand-in for the lab's ``controllers`` client library."""
-    package = workdir / "extra" / "controllers"
-    package.mkdir(parents=True)
-    (package / "__init__.py").write_text(f'NAME = "{CONTROLLERS_NAME}"\n')
-    return [package]
-
-
-@pytest.fixture(scope="session")
-def cache(request: pytest.FixtureRequest, workdir: Path) -> Path:
-    """The runtime cache: pytest's cache folder, so later sessions reuse the runtime."""
-    if request.config.cache is not None:
-        folder = request.config.cache.mkdir("labd-sandbox")
-        if all(p.stat().st_mode & 0o001 for p in folder.parents):
-            folder.chmod(0o755)
-            return folder
-    return workdir / "cache"  # a cold build in every session
+def extra_packages() -> list[Path]:
+    """What the lab ships into the runtime beside its Python: the client library."""
+    return [client_library()]
 
 
 @pytest.fixture(scope="session")
 def runtime(cache: Path, extra_packages: list[Path]) -> Runtime:
-    built = build_runtime(cache, extra_packages)
-    for other in cache.glob("runtime-*"):  # runtimes of earlier versions of the code
-        if other != built.root.parent:
-            shutil.rmtree(other, ignore_errors=True)
-    return built
-
-
-@pytest.fixture(scope="session", params=BACKENDS)
-def backend(
-    request: pytest.FixtureRequest, runtime: Runtime, cache: Path, extra_packages: list[Path]
-) -> Iterator[Backend]:
-    """Each backend in turn, made once per session through ``sandbox.backend``."""
-    try:
-        made = sandbox.backend(request.param, cache, extra_packages)
-    except sandbox.BackendUnavailable as err:
-        if os.environ.get("CI"):
-            pytest.fail(str(err))
-        pytest.skip(str(err))
-    yield made
-    if isinstance(made, DockerBackend):
-        made.close()
+    """The session's runtime (built once into the shared cache, see tests/conftest.py)."""
+    return build_runtime(cache, extra_packages)
 
 
 @dataclass
@@ -175,9 +140,27 @@ def assert_nothing_left(backend: Backend, running: Running) -> None:
             all=True, filters={"label": f"{LABEL}={running.job_id}"}
         )
         assert left == []
-        assert processes_of(SANDBOX_UID) == []
+        assert running.container is not None
+        assert processes_in_container(running.container.id) == []
     else:  # pragma: no cover
         raise AssertionError(f"unknown run {running!r}")
+
+
+def processes_in_container(container_id: str) -> list[int]:
+    """Host pids still in the container's cgroup, zombies left out: this job's own, not
+    those of the sandbox's uid, which other labs' Docker jobs on the host share."""
+    found = []
+    for entry in os.scandir("/proc"):
+        if not entry.name.isdigit():
+            continue
+        try:
+            cgroup = Path(f"/proc/{entry.name}/cgroup").read_text()
+            state = Path(f"/proc/{entry.name}/stat").read_text().rsplit(")", 1)[1].split()[0]
+        except OSError:  # it ended meanwhile
+            continue
+        if container_id in cgroup and state != "Z":
+            found.append(int(entry.name))
+    return found
 
 
 @pytest.fixture

@@ -9,7 +9,7 @@ import pytest
 
 from sandbox.api import Limits
 from sandbox.runtime import SANDBOX_UID
-from tests.sandbox.conftest import CONTROLLERS_NAME, Controllers, lines
+from tests.sandbox.conftest import Controllers, lines
 
 pytestmark = [pytest.mark.integration, pytest.mark.timeout(300)]
 
@@ -63,12 +63,12 @@ async def test_runtime_packages_import(controllers: Controllers) -> None:
     ended = await controllers.run(
         """
         import json
-        import numpy, websockets, roslibpy, controllers
+        import numpy, websockets, roslibpy, controllers.client
         print(json.dumps({
             "numpy": numpy.__version__,
             "websockets": websockets.__version__,
             "roslibpy": roslibpy.__version__,
-            "controllers": controllers.NAME,
+            "controllers": controllers.client.Lab.__name__,
             "sum": float(numpy.linalg.solve([[2.0, 0.0], [0.0, 4.0]], [2.0, 8.0]).sum()),
         }))
         """
@@ -78,7 +78,7 @@ async def test_runtime_packages_import(controllers: Controllers) -> None:
         "numpy": "2.4.6",
         "websockets": "17.4",
         "roslibpy": "2.1.0",
-        "controllers": CONTROLLERS_NAME,
+        "controllers": "Lab",
         "sum": 3.0,
     }
 

@@ -38,8 +38,8 @@ from scheduler.fetch import FetchPolicy
 from scheduler.runner import RunOptions, TrialSpec, run_trial
 from scheduler.worker import Worker, WorkerConfig
 from tests.helpers.githttp import GitRepo
+from tests.helpers.sandboxes import make_backend
 from tests.repository.test_export import drive
-from tests.scheduler.conftest import make_backend
 
 EXAMPLE = Path(__file__).resolve().parents[2] / "controllers" / "examples" / "knn-maze"
 TASK = "icreate-maze"

@@ -20,7 +20,7 @@ from labd.replay import replay
 from repository.trial import Outcome
 from scheduler.controller import load
 from scheduler.runner import TrialSpec, run_trial
-from tests.scheduler.conftest import make_backend
+from tests.helpers.sandboxes import make_backend
 
 pytestmark = pytest.mark.integration
 OWN_TYPES = Path(__file__).resolve().parent / "controllers" / "own-types"

@@ -15,7 +15,7 @@ from pathlib import Path
 import pytest
 
 from tests.helpers.githttp import GitRepo
-from tests.scheduler.conftest import BACKENDS, make_backend
+from tests.helpers.sandboxes import BACKENDS, make_backend
 
 pytestmark = [pytest.mark.integration, pytest.mark.timeout(300)]
 

@@ -24,8 +24,8 @@ from sandbox.api import Limits, MiB
 from scheduler.fetch import FetchPolicy
 from scheduler.runner import RunOptions, TrialSpec, run_trial
 from tests.helpers.githttp import GitRepo
+from tests.helpers.sandboxes import BACKENDS, make_backend
 from tests.sandbox.test_isolation import host_addresses
-from tests.scheduler.conftest import BACKENDS, make_backend
 
 pytestmark = pytest.mark.integration
 ROOT = Path(__file__).resolve().parents[2]

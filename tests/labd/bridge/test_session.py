@@ -192,13 +192,15 @@ def test_subscription_limit(connect):
 
 
 def test_subscribe_unsubscribe_flood_leaves_nothing_behind(connect, graph):
-    """Thousands of subscribe/unsubscribe pairs leave no subscription and no topic behind."""
+    """Thousands of subscribe/unsubscribe pairs, each taken (the topic has the client's
+    subscription in between), leave no subscription and no topic behind."""
     client = connect()
     for i in range(3000):
-        client.send(
-            {"op": "subscribe", "id": str(i), "topic": f"/flood{i % 7}", "type": "std_msgs/String"}
-        )
-        client.send({"op": "unsubscribe", "id": str(i), "topic": f"/flood{i % 7}"})
+        topic = f"/flood{i % 7}"
+        client.send({"op": "subscribe", "id": str(i), "topic": topic, "type": "std_msgs/String"})
+        assert [s.node for s in graph.topics[topic].subscriptions] == [client.session.node]
+        client.send({"op": "unsubscribe", "id": str(i), "topic": topic})
+    assert client.frames() == []  # none refused
     assert not any(name.startswith("/flood") for name in graph.topics)
     assert client.session.capabilities[0].subscription_count == 0
 
