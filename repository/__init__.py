@@ -4,7 +4,8 @@
   folder or an S3-compatible bucket (fsspec); immutable once written, checked on read.
 - ``index``: the trial records and users, in SQLAlchemy (SQLite or PostgreSQL), and
   the queries the archive answers.
-- ``export``: observation-action pairs for learning (Parquet, LeRobot v3).
+- ``export``: observation-action pairs for learning, written by the formats that
+  ``formats`` lists (``parquet``, ``lerobot``: LeRobot v3).
 
 Imports no other package of the lab.
 """

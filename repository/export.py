@@ -36,10 +36,11 @@ the record has no image for a tick (tick 0, before the controller subscribed; or
 controller that never looked), ``Source.render`` supplies it: the lab replays the record
 and renders that camera after the fact (``labd.exports``). So every row has its image.
 
-Formats (``repository.lerobot`` writes LeRobot's):
-
-- ``parquet``: ``OUT/data.parquet``, one row per tick (columns in docs/service.md);
-- ``lerobot``: a LeRobot v3.0 dataset, cameras as AV1 MP4 videos.
+**Formats.** How rows are written is an ``ExportFormat``: one object, in the module
+that writes it, declaring its name, its media type, the names of its files and its
+writer; ``repository.formats`` lists them (``repository.parquet``,
+``repository.lerobot``). The archive, the API, the pages and the ``labd`` command ask
+that list, so a format is added in one place.
 
 Errors are ``ExportError``; the output folder appears whole or not at all.
 """
@@ -56,9 +57,6 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-import pyarrow as pa  # type: ignore[import-untyped]
-import pyarrow.parquet as pq  # type: ignore[import-untyped]
 from mcap.exceptions import McapError
 from mcap_ros2.decoder import DecoderFactory
 from zstandard import ZstdError
@@ -66,12 +64,8 @@ from zstandard import ZstdError
 from repository.errors import ExportError
 from repository.mcapfile import messages
 
-FORMATS = ("parquet", "lerobot")
 EPISODE = "/lab/episode"  # lab_msgs/msg/Episode, after each tick's observations
 SIDE_KEY = "labd.side"  # channel metadata: which side published (labd.recorder.reader)
-EPISODES_KEY = "labd.episodes"  # Parquet metadata: each episode's provenance
-LAYOUT_KEY = "labd.layout"
-PARQUET_NAME = "data.parquet"
 IMAGES = "observation.images."  # a camera's feature: observation.images.<name>
 _UNREADABLE = (McapError, OSError, ValueError, EOFError, IndexError, struct.error, ZstdError)
 
@@ -172,6 +166,39 @@ class Episode:
         return len(self.ticks)
 
 
+Writer = Callable[[Sequence[Episode], Layout, Path], list[Path]]  # -> the files written
+
+
+@dataclass(frozen=True)
+class ExportFormat:
+    """One export format: what the archive, the API, the pages and the command need of it.
+
+    ``write(episodes, layout, folder)`` writes the rows into the empty ``folder`` and
+    returns the files written; ``frames(folder)`` and ``episodes(folder)`` count the
+    rows and episodes of an export read back. One trial's export is served as the file
+    ``served`` of its folder, or, where ``served`` is None, as a zip of the folder.
+    """
+
+    name: str  # as a URL and ``labd export --format`` spell it
+    title: str  # a download's name on a page
+    doc: str  # what it is, in a few words
+    media_type: str  # of one trial's export, as served
+    suffix: str  # ends a download's name: trial-12.parquet, trial-12-lerobot.zip
+    served: str | None
+    write: Writer
+    frames: Callable[[Path], int]
+    episodes: Callable[[Path], int]
+
+    @property
+    def artifact(self) -> str:
+        """The name of one trial's export among its record's derived artifacts."""
+        return f"export{self.suffix}"
+
+    def filename(self, trial: int) -> str:
+        """The name of one trial's export, downloaded."""
+        return f"trial-{trial}{self.suffix}"
+
+
 @dataclass(frozen=True)
 class ExportSummary:
     """What an export wrote."""
@@ -187,14 +214,13 @@ class ExportSummary:
     rendered: int  # camera frames the lab rendered because the record had none
 
 
-def export(sources: Sequence[Source], out: Path, fmt: str, layout: Layout) -> ExportSummary:
-    """Export the records ``sources``, one or more episodes each, to the folder ``out``.
-
-    ``fmt`` is ``"parquet"`` or ``"lerobot"``; ``out`` must not exist or be an empty
-    folder. ExportError for what cannot be exported.
+def export(
+    sources: Sequence[Source], out: Path, fmt: ExportFormat, layout: Layout
+) -> ExportSummary:
+    """Export the records ``sources``, one or more episodes each, to the folder ``out``
+    in the format ``fmt`` (``repository.formats``); ``out`` must not exist or be an
+    empty folder. ExportError for what cannot be exported.
     """
-    if fmt not in FORMATS:
-        raise ExportError(f"unknown format {fmt!r}: the formats are {', '.join(FORMATS)}")
     if not sources:
         raise ExportError("there is no record to export")
     for source in sources:
@@ -209,19 +235,14 @@ def export(sources: Sequence[Source], out: Path, fmt: str, layout: Layout) -> Ex
     tmp = out.parent / f".{out.name}.{uuid.uuid4().hex}.tmp"
     tmp.mkdir(parents=True)
     try:
-        if fmt == "parquet":
-            files = write_parquet(episodes, layout, tmp)
-        else:
-            from repository.lerobot import write_lerobot  # noqa: PLC0415 (PyAV on demand)
-
-            files = write_lerobot(episodes, layout, tmp)
+        files = fmt.write(episodes, layout, tmp)
         if out.exists():
             out.rmdir()
         tmp.rename(out)
     finally:
         shutil.rmtree(tmp, ignore_errors=True)  # gone already unless something failed
     summary = ExportSummary(
-        format=fmt,
+        format=fmt.name,
         out=out,
         files=tuple(out / f.relative_to(tmp) for f in files),
         frames=sum(len(e) for e in episodes),
@@ -235,7 +256,7 @@ def export(sources: Sequence[Source], out: Path, fmt: str, layout: Layout) -> Ex
         "exported %d rows of %d episodes as %s to %s (%d camera frames rendered)",
         summary.frames,
         summary.episodes,
-        fmt,
+        fmt.name,
         out,
         summary.rendered,
     )
@@ -392,53 +413,3 @@ def _fill_images(source: Source, episode: Episode) -> None:
                     raise ExportError(f"the replay rendered no image of {camera} at tick {tick}")
                 images[i] = frames[tick]
         episode.rendered[camera] = len(missing)
-
-
-# -- parquet -----------------------------------------------------------------------------
-
-
-def columns(episodes: Sequence[Episode], layout: Layout) -> dict[str, pa.Array]:
-    """The rows as columns: indices, time, instruction, next.*, the vectors' entries."""
-    state = _matrix([e.state for e in episodes], len(layout.observation))
-    action = _matrix([e.action for e in episodes], len(layout.action))
-    out: dict[str, pa.Array] = {
-        "index": pa.array(range(len(state)), pa.int64()),
-        "episode_index": pa.array([i for i, e in enumerate(episodes) for _ in e.ticks], pa.int64()),
-        "frame_index": pa.array([t for e in episodes for t in e.ticks], pa.int64()),
-        "timestamp": pa.array(
-            [(t - e.times[0]) / 1e9 for e in episodes for t in e.times], pa.float32()
-        ),
-        "trial": pa.array(
-            [e.provenance.get("trial") for e in episodes for _ in e.ticks], pa.int64()
-        ),
-        "task": pa.array([e.instruction for e in episodes for _ in e.ticks], pa.string()),
-        "next.reward": pa.array([r for e in episodes for r in e.reward], pa.float32()),
-        "next.done": pa.array([d for e in episodes for d in e.done], pa.bool_()),
-        "next.success": pa.array([s for e in episodes for s in e.success], pa.bool_()),
-    }
-    for i, entry in enumerate(layout.observation):
-        out[f"observation.{entry.name}"] = pa.array(state[:, i], pa.float32())
-    for i, entry in enumerate(layout.action):
-        out[f"action.{entry.name}"] = pa.array(action[:, i], pa.float32())
-    return out
-
-
-def _matrix(parts: Sequence[Sequence[Sequence[float]]], width: int) -> np.ndarray:
-    rows = [row for part in parts for row in part]
-    return np.array(rows, np.float32).reshape(len(rows), width)
-
-
-def write_parquet(episodes: Sequence[Episode], layout: Layout, folder: Path) -> list[Path]:
-    data = columns(episodes, layout)
-    for camera in layout.cameras:
-        images = [image for e in episodes for image in e.images[camera.name]]
-        data[f"{IMAGES}{camera.name}"] = pa.array(images, pa.binary())
-    table = pa.table(data).replace_schema_metadata(
-        {
-            EPISODES_KEY: json.dumps([e.provenance for e in episodes], sort_keys=True),
-            LAYOUT_KEY: json.dumps(layout.describe()),
-        }
-    )
-    path = folder / PARQUET_NAME
-    pq.write_table(table, path, compression="zstd")
-    return [path]

@@ -27,7 +27,8 @@ version) is ``meta/labd.json``, which LeRobot does not read.
 **Video.** Frames are the JPEG images of the episodes, decoded and encoded as LeRobot
 encodes them (PyAV's FFmpeg: ``libsvtav1``, ``yuv420p``, a keyframe every 2 frames,
 CRF 30), one file per camera, an episode's frames from ``from_timestamp`` to
-``to_timestamp``.
+``to_timestamp``. PyAV is imported only when a video is encoded: it is slow to load, and
+a dataset without cameras (``labd.exports.write_dataset``) needs none.
 """
 
 from __future__ import annotations
@@ -40,14 +41,13 @@ from fractions import Fraction
 from pathlib import Path
 from typing import Any
 
-import av
 import numpy as np
 import pyarrow as pa  # type: ignore[import-untyped]
 import pyarrow.parquet as pq  # type: ignore[import-untyped]
 import simplejpeg
 
 from repository.errors import ExportError
-from repository.export import IMAGES, Episode, Layout
+from repository.export import IMAGES, Episode, ExportFormat, Layout
 
 VERSION = "v3.0"
 CHUNKS_SIZE = 1000  # LeRobot's defaults, recorded in info.json
@@ -56,6 +56,7 @@ VIDEO_FILE_MB = 200
 DATA_PATH = "data/chunk-{chunk_index:03d}/file-{file_index:03d}.parquet"
 VIDEO_PATH = "videos/{video_key}/chunk-{chunk_index:03d}/file-{file_index:03d}.mp4"
 EPISODES_PATH = "meta/episodes/chunk-000/file-000.parquet"
+INFO_PATH = "meta/info.json"
 QUANTILES = {"q01": 0.01, "q10": 0.10, "q50": 0.50, "q90": 0.90, "q99": 0.99}
 CODEC, PIX_FMT, GOP, CRF = "libsvtav1", "yuv420p", 2, 30
 PROVENANCE_FIELDS = (
@@ -100,7 +101,7 @@ def write_lerobot(episodes: Sequence[Episode], layout: Layout, folder: Path) -> 
     features["observation.state"]["names"] = [e.name for e in layout.observation]
     features["action"]["names"] = [e.name for e in layout.action]
     paths = {
-        "info": folder / "meta" / "info.json",
+        "info": folder / INFO_PATH,
         "stats": folder / "meta" / "stats.json",
         "tasks": folder / "meta" / "tasks.parquet",
         "episodes": folder / EPISODES_PATH,
@@ -214,6 +215,8 @@ def _encode(
 ) -> tuple[tuple[int, int, int], dict[str, Any], list[dict[str, Any]]]:
     """Encode every episode's frames of ``camera`` into one AV1 MP4; its frame shape, and
     LeRobot's image statistics (per channel, in [0, 1]) overall and per episode."""
+    import av  # noqa: PLC0415 (slow to load: only where a video is made)
+
     path.parent.mkdir(parents=True, exist_ok=True)
     # SVT-AV1 prints its configuration to stderr unless told to log errors only.
     os.environ.setdefault("SVT_LOG", "1")
@@ -332,3 +335,26 @@ def _pandas_column(
         "numpy_type": numpy_type,
         "metadata": metadata,
     }
+
+
+def frames(folder: Path) -> int:
+    """The rows of the dataset in ``folder``, as its ``info.json`` counts them."""
+    return int(json.loads((folder / INFO_PATH).read_text())["total_frames"])
+
+
+def episodes(folder: Path) -> int:
+    """The episodes of the dataset in ``folder``, as its ``info.json`` counts them."""
+    return int(json.loads((folder / INFO_PATH).read_text())["total_episodes"])
+
+
+LEROBOT = ExportFormat(
+    name="lerobot",
+    title="LeRobot (zip)",
+    doc="a LeRobot v3.0 dataset, as a zip of its folder",
+    media_type="application/zip",
+    suffix="-lerobot.zip",
+    served=None,
+    write=write_lerobot,
+    frames=frames,
+    episodes=episodes,
+)

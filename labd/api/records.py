@@ -1,10 +1,13 @@
 """What the API makes from records: exports for learning, kept as derived artifacts.
 
-    GET /api/trials/{id}/export/parquet             one Parquet file, a row per control tick
-    GET /api/trials/{id}/export/lerobot             a LeRobot v3.0 dataset, as a zip of its folder
+    GET /api/trials/{id}/export/{format}            one trial's export (its file, or a zip)
     GET /api/trials/{id}/export/{format}/signature  the lab's signature of that export
     GET /api/exports/{format}?trials=..&task=..     many trials as one dataset (a zip), one
                                                     episode per trial: ids and/or a query
+
+The formats are those of ``repository.formats`` (``parquet``: one Parquet file, a row
+per control tick; ``lerobot``: a LeRobot v3.0 dataset, as a zip of its folder); what a
+route says of a format (its media type, its file names) is what the format declares.
 
 An export of one trial is made the first time it is asked for, from the record checked
 against its digest, and kept in the blob store beside the record
@@ -28,12 +31,13 @@ import json
 import shutil
 import tempfile
 from pathlib import Path
-from typing import Annotated, Any, Literal
+from typing import Annotated, Any
 
 from anyio import to_thread
 from fastapi import APIRouter, Depends, Query, Request
 from fastapi.responses import FileResponse, StreamingResponse
-from pydantic import BaseModel, Field
+from pydantic import AfterValidator, BaseModel, Field, WithJsonSchema
+from pydantic_core import PydanticCustomError
 
 from labd import __version__
 from labd.api.builds import Builds
@@ -41,6 +45,8 @@ from labd.api.common import Lab, blob_response
 from labd.api.errors import ApiError, responses
 from labd.api.models import Id
 from labd.exports import export_records
+from repository.export import ExportFormat
+from repository.formats import FORMATS, SIGNATURE
 from repository.index import Derived
 from repository.signing import EXPORT, file_digests
 from repository.trial import MAX_ID, Kind, Outcome, Trial
@@ -60,12 +66,29 @@ async def _builds(request: Request, service: Lab) -> Builds:
 
 
 Building = Annotated[Builds, Depends(_builds)]
-Format = Literal["parquet", "lerobot"]
-ARTIFACT: dict[str, tuple[str, str]] = {  # format -> (derived name, media type)
-    "parquet": ("export.parquet", "application/vnd.apache.parquet"),
-    "lerobot": ("export-lerobot.zip", "application/zip"),
-}
-SIGNATURE = "labd-signature.json"  # an export's own signature, in its folder
+
+
+def _known(name: str) -> str:
+    if name not in FORMATS:
+        *first, last = (repr(n) for n in FORMATS)
+        expected = f"{', '.join(first)} or {last}" if first else last
+        raise PydanticCustomError(
+            "literal_error", "Input should be {expected}", {"expected": expected}
+        )
+    return name
+
+
+# A format's name in a path: one of the formats, an enum in the OpenAPI document.
+FormatName = Annotated[
+    str, AfterValidator(_known), WithJsonSchema({"type": "string", "enum": list(FORMATS)})
+]
+
+
+async def _format(fmt: FormatName) -> ExportFormat:
+    return FORMATS[fmt]
+
+
+Format = Annotated[ExportFormat, Depends(_format)]
 
 
 def provenance(trial: Trial, url: str) -> dict[str, Any]:
@@ -91,8 +114,8 @@ def provenance(trial: Trial, url: str) -> dict[str, Any]:
     response_class=StreamingResponse,
     responses={
         200: {
-            "content": {"application/vnd.apache.parquet": {}, "application/zip": {}},
-            "description": "the export: a Parquet file, or a zip of a LeRobot dataset",
+            "content": {f.media_type: {} for f in FORMATS.values()},
+            "description": "the export: " + "; or ".join(f.doc for f in FORMATS.values()),
         },
         **responses(404, 422, 500, 503),
     },
@@ -100,9 +123,10 @@ def provenance(trial: Trial, url: str) -> dict[str, Any]:
 async def export_record(
     trial_id: Id, fmt: Format, service: Lab, builds: Building
 ) -> StreamingResponse:
-    """The trial's observation-action pairs as Parquet, or as a LeRobot dataset (zip)."""
+    """The trial's observation-action pairs in the format: Parquet, or a LeRobot dataset
+    (zip)."""
     item = await _artifact(service, builds, trial_id, fmt)
-    filename = f"trial-{trial_id}.parquet" if fmt == "parquet" else f"trial-{trial_id}-lerobot.zip"
+    filename = fmt.filename(trial_id)
     return await to_thread.run_sync(blob_response, service, item.digest, item.media_type, filename)
 
 
@@ -116,14 +140,14 @@ async def export_signature(
     await _artifact(service, builds, trial_id, fmt)
 
     def read() -> dict[str, Any]:
-        signed = service.index.derived(trial_id)[ARTIFACT[fmt][0] + ".sig"]
+        signed = service.index.derived(trial_id)[fmt.artifact + ".sig"]
         data: dict[str, Any] = json.loads(service.store.read_bytes(signed.digest))
         return data
 
     return await to_thread.run_sync(read)
 
 
-async def _artifact(service: Lab, builds: Builds, trial_id: int, fmt: Format) -> Derived:
+async def _artifact(service: Lab, builds: Builds, trial_id: int, fmt: ExportFormat) -> Derived:
     """The trial's export, built the first time it is asked for (once, however many ask)."""
     made = await to_thread.run_sync(_made, service, trial_id, fmt)
     if made is not None:
@@ -132,24 +156,23 @@ async def _artifact(service: Lab, builds: Builds, trial_id: int, fmt: Format) ->
     def build() -> Derived:  # unless the build before this one's turn made it
         return _made(service, trial_id, fmt) or _make(service, service.index.trial(trial_id), fmt)
 
-    return await builds.once(f"trial-{trial_id}-{fmt}", build)
+    return await builds.once(f"trial-{trial_id}-{fmt.name}", build)
 
 
-def _made(service: Lab, trial_id: int, fmt: Format) -> Derived | None:
+def _made(service: Lab, trial_id: int, fmt: ExportFormat) -> Derived | None:
     """The trial's export as kept beside its record, or None if not made yet."""
     trial = service.index.trial(trial_id)
     if not trial.mcap:
         raise ApiError(404, f"trial {trial_id} has no record to export")
     made = service.index.derived(trial_id)
-    name = ARTIFACT[fmt][0]
+    name = fmt.artifact
     if name in made and name + ".sig" in made:
         return made[name]
     return None
 
 
-def _make(service: Lab, trial: Trial, fmt: Format) -> Derived:
+def _make(service: Lab, trial: Trial, fmt: ExportFormat) -> Derived:
     assert trial.mcap is not None
-    name, media = ARTIFACT[fmt]
     with tempfile.TemporaryDirectory(prefix="labd-export-") as folder:
         work = Path(folder)
         mcap = work / "trial.mcap"
@@ -157,24 +180,24 @@ def _make(service: Lab, trial: Trial, fmt: Format) -> Derived:
         out = work / "export"
         export_records([(mcap, provenance(trial, f"/api/trials/{trial.id}"))], out, fmt)
         sig_bytes = _sign(service, out, fmt, [trial])
-        if fmt == "parquet":
-            artifact = out / "data.parquet"
+        if fmt.served is not None:
+            artifact = out / fmt.served
         else:
-            artifact = Path(shutil.make_archive(str(work / "lerobot"), "zip", out))
+            artifact = Path(shutil.make_archive(str(work / fmt.name), "zip", out))
         digest = service.store.put_file(artifact)
-        item = Derived(name, digest, artifact.stat().st_size, media)
+        item = Derived(fmt.artifact, digest, artifact.stat().st_size, fmt.media_type)
         sig_digest = service.store.put_bytes(sig_bytes)
     service.index.put_derived(trial.id, item)
     service.index.put_derived(
-        trial.id, Derived(name + ".sig", sig_digest, len(sig_bytes), "application/json")
+        trial.id, Derived(fmt.artifact + ".sig", sig_digest, len(sig_bytes), "application/json")
     )
     return item
 
 
-def _sign(service: Lab, out: Path, fmt: str, trials: list[Trial]) -> bytes:
+def _sign(service: Lab, out: Path, fmt: ExportFormat, trials: list[Trial]) -> bytes:
     """Sign the export in ``out`` (the digests of its files); its signature, also written
     into the folder as ``labd-signature.json``."""
-    statement: dict[str, Any] = {"schema": EXPORT, "format": fmt, "files": file_digests(out)}
+    statement: dict[str, Any] = {"schema": EXPORT, "format": fmt.name, "files": file_digests(out)}
     if len(trials) == 1:
         statement.update(trial=trials[0].id, data_digest=trials[0].data_digest)
     else:
@@ -239,15 +262,15 @@ async def export_many(
 
         path = await builds.once(key, build)
     return FileResponse(
-        path, media_type="application/zip", filename=f"export-{len(chosen)}-trials-{fmt}.zip"
+        path, media_type="application/zip", filename=f"export-{len(chosen)}-trials-{fmt.name}.zip"
     )
 
 
-def _many_key(service: Lab, fmt: str, chosen: list[Trial]) -> str:
+def _many_key(service: Lab, fmt: ExportFormat, chosen: list[Trial]) -> str:
     """What names an export of many trials: its format, its trials and their data, the
     key that signs it and the lab's version (a newer lab may export differently)."""
     named = {
-        "format": fmt,
+        "format": fmt.name,
         "trials": [[t.id, t.data_digest] for t in chosen],
         "key": service.keyring.current,
         "labd": __version__,
@@ -255,7 +278,9 @@ def _many_key(service: Lab, fmt: str, chosen: list[Trial]) -> str:
     return hashlib.sha256(json.dumps(named, sort_keys=True).encode()).hexdigest()[:32]
 
 
-def _make_many(service: Lab, builds: Builds, key: str, fmt: Format, chosen: list[Trial]) -> Path:
+def _make_many(
+    service: Lab, builds: Builds, key: str, fmt: ExportFormat, chosen: list[Trial]
+) -> Path:
     folder = builds.scratch()
     try:
         archive = LocalArchive(service.index, service.store)
@@ -267,7 +292,7 @@ def _make_many(service: Lab, builds: Builds, key: str, fmt: Format, chosen: list
         out = folder / "export"
         export_records(records, out, fmt)
         _sign(service, out, fmt, chosen)
-        made = shutil.make_archive(str(folder / f"export-{fmt}"), "zip", out)
+        made = shutil.make_archive(str(folder / f"export-{fmt.name}"), "zip", out)
         return builds.keep(key, Path(made))
     finally:
         shutil.rmtree(folder, ignore_errors=True)

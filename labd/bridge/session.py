@@ -10,7 +10,9 @@ strings.
 Every op goes through one dispatcher, which applies the rules that hold for all ops:
 authorization first, protected names never cross, errors become a status frame (to a
 client that asked for status with ``set_level``), a log line, and a line on
-``/rosout``.
+``/rosout``. It dispatches once: each capability (``labd.bridge.ops``) declares a
+``Handler`` per op it takes, and the session keeps one table from op type to handler,
+made when the client connects.
 """
 
 from __future__ import annotations
@@ -18,8 +20,9 @@ from __future__ import annotations
 import enum
 import itertools
 import logging
-from collections.abc import Callable
-from typing import Any, Protocol
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass
+from typing import Any, Generic, Protocol, TypeVar
 
 from labd.bridge import frames
 from labd.bridge.frames import Auth, CallService, Id, Op
@@ -57,15 +60,27 @@ class AuthState(enum.Enum):
     CLOSED = "closed"
 
 
-class Capability:
-    """A family of ops: handles them and releases what it holds when the client leaves."""
+OpT = TypeVar("OpT", bound=Op)
+CapT = TypeVar("CapT", bound="Capability")
 
-    ops: tuple[type[Op], ...] = ()
+
+@dataclass(frozen=True)
+class Handler(Generic[OpT]):
+    """One op a capability takes, and the method that handles it."""
+
+    op: type[OpT]
+    handle: Callable[[OpT], None]
+
+
+class Capability:
+    """A family of ops: declares their handlers, and releases what it holds when the
+    client leaves."""
 
     def __init__(self, session: Session) -> None:
         self.session = session
 
-    def handle(self, op: Op) -> None:
+    def handlers(self) -> Iterable[Handler[Any]]:
+        """The ops this capability takes, each with its handler."""
         raise NotImplementedError
 
     def close(self) -> None:
@@ -104,10 +119,13 @@ class Session:
         self._tokens = float(config.log_burst)
         self._tokens_at = timers.time()
         self._suppressed = 0
-        self.capabilities = [make(self) for make in capabilities]
-        self._handlers: dict[type[Op], Capability] = {
-            op: cap for cap in self.capabilities for op in cap.ops
-        }
+        self._capabilities = tuple(make(self) for make in capabilities)
+        self._handlers: dict[type[Op], Callable[[Any], None]] = {}
+        for cap in self._capabilities:
+            for handler in cap.handlers():
+                if handler.op in self._handlers:
+                    raise ValueError(f"two capabilities handle {handler.op.__name__}")
+                self._handlers[handler.op] = handler.handle
         self._held: list[str | bytes] = []  # frames received while authorizing
         self._auth_timer: TimerHandle | None = None
         self._expiry: TimerHandle | None = None
@@ -151,11 +169,18 @@ class Session:
             return
         self.dispatch(op)
 
+    def capability(self, kind: type[CapT]) -> CapT:
+        """This session's capability of the class ``kind``."""
+        for cap in self._capabilities:
+            if isinstance(cap, kind):
+                return cap
+        raise LookupError(f"the session has no {kind.__name__} capability")
+
     def dispatch(self, op: Op) -> None:
-        handler = self._handlers.get(type(op))
+        handle = self._handlers.get(type(op))
         name = op.__struct_config__.tag
         op_id: Id = getattr(op, "id", None)
-        if handler is None:
+        if handle is None:
             self.report("warning", f"{name} is not available here", op_id)
             return
         protected = self._protected_name(op)
@@ -163,7 +188,7 @@ class Session:
             self._refuse_protected(op, protected, op_id)
             return
         try:
-            handler.handle(op)
+            handle(op)
         except LabError as err:
             self.report("error", f"{name}: {err}", op_id)
         except Exception:
@@ -396,7 +421,7 @@ class Session:
         for timer in (self._auth_timer, self._expiry, self._warning):
             if timer is not None:
                 timer.cancel()
-        for cap in self.capabilities:
+        for cap in self._capabilities:
             cap.close()
         self.node.destroy()
         self._held.clear()

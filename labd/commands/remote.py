@@ -8,7 +8,7 @@
     labd download TRIAL [-o FILE]
     labd rerun COMMIT|TRIAL [--all] [--wait]
     labd cancel TRIAL
-    labd export TRIAL --format lerobot|parquet [-o DIR]
+    labd export TRIAL --format lerobot|parquet [-o DIR]     (the formats of repository.formats)
     labd export --task T [--kind K --outcome O --user U --limit N] [--trials ID ...] --format F
     labd tasks
     labd status
@@ -31,8 +31,6 @@ from pathlib import Path
 from typing import Any
 from urllib.parse import urlencode
 
-import pyarrow.parquet as pq  # type: ignore[import-untyped]
-
 from labd.api.models import (
     CancelView,
     CommitView,
@@ -51,6 +49,7 @@ from labd.commands.common import (
     worst,
 )
 from repository.errors import ArchiveError
+from repository.formats import FORMATS, SIGNATURE
 from repository.trial import Kind, Outcome, Status
 from scheduler.client import ApiClient
 from scheduler.errors import RemoteError
@@ -135,7 +134,7 @@ def _export_parser(commands: Any) -> None:
         "export", help="export trials for learning: a row per control tick, every camera"
     )
     p.add_argument("trial", type=int, nargs="?", metavar="TRIAL", help="one trial's number")
-    p.add_argument("--format", required=True, choices=["lerobot", "parquet"], help="the format")
+    p.add_argument("--format", required=True, choices=sorted(FORMATS), help="the format")
     p.add_argument("-o", "--output", type=Path, help="the folder (default: trial-N-FORMAT)")
     many = p.add_argument_group("many trials as one dataset, one episode each (as [data])")
     many.add_argument("--trials", type=int, nargs="+", default=[], metavar="ID", help="by id")
@@ -286,25 +285,24 @@ def _export(client: ApiClient, args: argparse.Namespace) -> int:
         return _export_many(client, args, query)
     if args.trial is None:
         return fail(args, "name a TRIAL, or trials to export together (--trials, --task ...)")
-    out = args.output or Path(f"trial-{args.trial}-{args.format}")
+    fmt = FORMATS[args.format]
+    out = args.output or Path(f"trial-{args.trial}-{fmt.name}")
     if out.exists() and (not out.is_dir() or any(out.iterdir())):
         return fail(args, f"{out} already exists: give a new or empty folder (-o)")
     with tempfile.TemporaryDirectory(prefix="labd-export-") as folder:
         got = Path(folder) / "export"
-        size = client.download(f"/api/trials/{args.trial}/export/{args.format}", got)
+        size = client.download(f"/api/trials/{args.trial}/export/{fmt.name}", got)
         out.mkdir(parents=True, exist_ok=True)
-        if args.format == "parquet":
-            shutil.move(got, out / "data.parquet")
+        if fmt.served is not None:  # the export's one file; its signature is served beside it
+            shutil.move(got, out / fmt.served)
             signature = client.request(
-                "GET", f"/api/trials/{args.trial}/export/parquet/signature"
+                "GET", f"/api/trials/{args.trial}/export/{fmt.name}/signature"
             ).json()
-            (out / "labd-signature.json").write_text(
-                json.dumps(signature, indent=2, sort_keys=True) + "\n"
-            )
-        else:
+            (out / SIGNATURE).write_text(json.dumps(signature, indent=2, sort_keys=True) + "\n")
+        else:  # a zip of the export's folder, its signature in it
             with zipfile.ZipFile(got) as archive:
                 archive.extractall(out)
-    frames = _frames(out, args.format)
+    frames = fmt.frames(out)
     info = {"path": str(out), "format": args.format, "frames": frames, "bytes": size}
     emit(args, info, lambda: [f"{out}: {frames} frames ({args.format}, {size:,} bytes)"])
     return ExitCode.SUCCESS
@@ -315,18 +313,19 @@ def _export_many(client: ApiClient, args: argparse.Namespace, query: dict[str, A
     ids = ([args.trial] if args.trial is not None else []) + list(args.trials)
     params: list[tuple[str, str | int]] = [("trials", i) for i in ids]
     params += [(k, v) for k, v in query.items() if v is not None]
-    out = args.output or Path(f"export-{args.format}")
+    fmt = FORMATS[args.format]
+    out = args.output or Path(f"export-{fmt.name}")
     if out.exists() and (not out.is_dir() or any(out.iterdir())):
         return fail(args, f"{out} already exists: give a new or empty folder (-o)")
     with tempfile.TemporaryDirectory(prefix="labd-export-") as folder:
         got = Path(folder) / "export.zip"
-        path = f"/api/exports/{args.format}?" + urlencode(params)
+        path = f"/api/exports/{fmt.name}?" + urlencode(params)
         size = client.download(path, got)
         out.mkdir(parents=True, exist_ok=True)
         with zipfile.ZipFile(got) as archive:
             archive.extractall(out)
-    frames = _frames(out, args.format)
-    episodes = _episodes(out, args.format)
+    frames = fmt.frames(out)
+    episodes = fmt.episodes(out)
     info = {
         "path": str(out),
         "format": args.format,
@@ -340,21 +339,6 @@ def _export_many(client: ApiClient, args: argparse.Namespace, query: dict[str, A
         lambda: [f"{out}: {episodes} episodes, {frames} frames ({args.format}, {size:,} bytes)"],
     )
     return ExitCode.SUCCESS
-
-
-def _episodes(out: Path, fmt: str) -> int:
-    if fmt == "parquet":
-        metadata = pq.ParquetFile(out / "data.parquet").schema_arrow.metadata or {}
-        return len(json.loads(metadata.get(b"labd.episodes", b"[]")))
-    info = json.loads((out / "meta" / "info.json").read_text())
-    return int(info["total_episodes"])
-
-
-def _frames(out: Path, fmt: str) -> int:
-    if fmt == "parquet":
-        return int(pq.ParquetFile(out / "data.parquet").metadata.num_rows)
-    info = json.loads((out / "meta" / "info.json").read_text())
-    return int(info["total_frames"])
 
 
 def _tasks(client: ApiClient, args: argparse.Namespace) -> int:

@@ -32,6 +32,7 @@ from labd.commands.common import ExitCode, emit, fail, json_option
 from labd.config import DATA
 from labd.trial import LabHost
 from repository.errors import ArchiveError
+from repository.formats import SIGNATURE
 from repository.signing import (
     EXPORT,
     RECORDS,
@@ -48,7 +49,6 @@ from scheduler.errors import RemoteError, TrialError
 from scheduler.filing import Claims, record_differences
 
 SIDECAR = ".sig.json"  # a record's signature, beside it: trial-12.mcap.sig.json
-EXPORT_SIGNATURE = "labd-signature.json"
 
 
 def add_parser(commands: Any) -> None:
@@ -178,9 +178,9 @@ def _claims(statement: dict[str, Any]) -> Claims:
 
 
 def _export(folder: Path, keys: dict[str, Ed25519PublicKey]) -> dict[str, Any]:
-    path = folder / EXPORT_SIGNATURE
+    path = folder / SIGNATURE
     if not path.exists():
-        raise ValueError(f"{folder} holds no {EXPORT_SIGNATURE}: not a signed export")
+        raise ValueError(f"{folder} holds no {SIGNATURE}: not a signed export")
     signed = _signature(path)
     verify(signed, keys)
     statement = signed.statement
@@ -189,7 +189,7 @@ def _export(folder: Path, keys: dict[str, Ed25519PublicKey]) -> dict[str, Any]:
     signed_files = statement.get("files")
     if not isinstance(signed_files, dict):
         raise ValueError(f"{path} signs no list of files")
-    present = file_digests(folder, skip=frozenset({EXPORT_SIGNATURE}))
+    present = file_digests(folder, skip=frozenset({SIGNATURE}))
     changed = sorted(n for n in signed_files if n in present and present[n] != signed_files[n])
     missing = sorted(set(signed_files) - set(present))
     extra = sorted(set(present) - set(signed_files))

@@ -25,6 +25,7 @@ from starlette.responses import HTMLResponse
 from labd import __version__
 from labd.live import Driving
 from labd.web.session import CSRF_COOKIE
+from repository.formats import FORMATS
 from repository.index import User
 from repository.trial import Outcome, Status
 
@@ -105,6 +106,7 @@ templates.env.filters.update(
     when=when, number=number, seconds=seconds, pretty=pretty, epoch=epoch, hhmm=hhmm
 )
 templates.env.globals.update(state=state, version=__version__)
+templates.env.globals["export_formats"] = tuple(FORMATS.values())  # a trial's downloads
 
 
 def page(

@@ -19,6 +19,7 @@ import pytest
 from websockets.exceptions import ConnectionClosed
 from websockets.sync.client import connect as ws_connect
 
+from labd.bridge.ops.fragments import Fragments
 from labd.config import BridgeConfig, MiB
 
 pytestmark = pytest.mark.integration
@@ -106,7 +107,7 @@ def test_a_client_sends_at_most_16_messages_in_fragments_at_once(connect):
     assert errors(client.frames()) == [
         "fragment: too many messages in fragments at once (the limit is 16)"
     ]
-    assert len(client.session.capabilities[4].assemblies) == 16
+    assert len(client.session.capability(Fragments).assemblies) == 16
 
 
 def test_a_message_in_fragments_is_at_most_16_mib(connect):
@@ -118,7 +119,7 @@ def test_a_message_in_fragments_is_at_most_16_mib(connect):
     assert errors(client.frames()) == [
         f"fragment: too many characters in one fragmented message (the limit is {16 * MiB})"
     ]
-    assert client.session.capabilities[4].assemblies == {}
+    assert client.session.capability(Fragments).assemblies == {}
 
 
 def test_fragments_that_stop_coming_are_forgotten_after_30_s(connect, timers):
@@ -126,11 +127,11 @@ def test_fragments_that_stop_coming_are_forgotten_after_30_s(connect, timers):
     client = status_client(connect)
     client.send({"op": "fragment", "id": "x", "data": "{", "num": 0, "total": 2})
     timers.advance(29.9)
-    assert client.frames() == [] and "x" in client.session.capabilities[4].assemblies
+    assert client.frames() == [] and "x" in client.session.capability(Fragments).assemblies
     timers.advance(0.2)
     (warning,) = client.frames()
     assert "only 1 of 2 parts arrived" in warning["msg"]
-    assert client.session.capabilities[4].assemblies == {}
+    assert client.session.capability(Fragments).assemblies == {}
 
 
 def test_a_client_has_10_s_to_authorize(connect, timers):

@@ -1,4 +1,5 @@
-"""Exports through the API: many trials as one dataset, chosen as [data] chooses them."""
+"""Exports through the API: one trial's, and many trials as one dataset, chosen as [data]
+chooses them."""
 
 from __future__ import annotations
 
@@ -13,7 +14,9 @@ from labd.graph.types import TypeRegistry
 from labd.live import Driving
 from labd.scripted import demonstrate
 from labd.station import Station
+from repository.formats import FORMATS
 from repository.index import Filters
+from repository.parquet import PARQUET
 from tests.labd.test_api import api, service  # noqa: F401 (fixtures)
 
 
@@ -57,3 +60,33 @@ async def test_an_export_query_that_matches_nothing_is_refused(api, demonstratio
     assert "matches no public, finished trial" in nothing.json()["error"]
     bare = await api.get("/api/exports/lerobot")
     assert bare.status_code == 422 and "name trials" in bare.json()["error"]
+
+
+async def test_the_formats_are_the_registrys_in_paths_and_in_the_openapi_document(api):  # noqa: F811
+    """A format the registry does not hold is a 422 naming those it holds, and the OpenAPI
+    document lists the registry's names and media types."""
+    unknown = await api.get("/api/trials/1/export/csv")
+    assert unknown.status_code == 422
+    assert unknown.json()["error"] == "fmt: Input should be 'parquet' or 'lerobot'"
+    spec = (await api.get("/openapi.json")).json()
+    route = spec["paths"]["/api/trials/{trial_id}/export/{fmt}"]["get"]
+    [fmt] = [p for p in route["parameters"] if p["name"] == "fmt"]
+    assert fmt["schema"]["enum"] == list(FORMATS)
+    assert set(route["responses"]["200"]["content"]) == {f.media_type for f in FORMATS.values()}
+
+
+async def test_one_trials_parquet_export_is_its_file_named_and_signed(api, demonstrations):  # noqa: F811
+    """GET /api/trials/{id}/export/parquet: the Parquet file itself, under the format's
+    media type and file name, kept beside the record under its artifact's name, with its
+    signature naming the format."""
+    trial = demonstrations[0]
+    answer = await api.get(f"/api/trials/{trial}/export/parquet")
+    assert answer.status_code == 200, answer.text
+    assert answer.headers["content-type"] == PARQUET.media_type
+    assert f'filename="trial-{trial}.parquet"' in answer.headers["content-disposition"]
+    table = pq.read_table(io.BytesIO(answer.content))
+    assert table.column("frame_index").to_pylist()[0] == 0
+    signed = (await api.get(f"/api/trials/{trial}/export/parquet/signature")).json()
+    assert signed["statement"]["format"] == "parquet"
+    assert signed["statement"]["trial"] == trial
+    assert set(signed["statement"]["files"]) == {"data.parquet"}

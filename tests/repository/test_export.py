@@ -22,7 +22,10 @@ from labd.recorder import Recorder
 from labd.sim import registry
 from labd.sim.robot import Robot
 from repository.errors import ExportError
-from repository.export import EPISODES_KEY, Source, export
+from repository.export import Source, export
+from repository.formats import FORMATS, export_format
+from repository.lerobot import LEROBOT
+from repository.parquet import EPISODES_KEY, PARQUET
 from scheduler.manifest import versions
 
 TASK = "icreate-maze"
@@ -137,7 +140,7 @@ def test_parquet_has_a_row_per_tick_from_tick_0_with_neutral_commands_first(tmp_
     """Ticks before the controller's first command have rows too, with the neutral command
     (standing still); each row pairs tick k's observations with the command of step k."""
     run = drive(tmp_path / "trial", first_command=3)
-    summary = export_records([(run.mcap, known())], tmp_path / "out", "parquet")
+    summary = export_records([(run.mcap, known())], tmp_path / "out", PARQUET)
     assert (summary.frames, summary.episodes) == (TICKS, 1)  # the last tick has no step
     rows = rows_of(summary.files[0])
     assert [r["frame_index"] for r in rows] == [r["index"] for r in rows] == list(range(TICKS))
@@ -165,7 +168,7 @@ def test_parquet_has_a_row_per_tick_from_tick_0_with_neutral_commands_first(tmp_
 def test_a_command_holds_when_the_controller_sent_none(tmp_path):
     """Before steps without a new /cmd_vel, the action is the previous command."""
     run = drive(tmp_path / "trial")
-    rows = rows_of(export_records([(run.mcap, known())], tmp_path / "out", "parquet").files[0])
+    rows = rows_of(export_records([(run.mcap, known())], tmp_path / "out", PARQUET).files[0])
     for k in range(2, TICKS, 4):
         assert rows[k]["action.cmd_vel.linear.x"] == pytest.approx(command(k - 1)["linear"]["x"])
 
@@ -178,7 +181,7 @@ def test_every_row_has_its_camera_image_rendered_where_the_record_has_none(tmp_p
     never = drive(tmp_path / "never", camera=False)
     images = {}
     for name, run in (("watched", watched), ("late", late), ("never", never)):
-        summary = export_records([(run.mcap, known())], tmp_path / f"out-{name}", "parquet")
+        summary = export_records([(run.mcap, known())], tmp_path / f"out-{name}", PARQUET)
         assert summary.rendered == {"watched": 0, "late": 6, "never": TICKS}[name]
         images[name] = [r["observation.images.camera"] for r in rows_of(summary.files[0])]
     assert images["watched"] == images["late"] == images["never"]
@@ -191,12 +194,12 @@ def test_exports_of_different_controllers_have_one_layout_and_merge(tmp_path):
     provenance."""
     moving = drive(tmp_path / "a", ticks=8, camera=False)
     idle = drive(tmp_path / "b", ticks=6, first_command=99, camera=False)
-    a = export_records([(moving.mcap, known(1))], tmp_path / "one", "parquet")
-    b = export_records([(idle.mcap, known(2))], tmp_path / "two", "parquet")
+    a = export_records([(moving.mcap, known(1))], tmp_path / "one", PARQUET)
+    b = export_records([(idle.mcap, known(2))], tmp_path / "two", PARQUET)
     assert pq.read_schema(a.files[0]).names == pq.read_schema(b.files[0]).names
     assert a.observation_names == tuple(e.name for e in layout(TASK).observation)
     both = export_records(
-        [(moving.mcap, known(1)), (idle.mcap, known(2))], tmp_path / "both", "parquet"
+        [(moving.mcap, known(1)), (idle.mcap, known(2))], tmp_path / "both", PARQUET
     )
     rows = rows_of(both.files[0])
     assert [r["episode_index"] for r in rows] == [0] * 8 + [1] * 6
@@ -212,7 +215,7 @@ def test_a_reset_starts_a_new_episode(tmp_path):
     """A record with two episodes exports two, each numbered from frame 0."""
     run = drive(tmp_path / "trial", ticks=9, camera=False, reset_after=5)
     blind = dataclasses.replace(layout(TASK), cameras=())
-    summary = export([Source(run.mcap, {"trial": 1})], tmp_path / "out", "parquet", blind)
+    summary = export([Source(run.mcap, {"trial": 1})], tmp_path / "out", PARQUET, blind)
     assert (summary.frames, summary.episodes) == (9, 2)
     rows = rows_of(summary.files[0])
     assert [r["episode_index"] for r in rows] == [0] * 5 + [1] * 4
@@ -229,7 +232,7 @@ def test_lerobot_v3_layout_video_and_provenance(tmp_path):
     its row of meta/episodes, and nothing of labd's in info.json."""
     first, second = drive(tmp_path / "a", ticks=10), drive(tmp_path / "b", ticks=6, camera=False)
     out = tmp_path / "dataset"
-    summary = export_records([(first.mcap, known(1)), (second.mcap, known(2))], out, "lerobot")
+    summary = export_records([(first.mcap, known(1)), (second.mcap, known(2))], out, LEROBOT)
     video = out / "videos" / "observation.images.camera" / "chunk-000" / "file-000.mp4"
     assert sorted(str(p.relative_to(out)) for p in out.rglob("*") if p.is_file()) == [
         "data/chunk-000/file-000.parquet",
@@ -281,20 +284,19 @@ def test_lerobot_v3_layout_video_and_provenance(tmp_path):
 # -- refusals ---------------------------------------------------------------------------------
 
 
-def test_an_unknown_format_names_the_formats(tmp_path):
-    run = drive(tmp_path / "trial", ticks=3, camera=False)
+def test_an_unknown_format_names_the_formats():
     with pytest.raises(ExportError, match="unknown format 'csv': the formats are parquet, lerobot"):
-        export_records([(run.mcap, known())], tmp_path / "out", "csv")
+        export_format("csv")
 
 
 def test_a_missing_or_unreadable_mcap_is_refused(tmp_path):
     run = drive(tmp_path / "trial", ticks=3, camera=False)
     with pytest.raises(ExportError, match="no MCAP file at"):
-        export([Source(tmp_path / "none.mcap", {})], tmp_path / "o1", "parquet", layout(TASK))
+        export([Source(tmp_path / "none.mcap", {})], tmp_path / "o1", PARQUET, layout(TASK))
     cut = tmp_path / "cut.mcap"
     cut.write_bytes(run.mcap.read_bytes()[:300])
     with pytest.raises(ExportError, match="not a complete, readable MCAP file"):
-        export([Source(cut, {})], tmp_path / "o2", "parquet", layout(TASK))
+        export([Source(cut, {})], tmp_path / "o2", PARQUET, layout(TASK))
     assert not (tmp_path / "o1").exists() and not (tmp_path / "o2").exists()
 
 
@@ -302,7 +304,7 @@ def test_missing_images_that_nothing_renders_are_refused(tmp_path):
     """Without the lab's renderer, a record lacking a camera's images cannot be exported."""
     run = drive(tmp_path / "trial", ticks=3, camera=False)
     with pytest.raises(ExportError, match=r"no image of camera for 3 ticks \(from tick 0\)"):
-        export([Source(run.mcap, {})], tmp_path / "o", "parquet", layout(TASK))
+        export([Source(run.mcap, {})], tmp_path / "o", PARQUET, layout(TASK))
     assert not (tmp_path / "o").exists()
 
 
@@ -312,6 +314,15 @@ def test_an_existing_output_and_bad_provenance_are_refused(tmp_path):
     taken.mkdir()
     (taken / "file").write_text("x")
     with pytest.raises(ExportError, match="already exists"):
-        export_records([(run.mcap, known())], taken, "parquet")
+        export_records([(run.mcap, known())], taken, PARQUET)
     with pytest.raises(ExportError, match="the provenance must be JSON"):
-        export([Source(run.mcap, {"x": object()})], tmp_path / "o", "parquet", layout(TASK))
+        export([Source(run.mcap, {"x": object()})], tmp_path / "o", PARQUET, layout(TASK))
+
+
+def test_the_formats_keep_their_names_in_the_archive():
+    """Exports kept beside records are found again under the same names: a format's
+    artifact and download names do not change."""
+    assert {f.name: (f.artifact, f.filename(12)) for f in FORMATS.values()} == {
+        "parquet": ("export.parquet", "trial-12.parquet"),
+        "lerobot": ("export-lerobot.zip", "trial-12-lerobot.zip"),
+    }

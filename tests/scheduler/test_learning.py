@@ -31,7 +31,9 @@ from labd.service import Service, ServiceConfig
 from labd.sim.robot import Robot
 from labd.station import Station
 from labd.trial import LabHost
+from repository.formats import FORMATS
 from repository.index import Filters, Index
+from repository.lerobot import LEROBOT
 from repository.trial import Kind, Status, TrialRequest
 from scheduler.data import LocalArchive
 from scheduler.fetch import FetchPolicy
@@ -189,7 +191,7 @@ def test_exports_of_the_examples_keep_every_tick_and_the_camera(example_records,
     for name, result in example_records.items():
         assert result.mcap is not None
         out = tmp_path / f"{name}-{fmt}"
-        summary = export_records([(result.mcap, {"trial": 1})], out, fmt)
+        summary = export_records([(result.mcap, {"trial": 1})], out, FORMATS[fmt])
         ticks = result.metrics["ticks"]
         assert summary.frames == ticks and summary.rendered == ticks, name
         if fmt == "parquet":
@@ -218,7 +220,7 @@ def test_lerobot_loads_the_exports_and_a_merge_keeps_every_provenance(example_re
         "pr2": [(pr2.mcap, {"trial": 3, "data_digest": pr2.data_digest})],
     }
     for name, records in sources.items():
-        export_records(records, tmp_path / name, "lerobot")
+        export_records(records, tmp_path / name, LEROBOT)
     check = Path(__file__).resolve().parents[1] / "integration" / "lerobot_check.py"
     env = {**os.environ, "HF_HUB_OFFLINE": "1", "HF_LEROBOT_HOME": str(tmp_path / "home")}
     done = subprocess.run(

@@ -1,4 +1,9 @@
-"""The op families of the protocol, one module each, registered in ``CAPABILITIES``."""
+"""The op families of the protocol, one module each, registered in ``CAPABILITIES``.
+
+Each declares a ``Handler`` per op it takes (``Capability.handlers``); the session
+dispatches through one table made from those declarations. Tests reach a session's
+family by its class: ``session.capability(Fragments)``.
+"""
 
 from __future__ import annotations
 

@@ -15,6 +15,7 @@ with ``action_feedback`` and ``action_result``.
 from __future__ import annotations
 
 import itertools
+from collections.abc import Iterable
 from typing import Any
 
 from labd.bridge.frames import (
@@ -23,12 +24,11 @@ from labd.bridge.frames import (
     AdvertiseAction,
     CancelActionGoal,
     Id,
-    Op,
     SendActionGoal,
     UnadvertiseAction,
 )
 from labd.bridge.ops.services import failure_text
-from labd.bridge.session import Capability, Session
+from labd.bridge.session import Capability, Handler, Session
 from labd.errors import GraphError, LimitError, MessageError
 from labd.graph.actions import UNKNOWN, Action, Goal, GoalResult
 from labd.graph.message import Message
@@ -36,15 +36,6 @@ from labd.graph.names import resolve
 
 
 class Actions(Capability):
-    ops = (
-        SendActionGoal,
-        CancelActionGoal,
-        ActionFeedback,
-        ActionResult,
-        AdvertiseAction,
-        UnadvertiseAction,
-    )
-
     def __init__(self, session: Session) -> None:
         super().__init__(session)
         self.sent: dict[str, Goal] = {}  # goals this client sent, by its id
@@ -52,19 +43,15 @@ class Actions(Capability):
         self.serving: dict[str, Goal] = {}  # goals sent to this client's actions, by our id
         self._ids = itertools.count(1)
 
-    def handle(self, op: Op) -> None:
-        if isinstance(op, SendActionGoal):
-            self.send_goal(op)
-        elif isinstance(op, CancelActionGoal):
-            self.cancel(op)
-        elif isinstance(op, ActionFeedback):
-            self.feedback(op)
-        elif isinstance(op, ActionResult):
-            self.result(op)
-        elif isinstance(op, AdvertiseAction):
-            self.advertise(op)
-        elif isinstance(op, UnadvertiseAction):
-            self.unadvertise(op)
+    def handlers(self) -> Iterable[Handler[Any]]:
+        return (
+            Handler(SendActionGoal, self.send_goal),
+            Handler(CancelActionGoal, self.cancel),
+            Handler(ActionFeedback, self.feedback),
+            Handler(ActionResult, self.result),
+            Handler(AdvertiseAction, self.advertise),
+            Handler(UnadvertiseAction, self.unadvertise),
+        )
 
     # -- sending goals -------------------------------------------------------------------
 

@@ -8,10 +8,12 @@ forgotten after ``fragment_timeout`` seconds.
 
 from __future__ import annotations
 
+from collections.abc import Iterable
 from dataclasses import dataclass, field
+from typing import Any
 
-from labd.bridge.frames import Fragment, Op
-from labd.bridge.session import Capability, Session
+from labd.bridge.frames import Fragment
+from labd.bridge.session import Capability, Handler, Session
 from labd.clock import TimerHandle
 from labd.errors import FrameError, LimitError
 
@@ -25,15 +27,15 @@ class _Assembly:
 
 
 class Fragments(Capability):
-    ops = (Fragment,)
-
     def __init__(self, session: Session) -> None:
         super().__init__(session)
         self.assemblies: dict[str | int, _Assembly] = {}
         self._depth = 0
 
-    def handle(self, op: Op) -> None:
-        assert isinstance(op, Fragment)
+    def handlers(self) -> Iterable[Handler[Any]]:
+        return (Handler(Fragment, self.fragment),)
+
+    def fragment(self, op: Fragment) -> None:
         config = self.session.config
         if self._depth:
             raise FrameError("fragments may not contain fragments", "fragment")

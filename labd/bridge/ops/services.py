@@ -14,16 +14,16 @@ with a fresh ``id`` and answers it with a ``service_response`` carrying that id.
 from __future__ import annotations
 
 import itertools
+from collections.abc import Iterable
 from typing import Any
 
 from labd.bridge.frames import (
     AdvertiseService,
     CallService,
-    Op,
     ServiceResponse,
     UnadvertiseService,
 )
-from labd.bridge.session import Capability, Session
+from labd.bridge.session import Capability, Handler, Session
 from labd.clock import TimerHandle
 from labd.errors import GraphError, LimitError, MessageError
 from labd.graph.codec import dumps
@@ -41,8 +41,6 @@ def failure_text(values: Any, default: str) -> str:
 
 
 class Services(Capability):
-    ops = (CallService, ServiceResponse, AdvertiseService, UnadvertiseService)
-
     def __init__(self, session: Session) -> None:
         super().__init__(session)
         self.provided: dict[str, Service] = {}  # by absolute name
@@ -51,15 +49,13 @@ class Services(Capability):
         self._timers: dict[int, TimerHandle] = {}  # timeouts of those calls
         self._ids = itertools.count(1)
 
-    def handle(self, op: Op) -> None:
-        if isinstance(op, CallService):
-            self.call(op)
-        elif isinstance(op, ServiceResponse):
-            self.respond(op)
-        elif isinstance(op, AdvertiseService):
-            self.advertise(op)
-        elif isinstance(op, UnadvertiseService):
-            self.unadvertise(op)
+    def handlers(self) -> Iterable[Handler[Any]]:
+        return (
+            Handler(CallService, self.call),
+            Handler(ServiceResponse, self.respond),
+            Handler(AdvertiseService, self.advertise),
+            Handler(UnadvertiseService, self.unadvertise),
+        )
 
     # -- calling ---------------------------------------------------------------------------
 

@@ -23,13 +23,14 @@ advertised it) is forgotten at the next ``publish``, which reports why.
 from __future__ import annotations
 
 from collections import deque
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass
+from typing import Any
 
-from labd.bridge.frames import Advertise, Id, Op, Publish, Subscribe, Unadvertise, Unsubscribe
+from labd.bridge.frames import Advertise, Id, Publish, Subscribe, Unadvertise, Unsubscribe
 from labd.bridge.outbox import _Entry
 from labd.bridge.render import COMPRESSIONS, OutFrame, TopicRenderer
-from labd.bridge.session import Capability, Session
+from labd.bridge.session import Capability, Handler, Session
 from labd.clock import TimerHandle
 from labd.errors import LimitError, MessageError, NotFoundError, OwnedError
 from labd.graph.graph import Publisher, Subscription, Topic
@@ -140,8 +141,6 @@ class Bucket:
 
 
 class Topics(Capability):
-    ops = (Advertise, Unadvertise, Publish, Subscribe, Unsubscribe)
-
     def __init__(self, session: Session) -> None:
         super().__init__(session)
         self.publishers: dict[str, Publisher] = {}  # by absolute name
@@ -153,17 +152,14 @@ class Topics(Capability):
             for topic, rate, burst in session.config.rate_limits
         }
 
-    def handle(self, op: Op) -> None:
-        if isinstance(op, Publish):
-            self.publish(op)
-        elif isinstance(op, Subscribe):
-            self.subscribe(op)
-        elif isinstance(op, Unsubscribe):
-            self.unsubscribe(op)
-        elif isinstance(op, Advertise):
-            self.advertise(op)
-        elif isinstance(op, Unadvertise):
-            self.unadvertise(op)
+    def handlers(self) -> Iterable[Handler[Any]]:
+        return (
+            Handler(Advertise, self.advertise),
+            Handler(Unadvertise, self.unadvertise),
+            Handler(Publish, self.publish),
+            Handler(Subscribe, self.subscribe),
+            Handler(Unsubscribe, self.unsubscribe),
+        )
 
     # -- publishing -------------------------------------------------------------------
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from labd.bridge.ops.services import Services
 from labd.graph.services import simple_handler
 
 ADD = "example_interfaces/srv/AddTwoInts"
@@ -162,7 +163,7 @@ def test_caller_leaving_abandons_its_calls(connect):
     provider, caller = connect(), connect()
     provider.send({"op": "advertise_service", "service": "/add", "type": ADD})
     caller.send({"op": "call_service", "service": "/add", "args": {"a": 1, "b": 2}})
-    services = provider.session.capabilities[1]
+    services = provider.session.capability(Services)
     assert len(services.incoming) == 1
     caller.session.close()
     assert services.incoming == {}

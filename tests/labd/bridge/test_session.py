@@ -5,6 +5,8 @@ from __future__ import annotations
 import orjson
 import pytest
 
+from labd.bridge.ops.fragments import Fragments
+from labd.bridge.ops.topics import Topics
 from labd.bridge.render import fragment
 from labd.config import BridgeConfig
 
@@ -202,7 +204,7 @@ def test_subscribe_unsubscribe_flood_leaves_nothing_behind(connect, graph):
         client.send({"op": "unsubscribe", "id": str(i), "topic": topic})
     assert client.frames() == []  # none refused
     assert not any(name.startswith("/flood") for name in graph.topics)
-    assert client.session.capabilities[0].subscription_count == 0
+    assert client.session.capability(Topics).subscription_count == 0
 
 
 def test_client_leaving_releases_everything(connect, graph):
@@ -257,7 +259,7 @@ def test_incomplete_fragments_expire(connect, timers):
     timers.advance(6)
     (status,) = client.frames()
     assert "only 1 of 2 parts arrived" in status["msg"]
-    assert client.session.capabilities[4].assemblies == {}
+    assert client.session.capability(Fragments).assemblies == {}
 
 
 def test_outgoing_fragments_respect_fragment_size(connect):
