@@ -32,10 +32,10 @@ from labd.sim.camera import Camera
 from labd.sim.features import LAYOUTS, layout_of
 from labd.sim.icreate import model as icreate_model
 from labd.sim.pr2 import model as pr2_model
+from repository.digests import manifest_digest
 from repository.errors import ExportError
-from repository.export import ExportSummary, Layout, Source, export
+from repository.export import ExportFormat, ExportSummary, Layout, Source, export
 from repository.lerobot import DATA_PATH
-from scheduler.manifest import digest as manifest_digest
 
 log = logging.getLogger("labd.exports")
 MODEL_CAMERAS = {"icreate-maze": icreate_model.CAMERA, "pr2-table": pr2_model.CAMERA}
@@ -113,7 +113,7 @@ def source(mcap: Path, known: Mapping[str, Any]) -> Source:
 
 
 def export_records(
-    records: Sequence[tuple[Path, Mapping[str, Any]]], out: Path, fmt: str
+    records: Sequence[tuple[Path, Mapping[str, Any]]], out: Path, fmt: ExportFormat
 ) -> ExportSummary:
     """Export the records (an MCAP file and what the archive knows of it, each) to ``out``,
     one episode per record (more for a record that holds several); all of one task."""
@@ -139,7 +139,7 @@ def write_dataset(records: Sequence[tuple[Mapping[str, Any], Path]], out: Path) 
     for task, sources in sorted(by_task.items()):
         plain = dataclasses.replace(layout(task), cameras=())
         folder = out / task
-        export(sources, folder, "lerobot", plain)
+        export(sources, folder, ExportFormat.LEROBOT, plain)
         table = pq.read_table(folder / DATA_PATH.format(chunk_index=0, file_index=0))
         episodes = pq.read_table(folder / "meta" / "episodes" / "chunk-000" / "file-000.parquet")
         trials = np.array(episodes.column("labd/trial").to_pylist(), np.int64)

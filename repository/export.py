@@ -53,6 +53,7 @@ import struct
 import uuid
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
+from enum import StrEnum
 from pathlib import Path
 from typing import Any
 
@@ -65,13 +66,20 @@ from zstandard import ZstdError
 
 from repository.errors import ExportError
 from repository.mcapfile import messages
+from repository.trial import EpisodeStatus
+from repository.well_known import EPISODE, PARQUET_FILE, SIDE_KEY
 
-FORMATS = ("parquet", "lerobot")
-EPISODE = "/lab/episode"  # lab_msgs/msg/Episode, after each tick's observations
-SIDE_KEY = "labd.side"  # channel metadata: which side published (labd.recorder.reader)
+
+class ExportFormat(StrEnum):
+    """What an export is written as; its value names it in the API's paths, the command's
+    ``--format`` and the export's signed statement."""
+
+    PARQUET = "parquet"
+    LEROBOT = "lerobot"
+
+
 EPISODES_KEY = "labd.episodes"  # Parquet metadata: each episode's provenance
 LAYOUT_KEY = "labd.layout"
-PARQUET_NAME = "data.parquet"
 IMAGES = "observation.images."  # a camera's feature: observation.images.<name>
 _UNREADABLE = (McapError, OSError, ValueError, EOFError, IndexError, struct.error, ZstdError)
 
@@ -176,7 +184,7 @@ class Episode:
 class ExportSummary:
     """What an export wrote."""
 
-    format: str
+    format: ExportFormat
     out: Path
     files: tuple[Path, ...]
     frames: int
@@ -187,14 +195,19 @@ class ExportSummary:
     rendered: int  # camera frames the lab rendered because the record had none
 
 
-def export(sources: Sequence[Source], out: Path, fmt: str, layout: Layout) -> ExportSummary:
+def export(
+    sources: Sequence[Source], out: Path, fmt: ExportFormat | str, layout: Layout
+) -> ExportSummary:
     """Export the records ``sources``, one or more episodes each, to the folder ``out``.
 
-    ``fmt`` is ``"parquet"`` or ``"lerobot"``; ``out`` must not exist or be an empty
+    ``fmt`` is an ``ExportFormat`` (or its value); ``out`` must not exist or be an empty
     folder. ExportError for what cannot be exported.
     """
-    if fmt not in FORMATS:
-        raise ExportError(f"unknown format {fmt!r}: the formats are {', '.join(FORMATS)}")
+    try:
+        fmt = ExportFormat(fmt)
+    except ValueError:
+        formats = ", ".join(ExportFormat)
+        raise ExportError(f"unknown format {fmt!r}: the formats are {formats}") from None
     if not sources:
         raise ExportError("there is no record to export")
     for source in sources:
@@ -209,7 +222,7 @@ def export(sources: Sequence[Source], out: Path, fmt: str, layout: Layout) -> Ex
     tmp = out.parent / f".{out.name}.{uuid.uuid4().hex}.tmp"
     tmp.mkdir(parents=True)
     try:
-        if fmt == "parquet":
+        if fmt is ExportFormat.PARQUET:
             files = write_parquet(episodes, layout, tmp)
         else:
             from repository.lerobot import write_lerobot  # noqa: PLC0415 (PyAV on demand)
@@ -289,7 +302,7 @@ class _Reader:
             episode.state.append(state)
             episode.action.append(list(self.action))
             episode.reward.append(float(message.reward))
-            episode.done.append(str(message.status) != "running")
+            episode.done.append(str(message.status) != EpisodeStatus.RUNNING)
             episode.success.append(bool(message.success))
             for camera in self.layout.cameras:
                 episode.images[camera.name].append(images.get(camera.name))
@@ -439,6 +452,6 @@ def write_parquet(episodes: Sequence[Episode], layout: Layout, folder: Path) -> 
             LAYOUT_KEY: json.dumps(layout.describe()),
         }
     )
-    path = folder / PARQUET_NAME
+    path = folder / PARQUET_FILE
     pq.write_table(table, path, compression="zstd")
     return [path]

@@ -14,7 +14,6 @@ with their reruns.
 
 from __future__ import annotations
 
-import datetime as dt
 import hashlib
 import math
 import re
@@ -31,6 +30,7 @@ from sqlalchemy.engine import Connection, Engine
 
 from repository.errors import ArchiveError, RecordNotFound, SchemaMismatch
 from repository.trial import Kind, Outcome, PinnedRecord, Status, Trial
+from repository.units import moment
 from repository.wal import IndexFiles
 
 SCHEMA_VERSION = 2  # 1: labd 0.1 (status succeeded/failed); 2: status and outcome apart
@@ -759,14 +759,10 @@ def to_trial(row: Any) -> Trial:
     """A row of ``trials`` as the typed record (times become UTC datetimes)."""
     values = dict(row._mapping)
     for name in ("created", "started", "finished"):
-        values[name] = _moment(values[name])
+        values[name] = None if values[name] is None else moment(values[name])
     values.pop("lease_until", None)
     values.pop("reward", None)  # the record's reward is its metrics'
     return Trial.model_validate(values)
-
-
-def _moment(seconds: float | None) -> dt.datetime | None:
-    return None if seconds is None else dt.datetime.fromtimestamp(seconds, dt.UTC)
 
 
 def check_name(name: str) -> None:

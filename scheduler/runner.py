@@ -36,11 +36,12 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from repository.digests import manifest_digest, readable_json
 from repository.errors import ArchiveError
 from repository.trial import Ending, Outcome, PinnedRecord, Status, Value
+from repository.well_known import LOGS, MANIFEST, OUTCOME, RECORD_FILE
 from sandbox.api import Backend, Exit, InstallError, Job, Limits, Running, SandboxError
 from scheduler import controller as controller_config
-from scheduler import manifest as manifests
 from scheduler.data import Archive, Blobs, materialize, resolve
 from scheduler.errors import (
     ControllerConfigError,
@@ -51,7 +52,8 @@ from scheduler.errors import (
 )
 from scheduler.fetch import FetchPolicy
 from scheduler.files import RepositoryFiles
-from scheduler.host import LOGS, OUTCOME, TrialHost, TrialLab
+from scheduler.host import TrialHost, TrialLab
+from scheduler.manifest import build as build_manifest
 from scheduler.outcome import judge, storage_failure
 from scheduler.source import Source, checkout
 
@@ -142,7 +144,7 @@ class TrialResult:
 
     @property
     def mcap(self) -> Path | None:
-        path = self.folder / "trial.mcap"
+        path = self.folder / RECORD_FILE
         return path if path.exists() else None
 
     def to_json(self) -> dict[str, Any]:
@@ -340,7 +342,7 @@ class _Trial:
     async def run(self) -> TrialResult:
         p = self.prepared
         lab = self.lab
-        manifest = manifests.build(
+        manifest = build_manifest(
             source=p.source,
             controller=p.config,
             task=p.task,
@@ -352,7 +354,7 @@ class _Trial:
             model_sha256=lab.model_sha256,
             data=p.spec.data,
         )
-        digest = manifests.digest(manifest)
+        digest = manifest_digest(manifest)
         socket_dir = self.work / "bridge"
         socket_dir.mkdir()
         socket_dir.chmod(0o755)
@@ -454,10 +456,10 @@ class _Trial:
         self, manifest: dict[str, Any], exit_: Exit | None, result: TrialResult
     ) -> dict[str, tuple[str, bytes]]:
         files: dict[str, tuple[str, bytes]] = {
-            "manifest.json": ("application/json", _json(manifest)),
+            MANIFEST: ("application/json", readable_json(manifest)),
             OUTCOME: (
                 "application/json",
-                _json(
+                readable_json(
                     {
                         "status": result.status.value,
                         "outcome": result.outcome.value if result.outcome else None,
@@ -480,7 +482,7 @@ class _Trial:
         if exit_ is not None:
             write_whole(self.out / LOGS["stdout"], exit_.stdout)
             write_whole(self.out / LOGS["stderr"], exit_.stderr)
-        write_whole(self.out / "manifest.json", _json(manifest))
+        write_whole(self.out / MANIFEST, readable_json(manifest))
 
 
 def write_whole(path: Path, data: bytes) -> None:
@@ -491,7 +493,3 @@ def write_whole(path: Path, data: bytes) -> None:
         tmp.replace(path)
     finally:
         tmp.unlink(missing_ok=True)
-
-
-def _json(value: Any) -> bytes:
-    return (json.dumps(value, indent=2, sort_keys=True) + "\n").encode()

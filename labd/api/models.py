@@ -15,6 +15,7 @@ from pydantic import BaseModel, Field, StringConstraints
 from labd.sim import registry
 from repository.index import CommitPage
 from repository.trial import MAX_ID, Kind, Outcome, PinnedRecord, Status, Trial, Value
+from scheduler.canary import State
 from scheduler.queue import Cancel
 
 # What a client names a record by, checked where it comes in: an id past the index's
@@ -170,7 +171,7 @@ class WorkerHealth(BaseModel):
     """What a worker last said of itself: ``out`` if a canary did not reproduce."""
 
     worker: str
-    state: str = Field(description="ok, checking (rerunning its canaries) or out (of the pool)")
+    state: State = Field(description="ok, checking (rerunning its canaries) or out (of the pool)")
     detail: str
     since: dt.datetime
 

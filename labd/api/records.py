@@ -28,7 +28,7 @@ import json
 import shutil
 import tempfile
 from pathlib import Path
-from typing import Annotated, Any, Literal
+from typing import Annotated, Any
 
 from anyio import to_thread
 from fastapi import APIRouter, Depends, Query, Request
@@ -41,12 +41,14 @@ from labd.api.common import Lab, blob_response
 from labd.api.errors import ApiError, responses
 from labd.api.models import Id
 from labd.exports import export_records
+from repository.digests import readable_json
+from repository.export import ExportFormat
 from repository.index import Derived
 from repository.signing import EXPORT, file_digests
 from repository.trial import MAX_ID, Kind, Outcome, Trial
+from repository.well_known import EXPORT_SIGNATURE, PARQUET_FILE, REPLAY, SIGNED, VIDEO
 from scheduler.controller import DataQuery, DataSpec
 from scheduler.data import LocalArchive, resolve
-from scheduler.host import REPLAY, VIDEO
 
 router = APIRouter(tags=["data"])
 
@@ -60,12 +62,11 @@ async def _builds(request: Request, service: Lab) -> Builds:
 
 
 Building = Annotated[Builds, Depends(_builds)]
-Format = Literal["parquet", "lerobot"]
-ARTIFACT: dict[str, tuple[str, str]] = {  # format -> (derived name, media type)
-    "parquet": ("export.parquet", "application/vnd.apache.parquet"),
-    "lerobot": ("export-lerobot.zip", "application/zip"),
+
+ARTIFACT: dict[ExportFormat, tuple[str, str]] = {  # format -> (derived name, media type)
+    ExportFormat.PARQUET: ("export.parquet", "application/vnd.apache.parquet"),
+    ExportFormat.LEROBOT: ("export-lerobot.zip", "application/zip"),
 }
-SIGNATURE = "labd-signature.json"  # an export's own signature, in its folder
 
 
 def provenance(trial: Trial, url: str) -> dict[str, Any]:
@@ -98,11 +99,15 @@ def provenance(trial: Trial, url: str) -> dict[str, Any]:
     },
 )
 async def export_record(
-    trial_id: Id, fmt: Format, service: Lab, builds: Building
+    trial_id: Id, fmt: ExportFormat, service: Lab, builds: Building
 ) -> StreamingResponse:
     """The trial's observation-action pairs as Parquet, or as a LeRobot dataset (zip)."""
     item = await _artifact(service, builds, trial_id, fmt)
-    filename = f"trial-{trial_id}.parquet" if fmt == "parquet" else f"trial-{trial_id}-lerobot.zip"
+    filename = (
+        f"trial-{trial_id}.parquet"
+        if fmt is ExportFormat.PARQUET
+        else f"trial-{trial_id}-lerobot.zip"
+    )
     return await to_thread.run_sync(blob_response, service, item.digest, item.media_type, filename)
 
 
@@ -110,20 +115,20 @@ async def export_record(
     "/api/trials/{trial_id}/export/{fmt}/signature", responses=responses(404, 422, 500, 503)
 )
 async def export_signature(
-    trial_id: Id, fmt: Format, service: Lab, builds: Building
+    trial_id: Id, fmt: ExportFormat, service: Lab, builds: Building
 ) -> dict[str, Any]:
     """The lab's signature of the export: the digests of its files, signed."""
     await _artifact(service, builds, trial_id, fmt)
 
     def read() -> dict[str, Any]:
-        signed = service.index.derived(trial_id)[ARTIFACT[fmt][0] + ".sig"]
+        signed = service.index.derived(trial_id)[ARTIFACT[fmt][0] + SIGNED]
         data: dict[str, Any] = json.loads(service.store.read_bytes(signed.digest))
         return data
 
     return await to_thread.run_sync(read)
 
 
-async def _artifact(service: Lab, builds: Builds, trial_id: int, fmt: Format) -> Derived:
+async def _artifact(service: Lab, builds: Builds, trial_id: int, fmt: ExportFormat) -> Derived:
     """The trial's export, built the first time it is asked for (once, however many ask)."""
     made = await to_thread.run_sync(_made, service, trial_id, fmt)
     if made is not None:
@@ -135,19 +140,19 @@ async def _artifact(service: Lab, builds: Builds, trial_id: int, fmt: Format) ->
     return await builds.once(f"trial-{trial_id}-{fmt}", build)
 
 
-def _made(service: Lab, trial_id: int, fmt: Format) -> Derived | None:
+def _made(service: Lab, trial_id: int, fmt: ExportFormat) -> Derived | None:
     """The trial's export as kept beside its record, or None if not made yet."""
     trial = service.index.trial(trial_id)
     if not trial.mcap:
         raise ApiError(404, f"trial {trial_id} has no record to export")
     made = service.index.derived(trial_id)
     name = ARTIFACT[fmt][0]
-    if name in made and name + ".sig" in made:
+    if name in made and name + SIGNED in made:
         return made[name]
     return None
 
 
-def _make(service: Lab, trial: Trial, fmt: Format) -> Derived:
+def _make(service: Lab, trial: Trial, fmt: ExportFormat) -> Derived:
     assert trial.mcap is not None
     name, media = ARTIFACT[fmt]
     with tempfile.TemporaryDirectory(prefix="labd-export-") as folder:
@@ -157,8 +162,8 @@ def _make(service: Lab, trial: Trial, fmt: Format) -> Derived:
         out = work / "export"
         export_records([(mcap, provenance(trial, f"/api/trials/{trial.id}"))], out, fmt)
         sig_bytes = _sign(service, out, fmt, [trial])
-        if fmt == "parquet":
-            artifact = out / "data.parquet"
+        if fmt is ExportFormat.PARQUET:
+            artifact = out / PARQUET_FILE
         else:
             artifact = Path(shutil.make_archive(str(work / "lerobot"), "zip", out))
         digest = service.store.put_file(artifact)
@@ -166,12 +171,12 @@ def _make(service: Lab, trial: Trial, fmt: Format) -> Derived:
         sig_digest = service.store.put_bytes(sig_bytes)
     service.index.put_derived(trial.id, item)
     service.index.put_derived(
-        trial.id, Derived(name + ".sig", sig_digest, len(sig_bytes), "application/json")
+        trial.id, Derived(name + SIGNED, sig_digest, len(sig_bytes), "application/json")
     )
     return item
 
 
-def _sign(service: Lab, out: Path, fmt: str, trials: list[Trial]) -> bytes:
+def _sign(service: Lab, out: Path, fmt: ExportFormat, trials: list[Trial]) -> bytes:
     """Sign the export in ``out`` (the digests of its files); its signature, also written
     into the folder as ``labd-signature.json``."""
     statement: dict[str, Any] = {"schema": EXPORT, "format": fmt, "files": file_digests(out)}
@@ -180,8 +185,8 @@ def _sign(service: Lab, out: Path, fmt: str, trials: list[Trial]) -> bytes:
     else:
         statement["trials"] = [{"trial": t.id, "data_digest": t.data_digest} for t in trials]
     signed = service.keyring.sign(statement)
-    sig_bytes = (json.dumps(signed.to_json(), indent=2, sort_keys=True) + "\n").encode()
-    (out / SIGNATURE).write_bytes(sig_bytes)
+    sig_bytes = readable_json(signed.to_json())
+    (out / EXPORT_SIGNATURE).write_bytes(sig_bytes)
     return sig_bytes
 
 
@@ -197,7 +202,7 @@ def _sign(service: Lab, out: Path, fmt: str, trials: list[Trial]) -> bytes:
     },
 )
 async def export_many(
-    fmt: Format,
+    fmt: ExportFormat,
     service: Lab,
     builds: Building,
     *,
@@ -215,8 +220,8 @@ async def export_many(
     if any(v is not None for v in (task, kind, outcome, user, limit)):
         query = DataQuery(
             task=task,
-            kind=kind.value if kind else None,
-            outcome=outcome.value if outcome else None,
+            kind=kind,
+            outcome=outcome,
             user=user,
             limit=limit,
         )
@@ -243,7 +248,7 @@ async def export_many(
     )
 
 
-def _many_key(service: Lab, fmt: str, chosen: list[Trial]) -> str:
+def _many_key(service: Lab, fmt: ExportFormat, chosen: list[Trial]) -> str:
     """What names an export of many trials: its format, its trials and their data, the
     key that signs it and the lab's version (a newer lab may export differently)."""
     named = {
@@ -255,7 +260,9 @@ def _many_key(service: Lab, fmt: str, chosen: list[Trial]) -> str:
     return hashlib.sha256(json.dumps(named, sort_keys=True).encode()).hexdigest()[:32]
 
 
-def _make_many(service: Lab, builds: Builds, key: str, fmt: Format, chosen: list[Trial]) -> Path:
+def _make_many(
+    service: Lab, builds: Builds, key: str, fmt: ExportFormat, chosen: list[Trial]
+) -> Path:
     folder = builds.scratch()
     try:
         archive = LocalArchive(service.index, service.store)

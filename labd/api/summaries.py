@@ -27,7 +27,7 @@ from labd.errors import SummaryError
 from labd.recorder.summary import VERSION
 from repository.index import Derived
 from repository.trial import Trial
-from scheduler.host import SUMMARY, SUMMARY_MEDIA_TYPE
+from repository.well_known import SUMMARY, SUMMARY_MEDIA_TYPE
 
 router = APIRouter(tags=["data"])
 SECONDS = 120.0  # to summarize a record on demand

@@ -50,8 +50,11 @@ from labd.commands.common import (
     server_options,
     worst,
 )
+from repository.digests import readable_json
 from repository.errors import ArchiveError
+from repository.export import EPISODES_KEY, ExportFormat
 from repository.trial import Kind, Outcome, Status
+from repository.well_known import EXPORT_SIGNATURE, PARQUET_FILE, SIGNATURE_SIDECAR
 from scheduler.client import ApiClient
 from scheduler.errors import RemoteError
 from scheduler.queue import Cancel
@@ -135,13 +138,15 @@ def _export_parser(commands: Any) -> None:
         "export", help="export trials for learning: a row per control tick, every camera"
     )
     p.add_argument("trial", type=int, nargs="?", metavar="TRIAL", help="one trial's number")
-    p.add_argument("--format", required=True, choices=["lerobot", "parquet"], help="the format")
+    p.add_argument(
+        "--format", required=True, choices=[f.value for f in ExportFormat], help="the format"
+    )
     p.add_argument("-o", "--output", type=Path, help="the folder (default: trial-N-FORMAT)")
     many = p.add_argument_group("many trials as one dataset, one episode each (as [data])")
     many.add_argument("--trials", type=int, nargs="+", default=[], metavar="ID", help="by id")
     many.add_argument("--task", help="the query: trials of this task")
-    many.add_argument("--kind", choices=["trial", "demonstration"], help="... of this kind")
-    many.add_argument("--outcome", choices=["success", "fail", "error"], help="... that ended so")
+    many.add_argument("--kind", choices=[k.value for k in Kind], help="... of this kind")
+    many.add_argument("--outcome", choices=[o.value for o in Outcome], help="... that ended so")
     many.add_argument("--user", help="... submitted (or driven) by this user")
     many.add_argument("--limit", type=int, help="... the newest this many")
     server_options(p)
@@ -227,8 +232,8 @@ def _download(client: ApiClient, args: argparse.Namespace) -> int:
     size = client.download(f"/api/trials/{args.trial}/data.mcap", dest, digest=digest)
     signed = None
     if row.signature is not None:
-        signed = dest.with_name(dest.name + ".sig.json")
-        signed.write_text(json.dumps(row.signature, indent=2, sort_keys=True) + "\n")
+        signed = dest.with_name(dest.name + SIGNATURE_SIDECAR)
+        signed.write_bytes(readable_json(row.signature))
     info = {"path": str(dest), "size": size, "signature": str(signed) if signed else None}
     said = [f"{dest} ({size:,} bytes)"] + ([f"{signed} (the lab's signature)"] if signed else [])
     emit(args, info, lambda: said)
@@ -293,14 +298,12 @@ def _export(client: ApiClient, args: argparse.Namespace) -> int:
         got = Path(folder) / "export"
         size = client.download(f"/api/trials/{args.trial}/export/{args.format}", got)
         out.mkdir(parents=True, exist_ok=True)
-        if args.format == "parquet":
-            shutil.move(got, out / "data.parquet")
+        if args.format == ExportFormat.PARQUET:
+            shutil.move(got, out / PARQUET_FILE)
             signature = client.request(
-                "GET", f"/api/trials/{args.trial}/export/parquet/signature"
+                "GET", f"/api/trials/{args.trial}/export/{ExportFormat.PARQUET}/signature"
             ).json()
-            (out / "labd-signature.json").write_text(
-                json.dumps(signature, indent=2, sort_keys=True) + "\n"
-            )
+            (out / EXPORT_SIGNATURE).write_bytes(readable_json(signature))
         else:
             with zipfile.ZipFile(got) as archive:
                 archive.extractall(out)
@@ -343,16 +346,16 @@ def _export_many(client: ApiClient, args: argparse.Namespace, query: dict[str, A
 
 
 def _episodes(out: Path, fmt: str) -> int:
-    if fmt == "parquet":
-        metadata = pq.ParquetFile(out / "data.parquet").schema_arrow.metadata or {}
-        return len(json.loads(metadata.get(b"labd.episodes", b"[]")))
+    if fmt == ExportFormat.PARQUET:
+        metadata = pq.ParquetFile(out / PARQUET_FILE).schema_arrow.metadata or {}
+        return len(json.loads(metadata.get(EPISODES_KEY.encode(), b"[]")))
     info = json.loads((out / "meta" / "info.json").read_text())
     return int(info["total_episodes"])
 
 
 def _frames(out: Path, fmt: str) -> int:
-    if fmt == "parquet":
-        return int(pq.ParquetFile(out / "data.parquet").metadata.num_rows)
+    if fmt == ExportFormat.PARQUET:
+        return int(pq.ParquetFile(out / PARQUET_FILE).metadata.num_rows)
     info = json.loads((out / "meta" / "info.json").read_text())
     return int(info["total_frames"])
 

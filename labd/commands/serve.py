@@ -26,13 +26,14 @@ from typing import Any
 from labd import __version__
 from labd.commands import fetching
 from labd.commands.common import assignment, fail
-from labd.config import DEFAULT_ROBOTS, BridgeConfig, DriveLimits, HttpConfig, MiB, RobotConfig
+from labd.config import DEFAULT_ROBOTS, BridgeConfig, DriveLimits, HttpConfig, RobotConfig
 from labd.errors import LabError
 from labd.lab import Lab, LabConfig
 from labd.service import ServiceConfig
 from labd.sim import registry
 from repository.errors import ArchiveError, SchemaMismatch
 from repository.reservations import MAX_HORIZON, MAX_SLOT, Rules
+from repository.units import KiB, MiB
 from scheduler.data import DataPolicy
 from scheduler.queue import QueueConfig
 from scheduler.runner import RunOptions
@@ -238,7 +239,7 @@ def add_parser(commands: Any) -> None:
     group.add_argument(
         "--max-data-mb",
         type=int,
-        default=SERVICE.data_policy.max_bytes // (1024 * 1024),
+        default=SERVICE.data_policy.max_bytes // MiB,
         help="MiB of records one trial's [data] may pin (default: %(default)s)",
     )
     group.add_argument(
@@ -474,7 +475,7 @@ def service_config(args: argparse.Namespace) -> ServiceConfig | None:
         heartbeat=max(0.5, args.lease / 3),
         fetch=fetch,
         run=RunOptions(fetch=fetch),
-        data_policy=DataPolicy(args.max_data_trials, args.max_data_mb * 1024 * 1024),
+        data_policy=DataPolicy(args.max_data_trials, args.max_data_mb * MiB),
         canaries=tuple(args.canary),
         canary_every=args.canary_every,
         rules=rules(args),
@@ -602,4 +603,4 @@ def return_freed_memory() -> None:
     except OSError:
         return
     m_mmap_threshold = -3
-    libc.mallopt(m_mmap_threshold, 128 * 1024)
+    libc.mallopt(m_mmap_threshold, 128 * KiB)

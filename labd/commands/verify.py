@@ -43,12 +43,10 @@ from repository.signing import (
     load_keys,
     verify,
 )
+from repository.well_known import EXPORT_SIGNATURE, SIGNATURE_SIDECAR
 from scheduler.client import ApiClient
 from scheduler.errors import RemoteError, TrialError
 from scheduler.filing import Claims, record_differences
-
-SIDECAR = ".sig.json"  # a record's signature, beside it: trial-12.mcap.sig.json
-EXPORT_SIGNATURE = "labd-signature.json"
 
 
 def add_parser(commands: Any) -> None:
@@ -94,7 +92,7 @@ def check(
     """Verify ``target`` (a record or an export); what was checked (``Mismatch`` if not)."""
     if target.is_dir():
         return _export(target, keys)
-    return _record(target, keys, signature or target.with_name(target.name + SIDECAR))
+    return _record(target, keys, signature or target.with_name(target.name + SIGNATURE_SIDECAR))
 
 
 def _signature(path: Path) -> Signature:

@@ -25,39 +25,33 @@ bounds what a file may make a reader hold.
 
 from __future__ import annotations
 
-from labd.recorder.bag import BAG_METADATA, MCAP_NAME, write_bag_metadata
-from labd.recorder.digest import Difference, Entry, data_digest, first_difference
+from labd.recorder.bag import BAG_METADATA, write_bag_metadata
+from labd.recorder.digest import (
+    Difference,
+    Entry,
+    data_digest,
+    digest_topics,
+    first_difference,
+)
 from labd.recorder.reader import (
-    SIDE_KEY,
     RecordedChannel,
     RecordedMessage,
     read_attachments,
     read_channels,
     read_messages,
 )
-from labd.recorder.record import (
-    MANIFEST,
-    MANIFEST_KEY,
-    Recorder,
-    RecordSummary,
-    canonical_json,
-    read_manifest,
-)
+from labd.recorder.record import Recorder, RecordSummary, read_manifest
 
 __all__ = [
     "BAG_METADATA",
-    "MANIFEST",
-    "MANIFEST_KEY",
-    "MCAP_NAME",
-    "SIDE_KEY",
     "Difference",
     "Entry",
     "RecordSummary",
     "RecordedChannel",
     "RecordedMessage",
     "Recorder",
-    "canonical_json",
     "data_digest",
+    "digest_topics",
     "first_difference",
     "read_attachments",
     "read_channels",

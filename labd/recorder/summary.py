@@ -57,6 +57,9 @@ from labd.recorder.bag import mcap_path
 from labd.recorder.reader import RecordedMessage, read_channels, read_messages
 from labd.recorder.record import read_manifest
 from repository.mcapfile import seeking
+from repository.trial import EpisodeStatus
+from repository.units import KiB
+from repository.well_known import CLOCK, EPISODE
 
 VERSION = 2
 MAX_POINTS = 400  # per series: enough for a plot a page wide
@@ -69,14 +72,13 @@ THUMB_WIDTH = 160  # pixels; the height keeps the camera's aspect
 SPRITE_COLUMNS = 16
 QUALITY = 70  # JPEG quality of the thumbnails
 BUDGET_SHARE = 12  # the stored summary stays under 1/12 of the record's MCAP ...
-MIN_BUDGET = 16 * 1024  # ... or this, for short records
+MIN_BUDGET = 16 * KiB  # ... or this, for short records
 STILL = 1e-3  # m or rad: a joint that moves less is drawn where it started
 PATH_STEP = 0.02  # metres between kept points of the robot's path
-EPISODE = "/lab/episode"
 CAMERA = "/camera/image/compressed"
-SKIPPED_TOPICS = frozenset({"/clock", "/tf_static", "/camera/camera_info", "/rosout"})
+SKIPPED_TOPICS = frozenset({CLOCK, "/tf_static", "/camera/camera_info", "/rosout"})
 IMAGE_TYPES = frozenset({"sensor_msgs/msg/CompressedImage", "sensor_msgs/msg/Image"})
-ENDED = frozenset({"succeeded", "failed", "truncated"})
+ENDED = frozenset(status.value for status in EpisodeStatus if status.ended)  # as recorded
 _UNREADABLE = (McapError, OSError, ValueError, EOFError, IndexError, KeyError)
 
 
