@@ -6,6 +6,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from repository.units import MiB
+from repository.well_known import UX_EVENTS
 
 DATA = Path("lab-data")  # where a lab keeps its archive, caches and runs, unless told
 
@@ -59,7 +60,7 @@ class BridgeConfig:
     # Topics a client may publish on only so fast (messages per second, burst): a page's
     # user-experience events are many and small, and a flood of them must not crowd the
     # robot's data out of a record.
-    rate_limits: tuple[tuple[str, float, int], ...] = (("/ux/events", 50.0, 100),)
+    rate_limits: tuple[tuple[str, float, int], ...] = ((UX_EVENTS, 50.0, 100),)
 
 
 @dataclass(frozen=True)

@@ -58,12 +58,11 @@ from labd.graph.message import Message
 from labd.graph.services import ServiceCall
 from labd.recorder import Recorder, digest_topics
 from labd.recorder.record import Keep
-from labd.recorder.summary import UX
 from labd.station import Station
 from repository.digests import manifest_digest
 from repository.trial import EpisodeStatus, Kind
 from repository.units import MiB
-from repository.well_known import MANIFEST, OUTCOME
+from repository.well_known import MANIFEST, OUTCOME, UX_EVENTS
 from scheduler.manifest import SCHEMA, versions
 
 log = logging.getLogger("labd.live")
@@ -387,10 +386,10 @@ class Driving:
         def keep(topic: Topic, message: Message, side: Side, sender: Node | None) -> bool:
             if sender is robot:
                 return True
-            if sender is not driver or (topic.name not in commands and topic.name != UX):
+            if sender is not driver or (topic.name not in commands and topic.name != UX_EVENTS):
                 return False
             recorder = session.recorder
-            if topic.name != UX or not limit or recorder is None:
+            if topic.name != UX_EVENTS or not limit or recorder is None:
                 return True
             if recorder.size + len(message.cdr()) > limit:
                 session.full = True  # the drive ends at the next tick

@@ -40,12 +40,12 @@ from labd.recorder.reader import RecordedMessage, read_messages
 from labd.sim import registry
 from labd.station import Station
 from labd.video import FIRST, Video, VideoSpec
-from repository.well_known import EPISODE, VIDEO
+from repository.well_known import EPISODE, ROSOUT, UX_EVENTS, VIDEO
 from scheduler.host import Replayed
 from scheduler.manifest import versions
 
 log = logging.getLogger("labd.replay")
-IGNORED = frozenset({"/rosout", "/ux/events", "/parameter_events"})
+IGNORED = frozenset({ROSOUT, UX_EVENTS, "/parameter_events"})
 
 
 class ReplayError(LabError):

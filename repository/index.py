@@ -22,8 +22,9 @@ import time
 from collections.abc import Iterator, Mapping, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass
+from enum import StrEnum
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any
 
 import sqlalchemy as sa
 from sqlalchemy.engine import Connection, Engine
@@ -216,7 +217,11 @@ class Page:
     next: int | None
 
 
-Order = Literal["time", "reward"]
+class Order(StrEnum):
+    """How ``Index.find`` orders trials: newest first, or best reward first."""
+
+    TIME = "time"
+    REWARD = "reward"
 
 
 @dataclass(frozen=True)
@@ -536,7 +541,7 @@ class Index:
         *,
         limit: int = 50,
         before: int | None = None,
-        order: Order = "time",
+        order: Order = Order.TIME,
         offset: int = 0,
     ) -> Page:
         """Trials matching ``filters``, a page at a time.
@@ -545,7 +550,7 @@ class Index:
         by ``reward``, best first (trials without one last), a page at ``offset``.
         """
         query = sa.select(trials).where(*self._conditions(filters))
-        if order == "reward":
+        if order is Order.REWARD:
             query = query.order_by(trials.c.reward.desc().nulls_last(), trials.c.id.desc())
             query = query.offset(offset)
         else:

@@ -12,6 +12,8 @@ from __future__ import annotations
 
 CLOCK = "/clock"  # rosgraph_msgs/msg/Clock: simulation time, each tick
 EPISODE = "/lab/episode"  # lab_msgs/msg/Episode: the tick, its reward and status, after each
+ROSOUT = "/rosout"  # rcl_interfaces/msg/Log: the lab's log lines, and its clients'
+UX_EVENTS = "/ux/events"  # a page's user-experience events, in a demonstration's record
 SIDE_KEY = "labd.side"  # channel metadata: which side of the bridge published, lab or client
 
 # -- a record: its file, its manifest, its attachments ------------------------------------

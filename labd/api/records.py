@@ -46,7 +46,14 @@ from repository.export import ExportFormat
 from repository.index import Derived
 from repository.signing import EXPORT, file_digests
 from repository.trial import MAX_ID, Kind, Outcome, Trial
-from repository.well_known import EXPORT_SIGNATURE, PARQUET_FILE, REPLAY, SIGNED, VIDEO
+from repository.well_known import (
+    EXPORT_SIGNATURE,
+    PARQUET_FILE,
+    RECORD_FILE,
+    REPLAY,
+    SIGNED,
+    VIDEO,
+)
 from scheduler.controller import DataQuery, DataSpec
 from scheduler.data import LocalArchive, resolve
 
@@ -157,7 +164,7 @@ def _make(service: Lab, trial: Trial, fmt: ExportFormat) -> Derived:
     name, media = ARTIFACT[fmt]
     with tempfile.TemporaryDirectory(prefix="labd-export-") as folder:
         work = Path(folder)
-        mcap = work / "trial.mcap"
+        mcap = work / RECORD_FILE
         service.store.copy_to(trial.mcap, mcap)  # checked against its digest
         out = work / "export"
         export_records([(mcap, provenance(trial, f"/api/trials/{trial.id}"))], out, fmt)

@@ -28,7 +28,7 @@ from labd.sim import registry
 from labd.web.render import Site, page
 from labd.web.session import Viewer
 from repository.errors import ArchiveError, BlobError, RecordNotFound
-from repository.index import Derived, Filters
+from repository.index import Derived, Filters, Order
 from repository.trial import Kind, Outcome, Status, Trial
 from repository.units import KiB
 from repository.well_known import REPLAY, SUMMARY, VIDEO
@@ -112,7 +112,7 @@ def trials(
         "since": q.since,
         "until": q.until,
         "kind": q.kind,
-        "order": q.order if q.order in ("time", "reward") else "time",
+        "order": Order(q.order) if q.order in set(Order) else Order.TIME,
     }
     repository, commit, task, outcome, user = q.repository, q.commit, q.task, q.outcome, q.user
     since, until, kind, before, page_number = q.since, q.until, q.kind, q.before, q.page
@@ -131,16 +131,16 @@ def trials(
             since=_day(since, "since"),
             until=_day(until, "until", end=True),
         )
-        if form["order"] == "reward":
+        if form["order"] is Order.REWARD:
             found = service.index.find(
-                filters, limit=PAGE, order="reward", offset=(page_number - 1) * PAGE
+                filters, limit=PAGE, order=Order.REWARD, offset=(page_number - 1) * PAGE
             )
         else:
             found = service.index.find(filters, limit=PAGE, before=before)
         items, next_cursor = found.items, found.next
     except (ArchiveError, ValueError) as err:
         problem = str(err)
-    query = {k: v for k, v in form.items() if v and not (k == "order" and v == "time")}
+    query = {k: v for k, v in form.items() if v and not (k == "order" and v is Order.TIME)}
     return page(
         request,
         "trials.html",
