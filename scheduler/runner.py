@@ -33,6 +33,7 @@ import tempfile
 import time
 from collections.abc import Mapping
 from dataclasses import dataclass, field
+from enum import StrEnum
 from pathlib import Path
 from typing import Any
 
@@ -88,6 +89,17 @@ class RunOptions:
         return self.limits.wall + self.first_step + self.grace + self.slack
 
 
+class Stage(StrEnum):
+    """What a trial's worker is doing with it: the runner's stages, then the worker's."""
+
+    STARTING = "starting"
+    PREPARING = "preparing"  # fetching, checking out, building the controller
+    RUNNING = "running"  # the controller and the robot, in lockstep or on the wall clock
+    FILING = "filing"  # the record stored and filed with the lab
+    SUMMARIZING = "summarizing"  # its page summary, made and filed beside it
+    REPLAYING = "replaying"  # its replay's verdict and video, made and filed beside it
+
+
 class Progress:
     """Which stage a trial is in, since when, and until when it may stay there.
 
@@ -97,11 +109,11 @@ class Progress:
 
     def __init__(self, clock: Any = time.monotonic) -> None:
         self.clock = clock
-        self.stage = "starting"
+        self.stage = Stage.STARTING
         self.since = clock()
         self.deadline = self.since + 60.0
 
-    def enter(self, stage: str, seconds: float) -> None:
+    def enter(self, stage: Stage, seconds: float) -> None:
         self.stage = stage
         self.since = self.clock()
         self.deadline = self.since + seconds
@@ -196,7 +208,7 @@ async def run_trial(
     work.chmod(0o755)  # the sandbox's unprivileged user reads the code below it
     out.mkdir(parents=True, exist_ok=True)
     try:
-        progress.enter("preparing", options.prepare)
+        progress.enter(Stage.PREPARING, options.prepare)
         try:
             prepared = await asyncio.wait_for(
                 _prepare(
@@ -217,7 +229,7 @@ async def run_trial(
                 f" requirements, fetching its data) took longer than {options.prepare:g} s"
             ) from None
         trial = _Trial(prepared, backend=backend, options=options, work=work, out=out)
-        progress.enter("running", options.run_deadline)
+        progress.enter(Stage.RUNNING, options.run_deadline)
         result = await trial.run()
     except (TrialError, SandboxError) as err:
         # The trial could not start: an error, with the reason, and no record.

@@ -43,7 +43,7 @@ from scheduler.canary import Canaries, Health, State
 from scheduler.errors import FilingRefused, QueueError
 from scheduler.host import TrialHost
 from scheduler.outcome import storage_failure
-from scheduler.runner import Progress, RunOptions, TrialResult, TrialSpec, run_trial
+from scheduler.runner import Progress, RunOptions, Stage, TrialResult, TrialSpec, run_trial
 
 
 class Jobs(Protocol):
@@ -86,7 +86,7 @@ class Current:
 
     trial: int
     attempt: int
-    stage: str
+    stage: Stage
     stage_seconds: float
     progress: Progress
 
@@ -221,7 +221,7 @@ class Worker:
         # The lease is renewed while filing too (a big record to a slow store may take
         # longer than a lease), until the filing deadline.
         try:
-            progress.enter("filing", self.config.filing)
+            progress.enter(Stage.FILING, self.config.filing)
             filing = await asyncio.wait_for(
                 asyncio.to_thread(self._filing, claim, result, ending, out), self.config.filing
             )
@@ -343,7 +343,7 @@ class Worker:
     async def _summarize(self, trial_id: int, mcap: Path, progress: Progress) -> None:
         """File the record's page summary beside it; never fails the filed trial."""
         seconds = self.config.summary
-        progress.enter("summarizing", seconds)
+        progress.enter(Stage.SUMMARIZING, seconds)
         try:
             blob = await asyncio.wait_for(
                 asyncio.to_thread(self.host.summarize, mcap, seconds=seconds), seconds + 1
@@ -373,7 +373,7 @@ class Worker:
         seconds = self.config.replay
         if seconds <= 0:
             return
-        progress.enter("replaying", seconds)
+        progress.enter(Stage.REPLAYING, seconds)
         folder = mcap.with_name("replay")
         try:
             done = await asyncio.wait_for(

@@ -17,6 +17,7 @@ from repository.index import CommitPage
 from repository.trial import MAX_ID, Kind, Outcome, PinnedRecord, Status, Trial, Value
 from scheduler.canary import State
 from scheduler.queue import Cancel
+from scheduler.runner import Stage
 
 # What a client names a record by, checked where it comes in: an id past the index's
 # range, or a digest that is not one, is a 422 saying so, never a query that fails.
@@ -163,7 +164,7 @@ class WorkerView(BaseModel):
     task: str
     started: dt.datetime | None
     running_seconds: float | None
-    stage: str | None = Field(None, description="preparing, running or filing")
+    stage: Stage | None = Field(None, description="what its worker does with the trial")
     stage_seconds: float | None = None
 
 
