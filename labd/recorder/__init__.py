@@ -20,7 +20,9 @@ it once, when the trial is filed (``summary``, with ``series`` and ``scene``).
 
 The modules import nothing from the rest of the lab but the graph, and the graph nothing
 from them; they read MCAP files through the archive's ``repository.mcapfile``, which
-bounds what a file may make a reader hold.
+bounds what a file may make a reader hold, and take the names a record shares with
+the rest of the lab from ``repository.well_known`` and its manifest's canonical JSON
+from ``repository.digests``.
 """
 
 from __future__ import annotations

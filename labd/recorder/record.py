@@ -15,7 +15,7 @@ delivery order, and writes it at once:
   is simulation time; sequence numbers count per channel;
 - zstd-compressed chunks of about a megabyte, with MCAP's indexes and statistics;
 - the manifest as a metadata record named ``manifest`` holding one key, ``json``: the
-  manifest's canonical JSON (sorted keys, no spaces), whose sha256 is the manifest digest.
+  manifest's canonical JSON (``repository.digests``), whose sha256 is the manifest digest.
   Metadata values must be strings and a manifest nests (parameters), so one JSON text
   keeps it whole, where a flattening would have to be undone by every reader;
 - the attachments given to ``finish`` (model, ``lab.toml``, controller logs ...), logged
