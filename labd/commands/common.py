@@ -79,6 +79,15 @@ def assignment(text: str) -> tuple[str, str]:
         raise argparse.ArgumentTypeError(str(err)) from None
 
 
+def param_option(
+    parser: Any, help: str = "a task parameter (repeatable; default: the task's own values)"
+) -> None:
+    """``--param NAME=VALUE``, repeatable: ``args.param`` is a list of pairs."""
+    parser.add_argument(
+        "--param", action="append", default=[], type=assignment, metavar="NAME=VALUE", help=help
+    )
+
+
 def server_options(parser: argparse.ArgumentParser, *, write: bool = False) -> None:
     """``--server`` and ``--json``; with ``write``, ``--token`` too."""
     parser.add_argument(

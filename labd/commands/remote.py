@@ -43,10 +43,10 @@ from labd.api.models import (
 )
 from labd.commands.common import (
     ExitCode,
-    assignment,
     emit,
     exit_code,
     fail,
+    param_option,
     server_options,
     worst,
 )
@@ -70,14 +70,7 @@ def add_parsers(commands: Any) -> None:
         " `labd tasks` lists them)",
     )
     p.add_argument("--seed", type=int, default=0, help="the episode's seed (default: 0)")
-    p.add_argument(
-        "--param",
-        action="append",
-        default=[],
-        type=assignment,
-        metavar="NAME=VALUE",
-        help="a task parameter (repeatable; default: the task's own values)",
-    )
+    param_option(p)
     p.add_argument("--wait", action="store_true", help="wait for the trial to end (default: no)")
     server_options(p, write=True)
 

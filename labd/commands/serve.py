@@ -25,7 +25,7 @@ from typing import Any
 
 from labd import __version__
 from labd.commands import fetching
-from labd.commands.common import assignment, fail
+from labd.commands.common import assignment, fail, param_option
 from labd.config import DEFAULT_ROBOTS, BridgeConfig, DriveLimits, HttpConfig, RobotConfig
 from labd.errors import LabError
 from labd.lab import Lab, LabConfig
@@ -137,14 +137,7 @@ def add_parser(commands: Any) -> None:
     serve.add_argument(
         "--seed", type=int, default=0, help="the robots' first episode seed (default: 0)"
     )
-    serve.add_argument(
-        "--param",
-        action="append",
-        default=[],
-        type=assignment,
-        metavar="NAME=VALUE",
-        help="a task parameter for every robot (repeatable; default: the tasks' own)",
-    )
+    param_option(serve, "a task parameter for every robot (repeatable; default: the tasks' own)")
     serve.add_argument("--no-playground", action="store_true", help="host no playground graph")
     serve.add_argument(
         "--interface-ratio",
