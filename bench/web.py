@@ -50,7 +50,7 @@ from labd.service import Service, ServiceConfig  # noqa: E402
 from labd.web import create_app  # noqa: E402
 from repository.index import Derived, Filters  # noqa: E402
 from repository.trial import Filing, Outcome  # noqa: E402
-from scheduler.host import SUMMARY, SUMMARY_MEDIA_TYPE  # noqa: E402
+from repository.well_known import SUMMARY, SUMMARY_MEDIA_TYPE  # noqa: E402
 from tests.integration.browser import CHROMIUM, FLAGS  # noqa: E402
 
 ROOT = Path(__file__).resolve().parent.parent

@@ -5,7 +5,9 @@ from __future__ import annotations
 from dataclasses import dataclass
 from pathlib import Path
 
-MiB = 1024 * 1024
+from repository.units import MiB
+from repository.well_known import UX_EVENTS
+
 DATA = Path("lab-data")  # where a lab keeps its archive, caches and runs, unless told
 
 
@@ -58,7 +60,7 @@ class BridgeConfig:
     # Topics a client may publish on only so fast (messages per second, burst): a page's
     # user-experience events are many and small, and a flood of them must not crowd the
     # robot's data out of a record.
-    rate_limits: tuple[tuple[str, float, int], ...] = (("/ux/events", 50.0, 100),)
+    rate_limits: tuple[tuple[str, float, int], ...] = ((UX_EVENTS, 50.0, 100),)
 
 
 @dataclass(frozen=True)
@@ -104,3 +106,14 @@ class RobotConfig:
 
 
 DEFAULT_ROBOTS = (RobotConfig("icreate-1", "icreate-maze"), RobotConfig("pr2-1", "pr2-table"))
+
+
+def assignment(text: str, *, last: bool = False) -> tuple[str, str]:
+    """``NAME=VALUE`` as the pair ``(NAME, VALUE)``, both stripped: how a flag (``--param``,
+    ``--robot``, ``--blobs-option``, ``--git-token``) or a form's line names a value. Split
+    at the first ``=`` (``last``: at the last, where the name is a URL prefix that may hold
+    one). ValueError, saying how to write it, when there is no ``=`` or no name."""
+    name, sep, value = text.rpartition("=") if last else text.partition("=")
+    if not sep or not name.strip():
+        raise ValueError(f"{text!r}: write NAME=VALUE")
+    return name.strip(), value.strip()

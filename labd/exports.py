@@ -32,10 +32,10 @@ from labd.sim.camera import Camera
 from labd.sim.features import LAYOUTS, layout_of
 from labd.sim.icreate import model as icreate_model
 from labd.sim.pr2 import model as pr2_model
+from repository.digests import manifest_digest
 from repository.errors import ExportError
 from repository.export import ExportFormat, ExportSummary, Layout, Source, export
 from repository.lerobot import DATA_PATH, EPISODES_PATH, LEROBOT
-from scheduler.manifest import digest as manifest_digest
 
 log = logging.getLogger("labd.exports")
 MODEL_CAMERAS = {"icreate-maze": icreate_model.CAMERA, "pr2-table": pr2_model.CAMERA}

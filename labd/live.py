@@ -40,7 +40,6 @@ on ``/rosout``); the robot steps on for everyone.
 
 from __future__ import annotations
 
-import hashlib
 import json
 import logging
 import math
@@ -52,16 +51,18 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from labd.config import DriveLimits, MiB
+from labd.config import DriveLimits
 from labd.errors import GraphError
 from labd.graph.graph import Node, Side, Topic
 from labd.graph.message import Message
 from labd.graph.services import ServiceCall
-from labd.recorder import Recorder, canonical_json
+from labd.recorder import Recorder, digest_topics
 from labd.recorder.record import Keep
-from labd.recorder.summary import UX
-from labd.sim.base import SUCCEEDED
 from labd.station import Station
+from repository.digests import manifest_digest
+from repository.trial import EpisodeStatus, Kind
+from repository.units import MiB
+from repository.well_known import MANIFEST, OUTCOME, UX_EVENTS
 from scheduler.manifest import SCHEMA, versions
 
 log = logging.getLogger("labd.live")
@@ -344,7 +345,7 @@ class Driving:
             driver["claimed_user"] = session.claimed_user
         manifest = {
             "schema": SCHEMA,
-            "kind": "demonstration",
+            "kind": Kind.DEMONSTRATION,
             "robot": self.name,
             "task": {"name": sim.spec.name, "version": sim.spec.version},
             "parameters": dict(sorted(sim.values.items())),
@@ -357,12 +358,12 @@ class Driving:
         }
         # Named by the lab: nothing a client says is ever part of a path.
         folder = self.work / f"{self.name}-{sim.seed}-{secrets.token_hex(6)}"
-        topics = {o.name for o in sim.task.observations} | set(self._commands)
+        topics = digest_topics((o.name for o in sim.task.observations), self._commands)
         try:
             recorder = Recorder(
                 self.station.graph,
                 folder,
-                digest_topics=sorted(topics | {"/clock", "/lab/episode"}),
+                digest_topics=topics,
                 manifest=manifest,
                 keep=self._keeper(session),
             )
@@ -385,10 +386,10 @@ class Driving:
         def keep(topic: Topic, message: Message, side: Side, sender: Node | None) -> bool:
             if sender is robot:
                 return True
-            if sender is not driver or (topic.name not in commands and topic.name != UX):
+            if sender is not driver or (topic.name not in commands and topic.name != UX_EVENTS):
                 return False
             recorder = session.recorder
-            if topic.name != UX or not limit or recorder is None:
+            if topic.name != UX_EVENTS or not limit or recorder is None:
                 return True
             if recorder.size + len(message.cdr()) > limit:
                 session.full = True  # the drive ends at the next tick
@@ -449,7 +450,7 @@ class Driving:
         self, session: _Session, recorder: Recorder, folder: Path, reason: str
     ) -> Demonstration:
         sim = self.robot.sim
-        achieved = sim.status == SUCCEEDED
+        achieved = sim.status is EpisodeStatus.SUCCEEDED
         said = reason or (
             f"the task was achieved at tick {sim.tick}: {sim.reason}"
             if achieved
@@ -459,8 +460,8 @@ class Driving:
         outcome = {"achieved": achieved, "reason": said, "metrics": metrics}
         summary = recorder.finish(
             attachments={
-                "manifest.json": ("application/json", _json(session.manifest)),
-                "outcome.json": ("application/json", _json(outcome)),
+                MANIFEST: ("application/json", _json(session.manifest)),
+                OUTCOME: ("application/json", _json(outcome)),
                 **sim.model_files(),
             }
         )
@@ -474,7 +475,7 @@ class Driving:
             session=session.session,
             folder=folder,
             manifest=session.manifest,
-            manifest_digest=hashlib.sha256(canonical_json(session.manifest).encode()).hexdigest(),
+            manifest_digest=manifest_digest(session.manifest),
             data_digest=summary.data_digest,
             digest_topics=sorted(recorder.digest_topics),
             metrics={k: v for k, v in metrics.items() if not _nan(v)},

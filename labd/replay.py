@@ -35,16 +35,17 @@ from labd.graph.graph import Node, Side, Topic
 from labd.graph.message import Message
 from labd.graph.types import TypeRegistry
 from labd.recorder import read_manifest
-from labd.recorder.digest import EPISODE, Entry, field_difference
+from labd.recorder.digest import Entry, field_difference
 from labd.recorder.reader import RecordedMessage, read_messages
 from labd.sim import registry
 from labd.station import Station
 from labd.video import FIRST, Video, VideoSpec
-from scheduler.host import VIDEO, Replayed
+from repository.well_known import EPISODE, ROSOUT, UX_EVENTS, VIDEO
+from scheduler.host import Replayed
 from scheduler.manifest import versions
 
 log = logging.getLogger("labd.replay")
-IGNORED = frozenset({"/rosout", "/ux/events", "/parameter_events"})
+IGNORED = frozenset({ROSOUT, UX_EVENTS, "/parameter_events"})
 
 
 class ReplayError(LabError):
@@ -81,6 +82,19 @@ class Verdict:
         if self.divergence is not None:
             return str(self.divergence)
         return f"replay verified: {self.ticks} ticks, {self.compared} messages identical"
+
+    def to_json(self) -> dict[str, Any]:
+        """The verdict as JSON: what a record's ``replay.json`` holds and ``labd replay
+        --json`` prints (each adds its own: the words, the video; the videos)."""
+        divergence = self.divergence
+        return {
+            "verified": self.verified,
+            "ticks": self.ticks,
+            "compared": self.compared,
+            "divergence": None
+            if divergence is None
+            else {"tick": divergence.tick, "topic": divergence.topic, "what": divergence.what},
+        }
 
 
 @dataclass
@@ -319,27 +333,15 @@ def replay_with_video(
     video = Video(VideoSpec(FIRST, fps=fps, **_camera_size(path)), out / VIDEO)
     try:
         verdict = replay(path, types, renderers=[video])
-        body: dict[str, Any] = {
-            "verified": verdict.verified,
-            "ticks": verdict.ticks,
-            "compared": verdict.compared,
-            "divergence": None
-            if verdict.divergence is None
-            else {
-                "tick": verdict.divergence.tick,
-                "topic": verdict.divergence.topic,
-                "what": verdict.divergence.what,
-            },
-            "said": str(verdict),
-        }
+        body = {**verdict.to_json(), "said": str(verdict)}
     except LabError as err:  # not replayable here (another model, simulator, task): say so
-        body = {"verified": False, "ticks": 0, "compared": 0, "divergence": None, "said": str(err)}
+        body = {**Verdict().to_json(), "verified": False, "said": str(err)}
     finally:
         video.close()
     made = video.frames > 0 and (out / VIDEO).exists()
     body["video"] = {"camera": video.camera, "frames": video.frames, "fps": fps} if made else None
     return Replayed(
-        verdict=json.dumps(body, sort_keys=True).encode(),
+        verdict=json.dumps(body, sort_keys=True).encode(),  # as replay.json always was
         verified=bool(body["verified"]),
         video=out / VIDEO if made else None,
     )

@@ -36,10 +36,10 @@ from repository.index import Derived, Index
 from repository.reservations import Reservations, Rules, load_secret
 from repository.signing import Keyring
 from repository.trial import Ending, Filing, Kind
+from repository.well_known import RECORD_FILE, REPLAY, VIDEO
 from scheduler.data import DataPolicy, LocalArchive
 from scheduler.fetch import FetchPolicy
 from scheduler.filing import FilingCheck
-from scheduler.host import REPLAY, VIDEO
 from scheduler.queue import Queue, QueueConfig
 from scheduler.runner import RunOptions
 from scheduler.submit import Submissions
@@ -190,7 +190,7 @@ class Service:
     def file_demonstration(self, demo: Demonstration) -> int:
         """File a live robot's drive in the archive as a trial of kind ``demonstration``;
         its id. Blocking (the record goes to the blob store): call it from a thread."""
-        mcap = demo.folder / "trial.mcap"
+        mcap = demo.folder / RECORD_FILE
         filing = Filing(
             **(
                 Ending.success(demo.reason) if demo.achieved else Ending.fail(demo.reason)

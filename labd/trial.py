@@ -33,19 +33,25 @@ from labd.errors import InterfaceError, LabError, RecordError
 from labd.exports import write_dataset
 from labd.graph.definitions import trial_types
 from labd.graph.types import TypeRegistry
-from labd.recorder import Recorder, first_difference, read_attachments, read_manifest
-from labd.recorder.digest import EPISODE, data_digest
+from labd.recorder import (
+    Recorder,
+    data_digest,
+    digest_topics,
+    first_difference,
+    read_attachments,
+    read_manifest,
+)
 from labd.recorder.summary import summary_blob
 from labd.replay import replay_with_video
 from labd.sim import registry
-from labd.sim.base import SUCCEEDED
 from labd.sim.robot import LiveRunner
 from labd.station import Station
 from repository.blobs import digest_of
 from repository.errors import ExportError
-from repository.trial import PinnedRecord, Value
+from repository.trial import EpisodeStatus, PinnedRecord, Value
+from repository.well_known import OUTCOME
 from scheduler.errors import InvalidRequest, TrialError
-from scheduler.host import OUTCOME, Attachments, Episode, RecordFacts, Replayed
+from scheduler.host import Attachments, Episode, RecordFacts, Replayed
 
 log = logging.getLogger("labd.trial")
 MAX_CLIENTS = 16  # bridge connections a trial's controller may open
@@ -212,7 +218,7 @@ class LabTrial:
             running=sim.running,
             status=sim.status,
             reason=sim.reason,
-            achieved=sim.status == SUCCEEDED,
+            achieved=sim.status is EpisodeStatus.SUCCEEDED,
             diverged=sim.diverged,
         )
 
@@ -265,12 +271,6 @@ class LabTrial:
             self.station.close()
             self._finished = digest
         return digest
-
-
-def digest_topics(observations: Sequence[str], commands: Sequence[str]) -> list[str]:
-    """The topics a trial's data digest covers: the task's observations and commands, the
-    clock and the episode's ticks; sorted."""
-    return sorted({*observations, *commands, "/clock", EPISODE})
 
 
 def client_library() -> Path:

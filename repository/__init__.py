@@ -6,6 +6,9 @@
   the queries the archive answers.
 - ``export``: observation-action pairs for learning, written by the formats that
   ``formats`` lists (``parquet``, ``lerobot``: LeRobot v3).
+- ``digests``, ``well_known``, ``units``: what the whole lab shares, defined once here,
+  the lowest package every other may import: canonical JSON and the manifest digest,
+  the names of topics, files and artifacts, sizes and moments.
 
 Imports no other package of the lab.
 """

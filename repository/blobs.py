@@ -40,9 +40,10 @@ import fsspec  # type: ignore[import-untyped]
 from fsspec.implementations.local import LocalFileSystem  # type: ignore[import-untyped]
 
 from repository.errors import BlobCorrupt, BlobError, BlobNotFound
+from repository.units import MiB
 
 ALGORITHM = "sha256"
-CHUNK_SIZE = 1 << 20  # bytes read or written at a time
+CHUNK_SIZE = MiB  # bytes read or written at a time
 READ_ONLY = 0o444
 TMP = "tmp"  # under the root: blobs being written
 _DIGEST = re.compile(r"sha256:([0-9a-f]{64})")

@@ -63,9 +63,9 @@ from zstandard import ZstdError
 
 from repository.errors import ExportError
 from repository.mcapfile import messages
+from repository.trial import EpisodeStatus
+from repository.well_known import EPISODE, SIDE_KEY
 
-EPISODE = "/lab/episode"  # lab_msgs/msg/Episode, after each tick's observations
-SIDE_KEY = "labd.side"  # channel metadata: which side published (labd.recorder.reader)
 IMAGES = "observation.images."  # a camera's feature: observation.images.<name>
 _UNREADABLE = (McapError, OSError, ValueError, EOFError, IndexError, struct.error, ZstdError)
 
@@ -203,7 +203,7 @@ class ExportFormat:
 class ExportSummary:
     """What an export wrote."""
 
-    format: str
+    format: str  # its ExportFormat's name
     out: Path
     files: tuple[Path, ...]
     frames: int
@@ -310,7 +310,7 @@ class _Reader:
             episode.state.append(state)
             episode.action.append(list(self.action))
             episode.reward.append(float(message.reward))
-            episode.done.append(str(message.status) != "running")
+            episode.done.append(str(message.status) != EpisodeStatus.RUNNING)
             episode.success.append(bool(message.success))
             for camera in self.layout.cameras:
                 episode.images[camera.name].append(images.get(camera.name))

@@ -14,7 +14,6 @@ from repository.lerobot import LEROBOT
 from repository.parquet import PARQUET
 
 FORMATS: dict[str, ExportFormat] = {f.name: f for f in (PARQUET, LEROBOT)}
-SIGNATURE = "labd-signature.json"  # an export's own signature, in its folder
 
 
 def export_format(name: str) -> ExportFormat:

@@ -14,7 +14,6 @@ with their reruns.
 
 from __future__ import annotations
 
-import datetime as dt
 import hashlib
 import math
 import re
@@ -23,14 +22,16 @@ import time
 from collections.abc import Iterator, Mapping, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass
+from enum import StrEnum
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any
 
 import sqlalchemy as sa
 from sqlalchemy.engine import Connection, Engine
 
 from repository.errors import ArchiveError, RecordNotFound, SchemaMismatch
 from repository.trial import Kind, Outcome, PinnedRecord, Status, Trial
+from repository.units import moment
 from repository.wal import IndexFiles
 
 SCHEMA_VERSION = 2  # 1: labd 0.1 (status succeeded/failed); 2: status and outcome apart
@@ -216,7 +217,11 @@ class Page:
     next: int | None
 
 
-Order = Literal["time", "reward"]
+class Order(StrEnum):
+    """How ``Index.find`` orders trials: newest first, or best reward first."""
+
+    TIME = "time"
+    REWARD = "reward"
 
 
 @dataclass(frozen=True)
@@ -536,7 +541,7 @@ class Index:
         *,
         limit: int = 50,
         before: int | None = None,
-        order: Order = "time",
+        order: Order = Order.TIME,
         offset: int = 0,
     ) -> Page:
         """Trials matching ``filters``, a page at a time.
@@ -545,7 +550,7 @@ class Index:
         by ``reward``, best first (trials without one last), a page at ``offset``.
         """
         query = sa.select(trials).where(*self._conditions(filters))
-        if order == "reward":
+        if order is Order.REWARD:
             query = query.order_by(trials.c.reward.desc().nulls_last(), trials.c.id.desc())
             query = query.offset(offset)
         else:
@@ -759,14 +764,10 @@ def to_trial(row: Any) -> Trial:
     """A row of ``trials`` as the typed record (times become UTC datetimes)."""
     values = dict(row._mapping)
     for name in ("created", "started", "finished"):
-        values[name] = _moment(values[name])
+        values[name] = None if values[name] is None else moment(values[name])
     values.pop("lease_until", None)
     values.pop("reward", None)  # the record's reward is its metrics'
     return Trial.model_validate(values)
-
-
-def _moment(seconds: float | None) -> dt.datetime | None:
-    return None if seconds is None else dt.datetime.fromtimestamp(seconds, dt.UTC)
 
 
 def check_name(name: str) -> None:

@@ -32,9 +32,10 @@ from mcap.records import Channel, Chunk, McapRecord, Message, Schema
 from mcap.stream_reader import StreamReader, breakup_chunk
 
 from repository.errors import ArchiveError
+from repository.units import MiB
 
-MAX_PART = 256 << 20  # bytes: the most one record of a file, or one chunk decompressed, may hold
-_PIECE = 1 << 20  # bytes decompressed at a time
+MAX_PART = 256 * MiB  # bytes: the most one record of a file, or one chunk decompressed, may hold
+_PIECE = MiB  # bytes decompressed at a time
 
 
 class RecordFileError(ArchiveError, McapError):
@@ -47,7 +48,7 @@ class RecordFileError(ArchiveError, McapError):
 
 def mib(size: int) -> str:
     """A size in MiB, as the limit is documented: ``2048 MiB``."""
-    return f"{size / (1 << 20):.0f} MiB" if size >= 1 << 20 else f"{size:,} bytes"
+    return f"{size / MiB:.0f} MiB" if size >= MiB else f"{size:,} bytes"
 
 
 def records(

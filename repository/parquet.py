@@ -19,8 +19,9 @@ import pyarrow as pa  # type: ignore[import-untyped]
 import pyarrow.parquet as pq  # type: ignore[import-untyped]
 
 from repository.export import IMAGES, Episode, ExportFormat, Layout
+from repository.well_known import PARQUET_FILE
 
-FILE = "data.parquet"
+FILE = PARQUET_FILE
 EPISODES_KEY = "labd.episodes"  # the file's metadata: each episode's provenance
 LAYOUT_KEY = "labd.layout"
 

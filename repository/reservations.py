@@ -33,7 +33,6 @@ nonces: every key they held opens nothing from then on, and the slots stay booke
 from __future__ import annotations
 
 import base64
-import datetime as dt
 import hashlib
 import hmac
 import logging
@@ -59,6 +58,7 @@ from repository.errors import (
     UnknownKey,
 )
 from repository.index import Index, reservations
+from repository.units import moment
 
 log = logging.getLogger("repository.reservations")
 R = reservations.c
@@ -351,15 +351,15 @@ class Reservations:
         more than a year ago, or past the latest end a booking may have now."""
         rules = self.rules
         latest = now + rules.horizon + rules.max_slot
-        for moment in (start, end):
-            if not math.isfinite(moment):
+        for at in (start, end):
+            if not math.isfinite(at):
                 raise ReservationError("give the slot's start and end as times")
-            if moment < now - MAX_HORIZON:
+            if at < now - MAX_HORIZON:
                 raise ReservationError(
                     f"the slot's times are more than a year in the past (it is {when(now)}"
                     " now); book a time from now on"
                 )
-            if moment > latest:
+            if at > latest:
                 raise ReservationError(
                     f"a slot may start at most {duration(rules.horizon)} ahead and last at"
                     f" most {duration(rules.max_slot)}, so it ends by {when(latest)}; this"
@@ -418,7 +418,7 @@ class Reservations:
     ) -> None:
         rules = self.rules
         day = _day_start(start)
-        week = day - _moment(day).weekday() * DAY
+        week = day - moment(day).weekday() * DAY
         for first, span, most_slots, most_minutes, name in (
             (day, DAY, rules.max_slots_per_day, rules.max_minutes_per_day, "day"),
             (week, 7 * DAY, rules.max_slots_per_week, rules.max_minutes_per_week, "week"),
@@ -433,9 +433,9 @@ class Reservations:
                 query = query.where(R.id != exclude)
             slots, used = db.execute(query).one()
             period = (
-                f"on {_moment(first):%Y-%m-%d} (UTC)"
+                f"on {moment(first):%Y-%m-%d} (UTC)"
                 if name == "day"
-                else f"in the week of {_moment(first):%Y-%m-%d} (UTC)"
+                else f"in the week of {moment(first):%Y-%m-%d} (UTC)"
             )
             if most_slots is not None and slots + 1 > most_slots:
                 raise OverLimit(
@@ -514,10 +514,6 @@ def _reservation(row: Any) -> Reservation:
     )
 
 
-def _moment(seconds: float) -> dt.datetime:
-    return dt.datetime.fromtimestamp(seconds, dt.UTC)
-
-
 def _day_start(seconds: float) -> float:
     return math.floor(seconds / DAY) * DAY
 
@@ -526,7 +522,7 @@ def when(seconds: float) -> str:
     """A time as people read it in messages: ``2026-05-01 10:00:30 UTC`` (a time out of
     the calendar's years 1 to 9999 says so, rather than failing the message)."""
     try:
-        return f"{_moment(seconds):%Y-%m-%d %H:%M:%S} UTC"
+        return f"{moment(seconds):%Y-%m-%d %H:%M:%S} UTC"
     except (OverflowError, OSError, ValueError):
         return f"{seconds:.6g} s from 1970 (out of the calendar)"
 

@@ -1,7 +1,7 @@
 """The lab's signatures: a filed record, or an export, checkable offline with a public key.
 
 The lab signs a **statement**, a small JSON object saying what it vouches for, with
-Ed25519 (``cryptography``) over its canonical JSON (sorted keys, no spaces, UTF-8), so
+Ed25519 (``cryptography``) over its canonical JSON (``repository.digests``), so
 anyone with the lab's public key can check one, with no server.
 
 - A record's statement (``labd.record/2``) names the trial, its commit and task, how it
@@ -30,7 +30,6 @@ Someone checking a signature gives the public keys as one PEM key or as what the
 from __future__ import annotations
 
 import base64
-import datetime as dt
 import hashlib
 import json
 import os
@@ -44,7 +43,9 @@ from cryptography.hazmat.primitives import serialization
 from cryptography.hazmat.primitives.asymmetric import dsa, ec, ed448, rsa, x25519
 from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PrivateKey, Ed25519PublicKey
 
+from repository.digests import canonical_json
 from repository.errors import ArchiveError
+from repository.units import MiB, moment
 
 RECORD = "labd.record/2"  # what a record's statement says it is (the whole file, metrics)
 RECORD_V1 = "labd.record/1"  # the manifest and data digests; mcap named the file unchecked
@@ -67,10 +68,6 @@ class KeyFileError(ArchiveError):
             f"{source} {reason}; give the lab's public keys: what its /api/keys answers"
             " (curl -s LAB/api/keys > lab-keys.json), or one Ed25519 public key in PEM"
         )
-
-
-def canonical(value: Mapping[str, Any]) -> bytes:
-    return json.dumps(value, sort_keys=True, separators=(",", ":"), ensure_ascii=False).encode()
 
 
 def key_id(public: Ed25519PublicKey) -> str:
@@ -212,7 +209,7 @@ class Keyring:
 
     def sign(self, statement: Mapping[str, Any]) -> Signature:
         body = {**statement, "key": self.current}
-        value = base64.b64encode(self._private.sign(canonical(body))).decode()
+        value = base64.b64encode(self._private.sign(canonical_json(body).encode())).decode()
         return Signature(body, self.current, value)
 
 
@@ -232,7 +229,9 @@ def verify(signature: Signature, keys: Mapping[str, str | Ed25519PublicKey]) -> 
     if signature.statement.get("key") != signature.key:
         raise SignatureError("the statement names another key than the signature's")
     try:
-        public.verify(base64.b64decode(signature.value), canonical(signature.statement))
+        public.verify(
+            base64.b64decode(signature.value), canonical_json(signature.statement).encode()
+        )
     except (InvalidSignature, ValueError):
         raise SignatureError(
             "the signature does not match its statement: the statement was changed, or"
@@ -276,7 +275,7 @@ def record_statement(
         "mcap": mcap,
         "mcap_size": mcap_size,
         "metrics": dict(metrics) if metrics is not None else None,
-        "finished": dt.datetime.fromtimestamp(finished, dt.UTC).isoformat(),
+        "finished": moment(finished).isoformat(),
     }
 
 
@@ -284,7 +283,7 @@ def file_digest(path: Path) -> str:
     """``sha256:HEX`` of the file's bytes, read a MiB at a time."""
     sha = hashlib.sha256()
     with path.open("rb") as stream:
-        while chunk := stream.read(1 << 20):
+        while chunk := stream.read(MiB):
             sha.update(chunk)
     return f"sha256:{sha.hexdigest()}"
 

@@ -57,6 +57,22 @@ class Kind(StrEnum):
     DEMONSTRATION = "demonstration"  # a person driving a live robot
 
 
+class EpisodeStatus(StrEnum):
+    """Where a trial's episode is, as its task tells it: what ``/lab/episode`` says each
+    tick, and so what its record holds. Not the trial's ``Status``: an episode that
+    ended (succeeded, failed, truncated at its time limit) leaves the trial to be judged
+    (``scheduler.outcome``)."""
+
+    RUNNING = "running"
+    SUCCEEDED = "succeeded"
+    FAILED = "failed"
+    TRUNCATED = "truncated"  # its time limit was reached
+
+    @property
+    def ended(self) -> bool:
+        return self is not EpisodeStatus.RUNNING
+
+
 Seed = Annotated[int, Field(ge=0, le=MAX_SEED, description="the episode's seed")]
 
 

@@ -21,7 +21,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Protocol
 
-MiB = 1024 * 1024
+# Bytes. Its own, as sandbox imports no other package of ours; the rest of the lab
+# takes it from repository.units.
+MiB = 1 << 20
 BRIDGE_PORT = 9090  # inside the sandbox: ws://127.0.0.1:9090
 
 

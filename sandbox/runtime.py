@@ -42,7 +42,7 @@ from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
-from .api import RuntimeBuildError
+from .api import MiB, RuntimeBuildError
 
 log = logging.getLogger(__name__)
 
@@ -244,7 +244,7 @@ def walk(root: Path, skip: Callable[[Path], bool] | None = None) -> Iterator[Pat
 def _file_digest(path: Path) -> str:
     h = hashlib.sha256()
     with path.open("rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
+        for block in iter(lambda: f.read(MiB), b""):
             h.update(block)
     return h.hexdigest()
 

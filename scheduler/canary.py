@@ -19,6 +19,7 @@ import tempfile
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
+from enum import StrEnum
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -30,7 +31,14 @@ if TYPE_CHECKING:
     from scheduler.worker import Worker
 
 log = logging.getLogger("scheduler.canary")
-OK, CHECKING, OUT = "ok", "checking", "out"
+
+
+class State(StrEnum):
+    """A worker's state as its canaries found it; a remote worker reports it by value."""
+
+    OK = "ok"  # its canaries reproduced, or it has none
+    CHECKING = "checking"  # it is rerunning them
+    OUT = "out"  # one did not reproduce: out of the pool, it claims nothing more
 
 
 @dataclass(frozen=True)
@@ -38,7 +46,7 @@ class Health:
     """A worker's state as its canaries found it."""
 
     worker: str
-    state: str  # ok, checking, out
+    state: State
     detail: str = ""
     since: dt.datetime = field(default_factory=lambda: dt.datetime.now(dt.UTC))
 
@@ -74,8 +82,8 @@ class Canaries:
                 continue  # the lab is away, or the canary is gone: not this worker's fault
             if problem is not None:
                 log.error("%s: out of the pool: %s", name, problem)
-                return Health(name, OUT, problem)
-        return Health(name, OK, f"{len(self.trials)} canaries reproduced")
+                return Health(name, State.OUT, problem)
+        return Health(name, State.OK, f"{len(self.trials)} canaries reproduced")
 
     async def _one(self, worker: Worker, trial_id: int) -> str | None:
         reference = await asyncio.to_thread(worker.queue.trial, trial_id)

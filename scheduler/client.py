@@ -20,11 +20,12 @@ from typing import Any, TypeVar
 import httpx
 from pydantic import BaseModel, ValidationError
 
+from repository.units import MiB
 from scheduler.errors import ApiRefused, LabUnreachable, RemoteError
 
 log = logging.getLogger("scheduler.client")
 DEFAULT_SERVER = "http://127.0.0.1:8080"
-CHUNK = 1 << 20
+CHUNK = MiB
 M = TypeVar("M", bound=BaseModel)
 
 

@@ -27,15 +27,15 @@ the repository, never through a symbolic link (which would be read on the lab's 
 
 from __future__ import annotations
 
-import hashlib
-import json
 import tomllib
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path, PurePosixPath
 from typing import Any
 
-from repository.trial import MAX_ID
+from repository.digests import sha256_json
+from repository.trial import MAX_ID, Kind, Outcome
+from repository.units import MiB
 from scheduler.errors import ControllerConfigError, FileNotInRepository, RepositoryFileError
 from scheduler.files import RepositoryFiles, parts_of
 
@@ -43,11 +43,9 @@ FILE = "lab.toml"
 KEYS = ("command", "task", "requirements", "realtime", "interfaces")
 DATA_KEYS = ("trials", "query")
 QUERY_KEYS = ("task", "kind", "outcome", "user", "limit")
-KINDS = ("trial", "demonstration")
-OUTCOMES = ("success", "fail", "error")
 INTERFACE_KINDS = ("msg", "srv", "action")
 MAX_INTERFACE_FILES = 1000
-MAX_INTERFACE_BYTES = 4 * 1024 * 1024  # all of them together
+MAX_INTERFACE_BYTES = 4 * MiB  # all of them together
 
 
 @dataclass(frozen=True)
@@ -55,8 +53,8 @@ class DataQuery:
     """``[data].query``: finished, public trials with these fields, newest first."""
 
     task: str | None = None
-    kind: str | None = None  # trial or demonstration
-    outcome: str | None = None  # success, fail or error
+    kind: Kind | None = None
+    outcome: Outcome | None = None
     user: str | None = None  # the submitter (a demonstration's driver)
     limit: int | None = None  # at most this many (the newest); the lab caps it
 
@@ -86,8 +84,8 @@ class ControllerConfig:
         """sha256 of the interface files (paths and texts), for the manifest; None without."""
         if not self.interfaces:
             return None
-        text = json.dumps(dict(self.interface_files), sort_keys=True, separators=(",", ":"))
-        return hashlib.sha256(text.encode()).hexdigest()
+        # ASCII-escaped, as this digest always was: manifests that name it keep theirs
+        return sha256_json(dict(self.interface_files), ascii_only=True)
 
 
 def load(code: Path | RepositoryFiles) -> ControllerConfig:
@@ -169,17 +167,17 @@ def _query(table: dict[str, Any]) -> DataQuery:
     for key in ("task", "kind", "outcome", "user"):
         if key in table and not isinstance(table[key], str):
             raise ControllerConfigError(f"[data] query.{key} must be a string")
-    if table.get("kind", "trial") not in KINDS:
-        raise ControllerConfigError(f"[data] query.kind is {' or '.join(KINDS)}")
-    if table.get("outcome", "success") not in OUTCOMES:
-        raise ControllerConfigError(f"[data] query.outcome is one of {', '.join(OUTCOMES)}")
+    if table.get("kind", Kind.TRIAL) not in set(Kind):
+        raise ControllerConfigError(f"[data] query.kind is {' or '.join(Kind)}")
+    if table.get("outcome", Outcome.SUCCESS) not in set(Outcome):
+        raise ControllerConfigError(f"[data] query.outcome is one of {', '.join(Outcome)}")
     limit = table.get("limit")
     if limit is not None and (isinstance(limit, bool) or not isinstance(limit, int) or limit < 1):
         raise ControllerConfigError(f"[data] query.limit must be a positive integer, not {limit!r}")
     return DataQuery(
         task=table.get("task"),
-        kind=table.get("kind"),
-        outcome=table.get("outcome"),
+        kind=Kind(table["kind"]) if "kind" in table else None,
+        outcome=Outcome(table["outcome"]) if "outcome" in table else None,
         user=table.get("user"),
         limit=limit,
     )
@@ -272,7 +270,7 @@ def _interfaces(files: RepositoryFiles, value: Any) -> tuple[tuple[str, ...], di
                 found += 1
         if size > MAX_INTERFACE_BYTES:
             raise ControllerConfigError(
-                f"interfaces hold more than {MAX_INTERFACE_BYTES // (1024 * 1024)} MiB of text"
+                f"interfaces hold more than {MAX_INTERFACE_BYTES // MiB} MiB of text"
             )
         if not found:
             raise ControllerConfigError(

@@ -45,15 +45,14 @@ from typing import Any, Protocol
 from repository.blobs import BlobStore
 from repository.errors import ArchiveError, RecordNotFound
 from repository.index import Filters, Index
-from repository.trial import Kind, Outcome, PinnedRecord, Status, Trial
+from repository.trial import PinnedRecord, Status, Trial
+from repository.units import GiB, MiB
 from scheduler.client import ApiClient, refusal
 from scheduler.controller import DataQuery, DataSpec
 from scheduler.errors import DataUnavailable, InvalidData, QueueError
 from scheduler.host import TrialHost
 
 log = logging.getLogger("scheduler.data")
-MiB = 1024**2
-GiB = 1024**3
 LAYOUT = "labd.data/1"  # the folder's layout; part of the cache key
 INDEX = "data.json"
 
@@ -198,8 +197,8 @@ def _query(query: DataQuery, archive: Archive, policy: DataPolicy) -> list[Trial
         )
     filters = Filters(
         task=query.task,
-        kind=Kind(query.kind) if query.kind else None,
-        outcome=Outcome(query.outcome) if query.outcome else None,
+        kind=query.kind,
+        outcome=query.outcome,
         submitter=query.user,
         status=Status.FINISHED,
         public=True,
@@ -222,7 +221,7 @@ def _query(query: DataQuery, archive: Archive, policy: DataPolicy) -> list[Trial
 
 def _describe(query: DataQuery) -> str:
     fields = [
-        f"{name} = {value!r}"
+        f"{name} = {str(value)!r}"
         for name, value in vars(query).items()
         if value is not None and name != "limit"
     ]

@@ -33,7 +33,7 @@ from __future__ import annotations
 
 from collections.abc import Collection, Iterable, Sequence
 
-MiB = 1024 * 1024
+from repository.units import MiB
 
 
 class TrialError(Exception):

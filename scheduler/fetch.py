@@ -66,9 +66,9 @@ from urllib.parse import unquote, urljoin, urlsplit
 
 import git
 
+from repository.units import MiB
 from scheduler.errors import (
     FetchTimeout,
-    MiB,
     RefNotFound,
     RepositoryError,
     SchemeNotAllowed,

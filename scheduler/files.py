@@ -33,10 +33,11 @@ from pathlib import Path, PurePosixPath
 from types import TracebackType
 from typing import IO, Literal
 
+from repository.units import KiB, MiB
 from scheduler.errors import FileNotInRepository, RepositoryError, RepositoryFileError
 
-MAX_BYTES = 1024 * 1024  # what the lab reads of one file: lab.toml, requirements, a .msg
-CHUNK = 1 << 20
+MAX_BYTES = MiB  # what the lab reads of one file: lab.toml, requirements, a .msg
+CHUNK = MiB
 
 _DIRECTORY = os.O_RDONLY | os.O_DIRECTORY | os.O_NOFOLLOW | os.O_CLOEXEC
 # O_NONBLOCK: opening a FIFO must not wait for a writer; fstat then says it is no file.
@@ -177,7 +178,7 @@ class RepositoryFiles:
                 data += chunk
                 if len(data) > self.limit:
                     raise RepositoryFileError(
-                        name, f"it is larger than the {self.limit // 1024} KiB the lab reads"
+                        name, f"it is larger than the {self.limit // KiB} KiB the lab reads"
                     )
             return data
         except OSError as err:

@@ -31,17 +31,17 @@ of the trial it reruns.
 
 from __future__ import annotations
 
-import hashlib
-import json
 import tempfile
 from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Protocol
 
+from repository.digests import canonical_json, manifest_digest
 from repository.trial import Filing, Outcome, Status, Trial, Value
+from repository.well_known import LOGS, RECORD_FILE
 from scheduler.errors import FilingRefused, TrialError
-from scheduler.host import LOGS, RecordFacts, TrialHost
+from scheduler.host import RecordFacts, TrialHost
 
 
 class Store(Protocol):
@@ -72,15 +72,6 @@ class Claims:
     metrics: Mapping[str, Any] | None = None
 
 
-def canonical(value: Any) -> str:
-    """Values compared as their canonical JSON, so NaN equals NaN and key order is moot."""
-    return json.dumps(value, sort_keys=True, separators=(",", ":"), ensure_ascii=False)
-
-
-def manifest_digest(manifest: Mapping[str, Any]) -> str:
-    return hashlib.sha256(canonical(manifest).encode()).hexdigest()
-
-
 def record_differences(claims: Claims, facts: RecordFacts) -> list[str]:
     """Where ``claims`` say other than the record: each difference in words, with the
     name of the field that says it (a filing's and a statement's share names)."""
@@ -106,13 +97,12 @@ def record_differences(claims: Claims, facts: RecordFacts) -> list[str]:
         claimed = getattr(claims, name)
         if claimed is not None and said.get(name) != claimed:
             problems.append(f"{name}: the record says {said.get(name)!r}, not {claimed!r}")
-    if claims.metrics is not None and canonical(said.get("metrics") or {}) != canonical(
-        claims.metrics
-    ):
+    recorded = said.get("metrics") or {}
+    if claims.metrics is not None and not _same(recorded, claims.metrics):
         changed = sorted(
             key
-            for key in set(said.get("metrics") or {}) | set(claims.metrics)
-            if canonical((said.get("metrics") or {}).get(key)) != canonical(claims.metrics.get(key))
+            for key in set(recorded) | set(claims.metrics)
+            if not _same(recorded.get(key), claims.metrics.get(key))
         )
         problems.append(f"metrics: the record's differ in {', '.join(changed)}")
     return problems
@@ -133,10 +123,16 @@ def manifest_problems(manifest: Mapping[str, Any], trial: Trial, expected: Expec
         "data": (manifest.get("data"), pinned),
     }
     return [
-        f"manifest: its {name} is {canonical(got)}, trial {trial.id}'s is {canonical(want)}"
+        f"manifest: its {name} is {canonical_json(got)},"
+        f" trial {trial.id}'s is {canonical_json(want)}"
         for name, (got, want) in pairs.items()
-        if canonical(got) != canonical(want)
+        if not _same(got, want)
     ]
+
+
+def _same(a: Any, b: Any) -> bool:
+    """Values compared as their canonical JSON, so NaN equals NaN and key order is moot."""
+    return canonical_json(a) == canonical_json(b)
 
 
 def filing_problems(
@@ -173,7 +169,7 @@ def filing_problems(
         problems += [
             p for p in manifest_problems(record.manifest, trial, expected) if p not in problems
         ]
-        if filing.manifest is not None and canonical(filing.manifest) != canonical(record.manifest):
+        if filing.manifest is not None and not _same(filing.manifest, record.manifest):
             problems.append("manifest: the filing's is not the one the record holds")
     if sorted(filing.digest_topics or []) != expected.digest_topics:
         problems.append(
@@ -237,7 +233,7 @@ class FilingCheck:
         record, size = None, None
         if filing.mcap is not None:
             with tempfile.TemporaryDirectory(prefix="labd-filing-") as folder:
-                path = self.store.copy_to(filing.mcap, Path(folder) / "trial.mcap")
+                path = self.store.copy_to(filing.mcap, Path(folder) / RECORD_FILE)
                 size = path.stat().st_size
                 try:
                     record = self.host.read_record(path, expected.digest_topics)

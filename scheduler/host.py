@@ -16,16 +16,9 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Protocol
 
-from repository.trial import PinnedRecord, Value
+from repository.trial import EpisodeStatus, PinnedRecord, Value
 
 Attachments = Mapping[str, tuple[str, bytes]]  # name -> (media type, bytes)
-# A record's summary for its page, filed beside it as a derived artifact: gzip'd JSON.
-SUMMARY = "summary.json"
-SUMMARY_MEDIA_TYPE = "application/gzip"
-REPLAY = "replay.json"  # a record's replay verdict, beside it
-VIDEO = "video.mp4"  # the task's camera, rendered during the replay
-OUTCOME = "outcome.json"  # a record's attachment: its status, outcome, reason, metrics
-LOGS = {"stdout": "controller.stdout.log", "stderr": "controller.stderr.log"}  # attachments
 
 
 @dataclass(frozen=True)
@@ -35,7 +28,7 @@ class RecordFacts:
 
     manifest: dict[str, Any] | None  # the manifest metadata record
     data_digest: str  # over the topics asked for, recomputed
-    outcome: dict[str, Any] | None  # the ``OUTCOME`` attachment, parsed
+    outcome: dict[str, Any] | None  # the ``OUTCOME`` attachment (repository.well_known), parsed
     attachments: dict[str, str]  # name -> sha256:HEX of its bytes
 
 
@@ -54,7 +47,7 @@ class Episode:
 
     tick: int
     running: bool
-    status: str  # the task's word: running, succeeded, failed or truncated
+    status: EpisodeStatus  # the task's word
     reason: str
     achieved: bool  # the task was achieved
     diverged: bool  # the physics blew up: the lab's model broke, not the controller
@@ -154,7 +147,7 @@ class TrialHost(Protocol):
         ...
 
     def summarize(self, mcap: Path, *, seconds: float) -> bytes | None:
-        """The record's summary for its page (``SUMMARY``), made within ``seconds``;
+        """The record's summary for its page (``well_known.SUMMARY``), made within ``seconds``;
         None if this lab makes none. Raises if the record cannot be summarized."""
         ...
 

@@ -7,8 +7,6 @@ digest, and a rerun of a manifest is expected to give the same data.
 
 from __future__ import annotations
 
-import hashlib
-import json
 import platform
 from collections.abc import Mapping, Sequence
 from importlib import metadata
@@ -70,12 +68,6 @@ def versions() -> dict[str, str]:
         "dm_control": _version("dm-control"),
         "python": platform.python_version(),
     }
-
-
-def digest(manifest: Mapping[str, Any]) -> str:
-    """sha256 of the manifest's canonical JSON (sorted keys, no spaces)."""
-    text = json.dumps(manifest, sort_keys=True, separators=(",", ":"), ensure_ascii=False)
-    return hashlib.sha256(text.encode()).hexdigest()
 
 
 def _version(package: str) -> str:

@@ -12,10 +12,10 @@ import re
 import signal
 
 from repository.trial import Ending
+from repository.units import MiB
 from sandbox.api import Exit, Limits
 from scheduler.host import Episode
 
-MiB = 1024 * 1024
 _FRAME = re.compile(r'^\s*File "(?P<file>[^"]+)", line (?P<line>\d+)(?:, in (?P<where>.+))?$')
 
 

@@ -20,7 +20,7 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from repository.index import Derived
 from repository.trial import MAX_SIZE, Claim, Filing, Trial
-from scheduler.canary import Health
+from scheduler.canary import Health, State
 from scheduler.client import ApiClient, version
 from scheduler.errors import ApiRefused, FilingRefused, RemoteError
 
@@ -128,7 +128,7 @@ class DeriveBody(WorkerName):
 
 
 class HealthBody(WorkerName):
-    state: str = Field(pattern="^(ok|checking|out)$")
+    state: State
     detail: str = Field("", max_length=2000)
 
 

@@ -33,14 +33,16 @@ import tempfile
 import time
 from collections.abc import Mapping
 from dataclasses import dataclass, field
+from enum import StrEnum
 from pathlib import Path
 from typing import Any
 
+from repository.digests import manifest_digest, readable_json
 from repository.errors import ArchiveError
 from repository.trial import Ending, Outcome, PinnedRecord, Status, Value
+from repository.well_known import LOGS, MANIFEST, OUTCOME, RECORD_FILE
 from sandbox.api import Backend, Exit, InstallError, Job, Limits, Running, SandboxError
 from scheduler import controller as controller_config
-from scheduler import manifest as manifests
 from scheduler.data import Archive, Blobs, materialize, resolve
 from scheduler.errors import (
     ControllerConfigError,
@@ -51,7 +53,8 @@ from scheduler.errors import (
 )
 from scheduler.fetch import FetchPolicy
 from scheduler.files import RepositoryFiles
-from scheduler.host import LOGS, OUTCOME, TrialHost, TrialLab
+from scheduler.host import TrialHost, TrialLab
+from scheduler.manifest import build as build_manifest
 from scheduler.outcome import judge, storage_failure
 from scheduler.source import Source, checkout
 
@@ -86,6 +89,17 @@ class RunOptions:
         return self.limits.wall + self.first_step + self.grace + self.slack
 
 
+class Stage(StrEnum):
+    """What a trial's worker is doing with it: the runner's stages, then the worker's."""
+
+    STARTING = "starting"
+    PREPARING = "preparing"  # fetching, checking out, building the controller
+    RUNNING = "running"  # the controller and the robot, in lockstep or on the wall clock
+    FILING = "filing"  # the record stored and filed with the lab
+    SUMMARIZING = "summarizing"  # its page summary, made and filed beside it
+    REPLAYING = "replaying"  # its replay's verdict and video, made and filed beside it
+
+
 class Progress:
     """Which stage a trial is in, since when, and until when it may stay there.
 
@@ -95,11 +109,11 @@ class Progress:
 
     def __init__(self, clock: Any = time.monotonic) -> None:
         self.clock = clock
-        self.stage = "starting"
+        self.stage = Stage.STARTING
         self.since = clock()
         self.deadline = self.since + 60.0
 
-    def enter(self, stage: str, seconds: float) -> None:
+    def enter(self, stage: Stage, seconds: float) -> None:
         self.stage = stage
         self.since = self.clock()
         self.deadline = self.since + seconds
@@ -142,7 +156,7 @@ class TrialResult:
 
     @property
     def mcap(self) -> Path | None:
-        path = self.folder / "trial.mcap"
+        path = self.folder / RECORD_FILE
         return path if path.exists() else None
 
     def to_json(self) -> dict[str, Any]:
@@ -194,7 +208,7 @@ async def run_trial(
     work.chmod(0o755)  # the sandbox's unprivileged user reads the code below it
     out.mkdir(parents=True, exist_ok=True)
     try:
-        progress.enter("preparing", options.prepare)
+        progress.enter(Stage.PREPARING, options.prepare)
         try:
             prepared = await asyncio.wait_for(
                 _prepare(
@@ -215,7 +229,7 @@ async def run_trial(
                 f" requirements, fetching its data) took longer than {options.prepare:g} s"
             ) from None
         trial = _Trial(prepared, backend=backend, options=options, work=work, out=out)
-        progress.enter("running", options.run_deadline)
+        progress.enter(Stage.RUNNING, options.run_deadline)
         result = await trial.run()
     except (TrialError, SandboxError) as err:
         # The trial could not start: an error, with the reason, and no record.
@@ -340,7 +354,7 @@ class _Trial:
     async def run(self) -> TrialResult:
         p = self.prepared
         lab = self.lab
-        manifest = manifests.build(
+        manifest = build_manifest(
             source=p.source,
             controller=p.config,
             task=p.task,
@@ -352,7 +366,7 @@ class _Trial:
             model_sha256=lab.model_sha256,
             data=p.spec.data,
         )
-        digest = manifests.digest(manifest)
+        digest = manifest_digest(manifest)
         socket_dir = self.work / "bridge"
         socket_dir.mkdir()
         socket_dir.chmod(0o755)
@@ -454,10 +468,10 @@ class _Trial:
         self, manifest: dict[str, Any], exit_: Exit | None, result: TrialResult
     ) -> dict[str, tuple[str, bytes]]:
         files: dict[str, tuple[str, bytes]] = {
-            "manifest.json": ("application/json", _json(manifest)),
+            MANIFEST: ("application/json", readable_json(manifest)),
             OUTCOME: (
                 "application/json",
-                _json(
+                readable_json(
                     {
                         "status": result.status.value,
                         "outcome": result.outcome.value if result.outcome else None,
@@ -480,7 +494,7 @@ class _Trial:
         if exit_ is not None:
             write_whole(self.out / LOGS["stdout"], exit_.stdout)
             write_whole(self.out / LOGS["stderr"], exit_.stderr)
-        write_whole(self.out / "manifest.json", _json(manifest))
+        write_whole(self.out / MANIFEST, readable_json(manifest))
 
 
 def write_whole(path: Path, data: bytes) -> None:
@@ -491,7 +505,3 @@ def write_whole(path: Path, data: bytes) -> None:
         tmp.replace(path)
     finally:
         tmp.unlink(missing_ok=True)
-
-
-def _json(value: Any) -> bytes:
-    return (json.dumps(value, indent=2, sort_keys=True) + "\n").encode()

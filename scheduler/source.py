@@ -52,6 +52,7 @@ from typing import IO
 
 import git
 
+from repository.units import MiB
 from scheduler.errors import CheckoutTooLarge, RefNotFound, RepositoryError, TrialError
 from scheduler.fetch import PREFLIGHT, Fetched, FetchPolicy, fetch_commit
 from scheduler.files import TreeWriter, copy_files
@@ -133,7 +134,7 @@ def _names(folder: Path) -> list[str]:
 def _sha256(path: Path) -> str:
     digest = hashlib.sha256()
     with open(os.open(path, os.O_RDONLY | os.O_NOFOLLOW | os.O_CLOEXEC), "rb") as f:
-        while block := f.read(1 << 20):
+        while block := f.read(MiB):
             digest.update(block)
     return digest.hexdigest()
 

@@ -37,12 +37,13 @@ from typing import Any, Protocol
 from repository.errors import ArchiveError
 from repository.index import Derived
 from repository.trial import Claim, Ending, Filing, Status, Trial
+from repository.well_known import LOGS, RECORD_FILE, REPLAY, SUMMARY, SUMMARY_MEDIA_TYPE, VIDEO
 from sandbox.api import Backend
-from scheduler.canary import CHECKING, OK, OUT, Canaries, Health
+from scheduler.canary import Canaries, Health, State
 from scheduler.errors import FilingRefused, QueueError
-from scheduler.host import LOGS, REPLAY, SUMMARY, SUMMARY_MEDIA_TYPE, VIDEO, TrialHost
+from scheduler.host import TrialHost
 from scheduler.outcome import storage_failure
-from scheduler.runner import Progress, RunOptions, TrialResult, TrialSpec, run_trial
+from scheduler.runner import Progress, RunOptions, Stage, TrialResult, TrialSpec, run_trial
 
 
 class Jobs(Protocol):
@@ -85,7 +86,7 @@ class Current:
 
     trial: int
     attempt: int
-    stage: str
+    stage: Stage
     stage_seconds: float
     progress: Progress
 
@@ -110,7 +111,7 @@ class Worker:
         self.log = logging.getLogger(f"scheduler.worker.{config.name}")
         self._current: tuple[Claim, Progress] | None = None
         self.canaries = Canaries(config.canaries, config.canary_every)
-        self.health = Health(config.name, OK, "no canaries" if not config.canaries else "")
+        self.health = Health(config.name, State.OK, "no canaries" if not config.canaries else "")
 
     @property
     def current(self) -> Current | None:
@@ -125,7 +126,7 @@ class Worker:
             while not stop.is_set():
                 if self.canaries.due():
                     await self._check_canaries()
-                if self.health.state == OUT:  # out of the pool: claim nothing, until stopped
+                if self.health.state is State.OUT:  # out of the pool: claim nothing, until stopped
                     await asyncio.wait({stopping}, timeout=self.config.poll)
                     continue
                 try:
@@ -157,13 +158,13 @@ class Worker:
                 await stopping
 
     async def _check_canaries(self) -> None:
-        self.health = Health(self.config.name, CHECKING, "rerunning the canaries")
+        self.health = Health(self.config.name, State.CHECKING, "rerunning the canaries")
         await self._report()
         try:
             self.health = await self.canaries.check(self)
         except Exception as err:  # a bug: say so in the status, claim nothing meanwhile
             self.log.exception("the canaries could not be checked")
-            self.health = Health(self.config.name, OUT, f"the canaries could not run: {err}")
+            self.health = Health(self.config.name, State.OUT, f"the canaries could not run: {err}")
         await self._report()
 
     async def _report(self) -> None:
@@ -220,7 +221,7 @@ class Worker:
         # The lease is renewed while filing too (a big record to a slow store may take
         # longer than a lease), until the filing deadline.
         try:
-            progress.enter("filing", self.config.filing)
+            progress.enter(Stage.FILING, self.config.filing)
             filing = await asyncio.wait_for(
                 asyncio.to_thread(self._filing, claim, result, ending, out), self.config.filing
             )
@@ -242,7 +243,7 @@ class Worker:
                 filing.reason,
             )
             if filed and filing.mcap:
-                await self._derive(claim.id, out / "trial.mcap", progress)
+                await self._derive(claim.id, out / RECORD_FILE, progress)
         except QueueError as err:  # the lease will run out and the trial run again
             self.log.error("trial %d could not be filed: %s", claim.id, err)
         finally:
@@ -318,7 +319,7 @@ class Worker:
         try:
             # Only a run that returned made whole files (the runner deletes a record it
             # could not finish); after an exception, what is in ``out`` may be partial.
-            mcap = out / "trial.mcap"
+            mcap = out / RECORD_FILE
             if result is not None and mcap.exists():
                 record["mcap"] = self.store.put_file(mcap)
                 record["mcap_size"] = mcap.stat().st_size
@@ -342,7 +343,7 @@ class Worker:
     async def _summarize(self, trial_id: int, mcap: Path, progress: Progress) -> None:
         """File the record's page summary beside it; never fails the filed trial."""
         seconds = self.config.summary
-        progress.enter("summarizing", seconds)
+        progress.enter(Stage.SUMMARIZING, seconds)
         try:
             blob = await asyncio.wait_for(
                 asyncio.to_thread(self.host.summarize, mcap, seconds=seconds), seconds + 1
@@ -372,7 +373,7 @@ class Worker:
         seconds = self.config.replay
         if seconds <= 0:
             return
-        progress.enter("replaying", seconds)
+        progress.enter(Stage.REPLAYING, seconds)
         folder = mcap.with_name("replay")
         try:
             done = await asyncio.wait_for(

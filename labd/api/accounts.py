@@ -19,6 +19,7 @@ from labd.api.common import Lab, Writer
 from labd.api.errors import responses
 from labd.api.models import Id
 from repository.accounts import Token
+from repository.units import moment
 
 router = APIRouter(tags=["accounts"])
 
@@ -59,8 +60,8 @@ def token_view(token: Token) -> TokenView:
     return TokenView(
         id=token.id,
         label=token.label,
-        created=_moment(token.created),
-        revoked=None if token.revoked is None else _moment(token.revoked),
+        created=moment(token.created),
+        revoked=None if token.revoked is None else moment(token.revoked),
     )
 
 
@@ -87,7 +88,3 @@ def new_token(body: NewTokenRequest, service: Lab, user: Writer) -> NewToken:
 def revoke_token(token_id: Id, service: Lab, user: Writer) -> TokenView:
     """Revoke one of my tokens: it stops working at once."""
     return token_view(service.accounts.revoke_token(user.name, token_id))
-
-
-def _moment(seconds: float) -> dt.datetime:
-    return dt.datetime.fromtimestamp(seconds, dt.UTC)

@@ -28,12 +28,13 @@ import anyio
 import anyio.to_thread
 
 from labd.api.errors import ApiError
+from repository.units import GiB
 
 log = logging.getLogger("labd.api.builds")
 T = TypeVar("T")
 BUILDS = 1  # exports built at once
 WAITING = 8  # different exports waiting for their build, past those being built
-KEEP_BYTES = 1 << 30  # many-trial exports kept on disk, the least recently used dropped past this
+KEEP_BYTES = GiB  # many-trial exports kept on disk, the least recently used dropped past this
 
 
 class Builds:

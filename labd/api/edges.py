@@ -27,8 +27,9 @@ from labd.api import errors
 from labd.api.common import CSRF_HEADER, SAFE, SESSION_COOKIE, bearer, identify
 from labd.api.workers import MAX_BLOB
 from labd.service import Service
+from repository.units import GiB, MiB
 
-BODY_LIMIT = 1 << 20  # bytes: a JSON body or a form, on every route but a blob upload
+BODY_LIMIT = MiB  # bytes: a JSON body or a form, on every route but a blob upload
 GATED = "/api/"  # writes under here need a writer
 # (method, path prefix) -> the body limit of the routes there; BODY_LIMIT elsewhere
 LIMITS: dict[tuple[str, str], int] = {("PUT", "/api/blobs/"): MAX_BLOB}
@@ -49,7 +50,7 @@ class BodyTooLarge(HTTPException):
 
     def __init__(self, limit: int) -> None:
         self.limit = limit
-        size = f"{limit / (1 << 30):g} GiB" if limit >= 1 << 30 else f"{limit / (1 << 20):g} MiB"
+        size = f"{limit / GiB:g} GiB" if limit >= GiB else f"{limit / MiB:g} MiB"
         super().__init__(
             413, f"the request's body is larger than this route takes ({size}); send less", CLOSE
         )

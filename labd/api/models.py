@@ -15,7 +15,9 @@ from pydantic import BaseModel, Field, StringConstraints
 from labd.sim import registry
 from repository.index import CommitPage
 from repository.trial import MAX_ID, Kind, Outcome, PinnedRecord, Status, Trial, Value
+from scheduler.canary import State
 from scheduler.queue import Cancel
+from scheduler.runner import Stage
 
 # What a client names a record by, checked where it comes in: an id past the index's
 # range, or a digest that is not one, is a 422 saying so, never a query that fails.
@@ -162,7 +164,7 @@ class WorkerView(BaseModel):
     task: str
     started: dt.datetime | None
     running_seconds: float | None
-    stage: str | None = Field(None, description="preparing, running or filing")
+    stage: Stage | None = Field(None, description="what its worker does with the trial")
     stage_seconds: float | None = None
 
 
@@ -170,7 +172,7 @@ class WorkerHealth(BaseModel):
     """What a worker last said of itself: ``out`` if a canary did not reproduce."""
 
     worker: str
-    state: str = Field(description="ok, checking (rerunning its canaries) or out (of the pool)")
+    state: State = Field(description="ok, checking (rerunning its canaries) or out (of the pool)")
     detail: str
     since: dt.datetime
 

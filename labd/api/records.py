@@ -45,14 +45,20 @@ from labd.api.common import Lab, blob_response
 from labd.api.errors import ApiError, responses
 from labd.api.models import Id
 from labd.exports import export_records
+from repository.digests import readable_json
 from repository.export import ExportFormat
-from repository.formats import FORMATS, SIGNATURE
+from repository.formats import FORMATS
 from repository.index import Derived
 from repository.signing import EXPORT, file_digests
 from repository.trial import MAX_ID, Kind, Outcome, Trial
+from repository.well_known import (
+    EXPORT_SIGNATURE,
+    RECORD_FILE,
+    REPLAY,
+    VIDEO,
+)
 from scheduler.controller import DataQuery, DataSpec
 from scheduler.data import LocalArchive, resolve
-from scheduler.host import REPLAY, VIDEO
 
 router = APIRouter(tags=["data"])
 
@@ -175,7 +181,7 @@ def _make(service: Lab, trial: Trial, fmt: ExportFormat) -> Derived:
     assert trial.mcap is not None
     with tempfile.TemporaryDirectory(prefix="labd-export-") as folder:
         work = Path(folder)
-        mcap = work / "trial.mcap"
+        mcap = work / RECORD_FILE
         service.store.copy_to(trial.mcap, mcap)  # checked against its digest
         out = work / "export"
         export_records([(mcap, provenance(trial, f"/api/trials/{trial.id}"))], out, fmt)
@@ -203,8 +209,8 @@ def _sign(service: Lab, out: Path, fmt: ExportFormat, trials: list[Trial]) -> by
     else:
         statement["trials"] = [{"trial": t.id, "data_digest": t.data_digest} for t in trials]
     signed = service.keyring.sign(statement)
-    sig_bytes = (json.dumps(signed.to_json(), indent=2, sort_keys=True) + "\n").encode()
-    (out / SIGNATURE).write_bytes(sig_bytes)
+    sig_bytes = readable_json(signed.to_json())
+    (out / EXPORT_SIGNATURE).write_bytes(sig_bytes)
     return sig_bytes
 
 
@@ -238,8 +244,8 @@ async def export_many(
     if any(v is not None for v in (task, kind, outcome, user, limit)):
         query = DataQuery(
             task=task,
-            kind=kind.value if kind else None,
-            outcome=outcome.value if outcome else None,
+            kind=kind,
+            outcome=outcome,
             user=user,
             limit=limit,
         )

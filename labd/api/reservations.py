@@ -41,6 +41,7 @@ from labd.api.throttle import Throttle
 from labd.authorizer import ReservationAuthorizer
 from repository.errors import KeyRefused, UnknownKey
 from repository.reservations import Reservation, State, when
+from repository.units import moment
 
 router = APIRouter(tags=["reservations"])
 CALLBACK = re.compile(r"[A-Za-z_$][\w$]*(\.[A-Za-z_$][\w$]*){0,4}")
@@ -115,11 +116,11 @@ def view(r: Reservation, request: Request, now: float) -> ReservationView:
         id=r.id,
         robot=r.robot,
         user=r.user,
-        start=_moment(r.start),
-        end=_moment(r.end),
-        booked_end=_moment(r.booked_end),
-        created=_moment(r.created),
-        released=None if r.released is None else _moment(r.released),
+        start=moment(r.start),
+        end=moment(r.end),
+        booked_end=moment(r.booked_end),
+        created=moment(r.created),
+        released=None if r.released is None else moment(r.released),
         state=r.state(now),
         minutes=round(r.seconds / 60, 2),
         calendar=f"{_base(request)}/reservations/{r.robot}",
@@ -307,10 +308,10 @@ def ics(robot: str, slots: list[Reservation], request: Request) -> bytes:
     for slot in slots:
         event = Event()
         event.add("uid", f"reservation-{slot.id}@{host}")
-        event.add("dtstamp", _moment(slot.released or slot.created))
-        event.add("created", _moment(slot.created))
-        event.add("dtstart", _moment(slot.start))
-        event.add("dtend", _moment(slot.end))
+        event.add("dtstamp", moment(slot.released or slot.created))
+        event.add("created", moment(slot.created))
+        event.add("dtstart", moment(slot.start))
+        event.add("dtend", moment(slot.end))
         event.add("summary", f"{robot}: {slot.user}")
         note = f"{slot.user} has booked {robot}."
         if slot.released is not None:
@@ -369,10 +370,6 @@ async def auth(
 
 def _base(request: Request) -> str:
     return str(request.base_url).rstrip("/")
-
-
-def _moment(seconds: float) -> dt.datetime:
-    return dt.datetime.fromtimestamp(seconds, dt.UTC)
 
 
 def _epoch(moment: dt.datetime) -> float:

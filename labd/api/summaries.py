@@ -27,7 +27,7 @@ from labd.errors import SummaryError
 from labd.recorder.summary import VERSION
 from repository.index import Derived
 from repository.trial import Trial
-from scheduler.host import SUMMARY, SUMMARY_MEDIA_TYPE
+from repository.well_known import RECORD_FILE, SUMMARY, SUMMARY_MEDIA_TYPE
 
 router = APIRouter(tags=["data"])
 SECONDS = 120.0  # to summarize a record on demand
@@ -146,7 +146,7 @@ def _version(blob: bytes) -> int | None:
 def _make(service: Lab, trial: Trial) -> bytes:
     assert trial.mcap is not None
     with tempfile.TemporaryDirectory(prefix="labd-summary-") as folder:
-        mcap = Path(folder) / "trial.mcap"
+        mcap = Path(folder) / RECORD_FILE
         service.store.copy_to(trial.mcap, mcap)  # checked against its digest
         try:
             blob = service.host.summarize(mcap, seconds=SECONDS)

@@ -36,8 +36,9 @@ from labd.api.errors import ApiError, Conflict, Forbidden, responses
 from labd.api.models import Digest, Id
 from repository.index import Derived, User
 from repository.trial import Claim, Trial
+from repository.units import GiB, MiB
+from repository.well_known import REPLAY, SUMMARY, VIDEO
 from scheduler.canary import Health
-from scheduler.host import REPLAY, SUMMARY, VIDEO
 from scheduler.outcome import storage_failure
 from scheduler.remote import (
     PROTOCOL,
@@ -51,8 +52,8 @@ from scheduler.remote import (
     WorkerName,
 )
 
-MAX_BLOB = 4 << 30
-WRITE_BATCH = 4 << 20  # bytes of an upload written and hashed at once, on a thread
+MAX_BLOB = 4 * GiB
+WRITE_BATCH = 4 * MiB  # bytes of an upload written and hashed at once, on a thread
 WORKER_MADE = frozenset({SUMMARY, REPLAY, VIDEO})  # what a worker may file beside a record
 
 
@@ -188,7 +189,7 @@ async def _store(digest: str, request: Request, service: Lab) -> Stored:
             waiting = 0
             async for chunk in request.stream():
                 if upload.size + waiting + len(chunk) > MAX_BLOB:
-                    raise ApiError(413, f"a blob may be at most {MAX_BLOB >> 30} GiB")
+                    raise ApiError(413, f"a blob may be at most {MAX_BLOB // GiB} GiB")
                 batch.append(chunk)
                 waiting += len(chunk)
                 if waiting >= WRITE_BATCH:

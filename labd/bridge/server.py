@@ -38,11 +38,12 @@ from labd.bridge.render import OutFrame
 from labd.bridge.session import Session
 from labd.config import BridgeConfig
 from labd.graph.graph import Graph
+from repository.units import KiB
 
 log = logging.getLogger("labd.bridge.server")
 YIELD_EVERY = 64  # frames a reader handles before letting other clients run
 BATCH_FRAMES = 64  # frames the writer joins into one socket write, at most
-BATCH_BYTES = 256 * 1024  # ... and bytes
+BATCH_BYTES = 256 * KiB  # ... and bytes
 MAX_REASON = 123  # bytes of a close frame's reason
 
 

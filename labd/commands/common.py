@@ -25,6 +25,7 @@ from collections.abc import Callable, Iterable
 from enum import IntEnum
 from typing import Any
 
+from labd import config
 from repository.trial import Outcome, Status
 from scheduler.client import DEFAULT_SERVER
 
@@ -70,11 +71,21 @@ def worst(codes: Iterable[ExitCode]) -> ExitCode:
 
 
 def assignment(text: str) -> tuple[str, str]:
-    """An argparse type: ``NAME=VALUE`` as a pair (argparse says what is wrong)."""
-    name, sep, value = text.partition("=")
-    if not sep or not name.strip():
-        raise argparse.ArgumentTypeError(f"{text!r}: write NAME=VALUE")
-    return name.strip(), value.strip()
+    """An argparse type: ``NAME=VALUE`` as a pair (``labd.config.assignment``), argparse
+    saying what is wrong."""
+    try:
+        return config.assignment(text)
+    except ValueError as err:
+        raise argparse.ArgumentTypeError(str(err)) from None
+
+
+def param_option(
+    parser: Any, help: str = "a task parameter (repeatable; default: the task's own values)"
+) -> None:
+    """``--param NAME=VALUE``, repeatable: ``args.param`` is a list of pairs."""
+    parser.add_argument(
+        "--param", action="append", default=[], type=assignment, metavar="NAME=VALUE", help=help
+    )
 
 
 def server_options(parser: argparse.ArgumentParser, *, write: bool = False) -> None:

@@ -6,10 +6,11 @@ import argparse
 from pathlib import Path
 from typing import Any
 
+from labd.config import assignment
+from repository.units import MiB
 from scheduler.fetch import Credential, FetchPolicy
 
 DEFAULTS = FetchPolicy()
-MiB = 1024 * 1024
 
 
 def add_options(group: Any) -> None:
@@ -108,7 +109,10 @@ def policy(args: argparse.Namespace, command: str) -> FetchPolicy:
 
 
 def _pair(item: str, command: str, flag: str, form: str) -> tuple[str, str]:
-    prefix, sep, value = item.rpartition("=")
-    if not sep or not prefix or not value:
+    try:
+        prefix, value = assignment(item, last=True)  # a URL prefix may hold a "="
+    except ValueError:
+        value = ""
+    if not value:
         raise SystemExit(f"{command}: {flag} takes {form}, got {item!r}")
     return prefix, value

@@ -21,7 +21,6 @@ the server are printed as it words them. Exit codes are in ``labd.commands.commo
 from __future__ import annotations
 
 import argparse
-import json
 import shutil
 import tempfile
 import time
@@ -41,16 +40,18 @@ from labd.api.models import (
 )
 from labd.commands.common import (
     ExitCode,
-    assignment,
     emit,
     exit_code,
     fail,
+    param_option,
     server_options,
     worst,
 )
+from repository.digests import readable_json
 from repository.errors import ArchiveError
-from repository.formats import FORMATS, SIGNATURE
+from repository.formats import FORMATS
 from repository.trial import Kind, Outcome, Status
+from repository.well_known import EXPORT_SIGNATURE, SIGNATURE_SIDECAR
 from scheduler.client import ApiClient
 from scheduler.errors import RemoteError
 from scheduler.queue import Cancel
@@ -66,14 +67,7 @@ def add_parsers(commands: Any) -> None:
         " `labd tasks` lists them)",
     )
     p.add_argument("--seed", type=int, default=0, help="the episode's seed (default: 0)")
-    p.add_argument(
-        "--param",
-        action="append",
-        default=[],
-        type=assignment,
-        metavar="NAME=VALUE",
-        help="a task parameter (repeatable; default: the task's own values)",
-    )
+    param_option(p)
     p.add_argument("--wait", action="store_true", help="wait for the trial to end (default: no)")
     server_options(p, write=True)
 
@@ -139,8 +133,8 @@ def _export_parser(commands: Any) -> None:
     many = p.add_argument_group("many trials as one dataset, one episode each (as [data])")
     many.add_argument("--trials", type=int, nargs="+", default=[], metavar="ID", help="by id")
     many.add_argument("--task", help="the query: trials of this task")
-    many.add_argument("--kind", choices=["trial", "demonstration"], help="... of this kind")
-    many.add_argument("--outcome", choices=["success", "fail", "error"], help="... that ended so")
+    many.add_argument("--kind", choices=[k.value for k in Kind], help="... of this kind")
+    many.add_argument("--outcome", choices=[o.value for o in Outcome], help="... that ended so")
     many.add_argument("--user", help="... submitted (or driven) by this user")
     many.add_argument("--limit", type=int, help="... the newest this many")
     server_options(p)
@@ -226,8 +220,8 @@ def _download(client: ApiClient, args: argparse.Namespace) -> int:
     size = client.download(f"/api/trials/{args.trial}/data.mcap", dest, digest=digest)
     signed = None
     if row.signature is not None:
-        signed = dest.with_name(dest.name + ".sig.json")
-        signed.write_text(json.dumps(row.signature, indent=2, sort_keys=True) + "\n")
+        signed = dest.with_name(dest.name + SIGNATURE_SIDECAR)
+        signed.write_bytes(readable_json(row.signature))
     info = {"path": str(dest), "size": size, "signature": str(signed) if signed else None}
     said = [f"{dest} ({size:,} bytes)"] + ([f"{signed} (the lab's signature)"] if signed else [])
     emit(args, info, lambda: said)
@@ -298,7 +292,7 @@ def _export(client: ApiClient, args: argparse.Namespace) -> int:
             signature = client.request(
                 "GET", f"/api/trials/{args.trial}/export/{fmt.name}/signature"
             ).json()
-            (out / SIGNATURE).write_text(json.dumps(signature, indent=2, sort_keys=True) + "\n")
+            (out / EXPORT_SIGNATURE).write_bytes(readable_json(signature))
         else:  # a zip of the export's folder, its signature in it
             with zipfile.ZipFile(got) as archive:
                 archive.extractall(out)

@@ -87,19 +87,7 @@ def _replay(args: argparse.Namespace, record: Path, name: str) -> int:
         for video in videos:
             video.close()
     made = {v.spec.camera: str(v.out) for v in videos if v.frames}
-    data = {
-        "verified": verdict.verified,
-        "ticks": verdict.ticks,
-        "compared": verdict.compared,
-        "divergence": None
-        if verdict.divergence is None
-        else {
-            "tick": verdict.divergence.tick,
-            "topic": verdict.divergence.topic,
-            "what": verdict.divergence.what,
-        },
-        "videos": made,
-    }
+    data = {**verdict.to_json(), "videos": made}
     lines = [str(verdict)] + [f"  {camera}: {path}" for camera, path in made.items()]
     emit(args, data, lambda: lines)
     return int(ExitCode.SUCCESS if verdict.verified else ExitCode.DIVERGED)

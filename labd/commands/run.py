@@ -26,7 +26,7 @@ from pathlib import Path
 from typing import Any
 
 import sandbox
-from labd.commands.common import assignment, exit_code, fail, json_option
+from labd.commands.common import exit_code, fail, json_option, param_option
 from labd.config import DATA
 from labd.errors import LabError
 from labd.trial import LabHost, client_library
@@ -45,14 +45,7 @@ def add_parser(commands: Any) -> None:
     run.add_argument("--ref", help="branch, tag or commit (default: the folder as it is / HEAD)")
     run.add_argument("--task", help="the task (default: the one lab.toml names)")
     run.add_argument("--seed", type=int, default=0, help="the episode's seed (default: 0)")
-    run.add_argument(
-        "--param",
-        action="append",
-        default=[],
-        type=assignment,
-        metavar="NAME=VALUE",
-        help="a task parameter (repeatable; default: the task's own values)",
-    )
+    param_option(run)
     run.add_argument(
         "--sandbox",
         choices=["docker", "bwrap"],

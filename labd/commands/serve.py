@@ -25,14 +25,15 @@ from typing import Any
 
 from labd import __version__
 from labd.commands import fetching
-from labd.commands.common import assignment, fail
-from labd.config import DEFAULT_ROBOTS, BridgeConfig, DriveLimits, HttpConfig, MiB, RobotConfig
+from labd.commands.common import assignment, fail, param_option
+from labd.config import DEFAULT_ROBOTS, BridgeConfig, DriveLimits, HttpConfig, RobotConfig
 from labd.errors import LabError
 from labd.lab import Lab, LabConfig
 from labd.service import ServiceConfig
 from labd.sim import registry
 from repository.errors import ArchiveError, SchemaMismatch
 from repository.reservations import MAX_HORIZON, MAX_SLOT, Rules
+from repository.units import KiB, MiB
 from scheduler.data import DataPolicy
 from scheduler.queue import QueueConfig
 from scheduler.runner import RunOptions
@@ -136,14 +137,7 @@ def add_parser(commands: Any) -> None:
     serve.add_argument(
         "--seed", type=int, default=0, help="the robots' first episode seed (default: 0)"
     )
-    serve.add_argument(
-        "--param",
-        action="append",
-        default=[],
-        type=assignment,
-        metavar="NAME=VALUE",
-        help="a task parameter for every robot (repeatable; default: the tasks' own)",
-    )
+    param_option(serve, "a task parameter for every robot (repeatable; default: the tasks' own)")
     serve.add_argument("--no-playground", action="store_true", help="host no playground graph")
     serve.add_argument(
         "--interface-ratio",
@@ -238,7 +232,7 @@ def add_parser(commands: Any) -> None:
     group.add_argument(
         "--max-data-mb",
         type=int,
-        default=SERVICE.data_policy.max_bytes // (1024 * 1024),
+        default=SERVICE.data_policy.max_bytes // MiB,
         help="MiB of records one trial's [data] may pin (default: %(default)s)",
     )
     group.add_argument(
@@ -474,7 +468,7 @@ def service_config(args: argparse.Namespace) -> ServiceConfig | None:
         heartbeat=max(0.5, args.lease / 3),
         fetch=fetch,
         run=RunOptions(fetch=fetch),
-        data_policy=DataPolicy(args.max_data_trials, args.max_data_mb * 1024 * 1024),
+        data_policy=DataPolicy(args.max_data_trials, args.max_data_mb * MiB),
         canaries=tuple(args.canary),
         canary_every=args.canary_every,
         rules=rules(args),
@@ -602,4 +596,4 @@ def return_freed_memory() -> None:
     except OSError:
         return
     m_mmap_threshold = -3
-    libc.mallopt(m_mmap_threshold, 128 * 1024)
+    libc.mallopt(m_mmap_threshold, 128 * KiB)

@@ -19,7 +19,6 @@ terminal (twice), or from standard input with ``--password-stdin``.
 from __future__ import annotations
 
 import argparse
-import datetime as dt
 import getpass
 import json
 import sys
@@ -32,6 +31,7 @@ from labd.service import ServiceConfig
 from repository.accounts import Accounts
 from repository.errors import ArchiveError
 from repository.index import Index, UserLimits
+from repository.units import moment
 
 USER = UserLimits()
 
@@ -244,4 +244,4 @@ def _read_password(args: argparse.Namespace) -> str:
 
 
 def _when(seconds: float) -> str:
-    return dt.datetime.fromtimestamp(seconds, dt.UTC).strftime("%Y-%m-%d %H:%M UTC")
+    return moment(seconds).strftime("%Y-%m-%d %H:%M UTC")

@@ -32,7 +32,6 @@ from labd.commands.common import ExitCode, emit, fail, json_option
 from labd.config import DATA
 from labd.trial import LabHost
 from repository.errors import ArchiveError
-from repository.formats import SIGNATURE
 from repository.signing import (
     EXPORT,
     RECORDS,
@@ -44,6 +43,7 @@ from repository.signing import (
     load_keys,
     verify,
 )
+from repository.well_known import EXPORT_SIGNATURE, SIGNATURE_SIDECAR
 from scheduler.client import ApiClient
 from scheduler.errors import RemoteError, TrialError
 from scheduler.filing import Claims, record_differences
@@ -94,7 +94,7 @@ def check(
     """Verify ``target`` (a record or an export); what was checked (``Mismatch`` if not)."""
     if target.is_dir():
         return _export(target, keys)
-    return _record(target, keys, signature or target.with_name(target.name + SIDECAR))
+    return _record(target, keys, signature or target.with_name(target.name + SIGNATURE_SIDECAR))
 
 
 def _signature(path: Path) -> Signature:
@@ -178,9 +178,9 @@ def _claims(statement: dict[str, Any]) -> Claims:
 
 
 def _export(folder: Path, keys: dict[str, Ed25519PublicKey]) -> dict[str, Any]:
-    path = folder / SIGNATURE
+    path = folder / EXPORT_SIGNATURE
     if not path.exists():
-        raise ValueError(f"{folder} holds no {SIGNATURE}: not a signed export")
+        raise ValueError(f"{folder} holds no {EXPORT_SIGNATURE}: not a signed export")
     signed = _signature(path)
     verify(signed, keys)
     statement = signed.statement
@@ -189,7 +189,7 @@ def _export(folder: Path, keys: dict[str, Ed25519PublicKey]) -> dict[str, Any]:
     signed_files = statement.get("files")
     if not isinstance(signed_files, dict):
         raise ValueError(f"{path} signs no list of files")
-    present = file_digests(folder, skip=frozenset({SIGNATURE}))
+    present = file_digests(folder, skip=frozenset({EXPORT_SIGNATURE}))
     changed = sorted(n for n in signed_files if n in present and present[n] != signed_files[n])
     missing = sorted(set(signed_files) - set(present))
     extra = sorted(set(present) - set(signed_files))

@@ -56,6 +56,7 @@ from labd.graph.message import Message
 from labd.graph.names import lab_namespace, resolve
 from labd.graph.services import Service, ServiceCall, ServiceHandler, ServiceResultCallback
 from labd.graph.types import TypeRegistry
+from repository.well_known import ROSOUT
 
 Clock = Callable[[], int]  # graph time in nanoseconds
 MessageCallback = Callable[[Message], None]
@@ -99,7 +100,7 @@ class Graph:
         self._node_ids = itertools.count(1)
         # /rosout exists from the start, as on any ROS 2 system (clients check for it).
         self._log_node = self.create_node("/labd")
-        self._rosout = self._log_node.advertise("/rosout", "rcl_interfaces/msg/Log")
+        self._rosout = self._log_node.advertise(ROSOUT, "rcl_interfaces/msg/Log")
 
     # -- time and messages ------------------------------------------------------------
 

@@ -20,44 +20,40 @@ it once, when the trial is filed (``summary``, with ``series`` and ``scene``).
 
 The modules import nothing from the rest of the lab but the graph, and the graph nothing
 from them; they read MCAP files through the archive's ``repository.mcapfile``, which
-bounds what a file may make a reader hold.
+bounds what a file may make a reader hold, and take the names a record shares with
+the rest of the lab from ``repository.well_known`` and its manifest's canonical JSON
+from ``repository.digests``.
 """
 
 from __future__ import annotations
 
-from labd.recorder.bag import BAG_METADATA, MCAP_NAME, write_bag_metadata
-from labd.recorder.digest import Difference, Entry, data_digest, first_difference
+from labd.recorder.bag import BAG_METADATA, write_bag_metadata
+from labd.recorder.digest import (
+    Difference,
+    Entry,
+    data_digest,
+    digest_topics,
+    first_difference,
+)
 from labd.recorder.reader import (
-    SIDE_KEY,
     RecordedChannel,
     RecordedMessage,
     read_attachments,
     read_channels,
     read_messages,
 )
-from labd.recorder.record import (
-    MANIFEST,
-    MANIFEST_KEY,
-    Recorder,
-    RecordSummary,
-    canonical_json,
-    read_manifest,
-)
+from labd.recorder.record import Recorder, RecordSummary, read_manifest
 
 __all__ = [
     "BAG_METADATA",
-    "MANIFEST",
-    "MANIFEST_KEY",
-    "MCAP_NAME",
-    "SIDE_KEY",
     "Difference",
     "Entry",
     "RecordSummary",
     "RecordedChannel",
     "RecordedMessage",
     "Recorder",
-    "canonical_json",
     "data_digest",
+    "digest_topics",
     "first_difference",
     "read_attachments",
     "read_channels",

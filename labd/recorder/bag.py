@@ -32,8 +32,8 @@ from rosbags.rosbag2.metadata import dump_qos_v9
 from ruamel.yaml import YAML
 
 from repository.mcapfile import seeking
+from repository.well_known import RECORD_FILE
 
-MCAP_NAME = "trial.mcap"
 BAG_METADATA = "metadata.yaml"
 BAG_RECORD = "rosbag2"  # the MCAP metadata record rosbag2's storage writes, and its key:
 BAG_RECORD_KEY = "serialized_metadata"
@@ -110,10 +110,10 @@ def bag_info(topics: Iterable[BagTopic], start: int, end: int) -> dict[str, Any]
         ],
         "compression_format": "",
         "compression_mode": "",
-        "relative_file_paths": [MCAP_NAME],
+        "relative_file_paths": [RECORD_FILE],
         "files": [
             {
-                "path": MCAP_NAME,
+                "path": RECORD_FILE,
                 "starting_time": {"nanoseconds_since_epoch": start},
                 "duration": {"nanoseconds": end - start},
                 "message_count": count,
@@ -170,4 +170,4 @@ def write_bag_metadata(mcap: str | Path) -> Path:
 def mcap_path(path: str | Path) -> Path:
     """The MCAP file of a record given as its folder or as the file itself."""
     path = Path(path)
-    return path / MCAP_NAME if path.is_dir() else path
+    return path / RECORD_FILE if path.is_dir() else path

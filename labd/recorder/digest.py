@@ -27,7 +27,7 @@ import hashlib
 import itertools
 import logging
 import struct
-from collections.abc import Collection, Iterator
+from collections.abc import Collection, Iterable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -37,10 +37,10 @@ from mcap.well_known import MessageEncoding
 from mcap_ros2.decoder import DecoderFactory
 
 from labd.recorder.reader import RecordedMessage, read_messages
+from repository.well_known import CLOCK, EPISODE
 
 DIGEST_TAG = b"labd data digest 1\n"
 log = logging.getLogger("labd.recorder.digest")
-EPISODE = "/lab/episode"  # lab_msgs/msg/Episode, with the tick, published after each one
 
 _TOPIC = struct.Struct("<I")  # topic name length
 _FRAME = struct.Struct("<QQ")  # log time, data length
@@ -55,6 +55,12 @@ def topic_frame(topic: str) -> bytes:
 def time_frame(log_time: int, size: int) -> bytes:
     """The framed log time and data length, which follow the topic name."""
     return _FRAME.pack(log_time, size)
+
+
+def digest_topics(observations: Iterable[str], commands: Iterable[str]) -> list[str]:
+    """The topics a record's data digest covers: its task's observations and commands,
+    the clock and the episode's ticks; sorted. A batch trial's and a live drive's alike."""
+    return sorted({*observations, *commands, CLOCK, EPISODE})
 
 
 def data_digest(path: str | Path, digest_topics: Collection[str]) -> str:

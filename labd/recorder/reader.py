@@ -31,8 +31,8 @@ from mcap.records import Attachment, Channel, Schema
 from labd.graph.graph import Side
 from labd.recorder.bag import mcap_path
 from repository.mcapfile import messages, seeking
+from repository.well_known import SIDE_KEY
 
-SIDE_KEY = "labd.side"  # channel metadata: "lab" or "client"
 _SIDES = {side.value: side for side in Side}
 
 

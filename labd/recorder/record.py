@@ -15,7 +15,7 @@ delivery order, and writes it at once:
   is simulation time; sequence numbers count per channel;
 - zstd-compressed chunks of about a megabyte, with MCAP's indexes and statistics;
 - the manifest as a metadata record named ``manifest`` holding one key, ``json``: the
-  manifest's canonical JSON (sorted keys, no spaces), whose sha256 is the manifest digest.
+  manifest's canonical JSON (``repository.digests``), whose sha256 is the manifest digest.
   Metadata values must be strings and a manifest nests (parameters), so one JSON text
   keeps it whole, where a flattening would have to be undone by every reader;
 - the attachments given to ``finish`` (model, ``lab.toml``, controller logs ...), logged
@@ -60,12 +60,12 @@ from labd.graph.graph import Graph, Node, Side, Topic
 from labd.graph.message import Message
 from labd.recorder import bag
 from labd.recorder.digest import DIGEST_TAG, time_frame, topic_frame
-from labd.recorder.reader import SIDE_KEY
+from repository.digests import canonical_json
 from repository.mcapfile import records
+from repository.units import MiB
+from repository.well_known import MANIFEST_KEY, MANIFEST_RECORD, RECORD_FILE, SIDE_KEY
 
-MANIFEST = "manifest"  # the metadata record holding the manifest ...
-MANIFEST_KEY = "json"  # ... as canonical JSON under this key
-CHUNK_SIZE = 1 << 20  # bytes: minutes of state, or seconds of camera frames, per chunk
+CHUNK_SIZE = MiB  # bytes: minutes of state, or seconds of camera frames, per chunk
 _SEQUENCE = 0xFFFF_FFFF  # MCAP sequence numbers are uint32
 
 
@@ -89,11 +89,6 @@ def media_type(name: str) -> str:
     return MEDIA_TYPES.get(suffix, "application/octet-stream")
 
 
-def canonical_json(value: Mapping[str, Any]) -> str:
-    """The JSON text whose sha256 names a manifest: sorted keys, no spaces, UTF-8 kept."""
-    return json.dumps(value, sort_keys=True, separators=(",", ":"), ensure_ascii=False)
-
-
 def read_manifest(path: str | Path) -> dict[str, Any] | None:
     """The manifest stored in a record (its folder or MCAP file); None if it has none.
 
@@ -104,7 +99,7 @@ def read_manifest(path: str | Path) -> dict[str, Any] | None:
     """
     with bag.mcap_path(path).open("rb") as stream:
         for record in records(stream, chunks=False):
-            if isinstance(record, Metadata) and record.name == MANIFEST:
+            if isinstance(record, Metadata) and record.name == MANIFEST_RECORD:
                 value: dict[str, Any] = json.loads(record.metadata[MANIFEST_KEY])
                 return value
     return None
@@ -178,7 +173,7 @@ class Recorder:
     ) -> None:
         self.graph = graph
         self.folder = Path(folder)
-        self.path = self.folder / bag.MCAP_NAME
+        self.path = self.folder / RECORD_FILE
         self.digest_topics = frozenset(digest_topics)
         self.keep = keep
         self.log = logging.getLogger(f"labd.recorder.{graph.name}")
@@ -270,7 +265,7 @@ class Recorder:
         return channel
 
     def _write_manifest(self, text: str) -> None:
-        self._writer.add_metadata(MANIFEST, {MANIFEST_KEY: text})
+        self._writer.add_metadata(MANIFEST_RECORD, {MANIFEST_KEY: text})
         self._has_manifest = True
 
     @property

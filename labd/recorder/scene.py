@@ -35,9 +35,8 @@ import numpy as np
 from PIL import Image
 
 from labd.errors import SummaryError
+from repository.well_known import MODEL, MODEL_ASSETS
 
-MODEL = "model.xml"
-ASSETS = "model/"
 FREE, BALL, SLIDE, HINGE = 0, 1, 2, 3  # mjtJoint
 SHAPES = {0: "plane", 2: "sphere", 3: "capsule", 4: "ellipsoid", 5: "cylinder", 6: "box"}
 VISIBLE_GROUPS = (0, 1, 2)  # MuJoCo's viewer shows these by default
@@ -51,7 +50,9 @@ def load(attachments: Mapping[str, bytes]) -> mujoco.MjModel | None:
     xml = attachments.get(MODEL)
     if xml is None:
         return None
-    assets = {k[len(ASSETS) :]: v for k, v in attachments.items() if k.startswith(ASSETS)}
+    assets = {
+        k[len(MODEL_ASSETS) :]: v for k, v in attachments.items() if k.startswith(MODEL_ASSETS)
+    }
     try:
         return mujoco.MjModel.from_xml_string(xml.decode(), assets)
     except (ValueError, UnicodeDecodeError) as err:

@@ -57,11 +57,13 @@ from labd.recorder.bag import mcap_path
 from labd.recorder.reader import RecordedMessage, read_channels, read_messages
 from labd.recorder.record import read_manifest
 from repository.mcapfile import seeking
+from repository.trial import EpisodeStatus
+from repository.units import KiB
+from repository.well_known import CLOCK, EPISODE, ROSOUT, UX_EVENTS
 
 VERSION = 2
 MAX_POINTS = 400  # per series: enough for a plot a page wide
 MAX_UX = 300  # user-experience events listed (all are counted)
-UX = "/ux/events"
 MIN_POINTS = 50  # the budget never cuts a series below this
 MAX_FRAMES = 240  # camera thumbnails
 MIN_FRAMES = 24  # the budget keeps at least this many (if the record has them)
@@ -69,14 +71,13 @@ THUMB_WIDTH = 160  # pixels; the height keeps the camera's aspect
 SPRITE_COLUMNS = 16
 QUALITY = 70  # JPEG quality of the thumbnails
 BUDGET_SHARE = 12  # the stored summary stays under 1/12 of the record's MCAP ...
-MIN_BUDGET = 16 * 1024  # ... or this, for short records
+MIN_BUDGET = 16 * KiB  # ... or this, for short records
 STILL = 1e-3  # m or rad: a joint that moves less is drawn where it started
 PATH_STEP = 0.02  # metres between kept points of the robot's path
-EPISODE = "/lab/episode"
 CAMERA = "/camera/image/compressed"
-SKIPPED_TOPICS = frozenset({"/clock", "/tf_static", "/camera/camera_info", "/rosout"})
+SKIPPED_TOPICS = frozenset({CLOCK, "/tf_static", "/camera/camera_info", ROSOUT})
 IMAGE_TYPES = frozenset({"sensor_msgs/msg/CompressedImage", "sensor_msgs/msg/Image"})
-ENDED = frozenset({"succeeded", "failed", "truncated"})
+ENDED = frozenset(status.value for status in EpisodeStatus if status.ended)  # as recorded
 _UNREADABLE = (McapError, OSError, ValueError, EOFError, IndexError, KeyError)
 
 
@@ -187,7 +188,7 @@ def read(
             decoded = typestore.deserialize_cdr(message.data, message.schema.name)
             if message.topic == EPISODE:
                 _tick(reading, clock, message, decoded)
-            elif message.topic == UX:
+            elif message.topic == UX_EVENTS:
                 _ux(reading, clock.seconds(message.log_time), decoded)
             else:
                 _observe(reading, message, decoded)

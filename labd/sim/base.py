@@ -32,10 +32,9 @@ from dm_control.suite import base
 
 from labd.errors import MessageError
 from labd.sim.params import Params, Value
+from repository.trial import EpisodeStatus
 
 Stamp = dict[str, int]
-# Episode statuses, as the trial record names them.
-RUNNING, SUCCEEDED, FAILED, TRUNCATED = "running", "succeeded", "failed", "truncated"
 
 
 @dataclass(frozen=True)
@@ -69,7 +68,7 @@ class ObservationTopic:
 class Outcome:
     """How an episode ended."""
 
-    status: str  # SUCCEEDED, FAILED or TRUNCATED
+    status: EpisodeStatus  # SUCCEEDED, FAILED or TRUNCATED
     reason: str  # a sentence a person can act on
 
 

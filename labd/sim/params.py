@@ -93,17 +93,6 @@ class Params:
         return [p.describe() for p in self.declared.values()]
 
 
-def parse_assignments(items: Iterable[str]) -> dict[str, str]:
-    """``["a=1", "b=x"]`` (``--param`` values) as a dict of strings."""
-    out = {}
-    for item in items:
-        name, sep, value = item.partition("=")
-        if not sep or not name:
-            raise ParamError(item, "must be written NAME=VALUE")
-        out[name.strip()] = value.strip()
-    return out
-
-
 def _parse(text: str, kind: type) -> Value:
     if kind is bool:
         lowered = text.lower()

@@ -42,10 +42,12 @@ from labd.graph.graph import Graph, Node, Publisher, Side
 from labd.graph.message import Message
 from labd.graph.services import ServiceCall
 from labd.sim import registry
-from labd.sim.base import RUNNING, SUCCEEDED, Stamp, stamp_of
+from labd.sim.base import Stamp, stamp_of
 from labd.sim.params import Value
 from labd.sim.registry import TaskSpec
 from labd.sim.simulation import Simulation
+from repository.trial import EpisodeStatus
+from repository.well_known import CLOCK, EPISODE
 
 TWIST = "geometry_msgs/msg/Twist"
 WATCHDOG = 0.5  # seconds a live Twist command holds
@@ -109,8 +111,8 @@ class Robot:
         self._stale: set[str] = set()  # topics skipped because no one listened
         for obs in self.sim.task.observations:
             self._advertise(obs.name, obs.type, obs.latched)
-        self._advertise("/clock", "rosgraph_msgs/msg/Clock", latched=False)
-        self._advertise("/lab/episode", "lab_msgs/msg/Episode", latched=True)
+        self._advertise(CLOCK, "rosgraph_msgs/msg/Clock", latched=False)
+        self._advertise(EPISODE, "lab_msgs/msg/Episode", latched=True)
         if live:
             self.node.provide_service("/lab/reset", "std_srvs/srv/Trigger", self._reset_service)
         else:
@@ -199,7 +201,7 @@ class Robot:
             if (sim.tick == 0 if o.period == 0 else sim.tick % o.period == 0)
         ]
         recording = bool(self.graph.taps)
-        for topic, on_demand in (*due, ("/clock", False), ("/lab/episode", False)):
+        for topic, on_demand in (*due, (CLOCK, False), (EPISODE, False)):
             # A topic not due this tick keeps its staleness: one published once, when the
             # episode began (/goal, /tf_static), still reaches a subscriber who comes later.
             self._stale.discard(topic)
@@ -210,19 +212,19 @@ class Robot:
 
     def _publish_one(self, topic: str, stamp: Stamp) -> None:
         sim = self.sim
-        if topic == "/clock":
+        if topic == CLOCK:
             data: dict[str, Any] | None = {"clock": stamp}
-        elif topic == "/lab/episode":
+        elif topic == EPISODE:
             data = {
                 "header": {"stamp": stamp, "frame_id": ""},
                 "task": sim.spec.name,
                 "seed": sim.seed,
                 "tick": sim.tick,
-                "status": sim.status,
+                "status": sim.status.value,
                 "reason": sim.reason,
                 "reward": sim.reward,
                 "total_reward": sim.total_reward,
-                "success": sim.status == SUCCEEDED,
+                "success": sim.status is EpisodeStatus.SUCCEEDED,
             }
         else:
             data = sim.task.observe(sim.physics, topic, stamp)
@@ -371,7 +373,7 @@ class LiveRunner:
     def _tick(self, now: float) -> None:
         robot = self.robot
         robot.expire_commands(robot.wall_clock())
-        if robot.sim.status == RUNNING:
+        if robot.sim.status is EpisodeStatus.RUNNING:
             robot.step()
             self.ticks += 1
         elif self._ended_at is None:

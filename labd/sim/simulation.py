@@ -20,8 +20,10 @@ from dm_control.rl import control
 
 from labd.errors import EpisodeOverError, ParamError
 from labd.sim import registry
-from labd.sim.base import FAILED, RUNNING, SUCCEEDED, TRUNCATED, LabTask
+from labd.sim.base import LabTask
 from labd.sim.params import Value
+from repository.trial import EpisodeStatus
+from repository.well_known import MODEL, MODEL_ASSETS
 
 log = logging.getLogger("labd.sim")
 
@@ -49,7 +51,7 @@ class Simulation:
         self.task: LabTask = task_obj
         self.tick = 0
         self.diverged = False  # the physics blew up (a failure of the lab's model, not the task)
-        self.status = RUNNING
+        self.status = EpisodeStatus.RUNNING
         self.reason = ""
         self.reward = 0.0  # of the last tick
         self.total_reward = 0.0
@@ -69,7 +71,7 @@ class Simulation:
 
     @property
     def running(self) -> bool:
-        return self.status == RUNNING
+        return self.status is EpisodeStatus.RUNNING
 
     def step(self) -> None:
         """Advance one control tick with the action the commands so far call for."""
@@ -81,7 +83,7 @@ class Simulation:
         except control.PhysicsError as err:
             self.tick += 1
             self.diverged = True
-            self._end(FAILED, f"the physics diverged at tick {self.tick}: {err}")
+            self._end(EpisodeStatus.FAILED, f"the physics diverged at tick {self.tick}: {err}")
             return
         self.tick += 1
         self.reward = float(timestep.reward or 0.0)
@@ -92,9 +94,9 @@ class Simulation:
                 self._end(outcome.status, outcome.reason)
             else:
                 limit = self.tick * self.control_timestep
-                self._end(TRUNCATED, f"the time limit of {limit:g} s was reached")
+                self._end(EpisodeStatus.TRUNCATED, f"the time limit of {limit:g} s was reached")
 
-    def _end(self, status: str, reason: str) -> None:
+    def _end(self, status: EpisodeStatus, reason: str) -> None:
         self.status = status
         self.reason = reason
         log.info(
@@ -104,7 +106,7 @@ class Simulation:
     def metrics(self) -> dict[str, bool | int | float]:
         """The task's figures, with the episode's own (ticks, time, total reward)."""
         figures = dict(self.task.metrics(self.physics))
-        figures.setdefault("success", self.status == SUCCEEDED)
+        figures.setdefault("success", self.status is EpisodeStatus.SUCCEEDED)
         figures["ticks"] = self.tick
         figures["time"] = self.time_ns / 1e9
         figures["total_reward"] = self.total_reward
@@ -124,10 +126,10 @@ class Simulation:
     def model_files(self) -> dict[str, tuple[str, bytes]]:
         """The model as a record's attachments: ``model.xml`` and the files it names
         (``model/NAME``: textures), so that MuJoCo compiles it back from the record."""
-        files = {"model.xml": ("application/xml", self.model_xml().encode())}
+        files = {MODEL: ("application/xml", self.model_xml().encode())}
         for name, data in self.task.model_assets.items():
             kind = mimetypes.guess_type(name)[0] or "application/octet-stream"
-            files[f"model/{name}"] = (kind, data)  # image/png, ...
+            files[MODEL_ASSETS + name] = (kind, data)  # image/png, ...
         return files
 
     def close(self) -> None:

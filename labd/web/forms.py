@@ -28,6 +28,7 @@ from labd.api.common import SESSION_COOKIE, Lab, client_address
 from labd.api.errors import TooMany
 from labd.api.models import Id
 from labd.api.throttle import Throttle, name_at
+from labd.config import assignment
 from labd.sim import registry
 from labd.web.render import page
 from labd.web.session import CsrfChecked, Viewer, set_session_cookie
@@ -199,9 +200,10 @@ def _params(text: str) -> dict[str, Value]:
     """``NAME=VALUE`` lines (or items separated by spaces) as a dict; ValueError if not."""
     out: dict[str, Value] = {}
     for item in text.split():
-        name, sep, value = item.partition("=")
-        if not sep or not name:
-            raise ValueError(f"parameters: {item!r}: write NAME=VALUE")
+        try:
+            name, value = assignment(item)
+        except ValueError as err:
+            raise ValueError(f"parameters: {err}") from None
         out[name] = value
     return out
 

@@ -28,12 +28,17 @@ from labd.sim import registry
 from labd.web.render import Site, page
 from labd.web.session import Viewer
 from repository.errors import ArchiveError, BlobError, RecordNotFound
-from repository.index import Derived, Filters
+from repository.index import Derived, Filters, Order
 from repository.trial import Kind, Outcome, Status, Trial
+from repository.units import KiB
+from repository.well_known import REPLAY, SUMMARY, VIDEO
+from scheduler.canary import State
 
 router = APIRouter(include_in_schema=False)
 PAGE = 50
-LOG_SHOWN = 64 * 1024  # bytes of a log shown on its trial's page (the end of it)
+LOG_SHOWN = 64 * KiB  # bytes of a log shown on its trial's page (the end of it)
+# What the outcome menu also offers: the states of a trial that has no outcome.
+WITHOUT_OUTCOME = tuple(s for s in Status if s is not Status.FINISHED)
 
 
 def site(request: Request) -> Site:
@@ -70,7 +75,7 @@ def home(request: Request, service: Lab, viewer: Viewer) -> HTMLResponse:
             "recent": recent,
             "running": running,
             "queued": service.queue.queued(),
-            "unwell": [h for h in service.queue.health.values() if h.state == "out"],
+            "unwell": [h for h in service.queue.health.values() if h.state is State.OUT],
             "now": dt.datetime.now(dt.UTC),
         },
         user=viewer,
@@ -107,7 +112,7 @@ def trials(
         "since": q.since,
         "until": q.until,
         "kind": q.kind,
-        "order": q.order if q.order in ("time", "reward") else "time",
+        "order": Order(q.order) if q.order in set(Order) else Order.TIME,
     }
     repository, commit, task, outcome, user = q.repository, q.commit, q.task, q.outcome, q.user
     since, until, kind, before, page_number = q.since, q.until, q.kind, q.before, q.page
@@ -126,16 +131,16 @@ def trials(
             since=_day(since, "since"),
             until=_day(until, "until", end=True),
         )
-        if form["order"] == "reward":
+        if form["order"] is Order.REWARD:
             found = service.index.find(
-                filters, limit=PAGE, order="reward", offset=(page_number - 1) * PAGE
+                filters, limit=PAGE, order=Order.REWARD, offset=(page_number - 1) * PAGE
             )
         else:
             found = service.index.find(filters, limit=PAGE, before=before)
         items, next_cursor = found.items, found.next
     except (ArchiveError, ValueError) as err:
         problem = str(err)
-    query = {k: v for k, v in form.items() if v and not (k == "order" and v == "time")}
+    query = {k: v for k, v in form.items() if v and not (k == "order" and v is Order.TIME)}
     return page(
         request,
         "trials.html",
@@ -144,7 +149,7 @@ def trials(
             "form": form,
             "problem": problem,
             "tasks": registry.names(),
-            "outcomes": [o.value for o in Outcome] + ["queued", "running", "cancelled"],
+            "outcomes": [o.value for o in (*Outcome, *WITHOUT_OUTCOME)],
             "next_cursor": next_cursor,
             "page_number": page_number,
             "query": query,
@@ -155,7 +160,7 @@ def trials(
 
 
 def _enum(kind: Any, value: str | None, name: str) -> Any:
-    if not value or (kind is Outcome and value in ("queued", "running", "cancelled")):
+    if not value or (kind is Outcome and value in WITHOUT_OUTCOME):
         return None
     try:
         return kind(value)
@@ -165,7 +170,7 @@ def _enum(kind: Any, value: str | None, name: str) -> Any:
 
 def _status(outcome: str | None) -> Status | None:
     """The outcome menu also offers the states a trial without one is in."""
-    return Status(outcome) if outcome in ("queued", "running", "cancelled") else None
+    return Status(outcome) if outcome in WITHOUT_OUTCOME else None
 
 
 def _day(text: str | None, name: str, *, end: bool = False) -> float | None:
@@ -199,9 +204,9 @@ def trial(request: Request, trial_id: Id, service: Lab, viewer: Viewer) -> HTMLR
             "view": trial_detail(record, base),
             "reruns": reruns,
             "logs": logs,
-            "summary": derived.get("summary.json"),
-            "replayed": _replayed(service, derived.get("replay.json")),
-            "video": derived.get("video.mp4"),
+            "summary": derived.get(SUMMARY),
+            "replayed": _replayed(service, derived.get(REPLAY)),
+            "video": derived.get(VIDEO),
             "ended": record.status.ended,
         },
         user=viewer,

@@ -28,6 +28,7 @@ from labd.web.session import CSRF_COOKIE
 from repository.formats import FORMATS
 from repository.index import User
 from repository.trial import Outcome, Status
+from repository.units import moment
 
 HERE = Path(__file__).resolve().parent
 STATIC = HERE / "static"
@@ -95,11 +96,11 @@ templates = Jinja2Templates(directory=str(HERE / "templates"))
 
 def epoch(value: float | None) -> str:
     """An epoch time as pages show it (UTC)."""
-    return when(None if value is None else dt.datetime.fromtimestamp(value, dt.UTC))
+    return when(None if value is None else moment(value))
 
 
 def hhmm(value: float) -> str:
-    return dt.datetime.fromtimestamp(value, dt.UTC).strftime("%H:%M")
+    return moment(value).strftime("%H:%M")
 
 
 templates.env.filters.update(

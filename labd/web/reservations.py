@@ -33,6 +33,7 @@ from labd.web.session import CsrfChecked, Viewer
 from repository.errors import RecordNotFound, ReservationError
 from repository.index import User
 from repository.reservations import Reservation, duration
+from repository.units import moment
 
 router = APIRouter(include_in_schema=False)
 DAY = 86400.0
@@ -186,7 +187,7 @@ def calendar(request: Request, robot: str, service: Lab, viewer: Viewer) -> HTML
     )
     days: list[Day] = []
     for slot in slots:
-        date = dt.datetime.fromtimestamp(slot.start, dt.UTC).date()
+        date = moment(slot.start).date()
         if not days or days[-1].date != date:
             days.append(Day(date, []))
         days[-1].slots.append(slot)

@@ -18,7 +18,7 @@ import pytest
 from mcap.reader import make_reader
 
 from labd.recorder.summary import decode
-from scheduler.host import SUMMARY
+from repository.well_known import SUMMARY
 from tests.helpers.githttp import GitRepo
 from tests.integration.browser import browser, watched
 from tests.integration.test_browser import lab, shot, url, wait_ended

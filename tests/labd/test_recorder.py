@@ -24,12 +24,8 @@ from labd.graph.graph import Graph, Side
 from labd.graph.message import Message
 from labd.graph.types import TypeRegistry
 from labd.recorder import (
-    MANIFEST,
-    MANIFEST_KEY,
-    SIDE_KEY,
     Recorder,
     RecordSummary,
-    canonical_json,
     data_digest,
     first_difference,
     read_channels,
@@ -39,6 +35,8 @@ from labd.recorder import (
 )
 from labd.sim.registry import TaskSpec
 from labd.sim.robot import TWIST, Robot
+from repository.digests import canonical_json
+from repository.well_known import MANIFEST_KEY, MANIFEST_RECORD, SIDE_KEY
 from scheduler.manifest import versions
 from tests.labd.sim.drive import random_value
 from tests.labd.sim.pointmass import TASK as POINTMASS
@@ -274,7 +272,7 @@ def test_manifest_metadata_and_attachments(registry, tmp_path):
         reader = make_reader(stream)
         metadata = {m.name: m.metadata for m in reader.iter_metadata()}
         attachments = list(reader.iter_attachments())
-    text = metadata[MANIFEST][MANIFEST_KEY]
+    text = metadata[MANIFEST_RECORD][MANIFEST_KEY]
     assert text == '{"note":"é","parameters":{"goal_x":1.0},"seed":5,"task":"pointmass"}'
     assert read_manifest(tmp_path) == MANIFEST_VALUE
     assert text == canonical_json(dict(reversed(MANIFEST_VALUE.items())))  # order-free

@@ -11,9 +11,9 @@ import pytest
 from mcap.reader import make_reader
 from mcap.writer import Writer
 
-from labd.recorder import MANIFEST, MANIFEST_KEY
 from labd.replay import ReplayError, replay
 from labd.video import Video, VideoError, VideoSpec
+from repository.well_known import MANIFEST_KEY, MANIFEST_RECORD
 from tests.labd.test_recorder import record
 
 MAZE = "icreate-maze"
@@ -48,7 +48,7 @@ def rewrite(source: Path, dest: Path, change=None, edit_manifest=None) -> Path:
         stream.seek(0)
         for metadata in make_reader(stream).iter_metadata():
             values = dict(metadata.metadata)
-            if metadata.name == MANIFEST and edit_manifest is not None:
+            if metadata.name == MANIFEST_RECORD and edit_manifest is not None:
                 manifest = json.loads(values[MANIFEST_KEY])
                 edit_manifest(manifest)
                 values[MANIFEST_KEY] = json.dumps(manifest)

@@ -16,7 +16,7 @@ from labd.recorder.summary import VERSION
 from repository.errors import RecordNotFound
 from repository.index import Derived
 from repository.trial import Filing
-from scheduler.host import SUMMARY, SUMMARY_MEDIA_TYPE
+from repository.well_known import SUMMARY, SUMMARY_MEDIA_TYPE
 from scheduler.remote import PROTOCOL, PROTOCOL_HEADER, RemoteLab
 from tests.fakes import file_unchecked
 from tests.labd.test_api import api, service  # noqa: F401  (fixtures)

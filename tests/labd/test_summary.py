@@ -25,10 +25,11 @@ from PIL import Image
 from labd.errors import SummaryError
 from labd.graph.graph import Graph, Side
 from labd.graph.types import TypeRegistry
-from labd.recorder import Recorder, canonical_json
+from labd.recorder import Recorder
 from labd.recorder import series as S
 from labd.recorder.summary import MAX_POINTS, VERSION, decode, summarize, summary_blob
 from labd.sim.robot import Robot
+from repository.digests import canonical_json
 from tests.labd.test_recorder import digest_topics, step
 
 Command = tuple[str, str, dict[str, Any]]  # topic, type, value

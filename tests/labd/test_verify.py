@@ -3,13 +3,13 @@ whole file and to what it holds, recomputed."""
 
 from __future__ import annotations
 
-import hashlib
 import json
 
 import pytest
 
-from labd.commands.verify import SIDECAR, Mismatch, check
-from labd.recorder import canonical_json, data_digest, read_manifest
+from labd.commands.verify import Mismatch, check
+from labd.recorder import data_digest, read_manifest
+from repository.digests import manifest_digest
 from repository.signing import (
     RECORD,
     RECORD_V1,
@@ -18,6 +18,7 @@ from repository.signing import (
     load_keys,
     record_statement,
 )
+from repository.well_known import SIGNATURE_SIDECAR
 from tests.helpers.records import rewrite
 from tests.labd.test_recorder import record
 
@@ -38,7 +39,7 @@ def signed(tmp_path, registry, schema, **lies):
     statement = record_statement(
         trial=7, kind="trial", repository="/r", commit="c" * 40, task="pointmass", seed=5,
         status="finished", outcome="fail",
-        manifest_digest=hashlib.sha256(canonical_json(manifest).encode()).hexdigest(),
+        manifest_digest=manifest_digest(manifest),
         data_digest=data_digest(mcap, run.topics), digest_topics=sorted(run.topics),
         mcap=file_digest(mcap), mcap_size=mcap.stat().st_size, metrics=OUTCOME["metrics"],
         finished=0.0,
@@ -48,7 +49,7 @@ def signed(tmp_path, registry, schema, **lies):
         statement["schema"] = RECORD_V1
     keyring = Keyring(tmp_path / "keys")
     signature = keyring.sign({**statement, **lies})
-    sidecar = mcap.with_name(mcap.name + SIDECAR)
+    sidecar = mcap.with_name(mcap.name + SIGNATURE_SIDECAR)
     sidecar.write_text(json.dumps(signature.to_json()))
     [pem] = keyring.public_keys().values()
     return mcap, load_keys(pem.encode(), "lab.pem")

@@ -6,7 +6,7 @@ import pytest
 import sqlalchemy as sa
 
 from repository.errors import ArchiveError, RecordNotFound, SchemaMismatch
-from repository.index import Filters, Index, meta
+from repository.index import Filters, Index, Order, meta
 from repository.trial import Kind, Outcome, Status
 
 
@@ -131,9 +131,9 @@ def test_sorting_by_reward_and_the_leaderboard(index):
     finish(index, ids[b, 1], "success", None)
     rerun = trial(index, b, rerun_of=ids[b, 0])
     finish(index, rerun, "fail", 0.0)
-    best = index.find(Filters(task="icreate-maze"), order="reward", limit=3)
+    best = index.find(Filters(task="icreate-maze"), order=Order.REWARD, limit=3)
     assert [t.id for t in best.items] == [ids[a, 0], ids[b, 0], ids[a, 1]]
-    rest = index.find(Filters(task="icreate-maze"), order="reward", limit=3, offset=3)
+    rest = index.find(Filters(task="icreate-maze"), order=Order.REWARD, limit=3, offset=3)
     assert [t.id for t in rest.items] == [rerun, ids[b, 1]]
     board = index.leaderboard("icreate-maze")
     assert [(s.commit, s.trials, s.successes, s.seeds) for s in board] == [

@@ -11,7 +11,7 @@ from labd.trial import LabHost
 from repository.blobs import BlobStore
 from repository.index import Index
 from repository.trial import Outcome, Status
-from scheduler.canary import OK, OUT
+from scheduler.canary import State
 from scheduler.queue import Queue
 from scheduler.runner import RunOptions
 from scheduler.worker import Worker, WorkerConfig
@@ -103,14 +103,14 @@ async def test_a_drifted_worker_takes_itself_out(lab, backend, cache, tmp_path):
     waiting = submit(queue, repo, seed=1)
     await run_until(sound, lambda: queue.trial(waiting).status.ended)
     assert (
-        queue.health["sound"].state == OK
+        queue.health["sound"].state is State.OK
         and "1 canaries reproduced" in queue.health["sound"].detail
     )
 
     drifted = worker("drifted", queue, store, backend, DriftedHost(), tmp_path, cache, [reference])
     left = submit(queue, repo, seed=2)
     await run_until(drifted, lambda: queue.health.get("drifted", None) is not None
-                    and queue.health["drifted"].state == OUT)  # fmt: skip
+                    and queue.health["drifted"].state is State.OUT)  # fmt: skip
     health = queue.health["drifted"]
     assert health.detail.startswith(f"canary trial {reference} did not reproduce: diverged at tick")
     assert " is " in health.detail and " in a, " in health.detail  # the field and both values

@@ -61,7 +61,7 @@ def test_lab_toml_data_is_read_and_its_mistakes_named(tmp_path):
         base + '[data]\ntrials = [4, 2, 4]\nquery = { kind = "demonstration", limit = 3 }\n'
     )
     assert controller.load(tmp_path).data == DataSpec(
-        (4, 2), DataQuery(kind="demonstration", limit=3)
+        (4, 2), DataQuery(kind=Kind.DEMONSTRATION, limit=3)
     )
     for text, message in (
         ("[data]\n", "names no trials and no query"),
@@ -86,7 +86,9 @@ def test_a_query_is_pinned_to_the_newest_matching_public_records(archive):
     finished(archive, public=False)
     finished(archive, record=False, outcome=Outcome.SUCCESS)
     extra = finished(archive, kind=Kind.TRIAL, outcome=Outcome.FAIL)
-    query = DataQuery(task=TASK, kind="demonstration", outcome="success", user="ann", limit=3)
+    query = DataQuery(
+        task=TASK, kind=Kind.DEMONSTRATION, outcome=Outcome.SUCCESS, user="ann", limit=3
+    )
     pinned = resolve(DataSpec((extra,), query), archive)
     assert [p.trial for p in pinned] == [*ann[1:], extra]
     first = pinned[0]
@@ -112,7 +114,7 @@ def test_data_that_cannot_be_pinned_is_refused_with_the_reason(archive):
     policy = DataPolicy(max_trials=2, max_bytes=2500)
     cases = [
         (DataSpec(query=DataQuery(task="pr2-table")), "matches no public, finished trial"),
-        (DataSpec(query=DataQuery(kind="demonstration")), "matches more than 2 trials"),
+        (DataSpec(query=DataQuery(kind=Kind.DEMONSTRATION)), "matches more than 2 trials"),
         (DataSpec(query=DataQuery(limit=5)), "query.limit is 5, more than this lab's limit"),
         (DataSpec((999,)), "trial 999 does not exist"),
         (DataSpec((private,)), f"trial {private} is not public"),

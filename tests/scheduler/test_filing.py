@@ -7,11 +7,12 @@ import datetime as dt
 
 import pytest
 
+from repository.digests import manifest_digest
 from repository.index import Index
 from repository.signing import Keyring
 from repository.trial import Filing, Trial
 from scheduler.errors import FilingRefused
-from scheduler.filing import Claims, Expected, filing_problems, manifest_digest, record_differences
+from scheduler.filing import Claims, Expected, filing_problems, record_differences
 from scheduler.host import RecordFacts
 from scheduler.queue import Queue
 from scheduler.worker import Worker, WorkerConfig

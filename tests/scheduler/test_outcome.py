@@ -4,10 +4,10 @@ from __future__ import annotations
 
 import pytest
 
+from repository.digests import manifest_digest as digest
 from repository.trial import Outcome, Status
 from sandbox.api import Exit, Limits
 from scheduler.host import Episode
-from scheduler.manifest import digest
 from scheduler.outcome import crash_summary, judge
 
 MID = Episode(tick=3, running=True, status="running", reason="", achieved=False, diverged=False)

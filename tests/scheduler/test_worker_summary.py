@@ -9,7 +9,7 @@ from labd.errors import SummaryError
 from labd.recorder.summary import decode
 from labd.trial import LabHost
 from repository.blobs import BlobStore
-from scheduler.host import SUMMARY, SUMMARY_MEDIA_TYPE
+from repository.well_known import SUMMARY, SUMMARY_MEDIA_TYPE
 from scheduler.runner import Progress
 from scheduler.worker import Worker, WorkerConfig
 from tests.labd.test_recorder import record

@@ -24,7 +24,6 @@ from dm_control.rl import control
 from dm_env import specs
 
 from labd.sim.base import (
-    SUCCEEDED,
     CommandTopic,
     LabTask,
     ObservationTopic,
@@ -38,6 +37,7 @@ from labd.sim.icreate.layout import CELL, DIRECTIONS, Layout
 from labd.sim.icreate.tags import Detector, Tag, place
 from labd.sim.params import Param, Params
 from labd.sim.registry import TaskSpec
+from repository.trial import EpisodeStatus
 
 SUCCESS_BONUS = 10.0
 BUMPER_OVERLAP = math.radians(15)  # contacts this close to dead ahead press both bumpers
@@ -392,7 +392,7 @@ class IcreateMaze(LabTask):
         i, j = self.layout.goal
         x, y = self.to_odom(*physics.base_pose()[:2])
         return Outcome(
-            SUCCEEDED,
+            EpisodeStatus.SUCCEEDED,
             f"reached the goal cell (row {i}, column {j}) at ({x:.2f}, {y:.2f}) in odom "
             f"after {physics.data.time:.1f} s",
         )

@@ -26,8 +26,6 @@ from dm_env import specs
 
 from labd.errors import MessageError
 from labd.sim.base import (
-    FAILED,
-    SUCCEEDED,
     CommandTopic,
     LabTask,
     ObservationTopic,
@@ -42,6 +40,7 @@ from labd.sim.pr2 import model, scene, topics
 from labd.sim.pr2.motion import ArmSolver, PoseTarget, Trajectory
 from labd.sim.pr2.physics import BASE, ODOM, OPTICAL, SERVOED, TORSO, Physics
 from labd.sim.registry import TaskSpec
+from repository.trial import EpisodeStatus
 
 TIMESTEP = 0.002  # s: small enough for stable grasps
 CONTROL_RATES = (10, 20, 25, 50, 100)  # Hz: each a whole number of physics steps
@@ -325,12 +324,12 @@ class TableTask(LabTask):
             off = self._distance(physics)
             when = float(physics.data.time)
             return Outcome(
-                SUCCEEDED,
+                EpisodeStatus.SUCCEEDED,
                 f"the {name} rests in the target area, {off:.3f} m from its centre,"
                 f" at {when:.1f} s",
             )
         if self._fallen(physics):
-            return Outcome(FAILED, f"the {name} fell off the table")
+            return Outcome(EpisodeStatus.FAILED, f"the {name} fell off the table")
         return None
 
     def metrics(self, physics: Physics) -> dict[str, bool | int | float]:

@@ -15,8 +15,6 @@ from dm_control.rl import control
 from dm_env import specs
 
 from labd.sim.base import (
-    FAILED,
-    SUCCEEDED,
     CommandTopic,
     LabTask,
     ObservationTopic,
@@ -25,6 +23,7 @@ from labd.sim.base import (
 )
 from labd.sim.params import Param, Params
 from labd.sim.registry import TaskSpec
+from repository.trial import EpisodeStatus
 
 XML = """
 <mujoco model="puck">
@@ -119,9 +118,9 @@ class PointMass(LabTask):
 
     def outcome(self, physics: Any) -> Outcome | None:
         if abs(physics.data.qpos[0] - self.values["goal_x"]) < 0.1:
-            return Outcome(SUCCEEDED, "reached the goal")
+            return Outcome(EpisodeStatus.SUCCEEDED, "reached the goal")
         if abs(physics.data.qpos[1]) > 2:
-            return Outcome(FAILED, "left the plane")
+            return Outcome(EpisodeStatus.FAILED, "left the plane")
         return None
 
     def metrics(self, physics: Any) -> dict[str, bool | int | float]:

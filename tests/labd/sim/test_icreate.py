@@ -12,11 +12,12 @@ import pytest
 from PIL import Image
 
 from labd.errors import MessageError, ParamError
-from labd.sim.base import FAILED, SUCCEEDED, stamp_of
+from labd.sim.base import stamp_of
 from labd.sim.icreate import maze
 from labd.sim.icreate.layout import CELL, DIRECTIONS, STEPS, Layout
 from labd.sim.icreate.model import MAX_TURN_RATE, MAX_WHEEL_SPEED
 from labd.sim.simulation import Simulation
+from repository.trial import EpisodeStatus
 
 TASK = "icreate-maze"
 
@@ -279,7 +280,7 @@ def test_a_scripted_policy_reaches_the_goal(sim):
         speed = 0.0 if abs(error) > 0.5 else 0.45 * math.cos(error)
         sim.task.command("/cmd_vel", twist(speed, 3.0 * error))
         sim.step()
-    assert sim.status == SUCCEEDED
+    assert sim.status is EpisodeStatus.SUCCEEDED
     assert "reached the goal cell" in sim.reason
     metrics = sim.metrics()
     assert metrics["success"] is True
@@ -332,4 +333,4 @@ def test_a_diverging_physics_fails_the_episode():
     sim = Simulation(TASK, {}, seed=1)
     sim.physics.data.qvel[0] = math.nan
     sim.step()
-    assert sim.status == FAILED and "diverged" in sim.reason
+    assert sim.status is EpisodeStatus.FAILED and "diverged" in sim.reason

@@ -13,9 +13,10 @@ from PIL import Image
 
 from labd.errors import MessageError, ParamError
 from labd.sim import registry
-from labd.sim.base import FAILED, SUCCEEDED, stamp_of
+from labd.sim.base import stamp_of
 from labd.sim.pr2 import scene
 from labd.sim.simulation import Simulation
+from repository.trial import EpisodeStatus
 
 TASK = "pr2-table"
 ZERO = {"sec": 0, "nanosec": 0}
@@ -384,7 +385,7 @@ def test_scripted_pick_and_place_succeeds(seed, objects):
     """A controller using only the documented topics moves the object and the task says so."""
     sim = Simulation(TASK, {"objects": objects}, seed=seed)
     PickAndPlace(sim).run()
-    assert sim.status == SUCCEEDED, sim.reason
+    assert sim.status is EpisodeStatus.SUCCEEDED, sim.reason
     assert sim.reason.startswith(f"the {sim.task.plan.target} rests in the target area, 0.0")
     metrics = sim.metrics()
     assert metrics["success"] is True and metrics["dropped"] is False
@@ -398,7 +399,7 @@ def test_an_object_off_the_table_fails_the_episode(sim):
     sim.physics.named.data.qpos[name][:3] = [1.5, 0.0, 0.1]
     sim.physics.forward()
     sim.step()
-    assert sim.status == FAILED
+    assert sim.status is EpisodeStatus.FAILED
     assert sim.reason == f"the {name} fell off the table"
     assert sim.metrics()["dropped"] is True
 
@@ -409,5 +410,5 @@ def test_a_diverging_physics_fails_the_episode_without_a_crash(sim):
     sim.step()
     sim.physics.data.qvel[:] = math.inf
     sim.step()
-    assert sim.status == FAILED
+    assert sim.status is EpisodeStatus.FAILED
     assert "diverged" in sim.reason
