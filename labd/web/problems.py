@@ -61,7 +61,7 @@ def on_form(request: Request, show: Callable[[str, int], Response]) -> Iterator[
     try:
         yield
     except Exception as err:
-        if not errors.expected(err) or isinstance(err, Shown):
+        if not errors.expected(err):
             raise
         said = errors.problem(err, request.method, request.url.path)
         if not (400 <= said.status < 500 or said.status == 503):

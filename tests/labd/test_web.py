@@ -11,10 +11,12 @@ from markupsafe import escape
 
 from labd.service import Service, ServiceConfig
 from labd.web import RobotLink, Site, create_app
+from labd.web.problems import PageRoute
 from repository.trial import Filing
 from scheduler.fetch import FetchPolicy
 from tests.fakes import file_unchecked
 from tests.helpers.githttp import GitRepo
+from tests.labd.test_api_edges import _leaves
 
 SCRIPT = "<script>alert('owned')</script>"
 
@@ -118,6 +120,18 @@ async def test_unknown_things_are_pages_with_a_way_back(web):
             assert said.status_code == status
             assert str(escape(said.json()["error"])) in reply.text
     assert "no task &#39;juggling&#39;; the tasks are" in (await web.get("/tasks/juggling")).text
+
+
+def test_every_page_answers_errors_as_a_page(service):
+    """Every route outside the API (its JSON under /api/, and the OpenAPI document) is a
+    ``PageRoute``, so an error it raises is a page under the API's status, never JSON."""
+    app = create_app(service, Site(), on_submit=lambda: None)
+    pages = [r for r in _leaves(app.routes) if not r.path.startswith("/api/")]
+    pages = [r for r in pages if r.path not in ("/healthz", "/readyz")]
+    assert {"/", "/trials/{trial_id}", "/session", "/docs", "/reservations"} <= {
+        r.path for r in pages
+    }
+    assert [r.path for r in pages if not isinstance(r, PageRoute)] == []
 
 
 async def test_what_users_control_is_escaped(web, service, token, repo):
