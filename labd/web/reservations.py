@@ -24,7 +24,6 @@ from fastapi import APIRouter, Depends, Form, Request
 from fastapi.responses import HTMLResponse, RedirectResponse
 from pydantic import BaseModel
 
-from labd.api.common import Lab
 from labd.api.errors import Invalid
 from labd.api.models import Id
 from labd.api.reservations import check_robot
@@ -101,9 +100,7 @@ class BookForm(BaseModel):
 
 
 @router.post("/reservations", response_class=HTMLResponse, dependencies=[CsrfChecked])
-def book(
-    request: Request, service: Lab, app: App, person: Booker, sent: Annotated[BookForm, Form()]
-) -> Any:
+def book(request: Request, app: App, person: Booker, sent: Annotated[BookForm, Form()]) -> Any:
     robot, start, minutes = sent.robot, sent.start, sent.minutes
     form = {"robot": robot, "start": start, "minutes": minutes}
     with on_form(
@@ -113,12 +110,10 @@ def book(
         ),
     ):
         check_robot(app, robot)
-        now = service.index.clock()
+        now = app.service.index.clock()
         begin = now if not start.strip() else _utc(start)
-        length = _number(
-            minutes, "give the start as YYYY-MM-DD HH:MM (UTC) and the length in minutes"
-        )
-        made = service.reservations.book(person.name, robot, begin, begin + length * 60)
+        length = _number(minutes, WHEN)
+        made = app.service.reservations.book(person.name, robot, begin, begin + length * 60)
     return RedirectResponse(
         f"/reservations?done=booked+reservation+{made.reservation.id}#mine", status_code=303
     )
@@ -206,9 +201,7 @@ def _utc(text: str) -> float:
     try:
         moment = dt.datetime.fromisoformat(text.strip().replace(" ", "T"))
     except ValueError:
-        raise Invalid(
-            "give the start as YYYY-MM-DD HH:MM (UTC) and the length in minutes"
-        ) from None
+        raise Invalid(WHEN) from None
     if moment.tzinfo is None:
         moment = moment.replace(tzinfo=dt.UTC)
     return moment.timestamp()
