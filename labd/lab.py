@@ -19,7 +19,8 @@ from typing import Any
 from fastapi import FastAPI
 
 from labd.api.server import HttpServer
-from labd.authorizer import ReservationAuthorizer, ref
+from labd.api.state import state_of
+from labd.authorizer import ref
 from labd.bridge.auth import Authorizer, HttpAuthorizer, KeyPolicy
 from labd.bridge.rosapi import Rosapi
 from labd.bridge.server import BridgeServer
@@ -117,9 +118,12 @@ class Lab:
         self.app: FastAPI | None = None
         if config.service is not None:
             self.service = Service(config.service, self.types)
-            self.app = create_app(self.service, self.site)
-            self.app.state.on_reservation = self._reservation_changed
-            self.app.state.on_submit = self._submitted
+            self.app = create_app(
+                self.service,
+                self.site,
+                on_submit=self._submitted,
+                on_reservation=self._reservation_changed,
+            )
             self.http = HttpServer(
                 self.app,
                 config.bridge.host,
@@ -133,8 +137,7 @@ class Lab:
             if self.service is None or authorizer is not None or config.bridge.authorizer_url:
                 raise ValueError("reservations need the archive, and no other authorizer")
             assert self.app is not None
-            keys: ReservationAuthorizer = self.app.state.keys  # shared with /api/auth
-            authorizer = keys
+            authorizer = state_of(self.app).keys  # shared with /api/auth
             live = KeyPolicy.OPTIONAL if config.watchers else KeyPolicy.REQUIRED
             policies = {
                 name: live if name in self.robots and self.robots[name].live else KeyPolicy.NONE
@@ -170,7 +173,7 @@ class Lab:
             if station.robot.live
         }
         if self.app is not None:  # the pages link to the robots on the port now known
-            self.app.state.site = replace(
+            state_of(self.app).site = replace(
                 self.site, bridge_port=self.bridge.port, drives=self.drives, robots_loop=self._loop
             )
         if self.service is not None and self.http is not None:
@@ -238,7 +241,7 @@ class Lab:
         if self._own_authorizer is not None:
             await self._own_authorizer.aclose()
         if self.app is not None:
-            self.app.state.keys.close()
+            state_of(self.app).keys.close()
 
 
 def _runner_ended(task: asyncio.Task[None]) -> None:

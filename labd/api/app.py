@@ -40,6 +40,7 @@ from starlette.concurrency import run_in_threadpool
 
 from labd import __version__
 from labd.api import accounts, errors, records, reservations, summaries, workers
+from labd.api.builds import Builds
 from labd.api.common import Lab, Writer, blob_response
 from labd.api.edges import Edges
 from labd.api.errors import ApiError, responses
@@ -60,23 +61,29 @@ from labd.api.models import (
     trial_detail,
     trial_summary,
 )
+from labd.api.site import Site
+from labd.api.state import App, AppState
 from labd.api.throttle import Throttle
 from labd.authorizer import ReservationAuthorizer
 from labd.service import Service
 from labd.sim import registry
 from repository.index import Filters
+from repository.reservations import Reservation
 from repository.trial import Kind, Outcome, Status, TrialRequest
 
 
 def create_app(
     service: Service,
+    site: Site | None = None,
     *,
     on_submit: Callable[[], None] | None = None,
+    on_reservation: Callable[[Reservation], None] | None = None,
     robots: Sequence[str] = (),
 ) -> FastAPI:
-    """The API over ``service``; ``on_submit`` is called after a trial is queued;
-    ``robots`` are the live robots that can be booked. The pages and ``/docs`` are
-    added by ``labd.web.create_app``."""
+    """The API over ``service``; ``site`` is what it knows of the live robots (none by
+    default); ``on_submit`` is called after a trial is queued, ``on_reservation`` after
+    a slot is extended or released; ``robots`` are the live robots that can be booked.
+    The pages and ``/docs`` are added by ``labd.web.create_app``."""
     app = FastAPI(
         title="labd",
         version=__version__,
@@ -84,12 +91,16 @@ def create_app(
         docs_url=None,  # served offline by labd.web, from the lab's own files (no CDN)
         redoc_url=None,
     )
-    app.state.service = service
-    app.state.on_submit = on_submit or service.wake
-    app.state.robots = tuple(robots)
-    app.state.throttle = Throttle(service.index.clock)
-    app.state.keys = ReservationAuthorizer(service.reservations)  # /api/auth and the bridge
-    app.state.on_reservation = None  # the lab's bridge is told of extended or released slots
+    app.state.lab = AppState(
+        service=service,
+        on_submit=on_submit or service.wake,
+        robots=tuple(robots),
+        site=site or Site(),
+        throttle=Throttle(service.index.clock),
+        keys=ReservationAuthorizer(service.reservations),
+        builds=Builds(service.config.data / "exports"),
+        on_reservation=on_reservation or _no_bridge,
+    )
     errors.install(app)
     parts = (
         router,
@@ -104,6 +115,10 @@ def create_app(
         app.include_router(errors.declare_validation(part))
     app.add_middleware(Edges)
     return app
+
+
+def _no_bridge(reservation: Reservation) -> None:
+    """No bridge to tell of a changed slot: an API without the lab's bridge."""
 
 
 router = APIRouter()
@@ -196,14 +211,16 @@ def tasks() -> TaskList:
     response_model=TrialDetail,
     responses=responses(400, 401, 403, 413, 422, 429, 503),
 )
-async def submit(body: TrialRequest, request: Request, service: Lab, user: Writer) -> JSONResponse:
+async def submit(
+    body: TrialRequest, request: Request, service: Lab, app: App, user: Writer
+) -> JSONResponse:
     """Resolve the ref to a commit now, and queue a trial of that commit.
 
     The resolving (git, within the lab's resolve timeout) runs in the submissions' own
     threads, never in those that answer readers; 503 when they have all they take.
     """
     trial_id = await service.submissions.submit_async(user, body)
-    request.app.state.on_submit()
+    app.on_submit()
     return await run_in_threadpool(_created, service, trial_id, request)
 
 
@@ -277,10 +294,10 @@ def logs(trial_id: Id, stream: Literal["stdout", "stderr"], service: Lab) -> Str
     response_model=TrialDetail,
     responses=responses(401, 403, 404, 429),
 )
-def rerun(trial_id: Id, request: Request, service: Lab, user: Writer) -> JSONResponse:
+def rerun(trial_id: Id, request: Request, service: Lab, app: App, user: Writer) -> JSONResponse:
     """Queue a new trial from the same commit, task, parameters and seed."""
     new_id = service.submissions.rerun(user, trial_id)
-    request.app.state.on_submit()
+    app.on_submit()
     return _created(service, new_id, request)
 
 

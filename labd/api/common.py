@@ -1,4 +1,5 @@
-"""What the API's routers share: the service, who is asking, serving blobs.
+"""What the API's routers share: the service, who is asking and from where, serving
+blobs.
 
 A request writes as a user when it carries a token (``Authorization: Bearer TOKEN``,
 for scripts and the ``labd`` commands) or comes from a signed-in page: the session
@@ -18,6 +19,8 @@ from fastapi.responses import StreamingResponse
 from fastapi.security import APIKeyCookie, HTTPAuthorizationCredentials, HTTPBearer
 
 from labd.api.errors import Forbidden, Unauthorized
+from labd.api.state import App, state_of
+from labd.api.throttle import Attempts
 from labd.service import Service
 from repository.accounts import WebSession, same
 from repository.index import User
@@ -37,8 +40,7 @@ session_cookie = APIKeyCookie(
 
 
 def _service(request: Request) -> Service:
-    service: Service = request.app.state.service
-    return service
+    return state_of(request.app).service
 
 
 Lab = Annotated[Service, Depends(_service)]
@@ -49,6 +51,14 @@ def client_address(request: Request) -> str:
     or the address a trusted proxy (``labd serve --trusted-proxy``) put in
     ``X-Forwarded-For``; never that header from anyone else (``labd.api.server``)."""
     return request.client.host if request.client else "unknown"
+
+
+async def _attempts(request: Request, app: App) -> Attempts:
+    return Attempts(app.throttle, client_address(request))
+
+
+# Who is asking, by address, and their failed attempts there (``labd.api.throttle``).
+Caller = Annotated[Attempts, Depends(_attempts)]
 
 
 def web_session(service: Service, request: Request) -> WebSession | None:

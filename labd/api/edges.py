@@ -25,8 +25,8 @@ from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from labd.api import errors
 from labd.api.common import CSRF_HEADER, SAFE, SESSION_COOKIE, bearer, identify
+from labd.api.state import state_of
 from labd.api.workers import MAX_BLOB
-from labd.service import Service
 from repository.units import GiB, MiB
 
 BODY_LIMIT = MiB  # bytes: a JSON body or a form, on every route but a blob upload
@@ -75,7 +75,7 @@ class Edges:
         declared = Headers(scope=scope).get("content-length", "")
         if declared.isdigit() and int(declared) > most:
             too_large = BodyTooLarge(most)
-            await errors.http_answer(too_large)(scope, receive, send)
+            await errors.answer(scope["path"], scope["method"], too_large)(scope, receive, send)
             return
         seen = 0
 
@@ -93,7 +93,7 @@ class Edges:
     async def _refused(self, scope: Scope) -> JSONResponse | None:
         """The answer to a write from someone who may not write; None if they may."""
         connection = HTTPConnection(scope)
-        service: Service = scope["app"].state.service
+        service = state_of(scope["app"]).service
         credentials = await bearer(connection)
         token = credentials.credentials if credentials is not None else None
         cookie = connection.cookies.get(SESSION_COOKIE)

@@ -1,15 +1,19 @@
-"""How the API turns exceptions into answers: one table, one body.
+"""How the lab's HTTP port turns exceptions into answers: one table, one body.
 
-Each expected error of the lab's packages maps to an HTTP status here, and every error
-body is ``{"error": "..."}`` (``ErrorBody``), so handlers raise what went wrong and never
-build error responses themselves. A 5xx is logged with its traceback (a 503, "not
-ready", in one line); anything not in the table is a bug: a 500 whose body says so,
-logged with its traceback.
+Each expected error of the lab's packages maps to an HTTP status here (``STATUS``), and
+``problem`` says what the lab answers to it: the status, the words, the headers
+(``Retry-After``, or where a redirect goes). The API sends it as ``{"error": "..."}``
+(``ErrorBody``); the pages show the same status and words as a page (``labd.web.problems``).
+So handlers raise what went wrong and never build error responses themselves. A 5xx is
+logged with its traceback (a 503, "not ready", in one line); anything not in the table
+is a bug: a 500 whose body says so, logged with its traceback.
 """
 
 from __future__ import annotations
 
 import logging
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
 from typing import Any
 
 from fastapi import APIRouter, FastAPI, Request
@@ -19,6 +23,7 @@ from fastapi.routing import APIRoute
 from starlette.exceptions import HTTPException
 
 from labd.api.models import ErrorBody
+from labd.errors import UnknownTaskError
 from repository.errors import (
     AccountError,
     ArchiveError,
@@ -47,11 +52,22 @@ log = logging.getLogger("labd.api")
 
 
 class ApiError(Exception):
-    """An error the API itself decides, with its status."""
+    """An error the API (or a page) itself decides, with its status, any headers its
+    answer carries, and the heading a page shows above it (``title``; else the pages'
+    own for its status)."""
 
-    def __init__(self, status: int, message: str) -> None:
+    def __init__(
+        self,
+        status: int,
+        message: str,
+        *,
+        headers: Mapping[str, str] | None = None,
+        title: str | None = None,
+    ) -> None:
         self.status = status
         self.message = message
+        self.headers = dict(headers or {})
+        self.title = title
         super().__init__(message)
 
 
@@ -70,6 +86,13 @@ class Conflict(ApiError):
         super().__init__(409, message)
 
 
+class Invalid(ApiError):
+    """A request that names something wrong: a field, a parameter, a date."""
+
+    def __init__(self, message: str) -> None:
+        super().__init__(422, message)
+
+
 class TooMany(ApiError):
     """Too many failed attempts (keys, passwords): wait ``retry_after`` seconds."""
 
@@ -82,6 +105,7 @@ class TooMany(ApiError):
 STATUS: dict[type[Exception], int] = {
     RecordNotFound: 404,
     BlobNotFound: 404,
+    UnknownTaskError: 404,
     BlobError: 500,  # a blob that no longer matches its digest: the store is damaged
     IndexLost: 503,  # the index's files changed under the lab: writes wait for a restart
     ArchiveError: 422,
@@ -104,7 +128,7 @@ MEANING = {
     400: "the request body is not valid JSON",
     401: "no token or sign-in, or one the lab does not know",
     403: "the user may not do this (or a signed-in page's request lacks its CSRF token)",
-    404: "no such trial, commit, reservation, record or file",
+    404: "no such trial, commit, task, reservation, record or file",
     409: "a conflict: the slot is booked already, or the client's version is not the lab's",
     413: "too large: a body over its route's limit (1 MiB for JSON), or a repository",
     422: "the request names something wrong (the message says what)",
@@ -124,6 +148,22 @@ def responses(*statuses: int) -> dict[int | str, dict[str, Any]]:
     return {s: {"model": ErrorBody, "description": MEANING[s]} for s in statuses}
 
 
+@dataclass(frozen=True)
+class Problem:
+    """What the lab answers to an error: its status, its words, its headers."""
+
+    status: int
+    message: str
+    headers: dict[str, str] = field(default_factory=dict)
+
+
+def expected(err: BaseException) -> bool:
+    """Whether the table knows ``err`` (else it is a bug)."""
+    if isinstance(err, ApiError | HTTPException | RequestValidationError):
+        return True
+    return any(cls in STATUS for cls in type(err).__mro__)
+
+
 def status_of(err: Exception) -> int:
     if isinstance(err, ApiError):
         return err.status
@@ -133,60 +173,66 @@ def status_of(err: Exception) -> int:
     return 500
 
 
-def answer(path: str, method: str, err: Exception) -> JSONResponse:
-    """The answer to an expected error: its status from the table, ``ErrorBody``."""
-    status = status_of(err)
+def problem(err: Exception, method: str = "", path: str = "") -> Problem:
+    """What the lab answers to ``err`` (raised by a ``method`` request to ``path``): its
+    status from the table, its words, its headers; a bug is a 500 that says so. Nothing
+    is logged here (``told``)."""
+    if isinstance(err, RequestValidationError):
+        problems = list(err.errors())
+        if any(p.get("type") == "json_invalid" for p in problems):
+            return Problem(400, MEANING[400])
+        return Problem(422, invalid(problems))
+    if isinstance(err, HTTPException):  # Starlette's own refusals, a body over its limit
+        message = str(err.detail)
+        if err.status_code == 404 and path:
+            message = f"no such page or API route: {path}"
+        elif err.status_code == 405 and path:
+            message = f"{path} does not take {method}"
+        return Problem(err.status_code, message, dict(err.headers or {}))
+    if not expected(err):
+        text = f"the lab failed to answer ({type(err).__name__}); its log has the details"
+        return Problem(500, text)
     message = err.message if isinstance(err, ApiError) else str(err)
-    if status == 503:  # not ready: said loudly once where it was found, not per request
-        log.warning("%s %s refused: the lab is not ready", method, path)
-    elif status >= 500:
-        log.error("%s %s: %s", method, path, message, exc_info=err)
-    headers = {}
+    headers = dict(err.headers) if isinstance(err, ApiError) else {}
     if isinstance(err, TooMany | Busy):
         headers["Retry-After"] = str(max(1, round(err.retry_after)))
-    return JSONResponse({"error": message}, status_code=status, headers=headers)
+    return Problem(status_of(err), message, headers)
 
 
-async def _known(request: Request, err: Exception) -> JSONResponse:
-    return answer(request.url.path, request.method, err)
+def told(err: Exception, said: Problem, method: str, path: str) -> None:
+    """Log what the operator must hear of an answer: a bug, or a fault of the lab's own
+    (5xx), with its traceback; "not ready" (503) in one line."""
+    if not expected(err):
+        log.error("%s %s failed", method, path, exc_info=err)
+    elif said.status == 503:  # said loudly once where it was found, not per request
+        log.warning("%s %s refused: the lab is not ready", method, path)
+    elif said.status >= 500:
+        log.error("%s %s: %s", method, path, said.message, exc_info=err)
 
 
-def http_answer(err: HTTPException, path: str = "", method: str = "") -> JSONResponse:
-    """Starlette's own refusals (no such route, a method a route does not take) and a
-    body over its route's limit (``labd.api.edges``), in the lab's ``ErrorBody``."""
-    message = str(err.detail)
-    if err.status_code == 404 and path:
-        message = f"no such page or API route: {path}"
-    elif err.status_code == 405 and path:
-        message = f"{path} does not take {method}"
-    return JSONResponse({"error": message}, status_code=err.status_code, headers=err.headers)
-
-
-async def _http(request: Request, err: Exception) -> JSONResponse:
-    assert isinstance(err, HTTPException)
-    return http_answer(err, request.url.path, request.method)
-
-
-async def _bug(request: Request, err: Exception) -> JSONResponse:
-    log.error("%s %s failed", request.method, request.url.path, exc_info=err)
-    text = f"the lab failed to answer ({type(err).__name__}); its log has the details"
-    return JSONResponse({"error": text}, status_code=500)
-
-
-async def _invalid(_: Request, err: RequestValidationError) -> JSONResponse:
-    problems = list(err.errors())
-    if any(p.get("type") == "json_invalid" for p in problems):
-        return JSONResponse({"error": MEANING[400]}, status_code=400)
+def invalid(problems: Sequence[Mapping[str, Any]]) -> str:
+    """Pydantic's problems with a request in one line: ``where: what; ...``."""
     parts = []
     for p in problems:
         where = ".".join(str(x) for x in p.get("loc", ()) if x not in ("body", "query", "path"))
         parts.append(f"{where}: {p.get('msg', 'invalid')}" if where else p.get("msg", ""))
-    return JSONResponse({"error": "; ".join(parts)}, status_code=422)
+    return "; ".join(parts)
+
+
+def answer(path: str, method: str, err: Exception) -> JSONResponse:
+    """The API's answer to ``err``: the table's status and headers, ``ErrorBody``."""
+    said = problem(err, method, path)
+    told(err, said, method, path)
+    return JSONResponse({"error": said.message}, status_code=said.status, headers=said.headers)
+
+
+async def _answer(request: Request, err: Exception) -> JSONResponse:
+    return answer(request.url.path, request.method, err)
 
 
 def declare_validation(router: APIRouter) -> APIRouter:
     """Say in the OpenAPI document that a route with parameters answers a malformed one
-    with 422 and ``ErrorBody`` (what ``_invalid`` sends), not FastAPI's own shape, that
+    with 422 and ``ErrorBody`` (what ``problem`` says), not FastAPI's own shape, that
     a route with a body answers one over its size limit with 413, and that any route
     answers 503 while the index is not writable."""
     for route in router.routes:
@@ -214,10 +260,9 @@ def _all(dependant: Any) -> list[Any]:
 
 
 def install(app: FastAPI) -> None:
-    """Register the table's handlers on ``app``."""
-    known: list[type[Exception]] = [ApiError, *STATUS]
+    """Register the table's handlers on ``app``: every error, expected or a bug, is
+    answered by ``answer``."""
+    known: list[type[Exception]] = [ApiError, *STATUS, RequestValidationError, HTTPException]
     for cls in known:
-        app.add_exception_handler(cls, _known)
-    app.add_exception_handler(RequestValidationError, _invalid)  # type: ignore[arg-type]
-    app.add_exception_handler(HTTPException, _http)
-    app.add_exception_handler(Exception, _bug)
+        app.add_exception_handler(cls, _answer)
+    app.add_exception_handler(Exception, _answer)

@@ -34,7 +34,7 @@ from pathlib import Path
 from typing import Annotated, Any
 
 from anyio import to_thread
-from fastapi import APIRouter, Depends, Query, Request
+from fastapi import APIRouter, Depends, Query
 from fastapi.responses import FileResponse, StreamingResponse
 from pydantic import AfterValidator, BaseModel, Field, WithJsonSchema
 from pydantic_core import PydanticCustomError
@@ -44,6 +44,7 @@ from labd.api.builds import Builds
 from labd.api.common import Lab, blob_response
 from labd.api.errors import ApiError, responses
 from labd.api.models import Id
+from labd.api.state import App
 from labd.exports import export_records
 from repository.digests import readable_json
 from repository.export import ExportFormat
@@ -63,12 +64,9 @@ from scheduler.data import LocalArchive, resolve
 router = APIRouter(tags=["data"])
 
 
-async def _builds(request: Request, service: Lab) -> Builds:
-    """The app's export builds (made on the API's loop, so once)."""
-    builds: Builds | None = getattr(request.app.state, "builds", None)
-    if builds is None:
-        builds = request.app.state.builds = Builds(service.config.data / "exports")
-    return builds
+async def _builds(app: App) -> Builds:
+    """The app's export builds (``labd.api.state``)."""
+    return app.builds
 
 
 Building = Annotated[Builds, Depends(_builds)]

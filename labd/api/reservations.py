@@ -17,8 +17,9 @@
 
 The rules (slot length, limits per day and week, how far ahead, no overlap) are the
 operator's, enforced by ``repository.reservations``; a refusal is a 4xx naming the rule.
-When a slot is extended or released, ``app.state.on_reservation`` is told, so that the
-lab's bridge moves or ends the connections made with its key.
+When a slot is extended or released, the app's ``on_reservation`` is told
+(``labd.api.state``), so that the lab's bridge moves or ends the connections made with
+its key.
 """
 
 from __future__ import annotations
@@ -34,11 +35,10 @@ from fastapi.responses import JSONResponse, Response
 from icalendar import Calendar, Event
 from pydantic import BaseModel, ConfigDict, Field
 
-from labd.api.common import Lab, Writer, client_address
+from labd.api.common import Caller, Lab, Writer
 from labd.api.errors import ApiError, responses
 from labd.api.models import Id
-from labd.api.throttle import Throttle
-from labd.authorizer import ReservationAuthorizer
+from labd.api.state import App, AppState
 from repository.errors import KeyRefused, UnknownKey
 from repository.reservations import Reservation, State, when
 from repository.units import moment
@@ -138,25 +138,12 @@ def key_view(r: Reservation, key: str, request: Request, now: float) -> KeyView:
     )
 
 
-def robots(request: Request) -> tuple[str, ...]:
-    """The live robots that can be booked here."""
-    names: tuple[str, ...] = getattr(request.app.state, "robots", ())
-    return names
-
-
-def check_robot(request: Request, robot: str) -> None:
-    names = robots(request)
-    if robot not in names:
-        listed = ", ".join(names) or "none"
-        raise ApiError(
-            404, f"no live robot {robot!r} here; the robots that can be booked: {listed}"
-        )
-
-
-def changed(request: Request, reservation: Reservation) -> None:
-    notify = getattr(request.app.state, "on_reservation", None)
-    if notify is not None:
-        notify(reservation)
+def check_robot(app: AppState, robot: str) -> None:
+    """Refuse (404) a robot that cannot be booked here, naming those that can."""
+    if robot not in app.robots:
+        listed = ", ".join(app.robots) or "none"
+        message = f"no live robot {robot!r} here; the robots that can be booked: {listed}"
+        raise ApiError(404, message, title=f"No robot {robot}")
 
 
 @dataclass(frozen=True)
@@ -191,9 +178,9 @@ def list_reservations(
     status_code=201,
     responses=responses(400, 401, 403, 404, 409, 422, 429),
 )
-def book(body: BookRequest, request: Request, service: Lab, user: Writer) -> JSONResponse:
+def book(body: BookRequest, request: Request, service: Lab, app: App, user: Writer) -> JSONResponse:
     """Book a live robot for a slot; the answer has the slot's key."""
-    check_robot(request, body.robot)
+    check_robot(app, body.robot)
     now = service.index.clock()
     start = now if body.start is None else _epoch(body.start)
     if (body.end is None) == (body.minutes is None):
@@ -222,24 +209,31 @@ def show(reservation_id: Id, request: Request, service: Lab) -> ReservationView:
     responses=responses(400, 401, 403, 404, 409, 422, 429),
 )
 def extend(
-    reservation_id: Id, body: ExtendRequest, request: Request, service: Lab, user: Writer
+    reservation_id: Id,
+    body: ExtendRequest,
+    request: Request,
+    app: App,
+    user: Writer,
 ) -> ReservationView:
     """Make my slot end later, if the time after it is free and the rules allow."""
     if (body.end is None) == (body.minutes is None):
         raise ApiError(422, "give the new end or the minutes to add (one of them)")
+    service = app.service
     current = service.reservations.get(reservation_id)
     end = _epoch(body.end) if body.end is not None else current.end + float(body.minutes or 0) * 60
     longer = service.reservations.extend(user.name, reservation_id, end)
-    changed(request, longer)
+    app.on_reservation(longer)
     return view(longer, request, service.index.clock())
 
 
 @router.post("/api/reservations/{reservation_id}/release", responses=responses(401, 403, 404, 422))
-def release(reservation_id: Id, request: Request, service: Lab, user: Writer) -> ReservationView:
+def release(
+    reservation_id: Id, request: Request, service: Lab, app: App, user: Writer
+) -> ReservationView:
     """End my slot now (or cancel it, before it began): the rest is free for others, and
     a client connected with its key is disconnected."""
     released = service.reservations.release(user.name, reservation_id)
-    changed(request, released)
+    app.on_reservation(released)
     return view(released, request, service.index.clock())
 
 
@@ -257,9 +251,9 @@ def key(reservation_id: Id, request: Request, service: Lab, user: Writer) -> JSO
     response_model=KeyView,
     responses=responses(401, 403, 404),
 )
-def current_key(robot: str, request: Request, service: Lab, user: Writer) -> JSONResponse:
+def current_key(robot: str, request: Request, service: Lab, app: App, user: Writer) -> JSONResponse:
     """The key of my slot of ``robot`` that runs now (the robot's page asks for it)."""
-    check_robot(request, robot)
+    check_robot(app, robot)
     now = service.index.clock()
     found = service.reservations.current(user.name, robot)
     if found is None:
@@ -279,10 +273,10 @@ def current_key(robot: str, request: Request, service: Lab, user: Writer) -> JSO
         **responses(404),
     },
 )
-def calendar(robot: str, request: Request, service: Lab) -> Response:
+def calendar(robot: str, request: Request, service: Lab, app: App) -> Response:
     """The robot's slots as an iCalendar feed (who and when) for Google Calendar,
     Outlook or Thunderbird to subscribe to: from 30 days ago on."""
-    check_robot(request, robot)
+    check_robot(app, robot)
     now = service.index.clock()
     slots = service.reservations.find(robot=robot, since=now - PAST, released=True, limit=5000)
     return Response(
@@ -338,7 +332,8 @@ def ics(robot: str, slots: list[Reservation], request: Request) -> bytes:
     },
 )
 async def auth(
-    request: Request,
+    app: App,
+    caller: Caller,
     key: Annotated[str, Query(max_length=256, description="the key to check")],
     callback: Annotated[str | None, Query(max_length=200, description="JSONP")] = None,
     robot: Annotated[str | None, Query(description="the robot it is presented to")] = None,
@@ -350,16 +345,13 @@ async def auth(
     of the API's own pool (``labd.authorizer`` says where the lookup runs)."""
     if callback is not None and not CALLBACK.fullmatch(callback):
         raise ApiError(422, "callback must be a JavaScript function name, such as authorize")
-    address = client_address(request)
-    throttle: Throttle = request.app.state.throttle
-    throttle.check("key", address, "failed keys from your address")
-    keys: ReservationAuthorizer = request.app.state.keys
+    caller.check("key", "failed keys from your address")
     try:
-        access = await keys.check(key, robot)
+        access = await app.keys.check(key, robot)
         answer = AuthAnswer(seconds=round(access.seconds, 3), reason=None)
     except KeyRefused as err:
         if isinstance(err, UnknownKey):
-            throttle.fail("key", address)
+            caller.fail("key")
         answer = AuthAnswer(seconds=0, reason=err.reason)
     headers = {**NO_STORE, "X-Content-Type-Options": "nosniff"}
     if callback is None:

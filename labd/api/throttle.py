@@ -15,7 +15,9 @@ guessed at and from where. What counts, and per what:
 
 Only failures count for the first three, so a person who types their password right
 is never slowed down by them. The address is the socket's peer, or what a proxy the
-operator trusts says (``labd.api.common.client_address``).
+operator trusts says (``labd.api.common.client_address``); a route counts its caller's
+attempts through the dependency ``labd.api.common.Caller`` (``Attempts``), the API's and
+the pages' alike.
 """
 
 from __future__ import annotations
@@ -47,6 +49,27 @@ LIMITS = {
 def name_at(name: str, address: str) -> str:
     """Who the ``password`` limit counts: a name tried from an address."""
     return f"{name!r} from {address}"
+
+
+@dataclass(frozen=True)
+class Attempts:
+    """One caller's attempts: the throttle's checks and counts for their address, or
+    for a ``name`` tried from it (the ``password`` kind)."""
+
+    throttle: Throttle
+    address: str
+
+    def check(self, kind: str, what: str, *, name: str | None = None) -> None:
+        """Refuse (``TooMany``) if this caller tried ``kind`` too often lately; ``what``
+        is the attempts as the message names them ("failed keys from your address")."""
+        self.throttle.check(kind, self._who(name), what)
+
+    def fail(self, kind: str, *, name: str | None = None) -> None:
+        """Count an attempt of ``kind`` from this caller (a failure, or an account made)."""
+        self.throttle.fail(kind, self._who(name))
+
+    def _who(self, name: str | None) -> str:
+        return self.address if name is None else name_at(name, self.address)
 
 
 class Throttle:

@@ -3,39 +3,64 @@ forms to sign in, submit and rerun (``forms``), accounts and tokens (``accounts`
 reservations and the robots' calendars (``reservations``), the live robots' pages
 (``robots``), and the API's own documentation (``/docs``, ``/redoc``), every script and
 style served by the lab (``render``), every answer with the headers that keep other
-sites out (``headers``)."""
+sites out (``headers``). A page answers an error as the API's table says, as a page
+(``problems``); who is looking is a dependency (``session``)."""
 
 from __future__ import annotations
 
 from collections.abc import Callable
 
-from fastapi import FastAPI, Request
+from fastapi import APIRouter, FastAPI, Request
 from fastapi.responses import HTMLResponse
 
 from labd.api.app import create_app as create_api
+from labd.api.site import RobotLink, Site
 from labd.service import Service
 from labd.web import accounts, forms, pages, reservations, robots
 from labd.web.assets import Precompressed
 from labd.web.headers import SecurityHeaders
-from labd.web.render import STATIC, RobotLink, Site, page
-from labd.web.session import FormRefused
+from labd.web.problems import PageRoute
+from labd.web.render import STATIC, page
+from repository.reservations import Reservation
 
 __all__ = ["RobotLink", "Site", "create_app", "install"]
 
+docs = APIRouter(include_in_schema=False, route_class=PageRoute)
+
+
+@docs.get("/docs")
+def swagger(request: Request) -> HTMLResponse:
+    return page(request, "docs.html", {})
+
+
+@docs.get("/redoc")
+def redoc(request: Request) -> HTMLResponse:
+    return page(request, "redoc.html", {})
+
 
 def create_app(
-    service: Service, site: Site | None = None, *, on_submit: Callable[[], None] | None = None
+    service: Service,
+    site: Site | None = None,
+    *,
+    on_submit: Callable[[], None] | None = None,
+    on_reservation: Callable[[Reservation], None] | None = None,
 ) -> FastAPI:
     """The lab's whole HTTP face: the API over ``service`` and the pages."""
     site = site or Site()
-    app = create_api(service, on_submit=on_submit, robots=[r.name for r in site.robots if r.live])
-    install(app, site)
+    app = create_api(
+        service,
+        site,
+        on_submit=on_submit,
+        on_reservation=on_reservation,
+        robots=[r.name for r in site.robots if r.live],
+    )
+    install(app)
     return app
 
 
-def install(app: FastAPI, site: Site) -> None:
-    """Add the pages, the static files and offline API docs to ``app``."""
-    app.state.site = site
+def install(app: FastAPI) -> None:
+    """Add the pages, the static files and offline API docs to ``app`` (an app of
+    ``labd.api.app.create_app``, whose state holds the site)."""
     app.mount("/static", Precompressed(directory=STATIC), name="static")
     app.include_router(pages.router)
     app.include_router(forms.router)
@@ -43,18 +68,5 @@ def install(app: FastAPI, site: Site) -> None:
     app.include_router(robots.api)
     app.include_router(accounts.router)
     app.include_router(reservations.router)
-
-    @app.exception_handler(FormRefused)
-    def refused(request: Request, err: FormRefused) -> HTMLResponse:
-        context = {"title": err.title, "message": err.message, "back": request.url.path}
-        return page(request, "error.html", context, status_code=err.status)
-
-    @app.get("/docs", include_in_schema=False)
-    def swagger(request: Request) -> HTMLResponse:
-        return page(request, "docs.html", {})
-
-    @app.get("/redoc", include_in_schema=False)
-    def redoc(request: Request) -> HTMLResponse:
-        return page(request, "redoc.html", {})
-
+    app.include_router(docs)
     app.add_middleware(SecurityHeaders)

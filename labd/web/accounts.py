@@ -21,43 +21,40 @@ from __future__ import annotations
 import logging
 from typing import Annotated, Any
 
-from fastapi import APIRouter, Form, Request
+from fastapi import APIRouter, Depends, Form, Request
 from fastapi.responses import HTMLResponse, RedirectResponse
 from pydantic import BaseModel
 
-from labd.api.common import SESSION_COOKIE, Lab, client_address
-from labd.api.errors import TooMany
+from labd.api.common import SESSION_COOKIE, Caller, Lab
+from labd.api.errors import ApiError, Invalid, Unauthorized
 from labd.api.models import Id
-from labd.api.throttle import Throttle, name_at
 from labd.web.forms import local, signed_in
+from labd.web.problems import PageRoute, on_form
 from labd.web.render import page
-from labd.web.session import CsrfChecked, Viewer
-from repository.errors import AccountError, ArchiveError, BadCredentials, RecordNotFound
+from labd.web.session import CsrfChecked, Person, SignedIn, Viewer
+from repository.errors import ArchiveError, BadCredentials
+from repository.index import User
 
-router = APIRouter(include_in_schema=False)
+router = APIRouter(include_in_schema=False, route_class=PageRoute)
 log = logging.getLogger("labd.web")
+# The tokens' forms post to addresses of their own, and come back to the tokens page.
+TokenOwner = Annotated[User, Depends(SignedIn("/tokens"))]
 
 
-def _closed(request: Request, viewer: Viewer) -> HTMLResponse:
-    return page(
-        request,
-        "error.html",
-        {
-            "title": "Sign-up is closed here",
-            "message": "The lab's operator makes the accounts of this lab"
+def _open(service: Lab) -> None:
+    """Refuse (404) signing up where the operator makes the accounts."""
+    if not service.config.signup:
+        raise ApiError(
+            404,
+            "The lab's operator makes the accounts of this lab"
             " (labd users add NAME --password): ask them for one.",
-            "back": "/session",
-            "back_text": "Sign in",
-        },
-        user=viewer,
-        status_code=404,
-    )
+            title="Sign-up is closed here",
+        )
 
 
 @router.get("/signup", response_class=HTMLResponse)
 def signup_form(request: Request, service: Lab, viewer: Viewer, then: str = "/") -> HTMLResponse:
-    if not service.config.signup:
-        return _closed(request, viewer)
+    _open(service)
     context = {"then": local(then), "problem": None, "name": ""}
     return page(request, "signup.html", context, user=viewer)
 
@@ -71,56 +68,54 @@ class SignupForm(BaseModel):
 
 @router.post("/signup", response_class=HTMLResponse, dependencies=[CsrfChecked])
 def signup(
-    request: Request, service: Lab, viewer: Viewer, sent: Annotated[SignupForm, Form()]
+    request: Request,
+    service: Lab,
+    caller: Caller,
+    viewer: Viewer,
+    sent: Annotated[SignupForm, Form()],
 ) -> Any:
-    if not service.config.signup:
-        return _closed(request, viewer)
-    name, password, again, then = sent.name.strip(), sent.password, sent.again, sent.then
-    address = client_address(request)
-    throttle: Throttle = request.app.state.throttle
-    problem = None
-    status = 422
-    try:
-        throttle.check("address", address, "failed sign-ups from your address")
-        throttle.check("signup", address, "sign-ups from your address")
-        if password != again:
-            problem = "the two passwords differ; type the same one twice"
-        else:
-            user = service.accounts.sign_up(name, password)
-            throttle.fail("signup", address)  # every account made counts
-            log.info("%s signed up from %s", user.name, address)
-            return signed_in(request, service, user, then)
-    except TooMany as err:
-        problem, status = err.message, 429
-    except ArchiveError as err:
-        throttle.fail("address", address)  # many names tried from one address
-        log.info("sign-up as %r from %s refused: %s", name, address, err)
-        problem = str(err)
-    context = {"then": local(then), "problem": problem, "name": name}
-    return page(request, "signup.html", context, user=viewer, status_code=status)
+    _open(service)
+    name, then = sent.name.strip(), sent.then
+
+    def shown(problem: str, status: int) -> HTMLResponse:
+        context = {"then": local(then), "problem": problem, "name": name}
+        return page(request, "signup.html", context, user=viewer, status_code=status)
+
+    with on_form(request, shown):
+        caller.check("address", "failed sign-ups from your address")
+        caller.check("signup", "sign-ups from your address")
+        if sent.password != sent.again:
+            raise Invalid("the two passwords differ; type the same one twice")
+        try:
+            user = service.accounts.sign_up(name, sent.password)
+        except ArchiveError as err:
+            caller.fail("address")  # many names tried from one address
+            log.info("sign-up as %r from %s refused: %s", name, caller.address, err)
+            raise
+    caller.fail("signup")  # every account made counts
+    log.info("%s signed up from %s", user.name, caller.address)
+    return signed_in(request, service, user, then)
 
 
 def _password_page(
     request: Request,
-    viewer: Viewer,
+    person: User,
     *,
     problem: str | None = None,
     done: str | None = None,
     status: int = 200,
 ) -> HTMLResponse:
     context = {"problem": problem, "done": done}
-    return page(request, "password.html", context, user=viewer, status_code=status)
+    return page(request, "password.html", context, user=person, status_code=status)
 
 
 @router.get("/password", response_class=HTMLResponse)
-def password_form(request: Request, viewer: Viewer, done: str = "") -> Any:
-    if viewer is None:
-        return RedirectResponse("/session?then=/password", status_code=303)
+def password_form(request: Request, person: Person, done: str = "") -> HTMLResponse:
     ended = (
         f"; your other sign-ins ({done}) have ended" if done.isascii() and done.isdigit() else ""
     )
     return _password_page(
-        request, viewer, done=f"Your password is changed{ended}." if done else None
+        request, person, done=f"Your password is changed{ended}." if done else None
     )
 
 
@@ -132,33 +127,33 @@ class PasswordForm(BaseModel):
 
 @router.post("/password", response_class=HTMLResponse, dependencies=[CsrfChecked])
 def change_password(
-    request: Request, service: Lab, viewer: Viewer, sent: Annotated[PasswordForm, Form()]
+    request: Request,
+    service: Lab,
+    caller: Caller,
+    person: Person,
+    sent: Annotated[PasswordForm, Form()],
 ) -> Any:
     """Change my password: my other sessions end (whoever signed in with the old one is
     signed out), this one stays; my API tokens stay (revoke them on /tokens)."""
-    if viewer is None:
-        return RedirectResponse("/session?then=/password", status_code=303)
-    address = client_address(request)
-    throttle: Throttle = request.app.state.throttle
-    who = name_at(viewer.name, address)
-    if sent.password != sent.again:
-        problem = "the two new passwords differ; type the same one twice"
-        return _password_page(request, viewer, problem=problem, status=422)
-    try:
-        throttle.check("password", who, "failed passwords from your address")
-        ended = service.accounts.change_password(
-            viewer.name, sent.current, sent.password, keep=request.cookies.get(SESSION_COOKIE)
-        )
-    except TooMany as err:
-        return _password_page(request, viewer, problem=err.message, status=429)
-    except BadCredentials:
-        throttle.fail("password", who)
-        problem = "that is not your current password"
-        return _password_page(request, viewer, problem=problem, status=401)
-    except AccountError as err:
-        return _password_page(request, viewer, problem=str(err), status=422)
+    with on_form(
+        request,
+        lambda problem, status: _password_page(request, person, problem=problem, status=status),
+    ):
+        if sent.password != sent.again:
+            raise Invalid("the two new passwords differ; type the same one twice")
+        caller.check("password", "failed passwords from your address", name=person.name)
+        try:
+            ended = service.accounts.change_password(
+                person.name, sent.current, sent.password, keep=request.cookies.get(SESSION_COOKIE)
+            )
+        except BadCredentials:
+            caller.fail("password", name=person.name)
+            raise Unauthorized("that is not your current password") from None
     log.info(
-        "%s changed their password from %s; %d other sessions ended", viewer.name, address, ended
+        "%s changed their password from %s; %d other sessions ended",
+        person.name,
+        caller.address,
+        ended,
     )
     return RedirectResponse(f"/password?done={ended}", status_code=303)
 
@@ -166,41 +161,36 @@ def change_password(
 def _tokens(
     request: Request,
     service: Lab,
-    viewer: Viewer,
+    person: User,
     *,
     new: str | None = None,
     problem: str | None = None,
     status: int = 200,
-) -> Any:
-    if viewer is None:
-        return RedirectResponse("/session?then=/tokens", status_code=303)
-    context = {"tokens": service.accounts.tokens(viewer.name), "new": new, "problem": problem}
-    return page(request, "tokens.html", context, user=viewer, status_code=status)
+) -> HTMLResponse:
+    context = {"tokens": service.accounts.tokens(person.name), "new": new, "problem": problem}
+    return page(request, "tokens.html", context, user=person, status_code=status)
 
 
 @router.get("/tokens", response_class=HTMLResponse)
-def tokens(request: Request, service: Lab, viewer: Viewer) -> Any:
-    return _tokens(request, service, viewer)
+def tokens(request: Request, service: Lab, person: Person) -> HTMLResponse:
+    return _tokens(request, service, person)
 
 
 @router.post("/tokens", response_class=HTMLResponse, dependencies=[CsrfChecked])
 def new_token(
-    request: Request, service: Lab, viewer: Viewer, label: Annotated[str, Form()] = ""
-) -> Any:
-    if viewer is None:
-        return RedirectResponse("/session?then=/tokens", status_code=303)
-    _, token = service.accounts.new_token(viewer.name, label)
-    response = _tokens(request, service, viewer, new=token, status=201)
+    request: Request, service: Lab, person: TokenOwner, label: Annotated[str, Form()] = ""
+) -> HTMLResponse:
+    _, token = service.accounts.new_token(person.name, label)
+    response = _tokens(request, service, person, new=token, status=201)
     response.headers["Cache-Control"] = "no-store"
     return response
 
 
 @router.post("/tokens/{token_id}/revoke", dependencies=[CsrfChecked])
-def revoke(request: Request, token_id: Id, service: Lab, viewer: Viewer) -> Any:
-    if viewer is None:
-        return RedirectResponse("/session?then=/tokens", status_code=303)
-    try:
-        service.accounts.revoke_token(viewer.name, token_id)
-    except RecordNotFound:
-        return _tokens(request, service, viewer, problem="you have no such token", status=404)
+def revoke(request: Request, token_id: Id, service: Lab, person: TokenOwner) -> Any:
+    with on_form(
+        request,
+        lambda problem, status: _tokens(request, service, person, problem=problem, status=status),
+    ):
+        service.accounts.revoke_token(person.name, token_id)
     return RedirectResponse("/tokens", status_code=303)

@@ -9,10 +9,11 @@
 
 A submission goes through the same checks as ``POST /api/trials`` (the same request
 model, the same submissions object), and a refusal is shown on the form with what the
-person typed kept, so they can correct it. Every form that changes something carries
-the CSRF token (``labd.web.session``). Failed sign-ins are counted per name and address,
-and per address (``labd.api.throttle``): past the limit they are refused unchecked for a
-while; a guesser elsewhere never locks the owner out.
+person typed kept, so they can correct it, under the status the API gives it
+(``labd.web.problems.on_form``). Every form that changes something carries the CSRF
+token (``labd.web.session``). Failed sign-ins are counted per name and address, and per
+address (``labd.api.throttle``): past the limit they are refused unchecked for a while;
+a guesser elsewhere never locks the owner out.
 """
 
 from __future__ import annotations
@@ -20,24 +21,24 @@ from __future__ import annotations
 import logging
 from typing import Annotated, Any
 
-from fastapi import APIRouter, Form, Request
+from fastapi import APIRouter, Depends, Form, Request
 from fastapi.responses import HTMLResponse, RedirectResponse
 from pydantic import BaseModel, ValidationError
 
-from labd.api.common import SESSION_COOKIE, Lab, client_address
-from labd.api.errors import TooMany
+from labd.api.common import SESSION_COOKIE, Caller, Lab
+from labd.api.errors import Invalid, Unauthorized, invalid
 from labd.api.models import Id
-from labd.api.throttle import Throttle, name_at
+from labd.api.state import App
 from labd.config import assignment
 from labd.sim import registry
+from labd.web.problems import PageRoute, on_form
 from labd.web.render import page
-from labd.web.session import CsrfChecked, Viewer, set_session_cookie
-from repository.errors import BadCredentials, RecordNotFound
+from labd.web.session import CsrfChecked, Person, SignedIn, Viewer, set_session_cookie
+from repository.errors import BadCredentials
 from repository.index import User
 from repository.trial import TrialRequest, Value
-from scheduler.errors import QueueError, TrialError
 
-router = APIRouter(include_in_schema=False)
+router = APIRouter(include_in_schema=False, route_class=PageRoute)
 
 
 log = logging.getLogger("labd.web")
@@ -83,36 +84,39 @@ class SigninForm(BaseModel):
 
 @router.post("/session", response_class=HTMLResponse, dependencies=[CsrfChecked])
 def signin(
-    request: Request, service: Lab, viewer: Viewer, sent: Annotated[SigninForm, Form()]
+    request: Request,
+    service: Lab,
+    caller: Caller,
+    viewer: Viewer,
+    sent: Annotated[SigninForm, Form()],
 ) -> Any:
-    address = client_address(request)
-    throttle: Throttle = request.app.state.throttle
-    name, password, token, then = sent.name.strip(), sent.password, sent.token, sent.then
-    try:
-        throttle.check("address", address, "failed sign-ins from your address")
-        if token.strip():
-            user = service.index.user_by_token(token.strip())
+    name, token, then = sent.name.strip(), sent.token.strip(), sent.then
+    with on_form(
+        request,
+        lambda problem, status: _signin(
+            request, service, viewer, then, problem, status=status, name=name
+        ),
+    ):
+        caller.check("address", "failed sign-ins from your address")
+        if token:
+            user = service.index.user_by_token(token)
             if user is None:
-                throttle.fail("address", address)
-                log.info("sign-in with an unknown token from %s", address)
-                return _signin(
-                    request, service, viewer, then, "the lab does not know that token", status=401
-                )
+                caller.fail("address")
+                log.info("sign-in with an unknown token from %s", caller.address)
+                raise Unauthorized("the lab does not know that token")
         else:
-            throttle.check(
+            caller.check(
                 "password",
-                name_at(name, address),
                 f"failed sign-ins for {name or 'that name'} from your address",
+                name=name,
             )
             try:
-                user = service.accounts.check_password(name, password)
-            except BadCredentials as err:
-                throttle.fail("password", name_at(name, address))
-                throttle.fail("address", address)
-                log.info("failed sign-in for %r from %s", name, address)
-                return _signin(request, service, viewer, then, str(err), status=401, name=name)
-    except TooMany as err:
-        return _signin(request, service, viewer, then, err.message, status=429, name=name)
+                user = service.accounts.check_password(name, sent.password)
+            except BadCredentials:
+                caller.fail("password", name=name)
+                caller.fail("address")
+                log.info("failed sign-in for %r from %s", name, caller.address)
+                raise
     return signed_in(request, service, user, then)
 
 
@@ -165,34 +169,31 @@ class SubmitForm(BaseModel):
     params: str = ""
     seed: str = "0"
 
+    def request(self) -> TrialRequest:
+        """The submission these fields ask for (``Invalid`` saying which is wrong)."""
+        try:
+            return TrialRequest(
+                repository=self.repository.strip(),
+                ref=self.ref.strip() or None,
+                task=self.task or None,
+                params=_params(self.params),
+                seed=int(self.seed or 0),
+            )
+        except ValidationError as err:
+            raise Invalid(invalid(err.errors())) from None
+        except ValueError as err:  # the seed or a parameter line
+            raise Invalid(str(err)) from None
+
 
 @router.post("/submit", response_class=HTMLResponse, dependencies=[CsrfChecked])
 async def submit(
-    request: Request, service: Lab, viewer: Viewer, sent: Annotated[SubmitForm, Form()]
+    request: Request, service: Lab, app: App, person: Person, sent: Annotated[SubmitForm, Form()]
 ) -> Any:
     """Submit from the form; resolved in the submissions' own threads, as the API's are."""
     form = sent.model_dump()
-    if viewer is None:
-        return _form(request, viewer, form, "sign in first: submitting needs an account", 401)
-    try:
-        body = TrialRequest(
-            repository=sent.repository.strip(),
-            ref=sent.ref.strip() or None,
-            task=sent.task or None,
-            params=_params(sent.params),
-            seed=int(sent.seed or 0),
-        )
-        trial_id = await service.submissions.submit_async(viewer, body)
-    except ValidationError as err:
-        problems = "; ".join(
-            f"{'.'.join(str(x) for x in e['loc'])}: {e['msg']}" for e in err.errors()
-        )
-        return _form(request, viewer, form, problems, 422)
-    except ValueError as err:  # the seed or a parameter line
-        return _form(request, viewer, form, str(err), 422)
-    except (TrialError, QueueError) as err:
-        return _form(request, viewer, form, str(err), 422)
-    request.app.state.on_submit()
+    with on_form(request, lambda problem, status: _form(request, person, form, problem, status)):
+        trial_id = await service.submissions.submit_async(person, sent.request())
+    app.on_submit()
     return RedirectResponse(f"/trials/{trial_id}", status_code=303)
 
 
@@ -209,20 +210,14 @@ def _params(text: str) -> dict[str, Value]:
 
 
 @router.post("/trials/{trial_id}/rerun", dependencies=[CsrfChecked])
-def rerun(request: Request, trial_id: Id, service: Lab, viewer: Viewer) -> Any:
-    if viewer is None:
-        return RedirectResponse(f"/session?then=/trials/{trial_id}", status_code=303)
-    try:
-        new_id = service.submissions.rerun(viewer, trial_id)
-    except (RecordNotFound, QueueError) as err:
-        return page(
-            request,
-            "error.html",
-            {"title": "Not rerun", "message": str(err), "back": f"/trials/{trial_id}"},
-            user=viewer,
-            status_code=422,
-        )
-    request.app.state.on_submit()
+def rerun(
+    trial_id: Id,
+    service: Lab,
+    app: App,
+    person: Annotated[User, Depends(SignedIn("/trials/{trial_id}"))],
+) -> RedirectResponse:
+    new_id = service.submissions.rerun(person, trial_id)
+    app.on_submit()
     return RedirectResponse(f"/trials/{new_id}", status_code=303)
 
 

@@ -26,7 +26,8 @@ import secrets
 from starlette.datastructures import URL, MutableHeaders
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
-from labd.web.render import Site
+from labd.api.site import Site
+from labd.api.state import state_of
 
 ALWAYS = {"X-Content-Type-Options": "nosniff", "Referrer-Policy": "same-origin"}
 NOT_A_PAGE = "default-src 'none'; frame-ancestors 'none'"
@@ -74,7 +75,7 @@ class SecurityHeaders:
                 for name, value in ALWAYS.items():
                     headers.setdefault(name, value)
                 if headers.get("content-type", "").startswith("text/html"):
-                    site: Site = scope["app"].state.site
+                    site = state_of(scope["app"]).site
                     host = _host(scope)
                     headers["Content-Security-Policy"] = policy(nonce, site, host)
                     headers["X-Frame-Options"] = "DENY"

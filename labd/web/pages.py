@@ -9,7 +9,8 @@
     GET /tasks/{name}       the task's documentation, parameters and leaderboard
 
 They read the same typed records as the API (``repository.trial.Trial``), server-side;
-an unknown id or sha is a page saying so, with a way back, never JSON.
+an unknown id or sha is a page saying so, with the API's status and words, never JSON
+(``labd.web.problems``).
 """
 
 from __future__ import annotations
@@ -23,46 +24,29 @@ from fastapi import APIRouter, Depends, Query, Request
 from fastapi.responses import HTMLResponse
 
 from labd.api.common import Lab
+from labd.api.errors import Invalid
 from labd.api.models import Id, trial_detail
+from labd.api.state import App
 from labd.sim import registry
-from labd.web.render import Site, page
+from labd.web.problems import PageRoute, on_form
+from labd.web.render import page
 from labd.web.session import Viewer
-from repository.errors import ArchiveError, BlobError, RecordNotFound
+from repository.errors import BlobError
 from repository.index import Derived, Filters, Order
 from repository.trial import Kind, Outcome, Status, Trial
 from repository.units import KiB
 from repository.well_known import REPLAY, SUMMARY, VIDEO
 from scheduler.canary import State
 
-router = APIRouter(include_in_schema=False)
+router = APIRouter(include_in_schema=False, route_class=PageRoute)
 PAGE = 50
 LOG_SHOWN = 64 * KiB  # bytes of a log shown on its trial's page (the end of it)
 # What the outcome menu also offers: the states of a trial that has no outcome.
 WITHOUT_OUTCOME = tuple(s for s in Status if s is not Status.FINISHED)
 
 
-def site(request: Request) -> Site:
-    found: Site = getattr(request.app.state, "site", Site())
-    return found
-
-
-def missing(request: Request, viewer: Viewer, title: str, message: str) -> HTMLResponse:
-    return page(
-        request,
-        "error.html",
-        {
-            "title": title,
-            "message": message,
-            "back": "/trials",
-            "back_text": "Find it among the trials",
-        },
-        user=viewer,
-        status_code=404,
-    )
-
-
 @router.get("/", response_class=HTMLResponse)
-def home(request: Request, service: Lab, viewer: Viewer) -> HTMLResponse:
+def home(request: Request, service: Lab, app: App, viewer: Viewer) -> HTMLResponse:
     tasks = [registry.get(name) for name in registry.names()]
     recent = service.index.find(Filters(), limit=10).items
     running = service.queue.running()
@@ -71,7 +55,7 @@ def home(request: Request, service: Lab, viewer: Viewer) -> HTMLResponse:
         "home.html",
         {
             "tasks": tasks,
-            "site": site(request),
+            "site": app.site,
             "recent": recent,
             "running": running,
             "queued": service.queue.queued(),
@@ -116,10 +100,29 @@ def trials(
     }
     repository, commit, task, outcome, user = q.repository, q.commit, q.task, q.outcome, q.user
     since, until, kind, before, page_number = q.since, q.until, q.kind, q.before, q.page
-    problem = None
-    items: list[Trial] = []
-    next_cursor = None
-    try:
+    query = {k: v for k, v in form.items() if v and not (k == "order" and v is Order.TIME)}
+
+    def shown(
+        items: list[Trial], next_cursor: int | None, problem: str | None, status: int
+    ) -> HTMLResponse:
+        return page(
+            request,
+            "trials.html",
+            {
+                "trials": items,
+                "form": form,
+                "problem": problem,
+                "tasks": registry.names(),
+                "outcomes": [o.value for o in (*Outcome, *WITHOUT_OUTCOME)],
+                "next_cursor": next_cursor,
+                "page_number": page_number,
+                "query": query,
+            },
+            user=viewer,
+            status_code=status,
+        )
+
+    with on_form(request, lambda problem, status: shown([], None, problem, status)):
         filters = Filters(
             repository=repository or None,
             commit=commit or None,
@@ -137,26 +140,7 @@ def trials(
             )
         else:
             found = service.index.find(filters, limit=PAGE, before=before)
-        items, next_cursor = found.items, found.next
-    except (ArchiveError, ValueError) as err:
-        problem = str(err)
-    query = {k: v for k, v in form.items() if v and not (k == "order" and v is Order.TIME)}
-    return page(
-        request,
-        "trials.html",
-        {
-            "trials": items,
-            "form": form,
-            "problem": problem,
-            "tasks": registry.names(),
-            "outcomes": [o.value for o in (*Outcome, *WITHOUT_OUTCOME)],
-            "next_cursor": next_cursor,
-            "page_number": page_number,
-            "query": query,
-        },
-        user=viewer,
-        status_code=422 if problem else 200,
-    )
+    return shown(found.items, found.next, None, 200)
 
 
 def _enum(kind: Any, value: str | None, name: str) -> Any:
@@ -165,7 +149,7 @@ def _enum(kind: Any, value: str | None, name: str) -> Any:
     try:
         return kind(value)
     except ValueError:
-        raise ValueError(f"{name} {value!r}: choose one of the list") from None
+        raise Invalid(f"{name} {value!r}: choose one of the list") from None
 
 
 def _status(outcome: str | None) -> Status | None:
@@ -179,19 +163,14 @@ def _day(text: str | None, name: str, *, end: bool = False) -> float | None:
     try:
         day = dt.date.fromisoformat(text)
     except ValueError:
-        raise ValueError(f"{name} {text!r}: give a date as YYYY-MM-DD") from None
+        raise Invalid(f"{name} {text!r}: give a date as YYYY-MM-DD") from None
     moment = dt.datetime.combine(day, dt.time(), dt.UTC)
     return (moment + dt.timedelta(days=1 if end else 0)).timestamp()
 
 
 @router.get("/trials/{trial_id}", response_class=HTMLResponse)
 def trial(request: Request, trial_id: Id, service: Lab, viewer: Viewer) -> HTMLResponse:
-    try:
-        record = service.index.trial(trial_id)
-    except RecordNotFound:
-        return missing(
-            request, viewer, f"No trial {trial_id}", "The archive has no trial by that number."
-        )
+    record = service.index.trial(trial_id)
     base = str(request.base_url).rstrip("/")
     reruns = service.index.find(Filters(rerun_of=trial_id), limit=20).items
     logs = {stream: _log(service, getattr(record, stream)) for stream in ("stdout", "stderr")}
@@ -244,26 +223,12 @@ def _log(service: Lab, digest: str | None) -> dict[str, Any] | None:
 
 @router.get("/commits/{sha}", response_class=HTMLResponse)
 def commit(request: Request, sha: str, service: Lab, viewer: Viewer) -> HTMLResponse:
-    try:
-        found = service.index.commit_page(sha)
-    except RecordNotFound:
-        return missing(
-            request,
-            viewer,
-            "No such commit",
-            f"No trial in the archive ran a commit starting {sha}.",
-        )
-    except ArchiveError as err:
-        return missing(request, viewer, "Not a commit", str(err))
+    found = service.index.commit_page(sha)
     return page(request, "commit.html", {"c": found}, user=viewer)
 
 
 @router.get("/tasks/{name}", response_class=HTMLResponse)
 def task(request: Request, name: str, service: Lab, viewer: Viewer) -> HTMLResponse:
-    if name not in registry.names():
-        return missing(
-            request, viewer, f"No task {name}", f"The tasks are {', '.join(registry.names())}."
-        )
     spec = registry.get(name)
     observations, commands = spec.topics()
     return page(

@@ -8,13 +8,9 @@ the npm packages there at set-up), so the pages work with no internet.
 
 from __future__ import annotations
 
-import asyncio
 import datetime as dt
 import json
 import math
-import random
-from collections.abc import Mapping
-from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -23,7 +19,6 @@ from fastapi.templating import Jinja2Templates
 from starlette.responses import HTMLResponse
 
 from labd import __version__
-from labd.live import Driving
 from labd.web.session import CSRF_COOKIE
 from repository.formats import FORMATS
 from repository.index import User
@@ -33,35 +28,6 @@ from repository.units import moment
 HERE = Path(__file__).resolve().parent
 STATIC = HERE / "static"
 VENDOR = STATIC / "vendor"
-
-
-@dataclass(frozen=True)
-class RobotLink:
-    """A live robot ``labd serve`` hosts, as the pages list it."""
-
-    name: str
-    task: str
-    live: bool
-
-
-@dataclass(frozen=True)
-class Site:
-    """What the pages know of the lab beyond its archive: its live robots, its bridge."""
-
-    robots: tuple[RobotLink, ...] = ()
-    bridge_port: int | None = None
-    bridge_tls: bool = False  # the bridge speaks wss://
-    # Who drives each live robot, by name (``labd.live``): the robots' pages and list.
-    drives: Mapping[str, Driving] = field(default_factory=dict)
-    # The share of robot-page sessions shown the camera (interface A, "video"); the
-    # others get the perceptual space (B). Drawn per page load with ``rng``.
-    interface_ratio: float = 0.5
-    rng: random.Random = field(default_factory=random.Random)
-    reservations: bool = False  # live robots are driven only with a reservation's key
-    # The loop the live robots step on, when the pages run on another (``labd.lab``):
-    # what touches a robot is done there, between two ticks. None: the pages' own.
-    robots_loop: asyncio.AbstractEventLoop | None = None
-    extra: dict[str, Any] = field(default_factory=dict)
 
 
 def when(moment: dt.datetime | None) -> str:

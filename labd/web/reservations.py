@@ -20,24 +20,27 @@ import datetime as dt
 from dataclasses import dataclass
 from typing import Annotated, Any
 
-from fastapi import APIRouter, Form, Request
+from fastapi import APIRouter, Depends, Form, Request
 from fastapi.responses import HTMLResponse, RedirectResponse
 from pydantic import BaseModel
 
-from labd.api.common import Lab
-from labd.api.errors import ApiError
+from labd.api.errors import Invalid
 from labd.api.models import Id
-from labd.api.reservations import changed, check_robot, robots
+from labd.api.reservations import check_robot
+from labd.api.state import App
+from labd.web.problems import PageRoute, on_form
 from labd.web.render import page
-from labd.web.session import CsrfChecked, Viewer
-from repository.errors import RecordNotFound, ReservationError
+from labd.web.session import CsrfChecked, SignedIn, Viewer
 from repository.index import User
 from repository.reservations import Reservation, duration
 from repository.units import moment
 
-router = APIRouter(include_in_schema=False)
+router = APIRouter(include_in_schema=False, route_class=PageRoute)
 DAY = 86400.0
 AHEAD = 7 * DAY  # how far the overview looks ahead
+WHEN = "give the start as YYYY-MM-DD HH:MM (UTC) and the length in minutes"
+# The booking forms come back to the overview, where they are.
+Booker = Annotated[User, Depends(SignedIn("/reservations"))]
 
 
 @dataclass(frozen=True)
@@ -50,7 +53,7 @@ class Day:
 
 def _overview(
     request: Request,
-    service: Lab,
+    app: App,
     viewer: User | None,
     *,
     form: dict[str, str] | None = None,
@@ -58,8 +61,9 @@ def _overview(
     done: str | None = None,
     status: int = 200,
 ) -> HTMLResponse:
+    service = app.service
     now = service.index.clock()
-    names = robots(request)
+    names = app.robots
     upcoming = {r: service.reservations.find(robot=r, since=now, until=now + AHEAD) for r in names}
     mine = service.reservations.find(user=viewer.name, since=now, limit=100) if viewer else []
     rules = service.reservations.rules
@@ -76,22 +80,16 @@ def _overview(
             "done": done,
             "rules": rules,
             "duration": duration,
-            "reserved": _reserved(request),
+            "reserved": app.site.reservations,
         },
         user=viewer,
         status_code=status,
     )
 
 
-def _reserved(request: Request) -> bool:
-    """Whether the lab's robots are driven only with a reservation (labd serve --reservations)."""
-    site = getattr(request.app.state, "site", None)
-    return bool(getattr(site, "reservations", False))
-
-
 @router.get("/reservations", response_class=HTMLResponse)
-def overview(request: Request, service: Lab, viewer: Viewer, done: str = "") -> HTMLResponse:
-    return _overview(request, service, viewer, done=done or None)
+def overview(request: Request, app: App, viewer: Viewer, done: str = "") -> HTMLResponse:
+    return _overview(request, app, viewer, done=done or None)
 
 
 class BookForm(BaseModel):
@@ -103,26 +101,20 @@ class BookForm(BaseModel):
 
 
 @router.post("/reservations", response_class=HTMLResponse, dependencies=[CsrfChecked])
-def book(request: Request, service: Lab, viewer: Viewer, sent: Annotated[BookForm, Form()]) -> Any:
+def book(request: Request, app: App, person: Booker, sent: Annotated[BookForm, Form()]) -> Any:
     robot, start, minutes = sent.robot, sent.start, sent.minutes
     form = {"robot": robot, "start": start, "minutes": minutes}
-    if viewer is None:
-        return _overview(
-            request, service, viewer, form=form, problem="sign in first to book", status=401
-        )
-    try:
-        check_robot(request, robot)
-        now = service.index.clock()
+    with on_form(
+        request,
+        lambda problem, status: _overview(
+            request, app, person, form=form, problem=problem, status=status
+        ),
+    ):
+        check_robot(app, robot)
+        now = app.service.index.clock()
         begin = now if not start.strip() else _utc(start)
-        length = float(minutes)
-        made = service.reservations.book(viewer.name, robot, begin, begin + length * 60)
-    except ValueError:
-        problem = "give the start as YYYY-MM-DD HH:MM (UTC) and the length in minutes"
-        return _overview(request, service, viewer, form=form, problem=problem, status=422)
-    except (ApiError, ReservationError) as err:
-        problem = err.message if isinstance(err, ApiError) else str(err)
-        code = err.status if isinstance(err, ApiError) else 422
-        return _overview(request, service, viewer, form=form, problem=problem, status=code)
+        length = _number(minutes, WHEN)
+        made = app.service.reservations.book(person.name, robot, begin, begin + length * 60)
     return RedirectResponse(
         f"/reservations?done=booked+reservation+{made.reservation.id}#mine", status_code=303
     )
@@ -132,53 +124,41 @@ def book(request: Request, service: Lab, viewer: Viewer, sent: Annotated[BookFor
 def extend(
     request: Request,
     reservation_id: Id,
-    service: Lab,
-    viewer: Viewer,
+    app: App,
+    person: Booker,
     minutes: Annotated[str, Form()] = "15",
 ) -> Any:
-    if viewer is None:
-        return RedirectResponse("/session?then=/reservations", status_code=303)
-    try:
+    service = app.service
+    with on_form(
+        request,
+        lambda problem, status: _overview(request, app, person, problem=problem, status=status),
+    ):
+        more = _number(minutes, "give minutes as a number")
         current = service.reservations.get(reservation_id)
-        longer = service.reservations.extend(
-            viewer.name, reservation_id, current.end + float(minutes) * 60
-        )
-    except ValueError:
-        return _overview(request, service, viewer, problem="give minutes as a number", status=422)
-    except (RecordNotFound, ReservationError) as err:
-        return _overview(request, service, viewer, problem=str(err), status=422)
-    changed(request, longer)
+        longer = service.reservations.extend(person.name, reservation_id, current.end + more * 60)
+    app.on_reservation(longer)
     return RedirectResponse(
         f"/reservations?done=extended+reservation+{reservation_id}#mine", status_code=303
     )
 
 
 @router.post("/reservations/{reservation_id}/release", dependencies=[CsrfChecked])
-def release(request: Request, reservation_id: Id, service: Lab, viewer: Viewer) -> Any:
-    if viewer is None:
-        return RedirectResponse("/session?then=/reservations", status_code=303)
-    try:
-        released = service.reservations.release(viewer.name, reservation_id)
-    except (RecordNotFound, ReservationError) as err:
-        return _overview(request, service, viewer, problem=str(err), status=422)
-    changed(request, released)
+def release(request: Request, reservation_id: Id, app: App, person: Booker) -> Any:
+    with on_form(
+        request,
+        lambda problem, status: _overview(request, app, person, problem=problem, status=status),
+    ):
+        released = app.service.reservations.release(person.name, reservation_id)
+    app.on_reservation(released)
     return RedirectResponse(
         f"/reservations?done=released+reservation+{reservation_id}#mine", status_code=303
     )
 
 
 @router.get("/reservations/{robot}", response_class=HTMLResponse)
-def calendar(request: Request, robot: str, service: Lab, viewer: Viewer) -> HTMLResponse:
-    try:
-        check_robot(request, robot)
-    except ApiError as err:
-        return page(
-            request,
-            "error.html",
-            {"title": f"No robot {robot}", "message": err.message, "back": "/reservations"},
-            user=viewer,
-            status_code=404,
-        )
+def calendar(request: Request, robot: str, app: App, viewer: Viewer) -> HTMLResponse:
+    check_robot(app, robot)
+    service = app.service
     now = service.index.clock()
     first = now - now % DAY
     horizon = service.reservations.rules.horizon
@@ -208,9 +188,21 @@ def calendar(request: Request, robot: str, service: Lab, viewer: Viewer) -> HTML
     )
 
 
+def _number(text: str, problem: str) -> float:
+    """A number typed in a form (``Invalid`` saying ``problem`` if it is not one)."""
+    try:
+        return float(text)
+    except ValueError:
+        raise Invalid(problem) from None
+
+
 def _utc(text: str) -> float:
-    """``YYYY-MM-DDTHH:MM`` (a datetime-local field) or with a space, as UTC."""
-    moment = dt.datetime.fromisoformat(text.strip().replace(" ", "T"))
+    """``YYYY-MM-DDTHH:MM`` (a datetime-local field) or with a space, as UTC (``Invalid``
+    if it is neither)."""
+    try:
+        moment = dt.datetime.fromisoformat(text.strip().replace(" ", "T"))
+    except ValueError:
+        raise Invalid(WHEN) from None
     if moment.tzinfo is None:
         moment = moment.replace(tzinfo=dt.UTC)
     return moment.timestamp()

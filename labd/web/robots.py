@@ -19,30 +19,21 @@ experimenters. The page sends the assignment as its drive's ``interface``
 
 from __future__ import annotations
 
-import asyncio
-import copy
 import secrets
-from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any, TypeVar
 
-import mujoco
-import numpy as np
-import orjson
 from fastapi import APIRouter, Request
 from fastapi.responses import HTMLResponse, Response
 from pydantic import BaseModel
 
 from labd.api.errors import ApiError, responses
-from labd.live import Driving
-from labd.recorder import scene
-from labd.sim.simulation import Simulation
-from labd.web.pages import missing, site
-from labd.web.render import RobotLink, Site, page
+from labd.api.site import RobotLink, Site
+from labd.api.state import App
+from labd.web.problems import PageRoute
+from labd.web.render import page
 from labd.web.session import Viewer
 
-T = TypeVar("T")
-router = APIRouter(include_in_schema=False)
+router = APIRouter(include_in_schema=False, route_class=PageRoute)
 api = APIRouter(tags=["robots"])
 
 
@@ -116,8 +107,14 @@ def state(request: Request, lab: Site, robot: RobotLink) -> RobotState:
     )
 
 
-def _robot(lab: Site, name: str) -> RobotLink | None:
-    return next((r for r in lab.robots if r.name == name), None)
+def _robot(lab: Site, name: str) -> RobotLink:
+    """The live robot ``name`` (404 naming those there are, if there is none)."""
+    found = next((r for r in lab.robots if r.name == name), None)
+    if found is None:
+        names = ", ".join(r.name for r in lab.robots) or "none"
+        message = f"no live robot {name!r} here; this lab's live robots: {names}"
+        raise ApiError(404, message, title=f"No robot {name}")
+    return found
 
 
 def assign(lab: Site, console: Console, asked: str | None) -> tuple[str, str]:
@@ -126,7 +123,8 @@ def assign(lab: Site, console: Console, asked: str | None) -> tuple[str, str]:
     if asked:
         if asked not in console.interfaces:
             choices = " or ".join(console.interfaces)
-            raise ValueError(f"interface {asked!r}: this robot's page shows {choices}")
+            message = f"interface {asked!r}: this robot's page shows {choices}"
+            raise ApiError(422, message, title="No such interface")
         return asked, "override"
     if len(console.interfaces) == 1:
         return console.interfaces[0], "only"
@@ -135,8 +133,8 @@ def assign(lab: Site, console: Console, asked: str | None) -> tuple[str, str]:
 
 
 @router.get("/robots", response_class=HTMLResponse)
-def robots(request: Request, viewer: Viewer) -> HTMLResponse:
-    lab = site(request)
+def robots(request: Request, app: App, viewer: Viewer) -> HTMLResponse:
+    lab = app.site
     states = [state(request, lab, r) for r in lab.robots]
     context = {"robots": states, "reservations": lab.reservations}
     return page(request, "robots.html", context, user=viewer)
@@ -144,29 +142,12 @@ def robots(request: Request, viewer: Viewer) -> HTMLResponse:
 
 @router.get("/robots/{name}", response_class=HTMLResponse, name="robot_page")
 def robot_page(
-    request: Request, name: str, viewer: Viewer, interface: str | None = None
+    request: Request, name: str, app: App, viewer: Viewer, interface: str | None = None
 ) -> HTMLResponse:
-    lab = site(request)
+    lab = app.site
     robot = _robot(lab, name)
-    if robot is None:
-        names = ", ".join(r.name for r in lab.robots) or "none"
-        return missing(request, viewer, f"No robot {name}", f"This lab's live robots: {names}.")
     console = CONSOLES.get(robot.task, PLAIN)
-    try:
-        shown, assigned = assign(lab, console, interface)
-    except ValueError as err:
-        return page(
-            request,
-            "error.html",
-            {
-                "title": "No such interface",
-                "message": str(err),
-                "back": f"/robots/{name}",
-                "back_text": "Open the page with an interface drawn at random",
-            },
-            user=viewer,
-            status_code=422,
-        )
+    shown, assigned = assign(lab, console, interface)
     config = {
         "robot": robot.name,
         "task": robot.task,
@@ -190,11 +171,10 @@ def robot_page(
 
 
 @api.get("/api/robots", response_model=list[RobotState])
-def robot_list(request: Request) -> list[RobotState]:
+def robot_list(request: Request, app: App) -> list[RobotState]:
     """The live robots this lab hosts: their task, their bridge address, who drives
     each and the episode's seed."""
-    lab = site(request)
-    return [state(request, lab, r) for r in lab.robots]
+    return [state(request, app.site, r) for r in app.site.robots]
 
 
 @api.get(
@@ -203,129 +183,14 @@ def robot_list(request: Request) -> list[RobotState]:
     response_class=Response,
     responses={200: {"model": LiveScene, "description": "the model now"}, **responses(404)},
 )
-async def robot_scene(request: Request, name: str) -> Response:
+async def robot_scene(name: str, app: App) -> Response:
     """The live robot's model as it is now, to draw in 3D (bodies, geoms, textures) and
     pose from its topics (``/joint_states``, ``/tf``): each episode has its own model."""
-    lab = site(request)
-    drive = lab.drives.get(name)
+    drive = app.site.drives.get(name)
     if drive is None:
         raise ApiError(404, f"no live robot {name} here")
-    scenes: Scenes = request.app.state.__dict__.setdefault("robot_scenes", Scenes())
     return Response(
-        await scenes.scene(lab, drive),
+        await app.scenes.scene(app.site, drive),
         media_type="application/json",
         headers={"Cache-Control": "no-store"},
     )
-
-
-async def on_robots_loop(lab: Site, work: Callable[[], T]) -> T:
-    """``work()`` done on the loop the live robots step on, between two of their ticks."""
-    loop = lab.robots_loop
-    if loop is None or loop is asyncio.get_running_loop():
-        return work()
-
-    async def there() -> T:
-        return work()
-
-    return await asyncio.wrap_future(asyncio.run_coroutine_threadsafe(there(), loop))
-
-
-@dataclass(frozen=True)
-class _Snapshot:
-    """A live robot's state at one tick, taken on the robots' loop (a tenth of a
-    millisecond), to pose its scene elsewhere."""
-
-    sim: Simulation  # its episode: a new one has a new model
-    model: mujoco.MjModel | None  # a copy of the episode's model, when asked for
-    tick: int
-    seed: int
-    qpos: np.ndarray
-    transforms: dict[tuple[str, str], tuple[np.ndarray, np.ndarray]]
-
-
-def _snapshot(drive: Driving, known: Simulation | None) -> _Snapshot:
-    """The robot's state now, and a copy of its model unless its episode is ``known``
-    (the model is freed when the episode ends, so it is copied here, not read later)."""
-    sim = drive.robot.sim
-    physics = sim.physics
-    tf = sim.task.observe(physics, "/tf", {"sec": 0, "nanosec": 0}) or {"transforms": []}
-    transforms = {}
-    for item in tf["transforms"]:
-        t, q = item["transform"]["translation"], item["transform"]["rotation"]
-        transforms[(item["header"]["frame_id"], item["child_frame_id"])] = (
-            np.array([t["x"], t["y"], t["z"]]),
-            np.array([q["w"], q["x"], q["y"], q["z"]]),
-        )
-    return _Snapshot(
-        sim=sim,
-        model=None if sim is known else copy.copy(physics.model.ptr),
-        tick=sim.tick,
-        seed=sim.seed,
-        qpos=np.array(physics.data.qpos),
-        transforms=transforms,
-    )
-
-
-@dataclass
-class _Episode:
-    sim: Simulation
-    model: mujoco.MjModel
-    described: asyncio.Task[dict[str, Any]]
-
-
-class Scenes:
-    """Each live robot's scene for its pages, made off the robots' loop: described once
-    per episode (drawing its textures takes 40-400 ms) and posed once per tick, however
-    many pages ask; requests that come meanwhile wait for the one under way, and a page
-    that leaves cancels nothing.
-
-    It lives on the pages' loop and is used only there; the robots' loop only takes
-    snapshots (``_snapshot``).
-    """
-
-    def __init__(self) -> None:
-        self._episodes: dict[str, _Episode] = {}
-        self._posed: dict[str, tuple[Simulation, int, asyncio.Task[bytes]]] = {}
-
-    async def scene(self, lab: Site, drive: Driving) -> bytes:
-        """The robot's scene now, as the JSON body of ``LiveScene``."""
-        sim = drive.robot.sim  # read from this thread: which episode, and its tick
-        kept = self._posed.get(drive.name)
-        if kept is None or kept[0] is not sim or kept[1] != sim.tick:
-            posing = asyncio.ensure_future(self._pose(lab, drive))
-            kept = self._posed[drive.name] = (sim, sim.tick, posing)
-            posing.add_done_callback(lambda done: self._forget_posed(drive.name, done))
-        return await asyncio.shield(kept[2])
-
-    async def _pose(self, lab: Site, drive: Driving) -> bytes:
-        episode = self._episodes.get(drive.name)
-        known = episode.sim if episode is not None else None
-        shot = await on_robots_loop(lab, lambda: _snapshot(drive, known))
-        if episode is None or episode.sim is not shot.sim:
-            assert shot.model is not None
-            describing = asyncio.ensure_future(asyncio.to_thread(scene.describe, shot.model))
-            episode = self._episodes[drive.name] = _Episode(shot.sim, shot.model, describing)
-            describing.add_done_callback(lambda done: self._forget_episode(drive.name, done))
-        described = await episode.described
-        return await asyncio.to_thread(_body, episode.model, described, shot)
-
-    # A task that failed is forgotten, so the next request tries again (and the failure,
-    # retrieved here, is raised to the requests that waited on it).
-    def _forget_posed(self, name: str, done: asyncio.Task[bytes]) -> None:
-        kept = self._posed.get(name)
-        if _failed(done) and kept is not None and kept[2] is done:
-            del self._posed[name]
-
-    def _forget_episode(self, name: str, done: asyncio.Task[dict[str, Any]]) -> None:
-        kept = self._episodes.get(name)
-        if _failed(done) and kept is not None and kept.described is done:
-            del self._episodes[name]
-
-
-def _failed(task: asyncio.Task[Any]) -> bool:
-    return task.cancelled() or task.exception() is not None
-
-
-def _body(model: mujoco.MjModel, described: dict[str, Any], shot: _Snapshot) -> bytes:
-    posed = scene.posing(model, shot.qpos, shot.transforms)
-    return orjson.dumps({**described, **posed, "seed": shot.seed})

@@ -46,9 +46,8 @@ def service(tmp_path, database_url, clock):
 
 @pytest.fixture
 async def api(service):
-    app = create_app(service, robots=ROBOTS)
     changed = []
-    app.state.on_reservation = changed.append
+    app = create_app(service, robots=ROBOTS, on_reservation=changed.append)
     seen: list[httpx.Response] = []
 
     async def keep(response):

@@ -9,12 +9,11 @@ import threading
 import orjson
 import pytest
 
+from labd.api.site import RobotLink, Scenes, Site
 from labd.graph.types import TypeRegistry
 from labd.live import Driving
 from labd.recorder import scene
 from labd.station import Station
-from labd.web import robots
-from labd.web.render import RobotLink, Site
 
 
 @pytest.fixture
@@ -58,7 +57,7 @@ async def test_a_crowd_of_pages_describes_the_scene_once_per_episode(drive, robo
     the tick; after a reset (on the robots' loop), one new description for the new model."""
     site = Site((RobotLink("pr2-1", "pr2-table", True),), drives={"pr2-1": drive},
                 robots_loop=robots_loop)  # fmt: skip
-    scenes = robots.Scenes()
+    scenes = Scenes()
     bodies = await asyncio.gather(*(scenes.scene(site, drive) for _ in range(50)))
     assert len(described) == 1 and described[0] != "robots"
     assert all(body is bodies[0] for body in bodies)  # one posing for the tick
@@ -81,7 +80,7 @@ async def test_a_failed_description_is_tried_again(drive, monkeypatch):
     site = Site((RobotLink("pr2-1", "pr2-table", True),), drives={"pr2-1": drive})
     describe = scene.describe
     monkeypatch.setattr(scene, "describe", lambda model: 1 / 0)
-    scenes = robots.Scenes()
+    scenes = Scenes()
     with pytest.raises(ZeroDivisionError):
         await scenes.scene(site, drive)
     monkeypatch.setattr(scene, "describe", describe)

@@ -7,13 +7,16 @@ import re
 
 import httpx
 import pytest
+from markupsafe import escape
 
 from labd.service import Service, ServiceConfig
 from labd.web import RobotLink, Site, create_app
+from labd.web.problems import PageRoute
 from repository.trial import Filing
 from scheduler.fetch import FetchPolicy
 from tests.fakes import file_unchecked
 from tests.helpers.githttp import GitRepo
+from tests.labd.test_api_edges import _leaves
 
 SCRIPT = "<script>alert('owned')</script>"
 
@@ -99,17 +102,36 @@ async def test_every_page_renders(web, service, token, repo):
 
 
 async def test_unknown_things_are_pages_with_a_way_back(web):
-    """An unknown trial, commit or task is a 404 page a person can act on, not JSON."""
-    for path, words in (
-        ("/trials/999", "No trial 999"),
-        ("/commits/abcdef12", "No such commit"),
-        ("/commits/zz", "Not a commit"),
-        ("/tasks/juggling", "No task juggling"),
+    """An unknown trial, commit or task is a page a person can act on, not JSON, under
+    the status and with the words the API answers the same error with (``/commits/zz``
+    is no commit at all: 422)."""
+    for path, api, status, title in (
+        ("/trials/999", "/api/trials/999", 404, "No trial 999"),
+        ("/commits/abcdef12", "/api/commits/abcdef12", 404, "No commit with trials abcdef12"),
+        ("/commits/zz", "/api/commits/zz", 422, "Not accepted"),
+        ("/tasks/juggling", None, 404, "Not found"),
     ):
         reply = await web.get(path)
-        assert reply.status_code == 404
+        assert reply.status_code == status, path
         assert reply.headers["content-type"].startswith("text/html")
-        assert words in reply.text and 'href="/trials"' in reply.text
+        assert f"<h1>{title}</h1>" in reply.text and 'href="/trials"' in reply.text
+        if api is not None:
+            said = await web.get(api)
+            assert said.status_code == status
+            assert str(escape(said.json()["error"])) in reply.text
+    assert "no task &#39;juggling&#39;; the tasks are" in (await web.get("/tasks/juggling")).text
+
+
+def test_every_page_answers_errors_as_a_page(service):
+    """Every route outside the API (its JSON under /api/, and the OpenAPI document) is a
+    ``PageRoute``, so an error it raises is a page under the API's status, never JSON."""
+    app = create_app(service, Site(), on_submit=lambda: None)
+    pages = [r for r in _leaves(app.routes) if not r.path.startswith("/api/")]
+    pages = [r for r in pages if r.path not in ("/healthz", "/readyz")]
+    assert {"/", "/trials/{trial_id}", "/session", "/docs", "/reservations"} <= {
+        r.path for r in pages
+    }
+    assert [r.path for r in pages if not isinstance(r, PageRoute)] == []
 
 
 async def test_what_users_control_is_escaped(web, service, token, repo):
@@ -168,7 +190,12 @@ async def test_submitting_and_rerunning_from_the_pages(web, service, token, repo
     without the page's CSRF token, or from another site, is refused."""
     csrf = csrf_of((await web.get("/submit")).text)
     anonymous = await web.post("/submit", data={"repository": str(repo.path), "csrf": csrf})
-    assert anonymous.status_code == 401 and "sign in first" in anonymous.text
+    assert anonymous.status_code == 303  # to sign in first, and back to the form
+    assert anonymous.headers["location"] == "/session?then=/submit"
+    trial_id = queue(service, repo)
+    anonymous = await web.post(f"/trials/{trial_id}/rerun", data={"csrf": csrf})
+    assert anonymous.status_code == 303  # back to the trial's page, where its button is
+    assert anonymous.headers["location"] == f"/session?then=/trials/{trial_id}"
     wrong = await web.post("/session", data={"token": "labd_nope", "csrf": csrf})
     assert wrong.status_code == 401
     signed = await web.post("/session", data={"token": token, "then": "/submit", "csrf": csrf})
@@ -193,7 +220,8 @@ async def test_submitting_and_rerunning_from_the_pages(web, service, token, repo
     forged = await web.post(
         f"/trials/{trial_id}/rerun", data={"csrf": csrf}, headers={"Origin": "http://evil.example"}
     )
-    assert forged.status_code == 403
+    assert forged.status_code == 403 and forged.headers["content-type"].startswith("text/html")
+    assert "sent from the lab&#39;s own pages" in forged.text
     bare = await web.post(f"/trials/{trial_id}/rerun")
     assert bare.status_code == 403 and "This form had no CSRF token" in bare.text
     stale = await web.post(f"/trials/{trial_id}/rerun", data={"csrf": "from-an-old-page"})

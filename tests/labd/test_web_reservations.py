@@ -51,9 +51,10 @@ def service(tmp_path, clock):
 
 async def client_of(service, address="198.51.100.7", **site):
     robots = (RobotLink("icreate-1", "icreate-maze", True), RobotLink("pr2-1", "pr2-table", True))
-    app = create_app(service, Site(robots, **site), on_submit=lambda: None)
     changed = []
-    app.state.on_reservation = changed.append
+    app = create_app(
+        service, Site(robots, **site), on_submit=lambda: None, on_reservation=changed.append
+    )
     client = httpx.AsyncClient(
         transport=httpx.ASGITransport(app=app, client=(address, 5000)),
         base_url="http://lab.test",
@@ -105,7 +106,7 @@ async def test_guessing_passwords_is_refused_for_a_while_and_logged(
     for _ in range(5):
         assert (await sign_in(web, password="guess guess guess")).status_code == 401
     blocked = await sign_in(web)
-    assert blocked.status_code == 429
+    assert blocked.status_code == 429 and blocked.headers["retry-after"] == "300"
     assert (
         "too many failed sign-ins for alice from your address; wait 300 s and try again"
         in blocked.text
@@ -237,3 +238,37 @@ async def test_changing_my_password(web, service, alice):
     assert "Your password is changed; your other sign-ins (1) have ended." in shown.text
     assert service.accounts.session(other) is None
     assert service.accounts.check_password("alice", "a new long password").name == "alice"
+
+
+async def test_the_pages_refuse_as_the_api_does(web, service, alice, clock):
+    """A booking that clashes, someone else's slot, a slot that does not exist: each is
+    shown on the booking page with the status the API answers the same error with (409,
+    403, 404), what was typed kept; signed out, a form sends the person to sign in and
+    back to the page it is on."""
+    service.index.add_user("bob")
+    theirs = service.reservations.book("bob", "icreate-1", clock.now + 3600, clock.now + 5400)
+    await sign_in(web)
+    csrf = csrf_of((await web.get("/reservations")).text)
+    form = {"robot": "icreate-1", "start": "2030-01-07 10:15", "minutes": "30", "csrf": csrf}
+    clash = await web.post("/reservations", data=form)
+    assert clash.status_code == 409 and "is booked from" in clash.text and "by bob" in clash.text
+    assert 'value="2030-01-07 10:15"' in clash.text
+    api = await web.post(
+        "/api/reservations",
+        json={"robot": "icreate-1", "start": "2030-01-07T10:15:00Z", "minutes": 30},
+        headers={"X-CSRF-Token": csrf},
+    )
+    assert api.status_code == 409 and api.json()["error"] in clash.text
+    reservation = theirs.reservation.id
+    other = await web.post(f"/reservations/{reservation}/release", data={"csrf": csrf})
+    assert other.status_code == 403 and "only they may" in other.text
+    none = await web.post("/reservations/999/extend", data={"csrf": csrf, "minutes": "15"})
+    assert none.status_code == 404 and "no reservation &#39;999&#39;" in none.text
+    nobody = await client_of(service)
+    async with nobody:
+        visitor = csrf_of((await nobody.get("/reservations")).text)
+        sent = await nobody.post(f"/reservations/{reservation}/extend", data={"csrf": visitor})
+        assert sent.status_code == 303
+        assert sent.headers["location"] == "/session?then=/reservations"
+        tokens = await nobody.get("/tokens")
+        assert tokens.status_code == 303 and tokens.headers["location"] == "/session?then=/tokens"
