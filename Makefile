@@ -41,11 +41,15 @@ lint: $(STAMP)
 	$(VENV)/bin/ruff format --check .
 	$(VENV)/bin/mypy
 
+# Tests run in parallel (pytest-xdist): JOBS workers, more than the 2 cores, since most
+# integration tests wait on processes and sockets; tests marked `rates` run one at a time.
+JOBS ?= 3
+
 unit: $(STAMP)
-	$(PY) -m pytest -m "not integration"
+	$(PY) -m pytest -m "not integration" -n $(JOBS)
 
 test: lint $(JSSTAMP) $(WEBSTAMP)
-	$(PY) -m pytest
+	$(PY) -m pytest -n $(JOBS) --dist loadgroup --durations=20
 
 bench: $(STAMP) $(WEBSTAMP)
 	$(PY) bench/sim.py

@@ -120,14 +120,12 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 def _main(argv: Sequence[str] | None) -> int:
     args = build_parser().parse_args(argv)
-    root = logging.getLogger()
-    if not root.handlers:  # the command's own log; a program that calls main has its own
-        logging.basicConfig(
-            level=args.log_level,
-            stream=sys.stderr,
-            format="%(asctime)s %(levelname)s %(name)s: %(message)s",
-        )
-        limit_repeats(root)  # a message repeated in a tight loop must not fill the disk
+    logging.basicConfig(
+        level=args.log_level,
+        stream=sys.stderr,
+        format="%(asctime)s %(levelname)s %(name)s: %(message)s",
+    )
+    limit_repeats()  # a message repeated in a tight loop must not fill the disk
     return MAINS[args.command](args)
 
 

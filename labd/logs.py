@@ -80,9 +80,13 @@ class RepeatLimit(logging.Filter):
 
 
 def limit_repeats(logger: logging.Logger | None = None) -> RepeatLimit:
-    """Put a ``RepeatLimit`` on every handler of ``logger`` (the root logger's, by
-    default), so that every record reaching them passes it; the filter."""
+    """Put a ``RepeatLimit`` on the plain stream handlers of ``logger`` (the root
+    logger's, by default: the command's log, however ``logging.basicConfig`` made it),
+    so that every record written there passes it; the filter. Handlers of other kinds
+    (a program's that calls the command in process, such as pytest's capture) are left
+    as they are."""
     limit = RepeatLimit()
     for handler in (logger or logging.getLogger()).handlers:
-        handler.addFilter(limit)
+        if type(handler) is logging.StreamHandler:
+            handler.addFilter(limit)
     return limit

@@ -32,6 +32,14 @@ from tests.helpers.sandboxes import BACKENDS, make_backend, runtime_cache
 T = TypeVar("T")
 
 
+def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
+    """Tests that measure rates run one at a time on one worker of a parallel run
+    (pytest-xdist's ``--dist loadgroup``), so no two of them share the cores."""
+    for item in items:
+        if item.get_closest_marker("rates"):
+            item.add_marker(pytest.mark.xdist_group("rates"))
+
+
 @pytest.fixture(scope="session")
 def registry() -> TypeRegistry:
     return TypeRegistry.default()
@@ -185,6 +193,13 @@ def make_server(tmp_path: Any) -> Iterator[Callable[..., ServerThread]]:
 def server(make_server: Callable[..., ServerThread]) -> ServerThread:
     """One real lab with default settings on a free port."""
     return make_server()
+
+
+@pytest.fixture
+def sqlite_url(tmp_path: Any) -> str:
+    """An empty archive database in SQLite, for tests above the index (the HTTP API)
+    whose SQL the repository's and the queue's own tests run on both databases."""
+    return f"sqlite:///{tmp_path / 'index.sqlite'}"
 
 
 @pytest.fixture(params=["sqlite", "postgresql"])

@@ -30,7 +30,7 @@ from scheduler.runner import TrialSpec, run_trial
 from tests.faults.test_crowd import Healthy
 from tests.helpers.sandboxes import make_backend
 
-pytestmark = pytest.mark.integration
+pytestmark = [pytest.mark.integration, pytest.mark.rates]
 ABUSER = Path(__file__).resolve().parent / "abuser"
 FLOOD, SUBSCRIPTIONS, MAX_SUBSCRIPTIONS = 20_000, 1_500, 1_000
 

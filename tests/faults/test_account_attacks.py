@@ -31,7 +31,7 @@ from websockets.sync.client import connect as connect_ws
 from labd.service import ServiceConfig
 from tests.faults.conftest import Served, wait_for
 
-pytestmark = [pytest.mark.integration, pytest.mark.timeout(180)]
+pytestmark = [pytest.mark.integration, pytest.mark.rates, pytest.mark.timeout(180)]
 PASSWORD = "correct horse battery"
 RECHECK = 1.0  # seconds between the bridge's re-checks of connected keys (--key-recheck)
 ARGS = (

@@ -15,7 +15,7 @@ import pytest
 
 from tests.helpers.githttp import GitRepo
 
-pytestmark = pytest.mark.integration
+pytestmark = [pytest.mark.integration, pytest.mark.rates]
 
 QUICK = """\
 from controllers.client import Lab

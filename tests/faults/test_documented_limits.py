@@ -33,7 +33,6 @@ from scheduler.queue import QueueConfig
 from scheduler.runner import RunOptions
 from scheduler.worker import WorkerConfig
 
-pytestmark = pytest.mark.integration
 DOCS = Path(__file__).resolve().parents[2] / "docs"
 MiB, KiB = 1024 * 1024, 1024
 BRIDGE, SANDBOX, RUN, QUEUE = BridgeConfig(), Limits(), RunOptions(), QueueConfig()

@@ -41,7 +41,7 @@ from labd.config import BridgeConfig, HttpConfig
 from scheduler.remote import PROTOCOL, PROTOCOL_HEADER
 from tests.faults.conftest import wait_for
 
-pytestmark = pytest.mark.integration
+pytestmark = [pytest.mark.integration, pytest.mark.rates]
 
 ATTACKER, BYSTANDER = "127.0.0.1", "127.0.0.2"  # two addresses of loopback
 SHARE = BridgeConfig().max_connections_per_address

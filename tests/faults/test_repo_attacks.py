@@ -32,7 +32,7 @@ import pytest
 from tests.faults.conftest import Served
 from tests.helpers.githttp import GitRepo
 
-pytestmark = pytest.mark.integration
+pytestmark = [pytest.mark.integration, pytest.mark.rates]
 
 MiB = 1024 * 1024
 GiB = 1024 * MiB

@@ -37,10 +37,10 @@ def repo(tmp_path) -> Path:
 
 
 @pytest.fixture
-def service(tmp_path, database_url):
+def service(tmp_path, sqlite_url):
     config = ServiceConfig(
         data=tmp_path / "data",
-        database=database_url,
+        database=sqlite_url,
         workers=0,
         fetch=FetchPolicy(schemes=frozenset({"file"})),
     )

@@ -36,9 +36,9 @@ def clock():
 
 
 @pytest.fixture
-def service(tmp_path, database_url, clock):
+def service(tmp_path, sqlite_url, clock):
     rules = Rules(max_slot=3600, max_slots_per_day=3, max_minutes_per_day=120)
-    config = ServiceConfig(data=tmp_path / "data", database=database_url, workers=0, rules=rules)
+    config = ServiceConfig(data=tmp_path / "data", database=sqlite_url, workers=0, rules=rules)
     service = Service(config, clock=clock)
     yield service
     service.index.close()

@@ -43,6 +43,8 @@ from tests.helpers.githttp import GitRepo
 from tests.helpers.sandboxes import make_backend
 from tests.repository.test_export import drive
 
+pytestmark = pytest.mark.integration  # every test runs bwrap trials, or reads their records
+
 EXAMPLE = Path(__file__).resolve().parents[2] / "controllers" / "examples" / "knn-maze"
 TASK = "icreate-maze"
 SEED = 4
