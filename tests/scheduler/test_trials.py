@@ -145,10 +145,8 @@ LIMITS = Limits(memory=256 * MiB, processes=32, output=2 * MiB, wall=60.0)
         ),
         ("hangs", ["stalled at tick 0: no /lab/step for 3 s"]),
         ("prints-gigabytes", ["printed more than 2 MiB"]),
-        (
-            "forks-without-end",
-            ["stalled", "time limit", "exited with", "killed by", "out of memory"],
-        ),
+        # held to its processes, the fork bomb leaves the lab free to see it never step
+        ("forks-without-end", ["stalled at tick 0: no /lab/step for 3 s"]),
         ("allocates-without-end", ["out of memory", "MemoryError"]),
         ("resolves-a-name", ["gaierror"]),
         ("writes-outside", ["Read-only file system", "Permission denied"]),
