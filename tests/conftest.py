@@ -3,12 +3,9 @@ sandboxes (one runtime for the session) and the lab's side of a trial."""
 
 from __future__ import annotations
 
-import asyncio
 import os
 import secrets
-import threading
 from collections.abc import Callable, Iterator
-from concurrent.futures import Future
 from pathlib import Path
 from typing import Any, TypeVar
 
@@ -22,11 +19,12 @@ from labd.bridge.session import Session
 from labd.config import BridgeConfig
 from labd.graph.graph import Graph
 from labd.graph.types import TypeRegistry
-from labd.lab import Lab, LabConfig
+from labd.lab import LabConfig
 from labd.trial import LabHost
 from sandbox.api import Backend
 from sandbox.docker import DockerBackend
 from tests.fakes import ManualTimers, RecordingTransport, drain
+from tests.helpers.labs import ServerThread
 from tests.helpers.sandboxes import BACKENDS, make_backend, runtime_cache
 
 T = TypeVar("T")
@@ -95,74 +93,6 @@ def connect(graph: Graph, timers: ManualTimers) -> Iterator[Callable[..., Client
     yield make
     for session in made:
         session.close()
-
-
-class ServerThread:
-    """A real ``Lab`` (bridge on 127.0.0.1, port 0) on its own event loop thread."""
-
-    def __init__(self, config: LabConfig, **lab_kwargs: Any) -> None:
-        self.loop = asyncio.new_event_loop()
-        self.lab: Lab | None = None
-        self._config = config
-        self._kwargs = lab_kwargs
-        self._thread = threading.Thread(target=self.loop.run_forever, daemon=True)
-
-    def start(self) -> ServerThread:
-        self._thread.start()
-
-        async def boot() -> Lab:
-            lab = Lab(self._config, **self._kwargs)
-            await lab.start()
-            return lab
-
-        self.lab = self.run(boot())
-        return self
-
-    def run(self, coro: Any, timeout: float = 30) -> Any:
-        return asyncio.run_coroutine_threadsafe(coro, self.loop).result(timeout)
-
-    def call(self, fn: Callable[[], T], timeout: float = 30) -> T:
-        """Run ``fn`` on the server's loop (where the graph lives) and return its result."""
-        done: Future[T] = Future()
-
-        def target() -> None:
-            try:
-                done.set_result(fn())
-            except BaseException as err:  # handed to the test thread
-                done.set_exception(err)
-
-        self.loop.call_soon_threadsafe(target)
-        return done.result(timeout)
-
-    def wait_until(self, predicate: Callable[[], bool], timeout: float = 10) -> None:
-        """Block until ``predicate`` (checked on the server's loop) holds, or fail."""
-        done = threading.Event()
-
-        def poll() -> None:
-            if predicate():
-                done.set()
-            else:
-                self.loop.call_later(0.005, poll)
-
-        self.loop.call_soon_threadsafe(poll)
-        assert done.wait(timeout), f"condition not met within {timeout} s"
-
-    @property
-    def port(self) -> int:
-        assert self.lab is not None
-        return self.lab.bridge.port
-
-    @property
-    def url(self) -> str:
-        assert self.lab is not None
-        return self.lab.bridge.url()
-
-    def stop(self) -> None:
-        if self.lab is not None:
-            self.run(self.lab.close())
-        self.loop.call_soon_threadsafe(self.loop.stop)
-        self._thread.join(10)
-        self.loop.close()
 
 
 @pytest.fixture

@@ -12,15 +12,9 @@ from pathlib import Path
 
 import pytest
 
-from labd.config import BridgeConfig
-from labd.lab import LabConfig
-from labd.service import ServiceConfig
-from scheduler.fetch import FetchPolicy
-from tests.conftest import ServerThread
 from tests.helpers.githttp import GitRepo
-from tests.helpers.sandboxes import make_backend
+from tests.helpers.labs import ServerThread, lab_config, running
 from tests.integration.browser import Watched, browser, watched
-from tests.integration.test_commands import shared_cache
 
 __all__ = ["browser", "watched"]
 pytestmark = [pytest.mark.integration, pytest.mark.timeout(300)]
@@ -41,26 +35,8 @@ if len(sys.argv) > 1:
 @pytest.fixture
 def lab(tmp_path, cache):
     """A lab with one worker (bubblewrap) and no robots, its HTTP port chosen freely."""
-    make_backend("bwrap", cache)
-    data = tmp_path / "data"
-    shared_cache(data, cache)
-    config = LabConfig(
-        data=data,
-        bridge=BridgeConfig(port=0),
-        robots=(),
-        http_port=0,
-        service=ServiceConfig(
-            data=data, workers=1, sandbox="bwrap", fetch=FetchPolicy(schemes=frozenset({"file"}))
-        ),
-    )
-    server = ServerThread(config).start()
-    yield server
-    server.stop()
-
-
-def url(lab: ServerThread, path: str = "") -> str:
-    assert lab.lab is not None and lab.lab.http is not None
-    return lab.lab.http.url() + path
+    with running(lab_config(tmp_path / "data", (), workers=1, cache=cache)) as server:
+        yield server
 
 
 def wait_ended(lab: ServerThread, trial_id: int, timeout: float = 120):
@@ -89,15 +65,15 @@ def test_the_archive_in_a_browser(lab, watched, tmp_path):
         tmp_path / "bad", {"lab.toml": toml.format(extra=', "crash"'), "c.py": STEPS}
     )
     page = watched.page
-    page.goto(url(lab, "/"))
+    page.goto(lab.http_url("/"))
     assert page.locator("h1").first.inner_text() == "A remote robot lab"
-    page.goto(url(lab, "/session?then=/submit"))
+    page.goto(lab.http_url("/session?then=/submit"))
     page.fill("input[name=token]", token)
     page.click("#token-signin button[type=submit]")
     page.wait_for_url("**/submit")
     made = {}
     for name, repo in (("bad", bad), ("good", good)):
-        page.goto(url(lab, "/submit"))
+        page.goto(lab.http_url("/submit"))
         page.fill("#repository", str(repo.path))
         page.click("form.card button[type=submit]")
         page.wait_for_url("**/trials/*")
@@ -105,7 +81,7 @@ def test_the_archive_in_a_browser(lab, watched, tmp_path):
     for trial_id in made.values():
         wait_ended(lab, trial_id)
 
-    page.goto(url(lab, f"/trials/{made['bad']}"))
+    page.goto(lab.http_url(f"/trials/{made['bad']}"))
     assert page.locator(".headline .badge").inner_text().lower() == "error"
     assert "RuntimeError: the controller has a bug" in page.locator("#reason").inner_text()
     traceback = page.locator("#stderr pre").inner_text()
@@ -114,7 +90,7 @@ def test_the_archive_in_a_browser(lab, watched, tmp_path):
     assert "<script>document.title='owned'</script>" in page.locator("#stdout pre").inner_text()
     shot(watched, "trial-error")
 
-    page.goto(url(lab, "/trials"))
+    page.goto(lab.http_url("/trials"))
     page.select_option("select[name=outcome]", "fail")
     page.click("form.filters button[type=submit]")
     page.wait_for_url("**outcome=fail**")
@@ -126,7 +102,7 @@ def test_the_archive_in_a_browser(lab, watched, tmp_path):
     while "video.mp4" not in service.index.derived(made["good"]):
         assert time.monotonic() < deadline, "no replay filed"
         time.sleep(0.2)
-    page.goto(url(lab, f"/trials/{made['good']}"))
+    page.goto(lab.http_url(f"/trials/{made['good']}"))
     assert page.locator("#replay").inner_text().startswith("Replay: verified")
     duration = page.eval_on_selector(
         "#video",
@@ -145,16 +121,16 @@ def test_the_archive_in_a_browser(lab, watched, tmp_path):
     page.reload()
     assert page.locator(".reproduced").first.inner_text() == "reproduced"
     assert f"trial #{made['good']}" in page.locator(".card").first.inner_text()
-    page.goto(url(lab, f"/commits/{good.rev()}"))
+    page.goto(lab.http_url(f"/commits/{good.rev()}"))
     assert "1 reproduced" in page.locator("main").inner_text()
     shot(watched, "commit")
 
     for path in ("/", "/tasks/icreate-maze", "/docs", "/redoc", "/trials/424242"):
-        page.goto(url(lab, path))
+        page.goto(lab.http_url(path))
         page.wait_for_load_state("networkidle")
     assert page.locator("h1").inner_text() == "No trial 424242"
-    watched.expected.add(f"404 {url(lab, '/trials/424242')}")
-    page.goto(url(lab, "/docs"))
+    watched.expected.add(f"404 {lab.http_url('/trials/424242')}")
+    page.goto(lab.http_url("/docs"))
     page.wait_for_selector(".swagger-ui .opblock", timeout=20_000)
     shot(watched, "docs")
     watched.check()

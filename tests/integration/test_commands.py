@@ -15,6 +15,7 @@ import pytest
 
 from repository.index import connect
 from repository.migrate import schema_of
+from tests.helpers.labs import shared_cache
 from tests.helpers.sandboxes import make_backend
 from tests.repository.test_migrate import schema_1
 
@@ -33,15 +34,6 @@ def labd(*args: str, env: dict[str, str] | None = None, timeout: float = 240):
         check=False,
         env={**os.environ, **(env or {})},
     )
-
-
-def shared_cache(data: Path, cache: Path) -> None:
-    """The session's controller runtime in ``data``'s cache, rather than a cold build."""
-    (data / "cache").mkdir(parents=True, exist_ok=True)
-    for runtime in cache.glob("runtime-*"):
-        link = data / "cache" / runtime.name
-        if not link.exists():
-            link.symlink_to(runtime)
 
 
 @pytest.mark.parametrize(

@@ -16,7 +16,7 @@ from pathlib import Path
 
 import pytest
 
-from tests.integration.test_commands import shared_cache
+from tests.helpers.labs import shared_cache
 
 pytestmark = [pytest.mark.integration, pytest.mark.timeout(600)]
 

@@ -10,13 +10,10 @@ import pytest
 import roslibpy
 from websockets.sync.client import connect as connect_ws
 
-from labd.config import BridgeConfig, RobotConfig
-from labd.lab import LabConfig
 from labd.replay import replay
-from labd.service import ServiceConfig
 from repository.index import Filters
 from repository.trial import Kind
-from tests.conftest import ServerThread
+from tests.helpers.labs import ServerThread, lab_config, running
 
 pytestmark = [pytest.mark.integration, pytest.mark.timeout(120)]
 TWIST = "geometry_msgs/msg/Twist"
@@ -24,18 +21,8 @@ TWIST = "geometry_msgs/msg/Twist"
 
 @pytest.fixture
 def lab(tmp_path):
-    data = tmp_path / "data"
-    config = LabConfig(
-        data=data,
-        bridge=BridgeConfig(port=0),
-        robots=(RobotConfig("icreate-1", "icreate-maze"),),
-        playground=False,
-        http_port=0,
-        service=ServiceConfig(data=data, workers=0),
-    )
-    server = ServerThread(config).start()
-    yield server
-    server.stop()
+    with running(lab_config(tmp_path / "data")) as server:
+        yield server
 
 
 def connect(lab: ServerThread) -> roslibpy.Ros:

@@ -18,14 +18,12 @@ import httpx
 import pytest
 import roslibpy
 
-from labd.config import BridgeConfig, DriveLimits, RobotConfig
+from labd.config import DriveLimits
 from labd.graph.types import TypeRegistry
-from labd.lab import LabConfig
 from labd.recorder import read_messages
-from labd.service import ServiceConfig
 from repository.index import Filters
 from repository.trial import Kind
-from tests.conftest import ServerThread
+from tests.helpers.labs import MAZE, PR2, ServerThread, lab_config, running
 from tests.integration.browser import browser, watched
 from tests.integration.test_browser import shot
 
@@ -39,23 +37,8 @@ MIN_TICKS = DriveLimits().min_ticks
 def lab(tmp_path_factory):
     """One lab for the module: icreate-1 and pr2-1 live, the archive, no workers."""
     data = tmp_path_factory.mktemp("live") / "data"
-    config = LabConfig(
-        data=data,
-        bridge=BridgeConfig(port=0),
-        robots=(RobotConfig("icreate-1", "icreate-maze"), RobotConfig("pr2-1", "pr2-table")),
-        playground=False,
-        http_port=0,
-        service=ServiceConfig(data=data, workers=0),
-        interface_seed=7,
-    )
-    server = ServerThread(config).start()
-    yield server
-    server.stop()
-
-
-def url(lab: ServerThread, path: str = "") -> str:
-    assert lab.lab is not None and lab.lab.http is not None
-    return lab.lab.http.url() + path
+    with running(lab_config(data, (MAZE, PR2), interface_seed=7)) as server:
+        yield server
 
 
 def hold(page, key: str, until: str, timeout: float = 30) -> None:
@@ -91,7 +74,7 @@ def test_the_icreate_page_drives_and_files_a_demonstration(lab, watched, tmp_pat
     the archive with its interface and the page's events (key presses, clicks, the
     interface, focus, latency)."""
     page = watched.page
-    page.goto(url(lab, "/robots/icreate-1?interface=video"))
+    page.goto(lab.http_url("/robots/icreate-1?interface=video"))
     page.wait_for_function("Number(document.getElementById('camera').dataset.frames || 0) >= 3")
     page.click("#take")
     page.wait_for_function("document.body.dataset.driving === 'yes'")
@@ -119,7 +102,7 @@ def test_the_icreate_page_drives_and_files_a_demonstration(lab, watched, tmp_pat
         )
         assert page.get_attribute("#status", "data-level") in ("warning", "error")
         assert page.inner_text("#you").endswith("watching")
-        listed = httpx.get(url(lab, "/robots")).text
+        listed = httpx.get(lab.http_url("/robots")).text
         assert re.search(r'class="driver">guest:client_\d+', listed), listed
     finally:
         other.close()
@@ -158,7 +141,7 @@ def test_the_icreate_page_drives_and_files_a_demonstration(lab, watched, tmp_pat
     page.evaluate(
         "() => Object.defineProperty(document, 'visibilityState', {value: 'visible', configurable: true})"
     )
-    page.goto(url(lab, f"/trials/{mine[0].id}"))
+    page.goto(lab.http_url(f"/trials/{mine[0].id}"))
     assert "video" in page.inner_text("dl.facts")
     page.wait_for_function("document.getElementById('ux-events') !== null", timeout=60_000)
     assert "latency" in page.inner_text("#ux-events summary")
@@ -168,7 +151,7 @@ def test_interface_b_shows_the_tags(lab, watched):
     """Interface B draws no video: the tags the robot detects are drawn (turning in place
     until some are in view), with its odometry and the goal."""
     page = watched.page
-    page.goto(url(lab, "/robots/icreate-1?interface=perception"))
+    page.goto(lab.http_url("/robots/icreate-1?interface=perception"))
     assert page.query_selector("#camera") is None
     page.wait_for_function("document.body.dataset.ready === 'yes'")
     page.wait_for_function("Number(document.getElementById('perception').dataset.frames || 0) > 2")
@@ -207,7 +190,7 @@ def test_a_gamepad_drives(lab, watched):
     and letting it go stops it; the page names the pad and logs its connection."""
     page = watched.page
     page.add_init_script(GAMEPAD)
-    page.goto(url(lab, "/robots/icreate-1?interface=perception"))
+    page.goto(lab.http_url("/robots/icreate-1?interface=perception"))
     page.wait_for_function("document.body.dataset.ready === 'yes'")
     page.evaluate("window.connectPad()")
     page.wait_for_function("document.getElementById('gamepad').textContent.includes('test pad')")
@@ -240,15 +223,15 @@ def test_the_interface_is_drawn_per_session(lab):
     override wins; an unknown one is refused; an unknown robot is a 404."""
     shown = []
     for _ in range(16):
-        page = httpx.get(url(lab, "/robots/icreate-1")).text
+        page = httpx.get(lab.http_url("/robots/icreate-1")).text
         config = json.loads(re.search(r'id="live-config">(.*?)</script>', page, re.S)[1])
         assert config["assigned"] == "random"
         shown.append(config["interface"])
     assert set(shown) == {"video", "perception"}, shown
-    assert httpx.get(url(lab, "/robots/icreate-1?interface=perception")).status_code == 200
-    assert httpx.get(url(lab, "/robots/icreate-1?interface=radar")).status_code == 422
-    assert httpx.get(url(lab, "/robots/nope")).status_code == 404
-    listed = httpx.get(url(lab, "/api/robots")).json()
+    assert httpx.get(lab.http_url("/robots/icreate-1?interface=perception")).status_code == 200
+    assert httpx.get(lab.http_url("/robots/icreate-1?interface=radar")).status_code == 422
+    assert httpx.get(lab.http_url("/robots/nope")).status_code == 404
+    listed = httpx.get(lab.http_url("/api/robots")).json()
     assert [r["name"] for r in listed] == ["icreate-1", "pr2-1"]
 
 
@@ -256,7 +239,7 @@ def test_the_pr2_page_moves_an_arm_to_a_target(lab, watched):
     """The PR2 page draws the robot and the table in 3D from the robot's topics; moving
     the left arm's Cartesian target with the keyboard moves the arm's tool frame."""
     page = watched.page
-    page.goto(url(lab, "/robots/pr2-1"))
+    page.goto(lab.http_url("/robots/pr2-1"))
     page.wait_for_function("document.body.dataset.ready === 'yes'", timeout=60_000)
     page.wait_for_function(
         "Number(document.getElementById('pr2-scene')?.dataset.frames || 0) > 3", timeout=60_000

@@ -11,17 +11,11 @@ from __future__ import annotations
 
 import pytest
 
-from labd.config import BridgeConfig, RobotConfig
-from labd.lab import LabConfig
-from labd.service import ServiceConfig
 from repository.trial import TrialRequest
-from scheduler.fetch import FetchPolicy
-from tests.conftest import ServerThread
 from tests.helpers.githttp import GitRepo
-from tests.helpers.sandboxes import make_backend
+from tests.helpers.labs import MAZE, PR2, lab_config, running
 from tests.integration.browser import Watched, browser, watched
-from tests.integration.test_browser import url, wait_ended
-from tests.integration.test_commands import shared_cache
+from tests.integration.test_browser import wait_ended
 
 __all__ = ["browser", "watched"]
 pytestmark = [pytest.mark.integration, pytest.mark.timeout(400)]
@@ -50,22 +44,9 @@ MS = 1000
 @pytest.fixture(scope="module")
 def lab(tmp_path_factory, cache):
     """Both live robots, the archive, and one worker (bubblewrap) for a trial's record."""
-    make_backend("bwrap", cache)
     data = tmp_path_factory.mktemp("headers") / "data"
-    shared_cache(data, cache)
-    config = LabConfig(
-        data=data,
-        bridge=BridgeConfig(port=0),
-        robots=(RobotConfig("icreate-1", "icreate-maze"), RobotConfig("pr2-1", "pr2-table")),
-        playground=False,
-        http_port=0,
-        service=ServiceConfig(
-            data=data, workers=1, sandbox="bwrap", fetch=FetchPolicy(schemes=frozenset({"file"}))
-        ),
-    )
-    server = ServerThread(config).start()
-    yield server
-    server.stop()
+    with running(lab_config(data, (MAZE, PR2), workers=1, cache=cache)) as server:
+        yield server
 
 
 @pytest.fixture(scope="module")
@@ -111,7 +92,7 @@ def test_each_page_works_under_its_policy(lab, trial, watched: Watched, path: st
     Content-Security-Policy, which forbids framing, and nosniff and same-origin referrers."""
     page = watched.page
     page.add_init_script(LISTEN)
-    answer = page.goto(url(lab, path.format(trial=trial)))
+    answer = page.goto(lab.http_url(path.format(trial=trial)))
     assert answer is not None and answer.status == 200
     headers = answer.headers
     policy = headers["content-security-policy"]
@@ -134,7 +115,7 @@ def test_another_site_cannot_frame_the_lab(lab, browser):
         page.on(
             "console", lambda m: refused.append(m.text) if "frame-ancestors" in m.text else None
         )
-        target = url(lab, "/session")
+        target = lab.http_url("/session")
         page.set_content(f'<iframe id="f" src="{target}" width="600" height="400"></iframe>')
         page.wait_for_timeout(2000)
         frame = page.frame_locator("#f")

@@ -21,7 +21,7 @@ from labd.recorder.summary import decode
 from repository.well_known import SUMMARY
 from tests.helpers.githttp import GitRepo
 from tests.integration.browser import browser, watched
-from tests.integration.test_browser import lab, shot, url, wait_ended
+from tests.integration.test_browser import lab, shot, wait_ended
 
 __all__ = ["browser", "lab", "watched"]
 pytestmark = [pytest.mark.integration, pytest.mark.timeout(400)]
@@ -70,7 +70,7 @@ def repository(tmp_path, name, task, code):
 
 def submit(lab, watched, path):
     page = watched.page
-    page.goto(url(lab, "/submit"))
+    page.goto(lab.http_url("/submit"))
     page.fill("#repository", str(path))
     page.click("form.card button[type=submit]")
     page.wait_for_url("**/trials/*")
@@ -129,7 +129,7 @@ def test_a_trials_record_in_its_page(lab, watched, tmp_path):
     service = lab.lab.service
     token = service.index.add_user("alice")
     page = watched.page
-    page.goto(url(lab, "/session?then=/submit"))
+    page.goto(lab.http_url("/session?then=/submit"))
     page.fill("input[name=token]", token)
     page.click("#token-signin button[type=submit]")
     page.wait_for_url("**/submit")
@@ -144,7 +144,7 @@ def test_a_trials_record_in_its_page(lab, watched, tmp_path):
 
     sizes = {}
     page.on("response", lambda r: sizes.__setitem__(r.url, r.headers.get("content-length")))
-    page.goto(url(lab, f"/trials/{maze}"))
+    page.goto(lab.http_url(f"/trials/{maze}"))
     drawn(page, ["plots", "camera", "map", "scene"])
     assert page.locator("#record .plot canvas").count() >= 8
     titles = page.locator("#record .u-title").all_inner_texts()
@@ -163,14 +163,14 @@ def test_a_trials_record_in_its_page(lab, watched, tmp_path):
     assert len(path["x"]) > 10 and (path["x"][0], path["y"][0]) == (0, 0)
     points = page.evaluate("window.labRecord.summary.t.length")
     assert_posed_as_mujoco_poses(page, lab, maze, "base_link", points - 1)
-    summary_url = url(lab, f"/api/trials/{maze}/summary")
+    summary_url = lab.http_url(f"/api/trials/{maze}/summary")
     record_size = service.index.trial(maze).mcap_size
     assert int(sizes[summary_url]) < record_size / 10
     assert not any("data.mcap" in u for u in sizes)  # the page never fetched the record
     page.evaluate("window.labRecord.seek(window.labRecord.summary.duration * 0.7)")
     shot(watched, "record-maze")
 
-    page.goto(url(lab, f"/trials/{pr2}"))
+    page.goto(lab.http_url(f"/trials/{pr2}"))
     drawn(page, ["plots", "scene"])
     titles = page.locator("#record .u-title").all_inner_texts()
     assert "/joint_states · position (observation)" in titles

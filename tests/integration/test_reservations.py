@@ -15,12 +15,10 @@ from websockets.exceptions import ConnectionClosed
 from websockets.sync.client import connect as connect_ws
 
 from labd.bridge.auth import AuthError, AuthUnavailable, Grant
-from labd.config import BridgeConfig, RobotConfig
-from labd.lab import LabConfig
-from labd.service import ServiceConfig
+from labd.config import BridgeConfig
 from repository.index import Filters
 from repository.trial import Kind
-from tests.conftest import ServerThread
+from tests.helpers.labs import MAZE, PR2, ServerThread, lab_config, running
 
 pytestmark = [pytest.mark.integration, pytest.mark.timeout(120)]
 TWIST = "geometry_msgs/msg/Twist"
@@ -29,19 +27,10 @@ WAIT = 10
 
 @pytest.fixture
 def lab(tmp_path):
-    data = tmp_path / "data"
-    config = LabConfig(
-        data=data,
-        bridge=BridgeConfig(port=0, expiry_warning=2.0),
-        robots=(RobotConfig("icreate-1", "icreate-maze"), RobotConfig("pr2-1", "pr2-table")),
-        playground=False,
-        http_port=0,
-        service=ServiceConfig(data=data, workers=0),
-        reservations=True,
-    )
-    server = ServerThread(config).start()
-    yield server
-    server.stop()
+    bridge = BridgeConfig(port=0, expiry_warning=2.0)
+    config = lab_config(tmp_path / "data", (MAZE, PR2), bridge=bridge, reservations=True)
+    with running(config) as server:
+        yield server
 
 
 def robot_url(lab: ServerThread, robot: str = "icreate-1") -> str:

@@ -13,13 +13,11 @@ from pathlib import Path
 import pytest
 from argon2 import PasswordHasher
 
-from labd.config import BridgeConfig, RobotConfig
-from labd.lab import LabConfig
-from labd.service import ServiceConfig
+from labd.config import BridgeConfig
 from repository.accounts import Accounts
 from repository.index import Filters
 from repository.trial import Kind
-from tests.conftest import ServerThread
+from tests.helpers.labs import ServerThread, lab_config, running
 from tests.integration.browser import FLAGS, Watched, browser, csp_safe, watched
 
 __all__ = ["FLAGS", "browser", "watched"]
@@ -32,33 +30,19 @@ WARNING = 6.0  # seconds before the end (a minute in a real lab)
 
 @pytest.fixture
 def lab(tmp_path):
-    data = tmp_path / "data"
-    config = LabConfig(
-        data=data,
-        bridge=BridgeConfig(port=0, expiry_warning=WARNING),
-        robots=(RobotConfig("icreate-1", "icreate-maze"),),
-        playground=False,
-        http_port=0,
-        service=ServiceConfig(data=data, workers=0),
-        reservations=True,
-    )
-    server = ServerThread(config).start()
-    service = server.lab.service
-    service.accounts = Accounts(service.index, hasher=PasswordHasher(time_cost=1, memory_cost=1024))
-    for name in ("alice", "bob"):
-        service.index.add_user(name, token=False)
-        service.accounts.set_password(name, PASSWORD)
-    yield server
-    server.stop()
-
-
-def url(lab: ServerThread, path: str = "") -> str:
-    assert lab.lab is not None and lab.lab.http is not None
-    return lab.lab.http.url() + path
+    bridge = BridgeConfig(port=0, expiry_warning=WARNING)
+    with running(lab_config(tmp_path / "data", bridge=bridge, reservations=True)) as server:
+        service = server.lab.service
+        hasher = PasswordHasher(time_cost=1, memory_cost=1024)
+        service.accounts = Accounts(service.index, hasher=hasher)
+        for name in ("alice", "bob"):
+            service.index.add_user(name, token=False)
+            service.accounts.set_password(name, PASSWORD)
+        yield server
 
 
 def sign_in(lab: ServerThread, page, name: str) -> None:
-    page.goto(url(lab, "/session?then=/reservations"))
+    page.goto(lab.http_url("/session?then=/reservations"))
     page.fill("#name", name)
     page.fill("#password", PASSWORD)
     page.click("#password-signin button[type=submit]")
@@ -91,7 +75,7 @@ def test_book_drive_be_warned_and_disconnected_while_another_cannot_drive(
         assert "alice" in alice.locator("#robot-icreate-1").inner_text()
         shot(alice, "reservations-booked")
 
-        robot = url(lab, "/robots/icreate-1?interface=perception")
+        robot = lab.http_url("/robots/icreate-1?interface=perception")
         alice.goto(robot)
         alice.wait_for_function("document.body.dataset.ready === 'yes'", timeout=15_000)
         assert "connected with your slot's key" in alice.locator("#status").inner_text()
@@ -109,7 +93,7 @@ def test_book_drive_be_warned_and_disconnected_while_another_cannot_drive(
         assert drives.current is not None and drives.current.user == "alice"
 
         # Bob, meanwhile: the slot is taken, and his robot page only watches.
-        bob.goto(url(lab, "/reservations"))
+        bob.goto(lab.http_url("/reservations"))
         bob.fill("#minutes", "5")
         bob.click("#book-form button[type=submit]")
         assert "icreate-1 is booked from" in bob.locator("#problem").inner_text()

@@ -9,12 +9,9 @@ import json
 import pytest
 
 from labd.cli import main
-from labd.config import BridgeConfig, RobotConfig
-from labd.lab import LabConfig
-from labd.service import ServiceConfig
 from repository.accounts import Accounts
 from repository.index import Index
-from tests.conftest import ServerThread
+from tests.helpers.labs import lab_config, running
 
 pytestmark = pytest.mark.integration
 PASSWORD = "correct horse battery"
@@ -70,19 +67,8 @@ def test_users_add_list_password_revoke_rotate(tmp_path, capsys, monkeypatch):
 
 @pytest.fixture
 def lab(tmp_path):
-    data = tmp_path / "data"
-    config = LabConfig(
-        data=data,
-        bridge=BridgeConfig(port=0),
-        robots=(RobotConfig("icreate-1", "icreate-maze"),),
-        playground=False,
-        http_port=0,
-        service=ServiceConfig(data=data, workers=0),
-        reservations=True,
-    )
-    server = ServerThread(config).start()
-    yield server
-    server.stop()
+    with running(lab_config(tmp_path / "data", reservations=True)) as server:
+        yield server
 
 
 def test_reserve_book_list_extend_key_release(lab, capsys, monkeypatch):

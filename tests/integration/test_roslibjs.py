@@ -17,7 +17,7 @@ from typing import TYPE_CHECKING, Any
 import pytest
 
 if TYPE_CHECKING:
-    from tests.conftest import ServerThread
+    from tests.helpers.labs import ServerThread
 
 JS = Path(__file__).resolve().parents[1] / "js"
 NODE = shutil.which("node")
