@@ -46,6 +46,8 @@ import subprocess
 import sys
 import tarfile
 import tempfile
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path, PurePosixPath
 from typing import IO
@@ -227,39 +229,61 @@ def expanded_size(
     returned, already too much. (A tree can name a subtree a thousand times, and that one
     another thousand: the count must stop, as the checkout would not.)
     """
-    command = [_git(), "--git-dir", str(git_dir), "ls-tree", "-r", "-l", "-z", commit]
+    bound = stop_past or Expanded(sys.maxsize, sys.maxsize)
+    size = files = 0
+    rest = b""
+    with _git_stream(git_dir, ["ls-tree", "-r", "-l", "-z", commit], subdir) as run:
+        while chunk := run.stdout.read(1 << 16):
+            *entries, rest = (rest + chunk).split(b"\0")
+            for entry in entries:
+                # "<mode> <type> <object> <size>\t<path>"; a gitlink's size is "-"
+                field = entry.partition(b"\t")[0].split()[-1]
+                if field.isdigit():
+                    size += int(field)
+                    files += 1
+                if size > bound.bytes or files > bound.files:
+                    return Expanded(size, files)
+        run.whole = True
+    if run.process.returncode != 0:
+        raise RepositoryError(str(git_dir), f"could not list {commit[:12]}: {run.reason()}")
+    return Expanded(size, files)
+
+
+@dataclass
+class _GitRun:
+    """A git command whose output is read as a stream (``_git_stream``)."""
+
+    process: subprocess.Popen[bytes]
+    stdout: IO[bytes]
+    whole: bool = False  # its output was read to the end: let it exit by itself
+    stderr: str = ""  # once it ended
+
+    def reason(self) -> str:
+        """Git's own last words on its standard error."""
+        return _last_line(self.stderr)
+
+
+@contextmanager
+def _git_stream(git_dir: Path, args: list[str], subdir: str) -> Iterator[_GitRun]:
+    """``git ARGS`` on the mirror ``git_dir`` (of ``subdir`` only), its output to be read
+    as it comes. Afterwards it is reaped; killed first unless its output was read whole
+    (it may be blocked writing what is no longer read)."""
+    command = [_git(), "--git-dir", str(git_dir), *args, *(["--", subdir] if subdir else [])]
     with tempfile.TemporaryFile() as errors:
         process = subprocess.Popen(  # noqa: S603 - a fixed git command on the lab's mirror
-            [*command, *(["--", subdir] if subdir else [])],
-            stdin=subprocess.DEVNULL,
-            stdout=subprocess.PIPE,
-            stderr=errors,
+            command, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=errors
         )
         assert process.stdout is not None
-        bound = stop_past or Expanded(sys.maxsize, sys.maxsize)
-        size = files = 0
-        rest = b""
+        run = _GitRun(process, process.stdout)
         try:
-            while chunk := process.stdout.read(1 << 16):
-                *entries, rest = (rest + chunk).split(b"\0")
-                for entry in entries:
-                    # "<mode> <type> <object> <size>\t<path>"; a gitlink's size is "-"
-                    field = entry.partition(b"\t")[0].split()[-1]
-                    if field.isdigit():
-                        size += int(field)
-                        files += 1
-                    if size > bound.bytes or files > bound.files:
-                        return Expanded(size, files)
+            yield run
         finally:
-            if process.poll() is None:
+            if not run.whole:
                 process.kill()
-            process.wait()
             process.stdout.close()
-        if process.returncode != 0:
+            process.wait()
             errors.seek(0)
-            reason = _last_line(errors.read().decode(errors="replace"))
-            raise RepositoryError(str(git_dir), f"could not list {commit[:12]}: {reason}")
-        return Expanded(size, files)
+            run.stderr = errors.read().decode(errors="replace")
 
 
 def _check_size(fetched: Fetched, policy: FetchPolicy) -> None:
@@ -310,34 +334,19 @@ def _export(
     nothing else of a tree is (git has nothing else but submodules, exported apart).
     ``git archive`` is read as a stream, one file at a time, never whole.
     """
-    command = [_git(), "--git-dir", str(repo.git_dir), "archive", "--format=tar", commit]
-    with tempfile.TemporaryFile() as errors:
-        process = subprocess.Popen(  # noqa: S603 - a fixed git command on the lab's mirror
-            [*command, *(["--", subdir] if subdir else [])],
-            stdin=subprocess.DEVNULL,
-            stdout=subprocess.PIPE,
-            stderr=errors,
-        )
-        assert process.stdout is not None
-        whole, failed = False, ""
+    failed = ""
+    with _git_stream(Path(repo.git_dir), ["archive", "--format=tar", commit], subdir) as run:
         try:
-            _untar(process.stdout, subdir, writer, into)
-            while process.stdout.read(1 << 16):  # the archive's padding after its end
+            _untar(run.stdout, subdir, writer, into)
+            while run.stdout.read(1 << 16):  # the archive's padding after its end
                 pass
-            whole = True
+            run.whole = True
         except tarfile.TarError as err:
             failed = str(err)
-        finally:
-            if not whole:
-                process.kill()  # it may be blocked writing what is no longer read
-            process.stdout.close()
-            process.wait()
-        if process.returncode > 0:  # git's own failure (a missing commit...): its words
-            errors.seek(0)
-            reason = _last_line(errors.read().decode(errors="replace"))
-            raise RepositoryError(source, f"could not export {commit[:12]}: {reason}")
-        if not whole:
-            raise RepositoryError(source, f"could not export {commit[:12]}: {failed}")
+    if run.process.returncode > 0:  # git's own failure (a missing commit...): its words
+        raise RepositoryError(source, f"could not export {commit[:12]}: {run.reason()}")
+    if not run.whole:
+        raise RepositoryError(source, f"could not export {commit[:12]}: {failed}")
 
 
 def _untar(stream: IO[bytes], subdir: str, writer: TreeWriter, into: str) -> None:
