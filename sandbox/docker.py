@@ -30,6 +30,7 @@ import shutil
 import socket
 import tarfile
 import tempfile
+import time
 import uuid
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
@@ -63,6 +64,8 @@ IMAGE = "labd-runtime"
 LABEL = "org.labd.sandbox"  # on every container of ours: the job's id
 OWNER = "org.labd.owner"  # HOST:PID of the lab process that made it
 SHM = 64 * MiB
+KILLED = 128 + 9  # the exit status of a process ended by SIGKILL
+OOM_WAIT = 2.0  # seconds an unexplained SIGKILL waits for the engine to call it an OOM kill
 T = TypeVar("T")
 _ENGINE_ERRORS = (docker.errors.DockerException, requests.RequestException, OSError)
 
@@ -222,6 +225,8 @@ class DockerRun(Supervised):
         self.plan = plan
         self.container: Container | None = None
         self._pump: asyncio.Future[None] | None = None
+        self._status: int | None = None  # the container's exit status, once it ended
+        self._killed = False  # the lab sent it SIGKILL
 
     async def launch(self) -> None:
         call = self.backend.call
@@ -272,12 +277,14 @@ class DockerRun(Supervised):
     async def _ended(self) -> int:
         assert self.container is not None
         result = await self.backend.call(self.container.wait)
-        return int(result["StatusCode"])
+        self._status = int(result["StatusCode"])
+        return self._status
 
     async def _terminate(self) -> None:
         await self._send("SIGTERM")
 
     async def _kill(self) -> None:
+        self._killed = True
         await self._send("SIGKILL")
 
     async def _send(self, signame: str) -> None:
@@ -293,9 +300,18 @@ class DockerRun(Supervised):
                 await asyncio.wait_for(asyncio.shield(self._pump), 5.0)
 
     async def _out_of_memory(self) -> bool:
+        """Docker's ``OOMKilled``. The engine learns of an OOM kill apart from the exit,
+        and on a busy host after it: a job that died of a SIGKILL the lab did not send
+        (status 137) is given ``OOM_WAIT`` seconds for the flag to be set."""
         assert self.container is not None
-        await self.backend.call(self.container.reload)
-        return bool(self.container.attrs["State"].get("OOMKilled"))
+        deadline = time.monotonic() + OOM_WAIT
+        while True:
+            await self.backend.call(self.container.reload)
+            if self.container.attrs["State"].get("OOMKilled"):
+                return True
+            if self._status != KILLED or self._killed or time.monotonic() > deadline:
+                return False
+            await asyncio.sleep(0.1)
 
     async def _cleanup(self) -> None:
         if self.container is None:

@@ -449,7 +449,7 @@ async def export_requests(server: str, ids: list[int]) -> dict[str, Any]:
 
 UPLOAD = 1 << 30  # bytes a worker uploads
 BLOCK = 1 << 20
-GAP = 1.0  # seconds the robot's camera or clock may go without a message (20 periods)
+GAP = 1.5  # seconds the robot's camera or clock may go without a message (30 periods; 3.3 s before)
 
 
 def upload_blocks() -> Iterator[bytes]:

@@ -24,6 +24,8 @@ def test_serve_starts_answers_and_stops_on_sigterm(tmp_path):
             "serve",
             "--bridge-port",
             "0",
+            "--http-port",
+            "0",
             "--data",
             str(tmp_path),
             "--no-robots",

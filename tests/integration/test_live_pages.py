@@ -247,9 +247,12 @@ def test_the_pr2_page_moves_an_arm_to_a_target(lab, watched):
     page.wait_for_function("window.labPr2 && window.labPr2.tool('left') !== null")
     assert page.evaluate("window.labPr2.bodyPose('torso_lift_link')") is not None
     page.wait_for_function("Number(document.getElementById('camera').dataset.frames || 0) >= 2")
-    start = page.evaluate("window.labPr2.tool('left')")
     page.click("#take")
     page.wait_for_function("document.body.dataset.driving === 'yes'")
+    # taking the robot starts an episode: its scene (and the targets) load anew first
+    page.wait_for_function("window.labPr2.seed() === Number(document.body.dataset.seed)")
+    page.wait_for_function("window.labPr2.tool('left') !== null")
+    start = page.evaluate("window.labPr2.tool('left')")
     page.keyboard.press("1")
     for key in "uuuuuiiii":  # up 10 cm, forward 8 cm
         page.keyboard.press(key)

@@ -90,6 +90,7 @@ export async function connect(cfg) {
     $("take").disabled = live.driving;
     $("release").disabled = !live.driving;
     document.body.dataset.driving = live.driving ? "yes" : "no";
+    document.body.dataset.seed = String(m.seed);  // the episode being driven (or watched)
     live.onDriver.forEach((f) => f(m));
   });
   new Topic({ ros, name: "/lab/episode", messageType: "lab_msgs/msg/Episode", throttle_rate: 200 })

@@ -68,9 +68,14 @@ async function main() {
   };
   await load();
   let loading = null;
-  live.onEpisode.push((m) => {
-    if (m.seed !== info.seed && !loading) loading = load().finally(() => { loading = null; });
-  });
+  const reload = (seed) => {  // once per seed; a seed that came during a load is loaded after
+    if (seed === info.seed || loading) return;
+    loading = load().finally(() => {
+      loading = null;
+      if (live.episode) reload(live.episode.seed);
+    });
+  };
+  live.onEpisode.push((m) => reload(m.seed));
 
   scene.pose(q);
   scene.world.updateMatrixWorld(true);
@@ -136,6 +141,7 @@ async function main() {
   });
   handle.addEventListener("mouseUp", () => targets[selected].inBase && sendTarget(selected));
   window.labPr2 = {  // for scripts and tests: where things are, and moving a target
+    seed: () => (loading ? null : info.seed),  // the episode whose scene is shown
     tool: (arm) => tools[ARMS[arm].tool]?.p.toArray() ?? null,
     target: (arm) => targets[arm].inBase?.p.toArray() ?? null,
     bodyPose: (name) => (name in body ? [...scene.pos[body[name]].toArray(), ...scene.quat[body[name]].toArray()] : null),
