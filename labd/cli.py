@@ -120,10 +120,13 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 def _main(argv: Sequence[str] | None) -> int:
     args = build_parser().parse_args(argv)
+    # force: a library may have configured the root logger on import (absl's logging
+    # does, at dm_control's first message), which would make this call do nothing
     logging.basicConfig(
         level=args.log_level,
         stream=sys.stderr,
         format="%(asctime)s %(levelname)s %(name)s: %(message)s",
+        force=True,
     )
     limit_repeats()  # a message repeated in a tight loop must not fill the disk
     return MAINS[args.command](args)

@@ -58,6 +58,7 @@ from .jobs import (
     job_plan,
     open_socket,
     stage_requirements,
+    start_whole,
     wait_or_stop,
 )
 from .views import Views, refusal, unreachable
@@ -223,6 +224,9 @@ class BwrapBackend:
         return self.uids.lease() if self.uids is not None else UidLease(os.getuid(), -1)
 
     async def _start(self, plan: Plan, lease: UidLease | None = None) -> BwrapRun:
+        return await start_whole(self._launch(plan, lease))
+
+    async def _launch(self, plan: Plan, lease: UidLease | None) -> BwrapRun:
         own_lease = lease is None
         if lease is None:
             lease = await asyncio.to_thread(self._lease)
@@ -354,9 +358,7 @@ class BwrapRun(Supervised):
 
     async def abandon(self) -> None:
         """Undo a launch that failed half way."""
-        with contextlib.suppress(ProcessLookupError):
-            if self._proc is not None and self._proc.returncode is None:
-                self._proc.kill()
+        self._kill_launcher()
         if self._proc is not None:
             await self._proc.wait()
         await self._cleanup()
@@ -375,9 +377,15 @@ class BwrapRun(Supervised):
     async def _kill(self) -> None:
         # pid 1 of the namespace: its end ends every process in it.
         self._signal(signal.SIGKILL)
+        self._kill_launcher()
+
+    def _kill_launcher(self) -> None:
+        # os.kill, not Process.kill(): that polls the process first, and a poll that
+        # reaps a launcher which just ended takes its status away from asyncio's child
+        # watcher, which then reports 255 ("Unknown child process") as how it ended.
         if self._proc is not None and self._proc.returncode is None:
             with contextlib.suppress(ProcessLookupError):
-                self._proc.kill()
+                os.kill(self._proc.pid, signal.SIGKILL)
 
     def _signal(self, signum: int) -> None:
         if self._child is not None:

@@ -55,6 +55,7 @@ from .jobs import (
     job_plan,
     open_socket,
     stage_requirements,
+    start_whole,
     wait_or_stop,
 )
 
@@ -126,6 +127,9 @@ class DockerBackend:
             raise install_failure(ended)
 
     async def _start(self, plan: Plan) -> DockerRun:
+        return await start_whole(self._launch(plan))
+
+    async def _launch(self, plan: Plan) -> DockerRun:
         if plan.bridge_socket is not None:
             open_socket(plan.bridge_socket)
         run = DockerRun(self, f"docker-{uuid.uuid4().hex[:12]}", plan)

@@ -18,10 +18,10 @@ import os
 import signal
 import stat
 import time
-from collections.abc import Mapping, Sequence
+from collections.abc import Coroutine, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 from . import runtime as rt
 from .api import BRIDGE_PORT, Exit, InstallError, Job, Limits, MiB, SandboxError
@@ -238,6 +238,29 @@ def stage_requirements(requirements: Path, staging: Path) -> Path:
     staging.chmod(0o755)
     staged.chmod(0o644)
     return staged
+
+
+S = TypeVar("S", bound="Supervised")
+
+
+async def start_whole(starting: Coroutine[Any, Any, S]) -> S:
+    """Start a job as one step: a cancellation that comes while it starts (a trial's lease
+    lost, a deadline passed) lets the start finish, stops the job, and then goes on.
+
+    Cancelled half way, a start leaves what it started behind: an asyncio subprocess
+    cancelled while its pipes are being connected never reports its end, so stopping it
+    waits forever (CPython gh-103847), and a Docker container that an engine thread
+    creates after its caller gave up is never removed. A start ends within its own
+    deadlines (bwrap's set-up, the engine's timeout), so the wait is bounded.
+    """
+    task = asyncio.ensure_future(starting)
+    try:
+        return await asyncio.shield(task)
+    except asyncio.CancelledError:
+        with contextlib.suppress(Exception):  # a start that failed cleaned up after itself
+            run = await task
+            await run.stop(grace=0)
+        raise
 
 
 async def wait_or_stop(run: Supervised) -> Exit:

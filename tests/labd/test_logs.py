@@ -4,6 +4,9 @@ times a second, and the next one let through says how many were held back."""
 from __future__ import annotations
 
 import logging
+import re
+import subprocess
+import sys
 
 from labd.logs import RepeatLimit
 
@@ -56,3 +59,18 @@ def test_the_log_keeps_its_rate_over_time():
         clock.now += 0.001
         through += limit.filter(record("Invalid HTTP request received.", name="uvicorn.error"))
     assert 5 + 2 * 60 - 2 <= through <= 5 + 2 * 60
+
+
+def test_the_log_level_chosen_on_the_command_line_is_the_one_logged_at(tmp_path):
+    """`labd --log-level DEBUG` logs debug messages in the lab's format, although a library
+    (absl, at dm_control's first message) configured the root logger when it was imported."""
+    command = [sys.executable, "-m", "labd", "--log-level", "DEBUG", "trials", "--server", "http://127.0.0.1:1"]  # fmt: skip
+    runs = [  # at once: each retries for a few seconds before it gives up
+        subprocess.Popen(c, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=tmp_path)
+        for c in (command[:3] + command[5:], command)
+    ]
+    (_, quiet), (_, loud) = (run.communicate(timeout=60) for run in runs)
+    assert all(run.returncode != 0 for run in runs)
+    assert "cannot reach the lab" in quiet
+    assert " DEBUG " not in quiet
+    assert re.search(r"^\S+ \S+ DEBUG scheduler\.client: cannot reach", loud, re.M), loud

@@ -6,12 +6,15 @@ import asyncio
 import signal
 import subprocess
 import time
+import uuid
 
+import psutil
 import pytest
 
-from sandbox.api import Backend, Limits, MiB
+from sandbox.api import Backend, Job, Limits, MiB
 from sandbox.bwrap import BwrapBackend
 from sandbox.cgroups import own_cgroups
+from sandbox.docker import LABEL, DockerBackend
 from sandbox.jobs import KEEP
 from tests.sandbox.conftest import Bridge, Controllers, assert_nothing_left, wait_for
 
@@ -243,3 +246,37 @@ async def test_two_jobs_run_at_once(controllers: Controllers, bridge: Bridge) ->
         assert (ended.code, ended.stdout) == (0, b"go\n"), ended.stderr
     assert_nothing_left(controllers.backend, first)
     assert_nothing_left(controllers.backend, second)
+
+
+async def test_a_start_cancelled_at_any_moment_leaves_nothing(controllers: Controllers) -> None:
+    """A start cancelled at any moment of it (a trial's lease lost while its sandbox
+    starts) ends at once and leaves no process nor container; one that had started
+    reports how its stop ended it. (Cancelled while asyncio connected the launcher's
+    pipes, a start used to wait forever for the launcher it had killed.)"""
+    token = f"labd-cancel-{uuid.uuid4().hex}"  # on every process of these jobs' command lines
+    job = Job(
+        command=("python", "controller.py", token),
+        code=controllers.code("import time\ntime.sleep(600)\n"),
+        bridge_socket=None,
+        limits=Limits(wall=60),
+    )
+    backend = controllers.backend
+    began = time.monotonic()
+    await (await backend.start(job)).stop(grace=0)
+    whole = time.monotonic() - began  # a start and a stop, on this machine now
+    started = 0
+    for step in range(16):
+        starting = asyncio.create_task(backend.start(job))
+        await asyncio.sleep(whole * step / 15)
+        starting.cancel()
+        done, _ = await asyncio.wait({starting}, timeout=30)
+        assert done, f"a start cancelled after {whole * step / 15:.3f} s did not end"
+        if not starting.cancelled():
+            started += 1
+            ended = await starting.result().stop(grace=0)
+            assert ended.code is None and ended.signal in (signal.SIGTERM, signal.SIGKILL), ended
+    assert started < 16  # some were cancelled while they started
+    assert [p.info for p in psutil.process_iter(["pid", "cmdline"]) if token in (p.info["cmdline"] or [])] == []  # fmt: skip
+    if isinstance(backend, DockerBackend):
+        containers = backend.client.containers.list(all=True, filters={"label": LABEL})
+        assert [c.id for c in containers if token in (c.attrs["Config"]["Cmd"] or [])] == []
