@@ -1,0 +1,89 @@
+"""An evaluation's statistics, held to SciPy's: Wilson's interval, McNemar's exact test,
+and bootstrap intervals that are seeded, cover the mean and narrow with more episodes."""
+
+from __future__ import annotations
+
+import random
+
+import pytest
+from scipy import stats as scipy_stats
+
+from repository.stats import Interval, bootstrap_mean, mcnemar_exact, paired_difference, wilson
+
+
+@pytest.mark.parametrize(
+    ("successes", "episodes"), [(0, 1), (1, 1), (0, 20), (20, 20), (7, 20), (14, 20), (1, 50), (33, 50), (500, 1000)]
+)  # fmt: skip
+def test_wilson_is_scipys_wilson_interval(successes: int, episodes: int) -> None:
+    """The success interval is Wilson's score interval, as SciPy computes it."""
+    expected = scipy_stats.binomtest(successes, episodes).proportion_ci(method="wilson")
+    got = wilson(successes, episodes)
+    assert got.low == pytest.approx(expected.low, abs=1e-12)
+    assert got.high == pytest.approx(expected.high, abs=1e-12)
+    assert 0.0 <= got.low <= successes / episodes <= got.high <= 1.0
+
+
+def test_wilson_of_no_episodes_is_everything_and_nonsense_is_refused() -> None:
+    assert wilson(0, 0) == Interval(0.0, 1.0)
+    for successes, episodes in [(3, 2), (-1, 5)]:
+        with pytest.raises(ValueError, match="successes"):
+            wilson(successes, episodes)
+
+
+@pytest.mark.parametrize(
+    ("only_a", "only_b"), [(9, 1), (1, 9), (0, 6), (5, 5), (3, 0), (12, 30), (0, 1)]
+)
+def test_mcnemar_is_the_exact_binomial_test_of_the_discordant_pairs(
+    only_a: int, only_b: int
+) -> None:
+    """McNemar's exact p-value is the two-sided binomial test of one split at p = 1/2."""
+    expected = scipy_stats.binomtest(only_a, only_a + only_b, 0.5).pvalue
+    assert mcnemar_exact(only_a, only_b) == pytest.approx(expected, rel=1e-12)
+
+
+def test_mcnemar_without_discordant_pairs_finds_no_difference() -> None:
+    assert mcnemar_exact(0, 0) == 1.0
+    assert mcnemar_exact(9, 1) == pytest.approx(0.021484375)  # 22/1024: "p = 0.02"
+    with pytest.raises(ValueError):
+        mcnemar_exact(-1, 3)
+
+
+def test_bootstrap_is_seeded_covers_the_mean_and_narrows_with_more_episodes() -> None:
+    """The same rewards and seed give the same interval; it holds the mean; with four
+    times the episodes from the same distribution it is about half as wide."""
+    rng = random.Random(7)
+    few = [rng.gauss(10.0, 2.0) for _ in range(25)]
+    many = [rng.gauss(10.0, 2.0) for _ in range(400)]
+    once, again = bootstrap_mean(few, seed=3), bootstrap_mean(few, seed=3)
+    assert once == again is not None
+    assert bootstrap_mean(few, seed=4) != once
+    mean = sum(few) / len(few)
+    assert once.low < mean < once.high
+    wide, narrow = once.high - once.low, _width(bootstrap_mean(many, seed=3))
+    assert 0.15 < narrow / wide < 0.4  # 1/4 expected: sqrt(25/400)
+    # and about the normal interval's width, 2 * 1.96 * s / sqrt(n)
+    s = (sum((x - mean) ** 2 for x in few) / (len(few) - 1)) ** 0.5
+    assert wide == pytest.approx(2 * 1.96 * s / len(few) ** 0.5, rel=0.2)
+
+
+def test_bootstrap_of_nothing_or_one_value() -> None:
+    assert bootstrap_mean([]) is None
+    assert bootstrap_mean([2.5]) == Interval(2.5, 2.5)
+
+
+def test_paired_difference_is_the_mean_difference_with_its_interval() -> None:
+    a = [1.0, 2.0, 3.0, 4.0, 5.0, 6.0]
+    b = [0.5, 1.5, 2.5, 3.5, 4.5, 5.5]
+    mean, interval = paired_difference(a, b, seed=1)
+    assert mean == pytest.approx(0.5)
+    assert interval.low == pytest.approx(0.5) and interval.high == pytest.approx(
+        0.5
+    )  # every pair differs by 0.5
+    assert paired_difference([], []) is None
+    with pytest.raises(ValueError, match="paired"):
+        paired_difference([1.0], [1.0, 2.0])
+
+
+def _width(interval: Interval | None) -> float:
+    assert interval is not None
+    return interval.high - interval.low
