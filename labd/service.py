@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import json
 import logging
 import os
 import shutil
@@ -32,12 +33,15 @@ from labd.live import Demonstration
 from labd.trial import LabHost, client_library
 from repository.accounts import Accounts
 from repository.blobs import BlobStore
+from repository.errors import ArchiveError
+from repository.evaluation_index import Evaluations
 from repository.index import Derived, Index
 from repository.reservations import Reservations, Rules, load_secret
 from repository.signing import Keyring
 from repository.trial import Ending, Filing, Kind
 from repository.well_known import RECORD_FILE, REPLAY, VIDEO
 from scheduler.data import DataPolicy, LocalArchive
+from scheduler.evaluate import Evaluator
 from scheduler.fetch import FetchPolicy
 from scheduler.filing import FilingCheck
 from scheduler.queue import Queue, QueueConfig
@@ -77,6 +81,31 @@ class ServiceConfig:
     @property
     def blobs_url(self) -> str:
         return self.blobs or str((self.data / "blobs").resolve())
+
+
+class Verdicts:
+    """Whether a replay verdict (a blob, by digest) says the replay verified; each blob is
+    read once, since a digest's bytes never change."""
+
+    LIMIT = 100_000  # verdicts remembered
+
+    def __init__(self, store: BlobStore) -> None:
+        self.store = store
+        self._known: dict[str, bool | None] = {}
+
+    def __call__(self, digest: str) -> bool | None:
+        if digest in self._known:
+            return self._known[digest]
+        try:
+            verified = json.loads(self.store.read_bytes(digest)).get("verified")
+        except (ArchiveError, ValueError, AttributeError) as err:
+            log.warning("replay verdict %s cannot be read: %s", digest, err)
+            return None  # not remembered: the store may answer later
+        found = verified if isinstance(verified, bool) else None
+        if len(self._known) >= self.LIMIT:
+            self._known.clear()
+        self._known[digest] = found
+        return found
 
 
 def host_prefix() -> str:
@@ -129,6 +158,13 @@ class Service:
             data_policy=config.data_policy,
             threads=config.submit_threads,
             waiting=config.submit_waiting,
+        )
+        self.evaluations = Evaluations(self.index, Verdicts(self.store))
+        self.evaluator = Evaluator(
+            self.submissions,
+            self.evaluations,
+            load_secret(keys / "suites.secret"),  # held-out suites' seeds derive from it
+            self.keyring,
         )
         self.workers: list[Worker] = []
         self._tasks: list[asyncio.Task[None]] = []

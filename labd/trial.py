@@ -48,6 +48,7 @@ from labd.sim.robot import LiveRunner
 from labd.station import Station
 from repository.blobs import digest_of
 from repository.errors import ExportError
+from repository.evaluation import Suite
 from repository.trial import EpisodeStatus, PinnedRecord, Value
 from repository.well_known import OUTCOME
 from scheduler.errors import InvalidRequest, TrialError
@@ -130,6 +131,12 @@ class LabHost:
     def task_version(self, task: str) -> str:
         try:
             return registry.get(task).version
+        except LabError as err:
+            raise InvalidRequest(str(err)) from None
+
+    def suites(self, task: str) -> Sequence[Suite]:
+        try:
+            return registry.get(task).suites
         except LabError as err:
             raise InvalidRequest(str(err)) from None
 

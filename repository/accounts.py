@@ -29,8 +29,9 @@ from argon2.exceptions import InvalidHashError, VerificationError
 from sqlalchemy.engine import Connection
 
 from repository.errors import AccountError, BadCredentials, RecordNotFound
-from repository.index import Index, User, passwords, token_hash, tokens, users, web_sessions
+from repository.index import Index, User, token_hash
 from repository.reservations import rekey
+from repository.tables import passwords, tokens, users, web_sessions
 
 log = logging.getLogger("repository.accounts")
 MIN_PASSWORD = 10

@@ -5,6 +5,8 @@ ArchiveError                 the archive could not do what was asked
 │   ├── BlobNotFound         no blob has that digest
 │   └── BlobCorrupt          a blob's bytes no longer match its digest
 ├── RecordNotFound           no trial, commit or user by that name
+├── HeldOut                  an episode of a held-out suite: its seed and record are
+│                            the operator's until the suite version is retired
 ├── SchemaMismatch           the index was written by another version of labd
 ├── IndexLost                the index's files changed under the running lab (its WAL
 │                            deleted): writes are refused until the lab restarts
@@ -52,6 +54,16 @@ class RecordNotFound(ArchiveError):
         self.kind = kind
         self.name = name
         super().__init__(f"no {kind} {name!r}")
+
+
+class HeldOut(ArchiveError):
+    def __init__(self, trial_id: int) -> None:
+        self.trial_id = trial_id
+        super().__init__(
+            f"trial {trial_id} is an episode of a held-out suite: its seed and record stay"
+            " private until the operator retires that suite version (its evaluation shows"
+            " how it ended)"
+        )
 
 
 class SchemaMismatch(ArchiveError):

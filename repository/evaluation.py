@@ -105,8 +105,8 @@ class SuiteInfo(BaseModel):
     version: int
     episodes: int
     held_out: bool
-    retired: bool = Field(False, description="held-out suites: retired, so public now")
-    seeds: list[int] | None = Field(None, description="public suites only")
+    retired: bool = Field(default=False, description="held-out suites: retired, so public now")
+    seeds: list[int] | None = Field(default=None, description="public suites only")
     params: dict[str, Value] = Field(default_factory=dict)
     doc: str = ""
 
@@ -138,8 +138,13 @@ class EpisodeRow(BaseModel):
     outcome: Outcome | None
     reward: float | None
     data_digest: str | None = None
-    verified: bool | None = Field(None, description="its replay verified; None: not (yet) replayed")
+    verified: bool | None = Field(
+        default=None, description="its replay verified; None: not (yet) replayed"
+    )
     compute_seconds: float | None = None
+    reproduced: bool | None = Field(
+        default=None, description="reruns: an identical data digest to the original episode's"
+    )
 
 
 class Score(BaseModel):
@@ -186,7 +191,7 @@ class Evaluation(BaseModel):
     finished: dt.datetime | None
     score: Score
     rows: list[EpisodeRow]
-    reproduced: str | None = Field(None, description="reruns: the verdict in words")
+    reproduced: str | None = Field(default=None, description="reruns: the verdict in words")
     signature: dict[str, Any] | None = None
 
 
@@ -210,6 +215,22 @@ def score(rows: Sequence[EpisodeRow], *, seed: int) -> Score:
         reward_interval=_pair(spread),
         verified=bool(rows) and all(r.verified for r in rows),
         compute_seconds=round(sum(r.compute_seconds or 0.0 for r in rows), 3),
+    )
+
+
+def reproduced(rows: Sequence[EpisodeRow]) -> str:
+    """A rerun evaluation's verdict in words: how many episodes reproduced their
+    original's data, bit for bit, and which did not."""
+    done = [r for r in rows if r.status.ended]
+    if len(done) < len(rows):
+        return f"pending: {len(done)} of {len(rows)} episodes rerun so far"
+    diverged = [r.episode for r in rows if r.reproduced is not True]
+    if not diverged:
+        return f"reproduced: {len(rows)} of {len(rows)} episodes identical"
+    listed = ", ".join(str(e) for e in diverged[:10]) + (", ..." if len(diverged) > 10 else "")
+    return (
+        f"diverged: {len(rows) - len(diverged)} of {len(rows)} episodes identical;"
+        f" episodes {listed} differ"
     )
 
 

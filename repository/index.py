@@ -29,7 +29,16 @@ from typing import Any
 import sqlalchemy as sa
 from sqlalchemy.engine import Connection, Engine
 
-from repository.errors import ArchiveError, RecordNotFound, SchemaMismatch
+from repository.errors import ArchiveError, HeldOut, RecordNotFound, SchemaMismatch
+from repository.tables import (
+    derived,
+    episodes,
+    meta,
+    metadata,
+    tokens,
+    trials,
+    users,
+)
 from repository.trial import Kind, Outcome, PinnedRecord, Status, Trial
 from repository.units import moment
 from repository.wal import IndexFiles
@@ -39,154 +48,6 @@ SCHEMA_VERSION = 2  # 1: labd 0.1 (status succeeded/failed); 2: status and outco
 # or a name that looks like another in other scripts); unique without case.
 NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]{0,63}", re.ASCII)
 HEX = frozenset("0123456789abcdef")
-
-metadata = sa.MetaData()
-
-meta = sa.Table(
-    "labd_meta",
-    metadata,
-    sa.Column("key", sa.String(64), primary_key=True),
-    sa.Column("value", sa.String(256), nullable=False),
-)
-
-users = sa.Table(
-    "users",
-    metadata,
-    sa.Column("name", sa.String(64), primary_key=True),
-    sa.Column("token_sha256", sa.String(64), nullable=False, unique=True),
-    sa.Column("created", sa.Float, nullable=False),
-    sa.Column("max_running", sa.Integer, nullable=False),
-    sa.Column("max_daily", sa.Integer, nullable=False),
-    sa.Column("worker", sa.Boolean, nullable=False),  # may claim and file trials (labd worker)
-)
-
-# A user's API tokens (any number, each revocable by its owner); only their sha256 is
-# kept. A token in ``users.token_sha256`` with no row here is one an older labd made.
-tokens = sa.Table(
-    "tokens",
-    metadata,
-    sa.Column("id", sa.Integer, primary_key=True, autoincrement=True),
-    sa.Column("user", sa.String(64), sa.ForeignKey("users.name"), nullable=False),
-    sa.Column("sha256", sa.String(64), nullable=False, unique=True),
-    sa.Column("label", sa.String(128), nullable=False),
-    sa.Column("created", sa.Float, nullable=False),
-    sa.Column("revoked", sa.Float),  # when; a revoked token is refused
-)
-
-# Signing in on the pages (``repository.accounts``): a password's argon2id hash, and
-# each browser session (only the sha256 of its cookie; its forms' CSRF token).
-passwords = sa.Table(
-    "passwords",
-    metadata,
-    sa.Column("user", sa.String(64), sa.ForeignKey("users.name"), primary_key=True),
-    sa.Column("hash", sa.String(256), nullable=False),
-    sa.Column("changed", sa.Float, nullable=False),
-)
-web_sessions = sa.Table(
-    "web_sessions",
-    metadata,
-    sa.Column("sha256", sa.String(64), primary_key=True),
-    sa.Column("user", sa.String(64), sa.ForeignKey("users.name"), nullable=False),
-    sa.Column("csrf", sa.String(64), nullable=False),
-    sa.Column("created", sa.Float, nullable=False),
-    sa.Column("expires", sa.Float, nullable=False),
-)
-
-# Live robots booked for a slot (``repository.reservations``). ``end`` is when the slot
-# ends now: an early release moves it to the release (to ``start`` before it began).
-# The slot's key is derived from the lab's secret and ``nonce``; nothing here reveals it.
-reservations = sa.Table(
-    "reservations",
-    metadata,
-    sa.Column("id", sa.Integer, primary_key=True, autoincrement=True),
-    sa.Column("robot", sa.String(64), nullable=False),
-    sa.Column("user", sa.String(64), sa.ForeignKey("users.name"), nullable=False),
-    sa.Column("start", sa.Float, nullable=False),
-    sa.Column("end", sa.Float, nullable=False),
-    sa.Column("booked_end", sa.Float, nullable=False),  # the end as booked or extended
-    sa.Column("created", sa.Float, nullable=False),
-    sa.Column("released", sa.Float),
-    sa.Column("nonce", sa.String(32), nullable=False),
-)
-sa.Index("ix_reservations_robot", reservations.c.robot, reservations.c.start)
-sa.Index("ix_reservations_user", reservations.c.user, reservations.c.start)
-sa.Index("ix_tokens_user", tokens.c.user)
-sa.Index("ix_web_sessions_user", web_sessions.c.user)
-
-trials = sa.Table(
-    "trials",
-    metadata,
-    sa.Column("id", sa.Integer, primary_key=True, autoincrement=True),
-    sa.Column("kind", sa.String(16), nullable=False),
-    # what was asked
-    sa.Column("repository", sa.String(2048), nullable=False),
-    sa.Column("ref", sa.String(256)),
-    sa.Column("commit", sa.String(40), nullable=False),
-    sa.Column("task", sa.String(64), nullable=False),
-    sa.Column("params", sa.JSON, nullable=False),
-    sa.Column("seed", sa.BigInteger, nullable=False),
-    sa.Column("submitter", sa.String(64), nullable=False),
-    sa.Column("public", sa.Boolean, nullable=False),
-    sa.Column("rerun_of", sa.Integer, sa.ForeignKey("trials.id")),
-    sa.Column("data", sa.JSON),  # the archived records it learns from, pinned (PinnedRecord)
-    # the queue
-    sa.Column("status", sa.String(16), nullable=False),
-    sa.Column("outcome", sa.String(16)),  # finished trials only
-    sa.Column("reason", sa.Text, nullable=False),
-    sa.Column("created", sa.Float, nullable=False),
-    sa.Column("started", sa.Float),
-    sa.Column("finished", sa.Float),
-    sa.Column("worker", sa.String(128)),
-    sa.Column("lease_until", sa.Float),
-    sa.Column("attempts", sa.Integer, nullable=False),
-    sa.Column("cancel_requested", sa.Boolean, nullable=False),
-    # what came out
-    sa.Column("manifest", sa.JSON),
-    sa.Column("manifest_digest", sa.String(64)),
-    sa.Column("data_digest", sa.String(64)),
-    sa.Column("digest_topics", sa.JSON),
-    sa.Column("metrics", sa.JSON),
-    sa.Column("reward", sa.Float),  # metrics' reward, as a column to sort and rank by
-    sa.Column("backend", sa.String(16)),
-    sa.Column("wall_seconds", sa.Float),
-    sa.Column("mcap", sa.String(71)),  # blob digests, "sha256:..."
-    sa.Column("mcap_size", sa.BigInteger),
-    sa.Column("stdout", sa.String(71)),
-    sa.Column("stderr", sa.String(71)),
-    sa.Column("reproduced", sa.Boolean),  # reruns only: identical data digest
-    sa.Column("divergence", sa.Text),  # reruns that did not reproduce: where they parted
-    sa.Column("signature", sa.JSON),  # the lab's signature of the filed record (signing.py)
-)
-
-# Derived artifacts of a record (a summary for its page, an export, a rendered video):
-# blobs beside the record, never part of its digests, made again at will.
-derived = sa.Table(
-    "derived",
-    metadata,
-    sa.Column("trial_id", sa.Integer, sa.ForeignKey("trials.id"), primary_key=True),
-    sa.Column("name", sa.String(64), primary_key=True),  # e.g. summary.json, export.parquet
-    sa.Column("digest", sa.String(71), nullable=False),
-    sa.Column("size", sa.BigInteger, nullable=False),
-    sa.Column("media_type", sa.String(128), nullable=False),
-    sa.Column("created", sa.Float, nullable=False),
-)
-
-# Every list is newest first, so each filter has an index ending in id.
-sa.Index("ix_trials_repository", trials.c.repository, trials.c.id)
-sa.Index("ix_trials_commit", trials.c.commit, trials.c.id)
-sa.Index("ix_trials_task", trials.c.task, trials.c.id)
-sa.Index("ix_trials_task_status", trials.c.task, trials.c.status, trials.c.id)
-sa.Index("ix_trials_status", trials.c.status, trials.c.id)
-sa.Index("ix_trials_outcome", trials.c.outcome, trials.c.id)
-sa.Index("ix_trials_task_outcome", trials.c.task, trials.c.outcome, trials.c.id)
-sa.Index("ix_trials_kind", trials.c.kind, trials.c.id)
-sa.Index("ix_trials_task_reward", trials.c.task, trials.c.reward, trials.c.id)
-sa.Index("ix_trials_reward", trials.c.reward, trials.c.id)
-sa.Index("ix_trials_submitter", trials.c.submitter, trials.c.id)
-sa.Index("ix_trials_created", trials.c.created)
-sa.Index("ix_trials_rerun_of", trials.c.rerun_of)
-# Claiming: the oldest queued trial of each submitter, public ones first.
-sa.Index("ix_trials_queue", trials.c.status, trials.c.public, trials.c.submitter, trials.c.id)
 
 
 @dataclass(frozen=True)
@@ -278,6 +139,7 @@ class Filters:
     rerun_of: int | None = None
     public: bool | None = None
     has_record: bool | None = None  # with an MCAP record (True) or without (False)
+    held_out: bool = False  # also the episodes of held-out suites (the operator's)
 
 
 def connect(url: str, **engine_options: Any) -> Engine:
@@ -528,6 +390,14 @@ class Index:
         with self.begin() as own:
             return _inserted_id(own.execute(sa.insert(trials).values(values)))
 
+    def readable(self, trial_id: int) -> Trial:
+        """A trial anyone may read: ``HeldOut`` if it is an episode of a held-out suite
+        not yet retired (``trial`` is the lab's own read, which sees every trial)."""
+        with self.engine.connect() as db:
+            if db.execute(sa.select(hidden(sa.literal(trial_id)))).scalar():
+                raise HeldOut(trial_id)
+        return self.trial(trial_id)
+
     def trial(self, trial_id: int) -> Trial:
         with self.engine.connect() as db:
             row = db.execute(sa.select(trials).where(trials.c.id == trial_id)).first()
@@ -573,6 +443,7 @@ class Index:
             c.status == Status.FINISHED.value,
             c.kind == Kind.TRIAL.value,
             c.rerun_of.is_(None),
+            ~hidden(c.id),
         )
         success = sa.func.sum(sa.case((c.outcome == Outcome.SUCCESS.value, 1), else_=0))
         rate = sa.cast(success, sa.Float) / sa.func.count()
@@ -636,6 +507,8 @@ class Index:
             conditions.append(c.public == f.public)
         if f.has_record is not None:
             conditions.append(c.mcap.is_not(None) if f.has_record else c.mcap.is_(None))
+        if not f.held_out:
+            conditions.append(~hidden(c.id))
         return conditions
 
     def commits(self, prefix: str) -> list[str]:
@@ -665,7 +538,7 @@ class Index:
         full = found[0]
         query = (
             sa.select(trials)
-            .where(trials.c.commit == full)
+            .where(trials.c.commit == full, ~hidden(trials.c.id))
             .order_by(trials.c.id.desc())
             .limit(limit + 1)
         )
@@ -758,6 +631,11 @@ def commit_condition(commit: str) -> sa.ColumnElement[bool]:
     if len(commit) == 40:
         return trials.c.commit == commit
     return sa.and_(trials.c.commit >= commit, trials.c.commit < commit + "g")
+
+
+def hidden(trial_id: sa.ColumnElement[int]) -> sa.Exists:
+    """Whether the trial is an episode of a held-out suite not yet retired."""
+    return sa.exists().where(episodes.c.trial_id == trial_id, episodes.c.hidden)
 
 
 def to_trial(row: Any) -> Trial:

@@ -24,7 +24,8 @@ import sqlalchemy as sa
 from sqlalchemy.engine import Connection, Engine
 
 from repository.errors import ArchiveError
-from repository.index import SCHEMA_VERSION, meta, metadata, reward_of, trials
+from repository.index import SCHEMA_VERSION, reward_of
+from repository.tables import meta, metadata, trials
 from repository.trial import Outcome, Status
 
 log = logging.getLogger("repository.migrate")

@@ -57,7 +57,8 @@ from repository.errors import (
     SlotTaken,
     UnknownKey,
 )
-from repository.index import Index, reservations
+from repository.index import Index
+from repository.tables import reservations
 from repository.units import moment
 
 log = logging.getLogger("repository.reservations")
@@ -452,7 +453,8 @@ class Reservations:
 
 
 def load_secret(path: Path) -> bytes:
-    """The lab's secret for reservation keys, made (readable by its owner only) if new."""
+    """A secret of the lab's (reservation keys, held-out suites' seeds), made (readable
+    by its owner only) if new."""
     try:
         data = path.read_bytes()
     except FileNotFoundError:
@@ -465,7 +467,7 @@ def load_secret(path: Path) -> bytes:
         with os.fdopen(fd, "wb") as out:
             out.write(data)
     if len(data) < 16:
-        raise ReservationError(f"{path} is not a reservation secret (too short); remove it")
+        raise ReservationError(f"{path} is not a secret of the lab's (too short); remove it")
     return data
 
 

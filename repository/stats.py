@@ -93,7 +93,7 @@ def mcnemar_exact(only_a: int, only_b: int) -> float:
     k = min(only_a, only_b)
     # P(X <= k) for X ~ Binomial(n, 1/2), doubled; exact in integers until the division
     tail = sum(math.comb(n, i) for i in range(k + 1))
-    return min(1.0, 2 * tail / 2**n)
+    return min(1.0, 2 * tail / (1 << n))
 
 
 def _quantile(ordered: Sequence[float], q: float) -> float:

@@ -93,7 +93,7 @@ class LocalArchive:
         self.store = store
 
     def trial(self, trial_id: int) -> Trial:
-        return self.index.trial(trial_id)
+        return self.index.readable(trial_id)
 
     def find(self, filters: Filters, limit: int) -> list[Trial]:
         return self.index.find(filters, limit=limit).items

@@ -248,13 +248,13 @@ def _mib(size: int) -> str:
 
 
 class NotYours(QueueError):
-    """Only a trial's submitter may cancel it (or otherwise change it)."""
+    """Only a trial's (or an evaluation's) submitter may cancel it, or otherwise change it."""
 
-    def __init__(self, trial_id: int, owner: str, action: str) -> None:
+    def __init__(self, trial_id: int, owner: str, action: str, *, what: str = "trial") -> None:
         self.trial_id = trial_id
         self.owner = owner
         self.action = action
-        super().__init__(f"trial {trial_id} is {owner}'s; only they may {action} it")
+        super().__init__(f"{what} {trial_id} is {owner}'s; only they may {action} it")
 
 
 class FilingRefused(QueueError):

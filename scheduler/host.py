@@ -16,6 +16,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Protocol
 
+from repository.evaluation import Suite
 from repository.trial import EpisodeStatus, PinnedRecord, Value
 
 Attachments = Mapping[str, tuple[str, bytes]]  # name -> (media type, bytes)
@@ -135,6 +136,11 @@ class TrialHost(Protocol):
 
     def task_version(self, task: str) -> str:
         """The version of ``task`` this lab runs (``InvalidRequest`` for an unknown one)."""
+        ...
+
+    def suites(self, task: str) -> Sequence[Suite]:
+        """The episode suites ``task`` declares for evaluations (``InvalidRequest`` for an
+        unknown task)."""
         ...
 
     def digest_topics(self, task: str) -> list[str]:

@@ -26,14 +26,14 @@ import logging
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from enum import StrEnum
-from typing import Any
+from typing import Any, TypeVar
 
 import sqlalchemy as sa
 from sqlalchemy.engine import Connection
 
 from repository.index import Derived, Index, User, reward_of, to_trial
-from repository.index import trials as T
 from repository.signing import Keyring, record_statement
+from repository.tables import trials as T
 from repository.trial import Claim, Filing, Kind, Outcome, PinnedRecord, Status, Trial
 from scheduler.canary import Health
 from scheduler.errors import FilingRefused, NotYours, QuotaExceeded
@@ -52,6 +52,7 @@ class QueueConfig:
 
 
 QUEUED, RUNNING = Status.QUEUED.value, Status.RUNNING.value
+R = TypeVar("R")
 
 
 class Cancel(StrEnum):
@@ -79,6 +80,9 @@ class Queue:
         self.check = check
         self.clock = index.clock
         self.health: dict[str, Health] = {}  # what each worker last said of itself
+        # Called with a trial's id once it has ended (finished or cancelled), after its
+        # transaction: an evaluation signs itself when its last episode has ended.
+        self.on_ended: list[Callable[[int], None]] = []
 
     # -- submitting ---------------------------------------------------------------------
 
@@ -98,6 +102,40 @@ class Queue:
     ) -> int:
         """Queue a trial for ``user``, within their daily limit (QuotaExceeded); ``data``
         are the archived records it learns from, pinned (``scheduler.data``)."""
+        return self.submit_many(
+            user,
+            [seed],
+            lambda _db, ids: ids[0],
+            repository=repository,
+            ref=ref,
+            commit=commit,
+            task=task,
+            params=params,
+            public=public,
+            rerun_of=rerun_of,
+            data=data,
+        )
+
+    def submit_many(
+        self,
+        user: User,
+        seeds: Sequence[int],
+        then: Callable[[Connection, list[int]], R],
+        *,
+        repository: str,
+        ref: str | None,
+        commit: str,
+        task: str,
+        params: Mapping[str, Any],
+        public: bool,
+        rerun_of: int | Sequence[int] | None = None,
+        data: Sequence[PinnedRecord] | None = None,
+    ) -> R:
+        """Queue one trial per seed for ``user``, all or none: each counts towards their
+        daily limit (QuotaExceeded). ``then(db, ids)`` runs in the same transaction (an
+        evaluation is written with its episodes); what it returns is returned.
+        ``rerun_of`` is one trial, or one per seed."""
+        reruns = rerun_of if isinstance(rerun_of, Sequence) else [rerun_of] * len(seeds)
         with self.index.begin() as db:
             _lock_user(db, user.name)
             since = self.clock() - DAY
@@ -106,24 +144,41 @@ class Queue:
                 .select_from(T)
                 .where(T.c.submitter == user.name, T.c.created >= since)
             ).scalar_one()
-            if today >= user.max_daily:
-                raise QuotaExceeded(
-                    f"{user.name} has submitted {today} trials in the last 24 hours, "
-                    f"the daily limit; try again later or ask the operator for more"
+            if today + len(seeds) > user.max_daily:
+                over = (
+                    f"; these {len(seeds)} would take it past the daily limit of {user.max_daily}"
+                    if len(seeds) > 1
+                    else ", the daily limit"
                 )
-            return self.index.add_trial(
-                repository=repository,
-                ref=ref,
-                commit=commit,
-                task=task,
-                params=params,
-                seed=seed,
-                submitter=user.name,
-                public=public,
-                rerun_of=rerun_of,
-                data=data,
-                db=db,
-            )
+                raise QuotaExceeded(
+                    f"{user.name} has submitted {today} trials in the last 24 hours{over};"
+                    " try again later or ask the operator for more"
+                )
+            ids = [
+                self.index.add_trial(
+                    repository=repository,
+                    ref=ref,
+                    commit=commit,
+                    task=task,
+                    params=params,
+                    seed=seed,
+                    submitter=user.name,
+                    public=public,
+                    rerun_of=again,
+                    data=data,
+                    db=db,
+                )
+                for seed, again in zip(seeds, reruns, strict=True)
+            ]
+            return then(db, ids)
+
+    def _ended(self, trial_ids: Sequence[int]) -> None:
+        for trial_id in trial_ids:
+            for call in self.on_ended:
+                try:
+                    call(trial_id)
+                except Exception:  # a hook's bug must not undo the filing that called it
+                    log.exception("trial %d: after it ended, %s failed", trial_id, call)
 
     def cancel(self, trial_id: int, user: User) -> Cancel:
         """Cancel a queued trial now, or ask the worker of a running one to stop.
@@ -146,13 +201,16 @@ class Queue:
                     finished=self.clock(),
                 )
             ).rowcount
-            if cancelled:
-                return Cancel.CANCELLED
-            stopping = db.execute(
-                sa.update(T)
-                .where(T.c.id == trial_id, T.c.status == RUNNING)
-                .values(cancel_requested=True)
-            ).rowcount
+            stopping = 0
+            if not cancelled:
+                stopping = db.execute(
+                    sa.update(T)
+                    .where(T.c.id == trial_id, T.c.status == RUNNING)
+                    .values(cancel_requested=True)
+                ).rowcount
+        if cancelled:
+            self._ended([trial_id])
+            return Cancel.CANCELLED
         return Cancel.STOPPING if stopping else Cancel.ENDED
 
     # -- workers ------------------------------------------------------------------------
@@ -283,7 +341,9 @@ class Queue:
                 self._sign(db, trial_id)
         if done != 1:
             log.warning("worker %s finished trial %d after losing it; dropped", worker, trial_id)
-        return done == 1
+            return False
+        self._ended([trial_id])
+        return True
 
     def file_finished(
         self,
@@ -374,6 +434,7 @@ class Queue:
                     T.c.status == RUNNING, T.c.lease_until < now
                 )
             ).all()
+            gone: list[int] = []  # ended, not requeued
             for trial_id, worker, attempts, cancel in lost:
                 values: dict[str, Any]
                 if cancel:
@@ -402,6 +463,9 @@ class Queue:
                     )
                 )
                 log.warning("trial %d: lease of worker %s ran out: %s", trial_id, worker, values)
+                if ended:
+                    gone.append(trial_id)
+        self._ended(gone)
         return [row[0] for row in lost]
 
     def running_workers(self) -> set[str]:

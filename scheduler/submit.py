@@ -30,11 +30,14 @@ import asyncio
 import logging
 import tempfile
 import threading
+from collections.abc import Callable, Mapping
 from concurrent.futures import Future, ThreadPoolExecutor
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 from repository.index import Index, User
-from repository.trial import Kind, PinnedRecord, TrialRequest
+from repository.trial import Kind, PinnedRecord, TrialRequest, Value
 from scheduler import controller
 from scheduler import data as pinning
 from scheduler.data import Archive, DataPolicy
@@ -45,6 +48,21 @@ from scheduler.queue import Queue
 from scheduler.source import checkout
 
 log = logging.getLogger("scheduler.submit")
+
+
+@dataclass(frozen=True)
+class Prepared:
+    """A submission checked and resolved: what its trials are queued with."""
+
+    resolved: Resolved
+    ref: str | None
+    task: str
+    params: dict[str, Value]  # the ones the request named, normalized
+    data: list[PinnedRecord] | None  # lab.toml's [data], pinned
+
+    def __str__(self) -> str:
+        where = f"{self.resolved.repository}@{self.resolved.commit[:12]} ({self.ref or 'HEAD'})"
+        return f"{where} {self.task}"
 
 
 class Submissions:
@@ -74,7 +92,12 @@ class Submissions:
         self._in_hand = 0  # submissions running or waiting in the pool
 
     async def submit_async(self, user: User, request: TrialRequest) -> int:
-        """``submit`` in this lab's own pool of threads; ``Busy`` at once when it has as
+        """``submit`` in this lab's own pool of threads (``in_pool``)."""
+        return await self.in_pool(self.submit, user, request)
+
+    async def in_pool(self, call: Callable[..., int], *args: Any) -> int:
+        """``call(*args)`` (a submission: it resolves a ref, so it may wait on a git
+        server) in this lab's own pool of threads; ``Busy`` at once when the pool has as
         many submissions in hand as it takes.
 
         A submission whose caller stops waiting (a client gone) still ends in the pool,
@@ -85,7 +108,7 @@ class Submissions:
                 raise Busy(self._in_hand, retry_after=max(1.0, self.policy.timeout / 2))
             self._in_hand += 1
         try:
-            future = self._pool.submit(self.submit, user, request)
+            future = self._pool.submit(call, *args)
         except BaseException:
             self._release()
             raise
@@ -105,46 +128,61 @@ class Submissions:
 
         Raises InvalidRequest, RepositoryError or QuotaExceeded, having written nothing.
         """
-        if request.task is not None:  # a wrong task or parameter is refused before fetching
-            self.host.check(request.task, request.params)
-        resolved = resolve(request.repository, request.ref, self.cache, self.policy)
+        prepared = self.prepare(request.repository, request.ref, request.task, request.params)
+        trial_id = self.queue.submit(
+            user,
+            repository=prepared.resolved.repository,
+            ref=request.ref,
+            commit=prepared.resolved.commit,
+            task=prepared.task,
+            params=prepared.params,
+            seed=request.seed,
+            public=prepared.resolved.public,
+            data=prepared.data,
+        )
+        log.info(
+            "trial %d queued for %s: %s, learning from %s",
+            trial_id,
+            user.name,
+            prepared,
+            f"trials {', '.join(str(p.trial) for p in prepared.data)}"
+            if prepared.data
+            else "no data",
+        )
+        return trial_id
+
+    def prepare(
+        self, repository: str, ref: str | None, task: str | None, params: Mapping[str, Any]
+    ) -> Prepared:
+        """Check the task and parameters, resolve the ref to a commit, read its
+        ``lab.toml`` and pin its ``[data]``: what a trial of it is queued with.
+
+        Raises InvalidRequest or RepositoryError.
+        """
+        if task is not None:  # a wrong task or parameter is refused before fetching
+            self.host.check(task, params)
+        resolved = resolve(repository, ref, self.cache, self.policy)
         config = self.lab_toml(resolved)
-        task = request.task or config.task
+        task = task or config.task
         if task is None:
             tasks = ", ".join(self.host.tasks())
             raise InvalidRequest(
                 f"{controller.FILE} names no task, and the request gives none: name one"
                 f" (--task, or task in {controller.FILE}); the tasks are {tasks}"
             )
-        values = self.host.check(task, request.params)
-        params = {name: values[name] for name in sorted(request.params)}  # as normalized
+        values = self.host.check(task, params)
         data: list[PinnedRecord] | None = None
         if config.data is not None:
             if self.archive is None:
                 raise InvalidRequest(f"{controller.FILE} has [data], but this lab has no archive")
             data = pinning.resolve(config.data, self.archive, self.data_policy)
-        trial_id = self.queue.submit(
-            user,
-            repository=resolved.repository,
-            ref=request.ref,
-            commit=resolved.commit,
+        return Prepared(
+            resolved=resolved,
+            ref=ref,
             task=task,
-            params=params,
-            seed=request.seed,
-            public=resolved.public,
+            params={name: values[name] for name in sorted(params)},  # as normalized
             data=data,
         )
-        log.info(
-            "trial %d queued for %s: %s@%s (%s) %s, learning from %s",
-            trial_id,
-            user.name,
-            resolved.repository,
-            resolved.commit[:12],
-            request.ref or "HEAD",
-            task,
-            f"trials {', '.join(str(p.trial) for p in data)}" if data else "no data",
-        )
-        return trial_id
 
     def lab_toml(self, resolved: Resolved) -> controller.ControllerConfig:
         """The commit's ``lab.toml``, checked as a trial checks it (``TrialError``)."""
@@ -159,7 +197,7 @@ class Submissions:
         A rerun of a rerun is a rerun of the original, so every verdict compares with
         the same record.
         """
-        old = self.index.trial(trial_id)
+        old = self.index.readable(trial_id)
         if old.kind is Kind.DEMONSTRATION:
             raise InvalidRequest(
                 f"trial {trial_id} is a demonstration, a person's live drive: it has no code"

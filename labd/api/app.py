@@ -39,7 +39,7 @@ from fastapi.responses import JSONResponse, StreamingResponse
 from starlette.concurrency import run_in_threadpool
 
 from labd import __version__
-from labd.api import accounts, errors, records, reservations, summaries, workers
+from labd.api import accounts, errors, evaluations, records, reservations, summaries, workers
 from labd.api.builds import Builds
 from labd.api.common import Lab, Writer, blob_response
 from labd.api.edges import Edges
@@ -105,6 +105,7 @@ def create_app(
     parts = (
         router,
         records.router,
+        evaluations.router,
         summaries.router,
         workers.router,
         workers.blobs,
@@ -244,10 +245,10 @@ def list_trials(request: Request, service: Lab, q: Annotated[TrialQuery, Depends
     return TrialPage(trials=[trial_summary(t, link) for t in page.items], next=page.next)
 
 
-@router.get("/api/trials/{trial_id}", tags=["trials"], responses=responses(404))
+@router.get("/api/trials/{trial_id}", tags=["trials"], responses=responses(403, 404))
 def show(trial_id: Id, request: Request, service: Lab) -> TrialDetail:
     """One trial: its outcome, what was asked, what came out, its manifest."""
-    return trial_detail(service.index.trial(trial_id), _base(request))
+    return trial_detail(service.index.readable(trial_id), _base(request))
 
 
 @router.get(
@@ -256,12 +257,12 @@ def show(trial_id: Id, request: Request, service: Lab) -> TrialDetail:
     response_class=StreamingResponse,
     responses={
         200: {"content": {"application/x-mcap": {}}, "description": "the MCAP file"},
-        **responses(404, 500),
+        **responses(403, 404, 500),
     },
 )
 def data(trial_id: Id, service: Lab) -> StreamingResponse:
     """The trial's MCAP record, checked against its digest before it is sent."""
-    trial = service.index.trial(trial_id)
+    trial = service.index.readable(trial_id)
     if not trial.mcap:
         raise ApiError(
             404, f"trial {trial_id} has no record ({_state(trial.status, trial.outcome)})"
@@ -275,12 +276,12 @@ def data(trial_id: Id, service: Lab) -> StreamingResponse:
     response_class=StreamingResponse,
     responses={
         200: {"content": {"text/plain": {}}, "description": "the log, as the controller wrote it"},
-        **responses(404, 422, 500),
+        **responses(403, 404, 422, 500),
     },
 )
 def logs(trial_id: Id, stream: Literal["stdout", "stderr"], service: Lab) -> StreamingResponse:
     """The controller's ``stdout`` or ``stderr``."""
-    trial = service.index.trial(trial_id)
+    trial = service.index.readable(trial_id)
     digest = trial.stdout if stream == "stdout" else trial.stderr
     if not digest:
         raise ApiError(404, f"trial {trial_id} has no {stream} log")
@@ -309,7 +310,9 @@ def cancel(trial_id: Id, request: Request, service: Lab, user: Writer) -> Cancel
     ended already and nothing was done; ``trial`` is the trial after the call.
     """
     done = service.queue.cancel(trial_id, user)
-    return CancelView(done=done, trial=trial_detail(service.index.trial(trial_id), _base(request)))
+    return CancelView(
+        done=done, trial=trial_detail(service.index.readable(trial_id), _base(request))
+    )
 
 
 @router.get("/api/commits/{sha}", tags=["archive"], responses=responses(404, 422))

@@ -30,6 +30,7 @@ from repository.errors import (
     BadCredentials,
     BlobError,
     BlobNotFound,
+    HeldOut,
     IndexLost,
     NotYourReservation,
     OverLimit,
@@ -104,6 +105,7 @@ class TooMany(ApiError):
 # The most specific class wins (a TooLarge is a RepositoryError, but a 413).
 STATUS: dict[type[Exception], int] = {
     RecordNotFound: 404,
+    HeldOut: 403,  # an episode of a held-out suite: the operator's until it is retired
     BlobNotFound: 404,
     UnknownTaskError: 404,
     BlobError: 500,  # a blob that no longer matches its digest: the store is damaged
@@ -127,7 +129,8 @@ STATUS: dict[type[Exception], int] = {
 MEANING = {
     400: "the request body is not valid JSON",
     401: "no token or sign-in, or one the lab does not know",
-    403: "the user may not do this (or a signed-in page's request lacks its CSRF token)",
+    403: "the user may not do this, or may not see it (a held-out episode; or a signed-in"
+    " page's request lacks its CSRF token)",
     404: "no such trial, commit, task, reservation, record or file",
     409: "a conflict: the slot is booked already, or the client's version is not the lab's",
     413: "too large: a body over its route's limit (1 MiB for JSON), or a repository",

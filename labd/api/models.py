@@ -8,11 +8,13 @@ A trial's headline is its outcome: ``success``, ``fail`` or ``error`` once finis
 from __future__ import annotations
 
 import datetime as dt
+from collections.abc import Collection
 from typing import Annotated, Any
 
 from pydantic import BaseModel, Field, StringConstraints
 
 from labd.sim import registry
+from repository.evaluation import SuiteInfo
 from repository.index import CommitPage
 from repository.trial import MAX_ID, Kind, Outcome, PinnedRecord, Status, Trial, Value
 from scheduler.canary import State
@@ -150,6 +152,7 @@ class TaskView(BaseModel):
     version: str
     doc: str
     params: dict[str, Param]
+    suites: list[SuiteInfo] = Field(description="its episode suites, for evaluations")
 
 
 class TaskList(BaseModel):
@@ -236,12 +239,26 @@ def commit_view(page: CommitPage, base: str) -> CommitView:
     )
 
 
-def task_view(name: str) -> TaskView:
+def task_view(name: str, retired: Collection[tuple[str, int]] = ()) -> TaskView:
+    """Task ``name`` as the API shows it; ``retired`` are its retired suite versions."""
     spec = registry.get(name)
     return TaskView(
         name=spec.name,
         version=spec.version,
         doc=spec.doc,
+        suites=[
+            SuiteInfo(
+                name=suite.name,
+                version=suite.version,
+                episodes=suite.episodes,
+                held_out=suite.held_out,
+                retired=(suite.name, suite.version) in retired,
+                seeds=None if suite.held_out else list(suite.seeds),
+                params=dict(suite.params),
+                doc=suite.doc,
+            )
+            for suite in spec.suites
+        ],
         params={
             p.name: Param(
                 type=p.kind.__name__,

@@ -121,7 +121,7 @@ def provenance(trial: Trial, url: str) -> dict[str, Any]:
             "content": {f.media_type: {} for f in FORMATS.values()},
             "description": "the export: " + "; or ".join(f.doc for f in FORMATS.values()),
         },
-        **responses(404, 422, 500, 503),
+        **responses(403, 404, 422, 500, 503),
     },
 )
 async def export_record(
@@ -135,7 +135,7 @@ async def export_record(
 
 
 @router.get(
-    "/api/trials/{trial_id}/export/{fmt}/signature", responses=responses(404, 422, 500, 503)
+    "/api/trials/{trial_id}/export/{fmt}/signature", responses=responses(403, 404, 422, 500, 503)
 )
 async def export_signature(
     trial_id: Id, fmt: Format, service: Lab, builds: Building
@@ -158,14 +158,16 @@ async def _artifact(service: Lab, builds: Builds, trial_id: int, fmt: ExportForm
         return made
 
     def build() -> Derived:  # unless the build before this one's turn made it
-        return _made(service, trial_id, fmt) or _make(service, service.index.trial(trial_id), fmt)
+        return _made(service, trial_id, fmt) or _make(
+            service, service.index.readable(trial_id), fmt
+        )
 
     return await builds.once(f"trial-{trial_id}-{fmt.name}", build)
 
 
 def _made(service: Lab, trial_id: int, fmt: ExportFormat) -> Derived | None:
     """The trial's export as kept beside its record, or None if not made yet."""
-    trial = service.index.trial(trial_id)
+    trial = service.index.readable(trial_id)
     if not trial.mcap:
         raise ApiError(404, f"trial {trial_id} has no record to export")
     made = service.index.derived(trial_id)
@@ -313,10 +315,10 @@ class ReplayVerdict(BaseModel):
     video: dict[str, Any] | None = Field(description="camera, frames, fps of the video")
 
 
-@router.get("/api/trials/{trial_id}/replay", responses=responses(404, 500))
+@router.get("/api/trials/{trial_id}/replay", responses=responses(403, 404, 500))
 def replay_verdict(trial_id: Id, service: Lab) -> ReplayVerdict:
     """The verdict of replaying the trial's record from its actions (made when filed)."""
-    service.index.trial(trial_id)
+    service.index.readable(trial_id)
     item = service.index.derived(trial_id).get(REPLAY)
     if item is None:
         raise ApiError(404, f"trial {trial_id} has not been replayed")
@@ -328,12 +330,12 @@ def replay_verdict(trial_id: Id, service: Lab) -> ReplayVerdict:
     response_class=StreamingResponse,
     responses={
         200: {"content": {"video/mp4": {}}, "description": "H.264 MP4"},
-        **responses(404, 500),
+        **responses(403, 404, 500),
     },
 )
 def video(trial_id: Id, service: Lab) -> StreamingResponse:
     """The task's camera through the whole trial, rendered during its replay."""
-    service.index.trial(trial_id)
+    service.index.readable(trial_id)
     item = service.index.derived(trial_id).get(VIDEO)
     if item is None:
         raise ApiError(404, f"trial {trial_id} has no video (it has not been replayed)")

@@ -112,13 +112,13 @@ class RecordSummary(BaseModel):
     response_class=Response,
     responses={
         200: {"model": RecordSummary, "description": "the record's summary, for its page"},
-        **responses(404, 500),
+        **responses(403, 404, 500),
     },
 )
 def summary(trial_id: Id, service: Lab, request: Request) -> Response:
     """Plots, camera thumbnails, a map and a 3D scene of the trial's record: what its
     page draws, in a small fraction of the record's size."""
-    trial = service.index.trial(trial_id)
+    trial = service.index.readable(trial_id)
     if not trial.mcap:
         raise ApiError(404, f"trial {trial_id} has no record to summarize")
     item = service.index.derived(trial_id).get(SUMMARY)

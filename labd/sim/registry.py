@@ -12,6 +12,7 @@ from typing import TYPE_CHECKING, Any
 
 from labd.errors import UnknownTaskError
 from labd.sim.params import Params, Value
+from repository.evaluation import Suite
 
 if TYPE_CHECKING:
     from labd.sim.base import LabTask
@@ -43,6 +44,12 @@ class TaskSpec:
     live_params: Mapping[str, Value] = field(default_factory=dict)
     # The LabTask class: its command and observation topics, without building an episode.
     task_class: type[LabTask] | None = None
+    # Its episode suites for evaluations (repository.evaluation): a public dev suite,
+    # a held-out test suite; a suite's version goes up whenever its episodes change.
+    suites: tuple[Suite, ...] = ()
+
+    def suite(self, name: str) -> Suite | None:
+        return next((s for s in self.suites if s.name == name), None)
 
     def topics(self) -> tuple[list[str], list[str]]:
         """The task's observation topics and its command (action) topics."""

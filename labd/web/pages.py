@@ -170,7 +170,7 @@ def _day(text: str | None, name: str, *, end: bool = False) -> float | None:
 
 @router.get("/trials/{trial_id}", response_class=HTMLResponse)
 def trial(request: Request, trial_id: Id, service: Lab, viewer: Viewer) -> HTMLResponse:
-    record = service.index.trial(trial_id)
+    record = service.index.readable(trial_id)
     base = str(request.base_url).rstrip("/")
     reruns = service.index.find(Filters(rerun_of=trial_id), limit=20).items
     logs = {stream: _log(service, getattr(record, stream)) for stream in ("stdout", "stderr")}

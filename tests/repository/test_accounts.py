@@ -15,8 +15,9 @@ from repository.errors import (
     RecordNotFound,
     UnknownKey,
 )
-from repository.index import Index, connect, passwords, web_sessions
+from repository.index import Index, connect
 from repository.reservations import Reservations, Rules
+from repository.tables import passwords, web_sessions
 
 
 class Clock:

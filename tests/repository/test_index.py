@@ -6,7 +6,8 @@ import pytest
 import sqlalchemy as sa
 
 from repository.errors import ArchiveError, RecordNotFound, SchemaMismatch
-from repository.index import Filters, Index, Order, meta
+from repository.index import Filters, Index, Order
+from repository.tables import meta
 from repository.trial import Kind, Outcome, Status
 
 

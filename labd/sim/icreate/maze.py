@@ -37,6 +37,7 @@ from labd.sim.icreate.layout import CELL, DIRECTIONS, Layout
 from labd.sim.icreate.tags import Detector, Tag, place
 from labd.sim.params import Param, Params
 from labd.sim.registry import TaskSpec
+from repository.evaluation import Suite
 from repository.trial import EpisodeStatus
 
 SUCCESS_BONUS = 10.0
@@ -465,4 +466,8 @@ TASK = TaskSpec(
     build=make,
     task_class=IcreateMaze,
     live_params={"control_rate": 20},  # teleoperation: a 20 Hz camera and smoother driving
+    suites=(
+        Suite("dev", 1, seeds=tuple(range(20)), doc="20 mazes, seeds 0 to 19, default parameters"),
+        Suite("test", 1, episodes=50, held_out=True, doc="50 mazes whose seeds are the lab's"),
+    ),
 )

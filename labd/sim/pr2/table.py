@@ -40,6 +40,7 @@ from labd.sim.pr2 import model, scene, topics
 from labd.sim.pr2.motion import ArmSolver, PoseTarget, Trajectory
 from labd.sim.pr2.physics import BASE, ODOM, OPTICAL, SERVOED, TORSO, Physics
 from labd.sim.registry import TaskSpec
+from repository.evaluation import Suite
 from repository.trial import EpisodeStatus
 
 TIMESTEP = 0.002  # s: small enough for stable grasps
@@ -534,4 +535,8 @@ TASK = TaskSpec(
     params=PARAMS,
     build=make,
     task_class=TableTask,
+    suites=(
+        Suite("dev", 1, seeds=tuple(range(20)), doc="20 tables, seeds 0 to 19, default parameters"),
+        Suite("test", 1, episodes=50, held_out=True, doc="50 tables whose seeds are the lab's"),
+    ),
 )
