@@ -33,12 +33,14 @@ from labd import __version__
 from labd.commands import (
     demo,
     demonstrate,
+    evaluate,
     migrate,
     remote,
     replay,
     reserve,
     run,
     serve,
+    suites,
     users,
     verify,
     worker,
@@ -78,8 +80,10 @@ def build_parser() -> argparse.ArgumentParser:
     serve.add_parser(commands)
     run.add_parser(commands)
     remote.add_parsers(commands)
+    evaluate.add_parsers(commands)
     reserve.add_parser(commands)
     users.add_parser(commands)
+    suites.add_parser(commands)
     migrate.add_parser(commands)
     verify.add_parser(commands)
     replay.add_parser(commands)
@@ -94,6 +98,9 @@ MAINS: dict[str, Callable[[argparse.Namespace], int]] = {
     "run": run.main,
     "reserve": reserve.main,
     "users": users.main,
+    "suites": suites.main,
+    "evaluate": evaluate.main,
+    "evaluations": evaluate.main,
     "migrate": migrate.main,
     "verify": verify.main,
     "replay": replay.main,

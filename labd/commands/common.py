@@ -40,8 +40,9 @@ class ExitCode(IntEnum):
     INVALID = 6
 
 
-EPILOG = """exit codes: 0 success (a rerun: reproduced); 1 fail (the trial ran to its end
-without achieving its task); 2 usage (a wrong command line, a refused request, no lab);
+EPILOG = """exit codes: 0 success (a rerun: reproduced; an evaluation: at least
+--min-success); 1 fail (the trial ran to its end without achieving its task; an
+evaluation below --min-success); 2 usage (a wrong command line, a refused request, no lab);
 3 error (the trial broke); 4 cancelled; 5 a rerun diverged; 6 a record or export does not
 match its signature (verify)"""
 

@@ -344,6 +344,12 @@ def _tasks(client: ApiClient, args: argparse.Namespace) -> int:
             yield f"  {task.doc.strip().splitlines()[0] if task.doc.strip() else ''}"
             for name, param in task.params.items():
                 yield f"  --param {name}=...  {param.describe}"
+            for suite in task.suites:
+                kind = "held out" if suite.held_out else "public seeds"
+                yield (
+                    f"  --suite {suite.name}  version {suite.version}, {suite.episodes}"
+                    f" episodes, {kind}: {suite.doc}"
+                )
 
     emit(args, listing.model_dump(mode="json"), lines)
     return ExitCode.SUCCESS

@@ -1,0 +1,207 @@
+"""``labd evaluate``: score a commit on a task's fixed suite of episodes.
+
+    labd evaluate REPO_URL [--ref REF] [--task TASK] [--suite dev] [--wait]
+                  [--min-success RATE] [--json]
+    labd evaluations [--task T] [--suite S] [--repo URL] [--commit SHA] [--user U]
+                     [--limit N] [--json]
+
+``evaluate`` queues one trial per episode of the suite (``repository.evaluation``) and,
+with ``--wait``, prints its progress on stderr until every episode has ended, then the
+success rate with its 95 % interval. The exit code makes it a gate in a repository's
+own CI: 0 when the evaluation finished with a success rate of at least
+``--min-success`` (default 0), 1 below it, 4 when it was cancelled, and the usual codes
+for errors (``labd.commands.common``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from collections.abc import Iterator
+from typing import Any
+
+from labd.api.evaluations import EvaluationPage, EvaluationView
+from labd.commands.common import ExitCode, emit, fail, server_options
+from repository.errors import ArchiveError
+from repository.trial import Outcome, Status
+from scheduler.client import ApiClient
+from scheduler.errors import RemoteError
+
+POLL = 2.0  # seconds between looks at a running evaluation
+
+
+def add_parsers(commands: Any) -> None:
+    p = commands.add_parser(
+        "evaluate", help="score a commit on a task's suite of episodes, with its uncertainty"
+    )
+    p.add_argument("repository", metavar="REPO_URL", help="a git URL, or a local repository")
+    p.add_argument("--ref", help="branch, tag or commit (default: the repository's HEAD)")
+    p.add_argument("--task", help="the task (default: the one the repository's lab.toml names)")
+    p.add_argument(
+        "--suite",
+        default="dev",
+        help="the task's suite of episodes (default: %(default)s; `labd tasks` lists them)",
+    )
+    p.add_argument(
+        "--wait",
+        action="store_true",
+        help="wait for every episode, printing progress on stderr (default: no)",
+    )
+    p.add_argument(
+        "--min-success",
+        type=rate,
+        default=0.0,
+        metavar="RATE",
+        help="with --wait, exit 1 when the success rate is below RATE: a fraction (0.8)"
+        " or a percentage (80%%) (default: 0)",
+    )
+    server_options(p, write=True)
+
+    p = commands.add_parser("evaluations", help="list evaluations, newest first")
+    p.add_argument("--task", help="only this task's (default: all)")
+    p.add_argument("--suite", help="only this suite's (default: all)")
+    p.add_argument("--repo", help="only this repository URL's (default: all)")
+    p.add_argument("--commit", help="only this commit's, its 40 digits (default: all)")
+    p.add_argument("--user", help="only this submitter's (default: everyone's)")
+    p.add_argument("--limit", type=int, default=20, help="how many (default: %(default)s)")
+    server_options(p)
+
+
+def rate(text: str) -> float:
+    """A success rate from the command line: ``0.8`` or ``80%``."""
+    try:
+        value = float(text[:-1]) / 100 if text.endswith("%") else float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a rate (0.8, or 80%)") from None
+    if not 0.0 <= value <= 1.0:
+        raise argparse.ArgumentTypeError(f"{text!r}: a rate is from 0 to 1 (0% to 100%)")
+    return value
+
+
+def main(args: argparse.Namespace) -> int:
+    try:
+        with ApiClient(args.server, getattr(args, "token", None)) as client:
+            if args.command == "evaluations":
+                return _list(client, args)
+            return _evaluate(client, args)
+    except (RemoteError, ArchiveError) as err:
+        return fail(args, str(err))
+
+
+def _evaluate(client: ApiClient, args: argparse.Namespace) -> int:
+    body = {"repository": args.repository, "ref": args.ref, "task": args.task, "suite": args.suite}
+    evaluation = client.post("/api/evaluations", EvaluationView, json=body)
+    print(_queued(evaluation), file=sys.stderr, flush=True)
+    if args.wait:
+        evaluation = _follow(client, evaluation)
+    emit(args, evaluation.model_dump(mode="json"), lambda: _lines(evaluation))
+    if not args.wait:
+        return ExitCode.SUCCESS
+    return _code(evaluation, args.min_success)
+
+
+def _follow(client: ApiClient, evaluation: EvaluationView) -> EvaluationView:
+    """Poll until every episode has ended, printing a line on stderr when it moves."""
+    said = ""
+    while True:
+        line = _progress(evaluation)
+        if line != said:
+            print(line, file=sys.stderr, flush=True)
+            said = line
+        if evaluation.status.ended:
+            return evaluation
+        time.sleep(POLL)
+        evaluation = client.get(f"/api/evaluations/{evaluation.id}", EvaluationView)
+
+
+def _code(evaluation: EvaluationView, min_success: float) -> int:
+    if evaluation.status is Status.CANCELLED:
+        return ExitCode.CANCELLED
+    rate = evaluation.score.success_rate
+    return ExitCode.SUCCESS if rate is not None and rate >= min_success else ExitCode.FAIL
+
+
+def _queued(e: EvaluationView) -> str:
+    held = ", held out" if e.held_out else ""
+    return (
+        f"evaluation {e.id}: {e.repository}@{e.commit[:12]} on {e.task} suite {e.suite}"
+        f" (version {e.suite_version}{held}), {e.score.episodes} episodes queued; {e.page}"
+    )
+
+
+def _progress(e: EvaluationView) -> str:
+    s = e.score
+    so_far = f"; {s.successes} of {s.done} succeeded ({s.successes / s.done:.0%})" if s.done else ""
+    return (
+        f"evaluation {e.id}: {s.done}/{s.episodes} done, {s.running} running,"
+        f" {s.queued} queued{so_far}"
+    )
+
+
+def _percent(value: float) -> str:
+    return f"{100 * value:.0f} %"
+
+
+def _lines(e: EvaluationView) -> Iterator[str]:
+    s = e.score
+    partial = " (partial: cancelled)" if e.partial else ""
+    yield (
+        f"evaluation {e.id}: {e.repository}@{e.commit[:12]} on {e.task} suite {e.suite}"
+        f" version {e.suite_version}: {e.status}{partial}"
+    )
+    if s.success_rate is not None and s.success_interval is not None:
+        low, high = s.success_interval
+        counts = {o: sum(r.outcome is o for r in e.rows) for o in Outcome}
+        yield (
+            f"  success rate {_percent(s.success_rate)} (95 % interval {_percent(low)} to"
+            f" {_percent(high)}) over {s.done} episodes: {counts[Outcome.SUCCESS]} success,"
+            f" {counts[Outcome.FAIL]} fail, {counts[Outcome.ERROR]} error"
+        )
+    else:
+        yield f"  no episode finished yet ({s.queued} queued, {s.running} running)"
+    if s.mean_reward is not None and s.reward_interval is not None:
+        low, high = s.reward_interval
+        yield f"  mean reward {s.mean_reward:.4g} (95 % interval {low:.4g} to {high:.4g})"
+    unverified = [r.episode for r in e.rows if not r.verified]
+    if s.verified:
+        yield "  verified: every episode's replay reproduced its record"
+    elif e.status.ended:
+        yield f"  not verified: {len(unverified)} episodes without a verified replay yet"
+    if e.reproduced:
+        yield f"  {e.reproduced}"
+    if e.signature:
+        yield f"  signed by the lab ({e.signature.get('key')})"
+    yield f"  {e.page}"
+
+
+def _list(client: ApiClient, args: argparse.Namespace) -> int:
+    query = {
+        "task": args.task,
+        "suite": args.suite,
+        "repository": args.repo,
+        "commit": args.commit,
+        "user": args.user,
+        "limit": args.limit,
+    }
+    page = client.get(
+        "/api/evaluations", EvaluationPage, params={k: v for k, v in query.items() if v}
+    )
+
+    def lines() -> Iterator[str]:
+        if not page.evaluations:
+            yield "no evaluations"
+        for e in page.evaluations:
+            s = e.score
+            score = (
+                f"{_percent(s.success_rate)} of {s.done}"
+                if s.success_rate is not None
+                else "no episode finished"
+            )
+            yield (
+                f"{e.id:>6}  {e.task} {e.suite}@{e.suite_version}  {e.commit[:12]}  "
+                f"{e.status:<9} {score}{'  verified' if s.verified else ''}  {e.submitter}"
+            )
+
+    emit(args, page.model_dump(mode="json"), lines)
+    return ExitCode.SUCCESS

@@ -1,0 +1,70 @@
+"""`labd evaluate` against a real `labd serve` (two bubblewrap workers): a commit run on
+every episode of the maze's dev suite, followed to its end, gated by --min-success,
+every episode replayed and verified, the evaluation signed; then rerun, reproduced."""
+
+from __future__ import annotations
+
+import json
+import time
+
+import httpx
+import pytest
+
+from tests.integration.test_service import make_lab, make_repo  # noqa: F401 (a fixture)
+
+pytestmark = [pytest.mark.integration, pytest.mark.timeout(600)]
+
+BRIEF = '''\
+"""Drives forward for five ticks, then stops: the maze is never solved."""
+from controllers.client import Lab
+
+with Lab.connect() as lab:
+    for _ in range(5):
+        lab.publish("/cmd_vel", "geometry_msgs/msg/Twist", {"linear": {"x": 0.2}})
+        lab.step()
+'''
+LAB_TOML = '[controller]\ncommand = ["python", "c.py"]\ntask = "icreate-maze"\n'
+
+
+def until(what: str, check, timeout: float):
+    deadline = time.monotonic() + timeout
+    while (found := check()) is None or found is False:
+        if time.monotonic() > deadline:
+            pytest.fail(f"{what}: not within {timeout:g} s")
+        time.sleep(0.5)
+    return found
+
+
+def test_an_evaluation_of_the_dev_suite_from_the_command_line(make_lab, tmp_path):  # noqa: F811
+    lab = make_lab("--workers", "2")
+    repo = make_repo(tmp_path / "brief", {"lab.toml": LAB_TOML, "c.py": BRIEF})
+    gate = lab.labd("evaluate", str(repo), "--suite", "dev", "--wait", "--min-success", "50%", "--json", check=False)  # fmt: skip
+    assert gate.returncode == 1, gate.stdout + gate.stderr  # below the gate: 0 of 20
+    evaluation = json.loads(gate.stdout)
+    score = evaluation["score"]
+    assert (evaluation["status"], score["episodes"], score["done"]) == ("finished", 20, 20)
+    assert (score["successes"], score["success_rate"]) == (0, 0.0)
+    assert score["success_interval"][0] == 0.0 and 0.1 < score["success_interval"][1] < 0.2
+    assert {r["outcome"] for r in evaluation["rows"]} == {"fail"}
+    assert [r["seed"] for r in evaluation["rows"]] == list(range(20))
+    assert "evaluation 1: 20/20 done, 0 running, 0 queued; 0 of 20 succeeded (0%)" in gate.stderr
+    assert evaluation["signature"]["statement"]["schema"] == "labd.evaluation/1"
+
+    api = f"{lab.server}/api/evaluations/{evaluation['id']}"
+    verified = until("every episode replayed and verified", lambda: httpx.get(api).json()["score"]["verified"], 180)  # fmt: skip
+    assert verified is True
+    unknown = lab.labd("evaluate", str(repo), "--suite", "nightly", check=False)
+    assert unknown.returncode == 2
+    assert "task icreate-maze has no suite 'nightly'; its suites: dev, test" in unknown.stderr
+    listed = lab.json("evaluations", "--suite", "dev")["evaluations"]
+    assert [e["id"] for e in listed] == [evaluation["id"]]
+
+    token = {"Authorization": f"Bearer {lab.token}"}
+    rerun = httpx.post(f"{api}/rerun", headers=token, timeout=30).json()
+    again = f"{lab.server}/api/evaluations/{rerun['id']}"
+    verdict = until(
+        "the rerun's verdict",
+        lambda: (v := httpx.get(again).json()["reproduced"]) and not v.startswith("pending") and v,
+        300,
+    )
+    assert verdict == "reproduced: 20 of 20 episodes identical"
