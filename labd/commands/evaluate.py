@@ -29,6 +29,7 @@ from scheduler.client import ApiClient
 from scheduler.errors import RemoteError
 
 POLL = 2.0  # seconds between looks at a running evaluation
+REPLAYS = 300.0  # seconds to wait, after the last episode, for the replays' verdicts
 
 
 def add_parsers(commands: Any) -> None:
@@ -102,17 +103,27 @@ def _evaluate(client: ApiClient, args: argparse.Namespace) -> int:
 
 
 def _follow(client: ApiClient, evaluation: EvaluationView) -> EvaluationView:
-    """Poll until every episode has ended, printing a line on stderr when it moves."""
+    """Poll until every episode has ended and every record's replay has its verdict (a
+    worker replays a record after filing it; at most ``REPLAYS`` seconds more), printing
+    a line on stderr when it moves."""
     said = ""
+    ended: float | None = None
     while True:
         line = _progress(evaluation)
         if line != said:
             print(line, file=sys.stderr, flush=True)
             said = line
         if evaluation.status.ended:
-            return evaluation
+            ended = ended or time.monotonic()
+            if not _replaying(evaluation) or time.monotonic() - ended > REPLAYS:
+                return evaluation
         time.sleep(POLL)
         evaluation = client.get(f"/api/evaluations/{evaluation.id}", EvaluationView)
+
+
+def _replaying(e: EvaluationView) -> int:
+    """Episodes with a record whose replay has no verdict yet."""
+    return sum(r.data_digest is not None and r.verified is None for r in e.rows)
 
 
 def _code(evaluation: EvaluationView, min_success: float) -> int:
@@ -132,11 +143,17 @@ def _queued(e: EvaluationView) -> str:
 
 def _progress(e: EvaluationView) -> str:
     s = e.score
+    if e.status.ended and (left := _replaying(e)):
+        return f"evaluation {e.id}: {e.status}; replaying {_episodes(left)} to verify them"
     so_far = f"; {s.successes} of {s.done} succeeded ({s.successes / s.done:.0%})" if s.done else ""
     return (
         f"evaluation {e.id}: {s.done}/{s.episodes} done, {s.running} running,"
         f" {s.queued} queued{so_far}"
     )
+
+
+def _episodes(n: int) -> str:
+    return f"{n} episode" if n == 1 else f"{n} episodes"
 
 
 def _percent(value: float) -> str:
@@ -167,7 +184,7 @@ def _lines(e: EvaluationView) -> Iterator[str]:
     if s.verified:
         yield "  verified: every episode's replay reproduced its record"
     elif e.status.ended:
-        yield f"  not verified: {len(unverified)} episodes without a verified replay yet"
+        yield f"  not verified: {_episodes(len(unverified))} without a verified replay"
     if e.reproduced:
         yield f"  {e.reproduced}"
     if e.signature:

@@ -23,6 +23,8 @@ from labd.api.workers import MAX_BLOB
 from labd.commands import serve
 from labd.config import BridgeConfig, DriveLimits, HttpConfig
 from labd.service import ServiceConfig
+from labd.sim import registry
+from repository import stats
 from repository.index import UserLimits
 from repository.mcapfile import MAX_PART
 from repository.trial import MAX_ID
@@ -165,7 +167,26 @@ ROWS: list[tuple[str, str, Callable[[], object], object]] = [
     ("service.md", "and one export at a time, with at most 8 more waiting their turn",
      lambda: (builds.BUILDS, builds.WAITING), (1, 8)),
     ("service.md", "at most 1 GiB of them is kept", lambda: builds.KEEP_BYTES, 1024 * MiB),
+    # docs/evaluations.md
+    ("evaluations.md", "| `icreate-maze` | `dev` | 1 | 20 | 0 to 19, public |",
+     lambda: suite_of("icreate-maze", "dev"), (1, 20, tuple(range(20)), False)),
+    ("evaluations.md", "| `icreate-maze` | `test` | 1 | 50 | held out |",
+     lambda: suite_of("icreate-maze", "test"), (1, 50, (), True)),
+    ("evaluations.md", "| `pr2-table` | `dev` | 1 | 20 | 0 to 19, public |",
+     lambda: suite_of("pr2-table", "dev"), (1, 20, tuple(range(20)), False)),
+    ("evaluations.md", "| `pr2-table` | `test` | 1 | 50 | held out |",
+     lambda: suite_of("pr2-table", "test"), (1, 50, (), True)),
+    ("evaluations.md", "(2,000 resamples from a generator seeded with the evaluation's id",
+     lambda: stats.RESAMPLES, 2000),
+    ("evaluations.md", "towards the submitter's daily limit (500 trials by default)",
+     lambda: UserLimits().max_daily, 500),
 ]  # fmt: skip
+
+
+def suite_of(task: str, name: str) -> tuple[int, int, tuple[int, ...], bool]:
+    suite = registry.get(task).suite(name)
+    assert suite is not None, f"{task} has no suite {name}"
+    return suite.version, suite.episodes, suite.seeds, suite.held_out
 
 
 @pytest.mark.parametrize(
