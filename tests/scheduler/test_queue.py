@@ -302,3 +302,28 @@ def test_concurrent_submissions_keep_the_daily_limit(index, queue):
     for t in threads:
         t.join()
     assert (len(accepted), len(refused)) == (5, 7)
+
+
+def test_a_batch_of_episodes_is_queued_whole_and_shares_the_queue(index, queue):
+    """A 50-episode batch (an evaluation's) is queued all or none within the daily limit;
+    another user's trial submitted while it runs is the next one claimed, not the 51st."""
+    alice = make_user(index, "alice", max_running=4, max_daily=60)
+    bob = make_user(index, "bob")
+    common = {
+        "repository": "https://example.org/r.git",
+        "ref": "main",
+        "commit": COMMIT,
+        "task": "icreate-maze",
+        "params": {},
+        "public": True,
+    }
+    ids = queue.submit_many(alice, list(range(50)), lambda _db, ids: ids, **common)
+    assert [index.trial(t).seed for t in ids] == list(range(50))
+    with pytest.raises(QuotaExceeded, match="these 11 would take it past the daily limit of 60"):
+        queue.submit_many(alice, list(range(11)), lambda _db, ids: ids, **common)
+    assert len(index.find(Filters(submitter="alice"), limit=100).items) == 50  # none of the 11
+    running = [queue.claim(f"w{n}") for n in range(2)]
+    assert [c.id for c in running if c] == ids[:2]
+    theirs = submit(queue, bob)
+    claim = queue.claim("w3")
+    assert claim is not None and claim.id == theirs
