@@ -30,6 +30,7 @@ from scheduler.errors import RemoteError
 
 POLL = 2.0  # seconds between looks at a running evaluation
 REPLAYS = 300.0  # seconds to wait, after the last episode, for the replays' verdicts
+VERIFYING = " to verify them"
 
 
 def add_parsers(commands: Any) -> None:
@@ -109,14 +110,17 @@ def _follow(client: ApiClient, evaluation: EvaluationView) -> EvaluationView:
     said = ""
     ended: float | None = None
     while True:
-        line = _progress(evaluation)
-        if line != said:
-            print(line, file=sys.stderr, flush=True)
-            said = line
         if evaluation.status.ended:
             ended = ended or time.monotonic()
-            if not _replaying(evaluation) or time.monotonic() - ended > REPLAYS:
-                return evaluation
+        last = ended is not None and (
+            not _replaying(evaluation) or time.monotonic() - ended > REPLAYS
+        )
+        line = _progress(evaluation)
+        if line != said and not (last and said.endswith(VERIFYING)):
+            print(line, file=sys.stderr, flush=True)
+            said = line
+        if last:
+            return evaluation
         time.sleep(POLL)
         evaluation = client.get(f"/api/evaluations/{evaluation.id}", EvaluationView)
 
@@ -144,7 +148,7 @@ def _queued(e: EvaluationView) -> str:
 def _progress(e: EvaluationView) -> str:
     s = e.score
     if e.status.ended and (left := _replaying(e)):
-        return f"evaluation {e.id}: {e.status}; replaying {_episodes(left)} to verify them"
+        return f"evaluation {e.id}: {e.status}; replaying {_episodes(left)}{VERIFYING}"
     so_far = f"; {s.successes} of {s.done} succeeded ({s.successes / s.done:.0%})" if s.done else ""
     return (
         f"evaluation {e.id}: {s.done}/{s.episodes} done, {s.running} running,"
