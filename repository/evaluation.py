@@ -367,6 +367,11 @@ def _said(a: int, b: int, pairs: Pairs, paired: int, p: float) -> str:
         if p < 0.05
         else "a difference this small could be chance"
     )
+    if pairs.only_b > pairs.only_a:  # the better one first
+        return (
+            f"B ({b}) succeeds on {_episodes(pairs.only_b)} where A ({a}) fails, A on"
+            f" {pairs.only_a} where B fails: p = {p:.2g}; {verdict}."
+        )
     return (
         f"A ({a}) succeeds on {_episodes(pairs.only_a)} where B ({b}) fails, B on"
         f" {pairs.only_b} where A fails: p = {p:.2g}; {verdict}."

@@ -39,18 +39,21 @@ def add_parser(commands: Any) -> None:
     listing.add_argument("task", nargs="?", help="only this task's (default: every task's)")
     _where(listing)
     seeds = actions.add_parser("seeds", help="a suite's seeds, held-out ones included")
-    seeds.add_argument("task")
-    seeds.add_argument("suite")
+    _task_and_suite(seeds)
     _where(seeds)
     retire = actions.add_parser(
         "retire", help="make a held-out suite version public; it takes no new evaluation"
     )
-    retire.add_argument("task")
-    retire.add_argument("suite")
+    _task_and_suite(retire)
     retire.add_argument(
         "--version", type=int, help="the suite version (default: the one the lab runs now)"
     )
     _where(retire)
+
+
+def _task_and_suite(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("task", help="a task (`labd tasks` lists them)")
+    parser.add_argument("suite", help="one of its suites (`labd suites list` lists them)")
 
 
 def _where(parser: argparse.ArgumentParser) -> None:

@@ -6,7 +6,9 @@
     GET /trials/{id}        outcome and reason, what ran, metrics, logs, downloads, the
                             record's plots and camera, the rerun verdict, a rerun button
     GET /commits/{sha}      every trial of a commit with its reruns and verdicts
-    GET /tasks/{name}       the task's documentation, parameters and leaderboard
+    GET /tasks/{name}       the task's documentation, parameters, suites, the leaderboard
+                            of a suite's evaluations (``?suite=``, by default ``dev``:
+                            ``labd.web.evaluations``) and its recent trials
 
 They read the same typed records as the API (``repository.trial.Trial``), server-side;
 an unknown id or sha is a page saying so, with the API's status and words, never JSON
@@ -28,6 +30,7 @@ from labd.api.errors import Invalid
 from labd.api.models import Id, trial_detail
 from labd.api.state import App
 from labd.sim import registry
+from labd.web.evaluations import task_board
 from labd.web.problems import PageRoute, on_form
 from labd.web.render import page
 from labd.web.session import Viewer
@@ -228,7 +231,13 @@ def commit(request: Request, sha: str, service: Lab, viewer: Viewer) -> HTMLResp
 
 
 @router.get("/tasks/{name}", response_class=HTMLResponse)
-def task(request: Request, name: str, service: Lab, viewer: Viewer) -> HTMLResponse:
+def task(
+    request: Request,
+    name: str,
+    service: Lab,
+    viewer: Viewer,
+    suite: Annotated[str | None, Query(max_length=32, description="a suite of the task")] = None,
+) -> HTMLResponse:
     spec = registry.get(name)
     observations, commands = spec.topics()
     return page(
@@ -239,7 +248,7 @@ def task(request: Request, name: str, service: Lab, viewer: Viewer) -> HTMLRespo
             "params": list(spec.params.declared.values()),
             "observations": observations,
             "commands": commands,
-            "board": service.index.leaderboard(name),
+            **task_board(service, spec.name, suite),
             "recent": service.index.find(Filters(task=name), limit=10).items,
         },
         user=viewer,

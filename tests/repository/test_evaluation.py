@@ -135,6 +135,9 @@ def test_two_evaluations_pair_by_episode_and_say_it_in_a_sentence() -> None:
     assert (
         "A (1) succeeds on 9 episodes where B (2) fails, B on 1 where A fails: p = 0.021" in c.said
     )
+    assert (
+        "B (1) succeeds on 9 episodes where A (2) fails, A on 1 where B fails" in compare(b, a).said
+    )
     same = compare(a, a)
     assert same.p_value == 1.0 and "nothing tells them apart" in same.said
 
