@@ -86,24 +86,6 @@ class Order(StrEnum):
 
 
 @dataclass(frozen=True)
-class Standing:
-    """A commit's place on a task's leaderboard, over its trials and seeds."""
-
-    repository: str
-    commit: str
-    trials: int
-    successes: int
-    mean_reward: float | None
-    best_reward: float | None
-    seeds: int
-    latest: int  # its newest trial's id
-
-    @property
-    def success_rate(self) -> float:
-        return self.successes / self.trials if self.trials else 0.0
-
-
-@dataclass(frozen=True)
 class Derived:
     """A derived artifact of a trial's record: a blob of the store, and what it is."""
 
@@ -433,52 +415,6 @@ class Index:
         more = len(rows) > limit
         rows = rows[:limit]
         return Page(rows, rows[-1].id if more and rows else None)
-
-    def leaderboard(self, task: str, *, limit: int = 20) -> list[Standing]:
-        """A task's commits ranked over their trials (reruns left out): success rate first,
-        then mean reward; each with its best trial."""
-        c = trials.c
-        finished = sa.and_(
-            c.task == task,
-            c.status == Status.FINISHED.value,
-            c.kind == Kind.TRIAL.value,
-            c.rerun_of.is_(None),
-            ~hidden(c.id),
-        )
-        success = sa.func.sum(sa.case((c.outcome == Outcome.SUCCESS.value, 1), else_=0))
-        rate = sa.cast(success, sa.Float) / sa.func.count()
-        mean = sa.func.avg(c.reward)
-        query = (
-            sa.select(
-                c.repository,
-                c.commit,
-                sa.func.count().label("trials"),
-                success.label("successes"),
-                mean.label("mean_reward"),
-                sa.func.max(c.reward).label("best_reward"),
-                sa.func.count(sa.distinct(c.seed)).label("seeds"),
-                sa.func.max(c.id).label("latest"),
-            )
-            .where(finished)
-            .group_by(c.repository, c.commit)
-            .order_by(rate.desc(), mean.desc().nulls_last(), sa.func.max(c.id).desc())
-            .limit(limit)
-        )
-        with self.engine.connect() as db:
-            rows = db.execute(query).all()
-        return [
-            Standing(
-                repository=r.repository,
-                commit=r.commit,
-                trials=int(r.trials),
-                successes=int(r.successes or 0),
-                mean_reward=None if r.mean_reward is None else float(r.mean_reward),
-                best_reward=None if r.best_reward is None else float(r.best_reward),
-                seeds=int(r.seeds),
-                latest=int(r.latest),
-            )
-            for r in rows
-        ]
 
     def _conditions(self, f: Filters) -> list[sa.ColumnElement[bool]]:
         c = trials.c
