@@ -190,6 +190,7 @@ def trial(request: Request, trial_id: Id, service: Lab, viewer: Viewer) -> HTMLR
             "replayed": _replayed(service, derived.get(REPLAY)),
             "video": derived.get(VIDEO),
             "ended": record.status.ended,
+            "evaluation": service.evaluations.of_trial(trial_id),
         },
         user=viewer,
     )

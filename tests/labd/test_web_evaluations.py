@@ -138,6 +138,8 @@ async def test_an_evaluation_page_says_its_score_and_links_every_episode(
     assert [c["class"] for c in cells] == ["cell success"] * 14 + ["cell fail"] * 6
     assert cells[15]["title"] == "episode 15, seed 15: fail, reward 0"
     assert "/static/evaluation.js" in reply.text
+    episode = Elements((await web.get(f"/trials/{ids[15]}")).text).by_id("evaluation")
+    assert episode["text"] == f"An episode of evaluation #{e['id']} (seed 15)."
 
 
 async def test_a_held_out_evaluation_shows_outcomes_but_no_seed_or_link(web, service, writer, repo):
