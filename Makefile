@@ -60,6 +60,7 @@ bench: $(STAMP) $(WEBSTAMP)
 	$(PY) bench/replay.py
 	$(PY) bench/live.py
 	$(PY) bench/knn.py
+	$(PY) bench/evaluate.py
 
 clean:
 	rm -rf $(VENV) $(JS)/node_modules $(WEB)/node_modules labd/web/static/vendor .mypy_cache .ruff_cache .pytest_cache

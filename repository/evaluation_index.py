@@ -37,7 +37,7 @@ class EvaluationFilters:
     suite: str | None = None
     suite_version: int | None = None
     repository: str | None = None
-    commit: str | None = None  # the full commit
+    commit: str | None = None  # a commit, or its first digits
     submitter: str | None = None
 
 
@@ -320,8 +320,12 @@ def _conditions(f: EvaluationFilters) -> list[sa.ColumnElement[bool]]:
         conditions.append(E.suite_version == f.suite_version)
     if f.repository is not None:
         conditions.append(E.repository.in_(spellings(f.repository)))
-    if f.commit is not None:
-        conditions.append(E.commit == f.commit.lower())
+    if f.commit is not None:  # a whole commit, or its first digits (an index range)
+        commit = f.commit.lower()
+        if len(commit) == 40:
+            conditions.append(E.commit == commit)
+        else:
+            conditions.append(sa.and_(E.commit >= commit, E.commit < commit + "g"))
     if f.submitter is not None:
         conditions.append(E.submitter == f.submitter)
     return conditions

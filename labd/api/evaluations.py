@@ -63,7 +63,10 @@ class EvaluationQuery:
     task: str | None = None
     suite: str | None = None
     repository: str | None = None
-    commit: Annotated[str | None, Query(pattern=r"^[0-9a-fA-F]{40}$")] = None
+    commit: Annotated[
+        str | None,
+        Query(pattern=r"^[0-9a-fA-F]{4,40}$", description="a commit or its first 4+ digits"),
+    ] = None
     user: Annotated[str | None, Query(description="the submitter")] = None
     limit: Annotated[int, Query(ge=1, le=200)] = 50
     before: Annotated[Id | None, Query(description="the `next` of the page before")] = None

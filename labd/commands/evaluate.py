@@ -196,6 +196,38 @@ def _lines(e: EvaluationView) -> Iterator[str]:
     yield f"  {e.page}"
 
 
+def rerun(client: ApiClient, args: argparse.Namespace) -> int:
+    """``labd rerun COMMIT --evaluations``: rerun the commit's newest evaluation (every
+    one with ``--all``) as new evaluations, episode by episode; with ``--wait``, one
+    verdict each, and exit 0 only if every episode reproduced (5 if one diverged)."""
+    page = client.get(
+        "/api/evaluations", EvaluationPage, params={"commit": args.target, "limit": 200}
+    )
+    originals = [e for e in page.evaluations if e.rerun_of is None]
+    if not originals:
+        return fail(args, f"commit {args.target} has no evaluations to rerun")
+    chosen = originals if args.all else originals[:1]
+    made = [client.post(f"/api/evaluations/{e.id}/rerun", EvaluationView) for e in chosen]
+    for e in made:
+        print(
+            f"evaluation {e.id} queued: a rerun of evaluation {e.rerun_of}; {e.page}",
+            file=sys.stderr,
+        )
+    if args.wait:
+        made = [_follow(client, e) for e in made]
+    emit(
+        args,
+        [e.model_dump(mode="json") for e in made],
+        lambda: [f"evaluation {e.id} (a rerun of {e.rerun_of}): {e.reproduced}" for e in made],
+    )
+    if not args.wait:
+        return ExitCode.SUCCESS
+    if any(e.status is Status.CANCELLED for e in made):
+        return ExitCode.CANCELLED
+    reproduced = all((e.reproduced or "").startswith("reproduced") for e in made)
+    return ExitCode.SUCCESS if reproduced else ExitCode.DIVERGED
+
+
 def _list(client: ApiClient, args: argparse.Namespace) -> int:
     query = {
         "task": args.task,

@@ -7,6 +7,7 @@
     labd logs TRIAL [--stream stdout|stderr]
     labd download TRIAL [-o FILE]
     labd rerun COMMIT|TRIAL [--all] [--wait]
+    labd rerun COMMIT --evaluations [--all] [--wait]   (labd.commands.evaluate)
     labd cancel TRIAL
     labd export TRIAL --format lerobot|parquet [-o DIR]     (the formats of repository.formats)
     labd export --task T [--kind K --outcome O --user U --limit N] [--trials ID ...] --format F
@@ -38,6 +39,7 @@ from labd.api.models import (
     TrialDetail,
     TrialPage,
 )
+from labd.commands import evaluate
 from labd.commands.common import (
     ExitCode,
     emit,
@@ -106,6 +108,12 @@ def add_parsers(commands: Any) -> None:
     p.add_argument("target", metavar="COMMIT|TRIAL", help="a trial number or a commit")
     p.add_argument(
         "--all", action="store_true", help="every trial of the commit (default: the newest)"
+    )
+    p.add_argument(
+        "--evaluations",
+        action="store_true",
+        help="the commit's evaluations instead, every episode of each, one verdict each"
+        " (default: its trials)",
     )
     p.add_argument("--wait", action="store_true", help="wait and print the verdicts")
     server_options(p, write=True)
@@ -229,6 +237,8 @@ def _download(client: ApiClient, args: argparse.Namespace) -> int:
 
 
 def _rerun(client: ApiClient, args: argparse.Namespace) -> int:
+    if args.evaluations:
+        return evaluate.rerun(client, args)
     target = args.target
     if target.isdigit() and len(target) < 7:
         originals = [int(target)]

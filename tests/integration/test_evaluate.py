@@ -5,9 +5,7 @@ every episode replayed and verified, the evaluation signed; then rerun, reproduc
 from __future__ import annotations
 
 import json
-import time
 
-import httpx
 import pytest
 
 from tests.integration.test_service import make_lab, make_repo  # noqa: F401 (a fixture)
@@ -26,15 +24,6 @@ with Lab.connect() as lab:
 LAB_TOML = '[controller]\ncommand = ["python", "c.py"]\ntask = "icreate-maze"\n'
 
 
-def until(what: str, check, timeout: float):
-    deadline = time.monotonic() + timeout
-    while (found := check()) is None or found is False:
-        if time.monotonic() > deadline:
-            pytest.fail(f"{what}: not within {timeout:g} s")
-        time.sleep(0.5)
-    return found
-
-
 def test_an_evaluation_of_the_dev_suite_from_the_command_line(make_lab, tmp_path):  # noqa: F811
     lab = make_lab("--workers", "2")
     repo = make_repo(tmp_path / "brief", {"lab.toml": LAB_TOML, "c.py": BRIEF})
@@ -51,19 +40,14 @@ def test_an_evaluation_of_the_dev_suite_from_the_command_line(make_lab, tmp_path
     assert evaluation["signature"]["statement"]["schema"] == "labd.evaluation/1"
 
     assert score["verified"] is True  # --wait waited for every episode's replay too
-    api = f"{lab.server}/api/evaluations/{evaluation['id']}"
     unknown = lab.labd("evaluate", str(repo), "--suite", "nightly", check=False)
     assert unknown.returncode == 2
     assert "task icreate-maze has no suite 'nightly'; its suites: dev, test" in unknown.stderr
     listed = lab.json("evaluations", "--suite", "dev")["evaluations"]
     assert [e["id"] for e in listed] == [evaluation["id"]]
 
-    token = {"Authorization": f"Bearer {lab.token}"}
-    rerun = httpx.post(f"{api}/rerun", headers=token, timeout=30).json()
-    again = f"{lab.server}/api/evaluations/{rerun['id']}"
-    verdict = until(
-        "the rerun's verdict",
-        lambda: (v := httpx.get(again).json()["reproduced"]) and not v.startswith("pending") and v,
-        300,
-    )
-    assert verdict == "reproduced: 20 of 20 episodes identical"
+    rerun = lab.labd("rerun", evaluation["commit"][:10], "--evaluations", "--wait", "--json")
+    [again] = json.loads(rerun.stdout)
+    assert again["rerun_of"] == evaluation["id"]
+    assert again["reproduced"] == "reproduced: 20 of 20 episodes identical"
+    assert f"evaluation {again['id']} queued: a rerun of evaluation 1" in rerun.stderr
