@@ -101,7 +101,7 @@ def evaluate(served: Served, repo: Path, suite: str) -> tuple[dict[str, Any], fl
         while evaluation["status"] not in ("finished", "cancelled"):
             time.sleep(0.5)
             evaluation = client.get(f"/api/evaluations/{evaluation['id']}").json()
-            score = evaluation["score"]
+            score = evaluation
             print(f"[bench]   {score['done']}/{score['episodes']} done", end="\r", file=sys.stderr)
         elapsed = time.monotonic() - started
         while any(r["verified"] is None for r in evaluation["rows"]):  # the last replays
@@ -196,7 +196,7 @@ def main() -> None:
                 evaluation, elapsed = evaluate(served, repo, args.suite)
             finally:
                 served.stop()
-            score = evaluation["score"]
+            score = evaluation
             run: dict[str, Any] = {
                 "seconds": round(elapsed, 1),
                 "episodes_per_hour": round(3600 * score["episodes"] / elapsed),

@@ -168,8 +168,9 @@ class Score(BaseModel):
     compute_seconds: float
 
 
-class Evaluation(BaseModel):
-    """An evaluation's whole record, as the API serves it."""
+class Evaluation(Score):
+    """An evaluation's whole record, as the API serves it: its score's fields (``Score``),
+    then what was evaluated, where it is, and its episodes."""
 
     model_config = ConfigDict(frozen=True)
 
@@ -189,10 +190,14 @@ class Evaluation(BaseModel):
     partial: bool = Field(description="cancelled before every episode finished")
     created: dt.datetime
     finished: dt.datetime | None
-    score: Score
     rows: list[EpisodeRow]
     reproduced: str | None = Field(default=None, description="reruns: the verdict in words")
     signature: dict[str, Any] | None = None
+
+    @property
+    def score(self) -> Score:
+        """Its score alone."""
+        return Score(**{name: getattr(self, name) for name in Score.model_fields})
 
 
 def score(rows: Sequence[EpisodeRow], *, seed: int) -> Score:

@@ -287,6 +287,7 @@ def _evaluation(row: Any, found: list[tuple[EpisodeRow, float | None]]) -> Evalu
     if finished is None and ended and status.ended:
         finished = max(ended)
     return Evaluation(
+        **dict(score(rows, seed=row.id)),
         id=row.id,
         task=row.task,
         task_version=row.task_version,
@@ -303,7 +304,6 @@ def _evaluation(row: Any, found: list[tuple[EpisodeRow, float | None]]) -> Evalu
         partial=status is Status.CANCELLED,
         created=moment(row.created),
         finished=moment(finished) if finished is not None else None,
-        score=score(rows, seed=row.id),
         rows=rows,
         reproduced=reproduced(rows) if row.rerun_of is not None else None,
         signature=row.signature,

@@ -67,7 +67,7 @@ class EvaluationQuery:
         str | None,
         Query(pattern=r"^[0-9a-fA-F]{4,40}$", description="a commit or its first 4+ digits"),
     ] = None
-    user: Annotated[str | None, Query(description="the submitter")] = None
+    submitter: Annotated[str | None, Query(description="who submitted it")] = None
     limit: Annotated[int, Query(ge=1, le=200)] = 50
     before: Annotated[Id | None, Query(description="the `next` of the page before")] = None
 
@@ -113,7 +113,7 @@ def list_evaluations(
 ) -> EvaluationPage:
     """Evaluations, newest first, a page at a time."""
     filters = EvaluationFilters(
-        task=q.task, suite=q.suite, repository=q.repository, commit=q.commit, submitter=q.user
+        task=q.task, suite=q.suite, repository=q.repository, commit=q.commit, submitter=q.submitter
     )
     page = service.evaluations.find(filters, limit=q.limit, before=q.before)
     base = _base(request)

@@ -234,7 +234,7 @@ def _list(client: ApiClient, args: argparse.Namespace) -> int:
         "suite": args.suite,
         "repository": args.repo,
         "commit": args.commit,
-        "user": args.user,
+        "submitter": args.user,
         "limit": args.limit,
     }
     page = client.get(

@@ -30,7 +30,7 @@ def test_an_evaluation_of_the_dev_suite_from_the_command_line(make_lab, tmp_path
     gate = lab.labd("evaluate", str(repo), "--suite", "dev", "--wait", "--min-success", "50%", "--json", check=False)  # fmt: skip
     assert gate.returncode == 1, gate.stdout + gate.stderr  # below the gate: 0 of 20
     evaluation = json.loads(gate.stdout)
-    score = evaluation["score"]
+    score = evaluation
     assert (evaluation["status"], score["episodes"], score["done"]) == ("finished", 20, 20)
     assert (score["successes"], score["success_rate"]) == (0, 0.0)
     assert score["success_interval"][0] == 0.0 and 0.1 < score["success_interval"][1] < 0.2

@@ -64,7 +64,7 @@ async def test_an_evaluation_queues_every_episode_and_is_scored_and_signed(
         "queued",
     )
     assert [r["seed"] for r in evaluation["rows"]] == list(range(DEV))
-    assert evaluation["score"]["episodes"] == DEV and evaluation["score"]["queued"] == DEV
+    assert evaluation["episodes"] == DEV and evaluation["queued"] == DEV
     trials = [(await api.get(f"/api/trials/{r['trial']}")).json() for r in evaluation["rows"]]
     assert {t["commit"] for t in trials} == {evaluation["commit"]}
     assert [t["seed"] for t in trials] == list(range(DEV))
@@ -73,10 +73,10 @@ async def test_an_evaluation_queues_every_episode_and_is_scored_and_signed(
     file_episodes(service, {t: ("success", 1.0) for t in ids[:14]})
     half = (await api.get(f"/api/evaluations/{evaluation['id']}")).json()
     assert half["status"] == "running" and half["signature"] is None
-    assert (half["score"]["done"], half["score"]["success_rate"]) == (14, 1.0)
+    assert (half["done"], half["success_rate"]) == (14, 1.0)
     file_episodes(service, {t: ("fail", 0.0) for t in ids[14:]})
     done = (await api.get(f"/api/evaluations/{evaluation['id']}")).json()
-    score = done["score"]
+    score = done
     assert done["status"] == "finished" and not done["partial"]
     assert (score["done"], score["successes"], score["success_rate"]) == (DEV, 14, 0.7)
     low, high = score["success_interval"]
@@ -128,7 +128,7 @@ async def test_a_held_out_suite_keeps_its_seeds_and_records_until_it_is_retired(
     reply = await evaluate(api, token, repo, suite="test")
     assert reply.status_code == 201, reply.text
     evaluation = reply.json()
-    assert evaluation["held_out"] and evaluation["score"]["episodes"] == 50
+    assert evaluation["held_out"] and evaluation["episodes"] == 50
     assert {r["seed"] for r in evaluation["rows"]} == {None}
     trial = evaluation["rows"][0]["trial"]
     hidden = await api.get(f"/api/trials/{trial}")
@@ -167,7 +167,7 @@ async def test_cancel_keeps_what_finished_and_leaves_the_leaderboard(api, servic
     assert cancelled.status_code == 200, cancelled.text
     c = cancelled.json()
     assert c["status"] == "cancelled" and c["partial"]
-    assert (c["score"]["done"], c["score"]["successes"]) == (3, 3)
+    assert (c["done"], c["successes"]) == (3, 3)
     assert c["signature"]["statement"]["status"] == "cancelled"
 
     b = (await evaluate(api, token, repo)).json()

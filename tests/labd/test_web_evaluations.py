@@ -118,7 +118,7 @@ async def test_an_evaluation_page_says_its_score_and_links_every_episode(
     reply = await web.get(f"/evaluations/{e['id']}")
     assert reply.status_code == 200
     page = Elements(reply.text)
-    score = (await web.get(f"/api/evaluations/{e['id']}")).json()["score"]
+    score = (await web.get(f"/api/evaluations/{e['id']}")).json()
     assert page.by_id("status")["text"] == "finished"
     assert page.by_id("rate")["text"] == f"70 % (48 %{DASH}85 %, 95 % Wilson) of 20 episodes"
     low, high = score["reward_interval"]

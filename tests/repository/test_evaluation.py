@@ -110,7 +110,7 @@ def evaluation(eid: int, commit: str, outcomes: list[Outcome], rewards: list[flo
         "partial": False,
         "created": dt.datetime(2026, 11, 1, tzinfo=dt.UTC),
         "finished": None,
-        "score": score(rows, seed=eid),
+        **dict(score(rows, seed=eid)),
         "rows": rows,
     }
     return Evaluation(**{**values, **changes})

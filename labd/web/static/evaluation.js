@@ -84,7 +84,7 @@ function verdictClass(said) {
 
 function show(e) {
   const ended = ENDED.has(e.status);
-  const score = e.score;
+  const score = e;  // the score's fields are the evaluation's own
   root.dataset.status = e.status;
   const badge = $("status");
   badge.textContent = e.status;
