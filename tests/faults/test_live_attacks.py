@@ -222,6 +222,7 @@ def test_a_session_never_becomes_a_path_nor_a_typed_user_the_driver(served, tmp_
 # -- Broken 2: one drive's error freezes the robot ---------------------------------------
 
 
+@pytest.mark.rates  # it measures the robot's rate: one at a time with the others that do
 @pytest.mark.timeout(150)
 @pytest.mark.parametrize("attack", ["long-session", "unwritable-record"])
 def test_an_error_in_one_drive_does_not_freeze_the_robot(served, attack: str):
@@ -250,6 +251,7 @@ def test_an_error_in_one_drive_does_not_freeze_the_robot(served, attack: str):
 
 
 WINDOW = 2.0  # seconds a rate is measured over
+SETTLE = 1.0  # seconds after a new episode's first tick before its rate is measured
 
 
 async def freeze(url: str, session: str) -> dict[str, Any]:
@@ -280,6 +282,7 @@ async def freeze(url: str, session: str) -> dict[str, Any]:
                 15,
                 mark,
             )
+        await asyncio.sleep(SETTLE)  # a new episode's set-up (its maze, its scene) once
         before = len(watcher.heard["/odom"])
         await asyncio.sleep(WINDOW)
         odom_after = (len(watcher.heard["/odom"]) - before) / WINDOW
