@@ -209,14 +209,20 @@ class DockerBackend:
                 raise BackendUnavailable("docker", f"cannot import the runtime: {err}") from err
 
     def _remove_orphans(self) -> None:
-        """Remove containers of ours whose lab process on this host is gone."""
+        """Remove containers of ours whose lab process on this host is gone.
+
+        The engine's list is read as it is (``api.containers``), not container by
+        container: other labs on the machine remove theirs meanwhile, and one gone
+        between the list and its inspection must not stop this lab from starting.
+        """
         host = socket.gethostname()
-        for container in self.client.containers.list(all=True, filters={"label": LABEL}):
-            owner_host, _, pid = str(container.labels.get(OWNER, "")).rpartition(":")
+        for found in self.client.api.containers(all=True, filters={"label": LABEL}):
+            labels = found.get("Labels") or {}
+            owner_host, _, pid = str(labels.get(OWNER, "")).rpartition(":")
             if owner_host == host and pid.isdigit() and not Path(f"/proc/{pid}").exists():
-                log.warning("removing the orphaned sandbox container %s", container.name)
+                log.warning("removing the orphaned sandbox container %s", found["Id"][:12])
                 with contextlib.suppress(*_ENGINE_ERRORS):
-                    container.remove(force=True)
+                    self.client.api.remove_container(found["Id"], force=True)
 
 
 class DockerRun(Supervised):
