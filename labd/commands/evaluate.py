@@ -29,7 +29,7 @@ from scheduler.client import ApiClient
 from scheduler.errors import RemoteError
 
 POLL = 2.0  # seconds between looks at a running evaluation
-REPLAYS = 300.0  # seconds to wait, after the last episode, for the replays' verdicts
+REPLAYS = 120.0  # seconds to wait, after the last episode, for the replays' verdicts
 VERIFYING = " to verify them"
 
 
