@@ -135,11 +135,11 @@ class Evaluator:
         if old.rerun_of is not None:
             old = self.evaluations.get(old.rerun_of, reveal=True)
         first = self.queue.index.trial(old.rows[0].trial)
-        seeds = [r.seed for r in old.rows]
-        assert all(s is not None for s in seeds)
+        seeds = [r.seed for r in old.rows if r.seed is not None]  # revealed: every one
+        assert len(seeds) == len(old.rows)
         new_id = self.queue.submit_many(
             user,
-            [s for s in seeds if s is not None],
+            seeds,
             lambda db, ids: self.evaluations.add(
                 db,
                 task=old.task,
@@ -152,7 +152,7 @@ class Evaluator:
                 commit=old.commit,
                 params=old.params,
                 submitter=user.name,
-                seeds=[s for s in seeds if s is not None],
+                seeds=seeds,
                 trial_ids=ids,
                 rerun_of=old.id,
             ),
