@@ -321,29 +321,42 @@ def _differs(expected: Entry, got: Entry | None) -> str | None:
     return found.replace(" in a, ", " recorded, ").replace(" in b", " replayed")
 
 
-def replay_with_video(
-    path: Path, out: Path, types: TypeRegistry | None = None, *, fps: float = 10.0
+def replay_filed(
+    path: Path,
+    out: Path,
+    types: TypeRegistry | None = None,
+    *,
+    video: bool = False,
+    fps: float = 10.0,
 ) -> Replayed:
-    """Replay a filed record and render its task's first camera at ``fps`` into
-    ``out/video.mp4``: the verdict as JSON, and the video (None if none was made).
+    """Replay a filed record: the verdict as JSON, and with ``video`` its task's first
+    camera rendered at ``fps`` into ``out/video.mp4`` (None if none was made).
 
-    What a worker does after filing every trial: a record that cannot be replayed (an
-    older labd's, another model) is a verdict saying why, not an exception.
+    What is done after filing every trial (the verdict, by a worker) and for its page
+    (the video, by the service's renderer): a record that cannot be replayed (an older
+    labd's, another model) is a verdict saying why, not an exception.
     """
-    video = Video(VideoSpec(FIRST, fps=fps, **_camera_size(path)), out / VIDEO)
+    renderers: list[Video] = []
+    if video:
+        renderers.append(Video(VideoSpec(FIRST, fps=fps, **_camera_size(path)), out / VIDEO))
     try:
-        verdict = replay(path, types, renderers=[video])
+        verdict = replay(path, types, renderers=renderers)
         body = {**verdict.to_json(), "said": str(verdict)}
     except LabError as err:  # not replayable here (another model, simulator, task): say so
         body = {**Verdict().to_json(), "verified": False, "said": str(err)}
     finally:
-        video.close()
-    made = video.frames > 0 and (out / VIDEO).exists()
-    body["video"] = {"camera": video.camera, "frames": video.frames, "fps": fps} if made else None
+        for renderer in renderers:
+            renderer.close()
+    made = None
+    body["video"] = None
+    for renderer in renderers:
+        if renderer.frames > 0 and renderer.out.exists():
+            made = renderer.out
+            body["video"] = {"camera": renderer.camera, "frames": renderer.frames, "fps": fps}
     return Replayed(
         verdict=json.dumps(body, sort_keys=True).encode(),  # as replay.json always was
         verified=bool(body["verified"]),
-        video=out / VIDEO if made else None,
+        video=made,
     )
 
 

@@ -31,6 +31,7 @@ from labd.config import DATA
 from labd.graph.types import TypeRegistry
 from labd.live import Demonstration
 from labd.trial import LabHost, client_library
+from labd.videos import Videos
 from repository.accounts import Accounts
 from repository.blobs import BlobStore
 from repository.errors import ArchiveError
@@ -39,7 +40,7 @@ from repository.index import Derived, Index
 from repository.reservations import Reservations, Rules, load_secret
 from repository.signing import Keyring
 from repository.trial import Ending, Filing, Kind
-from repository.well_known import RECORD_FILE, REPLAY, VIDEO
+from repository.well_known import RECORD_FILE, REPLAY
 from scheduler.data import DataPolicy, LocalArchive
 from scheduler.evaluate import Evaluator
 from scheduler.fetch import FetchPolicy
@@ -73,6 +74,7 @@ class ServiceConfig:
     signup: bool = False  # people may make their own accounts on the sign-in page
     submit_threads: int = 8  # submissions resolved at once (each may wait on a git server)
     submit_waiting: int = 64  # more that wait for a thread; past these, 503
+    videos: str = "background"  # or "asked": render a record's video only when asked for
 
     @property
     def database_url(self) -> str:
@@ -123,7 +125,7 @@ class Service:
         clock: Callable[[], float] = time.time,
     ) -> None:
         self.config = config
-        self.host = LabHost(types or TypeRegistry.default())
+        self.host = LabHost(types)  # (the default types: records worked on in helper processes)
         config.data.mkdir(parents=True, exist_ok=True)
         self.cache = (config.cache or config.data / "cache").resolve()
         self.index = Index.open(config.database_url, clock=clock)
@@ -166,13 +168,22 @@ class Service:
             load_secret(keys / "suites.secret"),  # held-out suites' seeds derive from it
             self.keyring,
         )
+        self.videos = Videos(
+            self.index,
+            self.store,
+            self.host,
+            (config.data / "work").resolve(),
+            background=config.videos == "background",
+        )
         self.workers: list[Worker] = []
         self._tasks: list[asyncio.Task[None]] = []
         self._stop = asyncio.Event()
         self.name = f"{host_prefix()}{os.getpid()}"
 
     async def start(self) -> None:
-        """Requeue what a killed predecessor left running; start the workers."""
+        """Start rendering videos; requeue what a killed predecessor left running; start
+        the workers."""
+        self._tasks.append(asyncio.create_task(self.videos.run(self._stop), name="videos"))
         if self.config.workers <= 0:
             return
         released = await asyncio.to_thread(self._release_dead_workers)
@@ -260,9 +271,11 @@ class Service:
 
     def _replay(self, trial_id: int, mcap: Path) -> None:
         """Replay a filed record here (as a worker does after filing) and keep the
-        verdict and the camera's video beside it."""
-        done = self.host.replay(mcap, mcap.with_name("replay"))
-        verdict_file = mcap.with_name("replay") / REPLAY
+        verdict beside it (its video is rendered later: ``labd.videos``)."""
+        folder = mcap.with_name("replay")
+        done = self.host.replay(mcap, folder)
+        folder.mkdir(exist_ok=True)
+        verdict_file = folder / REPLAY
         verdict_file.write_bytes(done.verdict)
         self.index.put_derived(
             trial_id,
@@ -270,11 +283,6 @@ class Service:
                 REPLAY, self.store.put_file(verdict_file), len(done.verdict), "application/json"
             ),
         )
-        if done.video is not None:
-            size = done.video.stat().st_size
-            self.index.put_derived(
-                trial_id, Derived(VIDEO, self.store.put_file(done.video), size, "video/mp4")
-            )
 
     def wake(self) -> None:
         """A trial was queued: let idle workers claim it now."""
@@ -289,6 +297,7 @@ class Service:
         for task in self._tasks:
             with contextlib.suppress(asyncio.CancelledError):
                 await task
+        await self.videos.close()
         if self.workers:
             await asyncio.to_thread(self.queue.release_worker, self.name + "/")
         self.submissions.close()

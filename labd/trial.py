@@ -27,6 +27,7 @@ from typing import Any
 from mcap.exceptions import McapError
 from zstandard import ZstdError
 
+from labd import offload
 from labd.bridge.server import BridgeServer
 from labd.config import BridgeConfig
 from labd.errors import InterfaceError, LabError, RecordError
@@ -42,7 +43,7 @@ from labd.recorder import (
     read_manifest,
 )
 from labd.recorder.summary import summary_blob
-from labd.replay import replay_with_video
+from labd.replay import replay_filed
 from labd.sim import registry
 from labd.sim.robot import LiveRunner
 from labd.station import Station
@@ -56,6 +57,11 @@ from scheduler.host import Attachments, Episode, RecordFacts, Replayed
 
 log = logging.getLogger("labd.trial")
 MAX_CLIENTS = 16  # bridge connections a trial's controller may open
+RECORD_HELPERS = 2  # helper processes for summaries and replays (one per core here)
+VIDEO_NICE = 19  # background videos are rendered when nothing else wants the CPU
+HELPER_START = 10.0  # seconds a helper's first call may take to import what it needs
+SUMMARY_BLOB = "labd.recorder.summary:summary_blob"
+REPLAY_FILED = "labd.replay:replay_filed"
 
 
 class LabHost:
@@ -64,6 +70,7 @@ class LabHost:
     def __init__(
         self, types: TypeRegistry | None = None, config: BridgeConfig | None = None
     ) -> None:
+        self._own_types = types is not None  # else records are worked on in helper processes
         self.types = types or TypeRegistry.default()
         self.config = config or BridgeConfig(port=0, max_connections=MAX_CLIENTS)
 
@@ -156,13 +163,38 @@ class LabHost:
             ) from None
 
     def summarize(self, mcap: Path, *, seconds: float) -> bytes:
-        """The record's page summary (``labd.recorder.summary``; ``SummaryError``)."""
-        return summary_blob(mcap, types=self.types, seconds=seconds)
+        """The record's page summary (``labd.recorder.summary``; ``SummaryError``), made
+        in a helper process (``labd.offload``) unless this host has types of its own."""
+        if self._own_types:
+            return summary_blob(mcap, types=self.types, seconds=seconds)
+        helpers = offload.pool("records", RECORD_HELPERS)
+        return helpers.call(SUMMARY_BLOB, mcap, seconds=seconds, timeout=seconds + HELPER_START)  # type: ignore[no-any-return]
 
-    def replay(self, mcap: Path, out: Path) -> Replayed:
-        """Replay a filed record (``labd.replay``), rendering its task's first camera at
-        10 frames a second into ``out``: the verdict and the video."""
-        return replay_with_video(mcap, out, self.types)
+    def replay(self, mcap: Path, out: Path, *, seconds: float | None = None) -> Replayed:
+        """Replay a filed record (``labd.replay``): its verdict, without a video; in a
+        helper process unless this host has types of its own."""
+        if self._own_types:
+            return replay_filed(mcap, out, self.types)
+        helpers = offload.pool("records", RECORD_HELPERS)
+        timeout = None if seconds is None else seconds + HELPER_START
+        return helpers.call(REPLAY_FILED, mcap, out, timeout=timeout)  # type: ignore[no-any-return]
+
+    def video(
+        self, mcap: Path, out: Path, *, seconds: float | None = None, background: bool = True
+    ) -> Path | None:
+        """Render the filed record's first camera at 10 frames a second into ``out``
+        (``labd.replay``), in a helper process (of the lowest CPU priority if
+        ``background``); None if the record has no camera to render, or cannot be
+        replayed here."""
+        if self._own_types:
+            return replay_filed(mcap, out, self.types, video=True).video
+        if background:
+            helpers = offload.pool("background videos", 1, nice=VIDEO_NICE)
+        else:
+            helpers = offload.pool("videos", 2)
+        timeout = None if seconds is None else seconds + HELPER_START
+        done: Replayed = helpers.call(REPLAY_FILED, mcap, out, video=True, timeout=timeout)
+        return done.video
 
 
 class LabTrial:

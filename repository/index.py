@@ -19,7 +19,7 @@ import math
 import re
 import secrets
 import time
-from collections.abc import Iterator, Mapping, Sequence
+from collections.abc import Collection, Iterator, Mapping, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass
 from enum import StrEnum
@@ -42,6 +42,7 @@ from repository.tables import (
 from repository.trial import Kind, Outcome, PinnedRecord, Status, Trial
 from repository.units import moment
 from repository.wal import IndexFiles
+from repository.well_known import REPLAY
 
 SCHEMA_VERSION = 2  # 1: labd 0.1 (status succeeded/failed); 2: status and outcome apart
 # A user name: ASCII letters and digits, then also '.', '-' or '_' (so never ".", ".."
@@ -537,6 +538,27 @@ class Index:
         with self.engine.connect() as db:
             rows = db.execute(sa.select(derived).where(derived.c.trial_id == trial_id)).all()
         return {r.name: Derived(r.name, r.digest, r.size, r.media_type) for r in rows}
+
+    def unrendered(self, name: str, skip: Collection[int] = ()) -> int | None:
+        """The newest trial with a record and a replay verdict but no derived artifact
+        ``name`` (a video not yet rendered), leaving out ``skip``; None if there is none."""
+        made = sa.select(derived.c.trial_id).where(derived.c.name == name)
+        replayed = sa.select(derived.c.trial_id).where(derived.c.name == REPLAY)
+        query = (
+            sa.select(trials.c.id)
+            .where(
+                trials.c.mcap.is_not(None),
+                trials.c.id.in_(replayed),
+                trials.c.id.not_in(made),
+            )
+            .order_by(trials.c.id.desc())
+            .limit(1)
+        )
+        if skip:
+            query = query.where(trials.c.id.not_in(list(skip)))
+        with self.engine.connect() as db:
+            found = db.execute(query).scalar()
+        return None if found is None else int(found)
 
     def bulk_insert(self, rows: Sequence[Mapping[str, Any]]) -> None:
         """Insert finished records as they are (benchmarks, imports)."""

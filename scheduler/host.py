@@ -35,9 +35,10 @@ class RecordFacts:
 
 @dataclass(frozen=True)
 class Replayed:
-    """What replaying a filed record gave: its verdict (JSON), and a video of its camera."""
+    """What replaying a filed record gave: its verdict (JSON), and a video of its camera
+    when one was asked for."""
 
-    verdict: bytes  # {"verified", "ticks", "compared", "divergence", "video"}
+    verdict: bytes  # {"verified", "ticks", "compared", "divergence", "said", "video"}
     verified: bool
     video: Path | None
 
@@ -157,8 +158,9 @@ class TrialHost(Protocol):
         None if this lab makes none. Raises if the record cannot be summarized."""
         ...
 
-    def replay(self, mcap: Path, out: Path) -> Replayed | None:
-        """Re-simulate a filed record from its actions and render its camera into
-        ``out``; None if this lab does not. A record that cannot be replayed is a verdict
-        that says why, not an exception."""
+    def replay(self, mcap: Path, out: Path, *, seconds: float | None = None) -> Replayed | None:
+        """Re-simulate a filed record from its actions and compare it with what it holds,
+        within ``seconds``: the verdict, with no video; None if this lab
+        does not replay. A record that cannot be replayed is a verdict that says why,
+        not an exception."""
         ...

@@ -96,8 +96,6 @@ class Stage(StrEnum):
     PREPARING = "preparing"  # fetching, checking out, building the controller
     RUNNING = "running"  # the controller and the robot, in lockstep or on the wall clock
     FILING = "filing"  # the record stored and filed with the lab
-    SUMMARIZING = "summarizing"  # its page summary, made and filed beside it
-    REPLAYING = "replaying"  # its replay's verdict and video, made and filed beside it
 
 
 class Progress:

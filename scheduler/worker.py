@@ -37,7 +37,7 @@ from typing import Any, Protocol
 from repository.errors import ArchiveError
 from repository.index import Derived
 from repository.trial import Claim, Ending, Filing, Status, Trial
-from repository.well_known import LOGS, RECORD_FILE, REPLAY, SUMMARY, SUMMARY_MEDIA_TYPE, VIDEO
+from repository.well_known import LOGS, RECORD_FILE, REPLAY, SUMMARY, SUMMARY_MEDIA_TYPE
 from sandbox.api import Backend
 from scheduler.canary import Canaries, Health, State
 from scheduler.errors import FilingRefused, QueueError
@@ -74,7 +74,7 @@ class WorkerConfig:
     poll: float = 2.0  # seconds between claims while the queue is empty
     filing: float = 300.0  # seconds to store a record and file it
     summary: float = 120.0  # seconds to summarize a filed record for its page
-    replay: float = 600.0  # seconds to replay a filed record and render its video (0: none)
+    replay: float = 600.0  # seconds to replay a filed record (0: no replay)
     canaries: tuple[int, ...] = ()  # reference trials to rerun at start and every ...
     canary_every: float = 3600.0  # ... seconds; one that diverges takes the worker out
     options: RunOptions = field(default_factory=RunOptions)
@@ -110,6 +110,7 @@ class Worker:
         self.wake = asyncio.Event()  # set by a submission, to claim at once
         self.log = logging.getLogger(f"scheduler.worker.{config.name}")
         self._current: tuple[Claim, Progress] | None = None
+        self._deriving: asyncio.Task[None] | None = None  # the last filed record's summary, replay
         self.canaries = Canaries(config.canaries, config.canary_every)
         self.health = Health(config.name, State.OK, "no canaries" if not config.canaries else "")
 
@@ -156,6 +157,8 @@ class Worker:
             stopping.cancel()
             with contextlib.suppress(asyncio.CancelledError):
                 await stopping
+            if self._deriving is not None:
+                await _stopped(self._deriving)
 
     async def _check_canaries(self) -> None:
         self.health = Health(self.config.name, State.CHECKING, "rerunning the canaries")
@@ -234,6 +237,11 @@ class Worker:
             filing = Filing.error(f"the lab could not file the record ({_name(err)})")
         finally:
             await _stopped(beat)
+        await self._file(claim, filing, out)
+
+    async def _file(self, claim: Claim, filing: Filing, out: Path) -> None:
+        """File the trial; then what is made of its record is made beside the next trial."""
+        kept = False  # the folder goes to what is made of the record, which removes it
         try:
             filed, filing = await asyncio.to_thread(self._finish, claim.id, filing)
             self.log.info(
@@ -243,12 +251,25 @@ class Worker:
                 filing.reason,
             )
             if filed and filing.mcap:
-                await self._derive(claim.id, out / RECORD_FILE, progress)
+                await self.settled()  # one record worked on at a time, beside the next trial
+                self._deriving = asyncio.create_task(
+                    self._derive(claim.id, out), name=f"{self.config.name}: trial {claim.id}"
+                )
+                kept = True
         except QueueError as err:  # the lease will run out and the trial run again
             self.log.error("trial %d could not be filed: %s", claim.id, err)
         finally:
             self._current = None
-            shutil.rmtree(out, ignore_errors=True)
+            if not kept:
+                shutil.rmtree(out, ignore_errors=True)
+
+    async def settled(self) -> None:
+        """Wait until what is made of the last filed record (its summary, its replay's
+        verdict) is filed. The worker goes on to its next trial meanwhile: that work runs
+        in helper processes, on a core the next trial leaves free."""
+        task = self._deriving
+        if task is not None:
+            await asyncio.shield(task)
 
     def _finish(self, trial_id: int, filing: Filing) -> tuple[bool, Filing]:
         """File the trial; a filing the lab refuses (its record does not bear it out: a
@@ -340,10 +361,9 @@ class Worker:
             record.update(self._compare(claim.rerun_of, result))
         return Filing(**record)
 
-    async def _summarize(self, trial_id: int, mcap: Path, progress: Progress) -> None:
+    async def _summarize(self, trial_id: int, mcap: Path) -> None:
         """File the record's page summary beside it; never fails the filed trial."""
         seconds = self.config.summary
-        progress.enter(Stage.SUMMARIZING, seconds)
         try:
             blob = await asyncio.wait_for(
                 asyncio.to_thread(self.host.summarize, mcap, seconds=seconds), seconds + 1
@@ -362,37 +382,37 @@ class Worker:
         except Exception:  # whatever it was, the trial is filed: its page makes one later
             self.log.exception("trial %d: its summary could not be filed", trial_id)
 
-    async def _derive(self, trial_id: int, mcap: Path, progress: Progress) -> None:
-        """What is made of a filed record, beside it: its page summary, its replay."""
-        await self._summarize(trial_id, mcap, progress)
-        await self._replay(trial_id, mcap, progress)
+    async def _derive(self, trial_id: int, out: Path) -> None:
+        """What is made of a filed record, beside it: its page summary, its replay's
+        verdict; then the trial's folder is removed. (Its video is the service's to
+        render, when asked or when the machine is idle: ``labd.videos``.)"""
+        try:
+            await self._summarize(trial_id, out / RECORD_FILE)
+            await self._replay(trial_id, out / RECORD_FILE)
+        finally:
+            await asyncio.to_thread(shutil.rmtree, out, True)
 
-    async def _replay(self, trial_id: int, mcap: Path, progress: Progress) -> None:
-        """Replay the filed record and file the verdict and the camera's video beside it;
-        never fails the filed trial (a replay that diverges is its verdict)."""
+    async def _replay(self, trial_id: int, mcap: Path) -> None:
+        """Replay the filed record and file the verdict beside it; never fails the filed
+        trial (a replay that diverges is its verdict)."""
         seconds = self.config.replay
         if seconds <= 0:
             return
-        progress.enter(Stage.REPLAYING, seconds)
         folder = mcap.with_name("replay")
         try:
             done = await asyncio.wait_for(
-                asyncio.to_thread(self.host.replay, mcap, folder), seconds
+                asyncio.to_thread(self.host.replay, mcap, folder, seconds=seconds), seconds + 1
             )
             if done is None:
                 return
             if not done.verified:
                 self.log.warning("trial %d: %s", trial_id, json.loads(done.verdict)["said"])
+            folder.mkdir(exist_ok=True)
             path = folder / REPLAY
             path.write_bytes(done.verdict)
             digest = await asyncio.to_thread(self.store.put_file, path)
             verdict = Derived(REPLAY, digest, len(done.verdict), "application/json")
             await asyncio.to_thread(self.queue.derive, trial_id, self.config.name, verdict)
-            if done.video is not None:
-                digest = await asyncio.to_thread(self.store.put_file, done.video)
-                size = done.video.stat().st_size
-                video = Derived(VIDEO, digest, size, "video/mp4")
-                await asyncio.to_thread(self.queue.derive, trial_id, self.config.name, video)
         except TimeoutError:
             self.log.error(
                 "trial %d: its replay took longer than %g s; none filed", trial_id, seconds

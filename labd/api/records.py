@@ -46,6 +46,7 @@ from labd.api.errors import ApiError, responses
 from labd.api.models import Id
 from labd.api.state import App
 from labd.exports import export_records
+from labd.videos import ASK_WAIT, VideoUnavailable
 from repository.digests import readable_json
 from repository.export import ExportFormat
 from repository.formats import FORMATS
@@ -56,7 +57,6 @@ from repository.well_known import (
     EXPORT_SIGNATURE,
     RECORD_FILE,
     REPLAY,
-    VIDEO,
 )
 from scheduler.controller import DataQuery, DataSpec
 from scheduler.data import LocalArchive, resolve
@@ -330,13 +330,24 @@ def replay_verdict(trial_id: Id, service: Lab) -> ReplayVerdict:
     response_class=StreamingResponse,
     responses={
         200: {"content": {"video/mp4": {}}, "description": "H.264 MP4"},
-        **responses(403, 404, 500),
+        **responses(403, 404, 500, 503),
     },
 )
-def video(trial_id: Id, service: Lab) -> StreamingResponse:
-    """The task's camera through the whole trial, rendered during its replay."""
-    service.index.readable(trial_id)
-    item = service.index.derived(trial_id).get(VIDEO)
-    if item is None:
-        raise ApiError(404, f"trial {trial_id} has no video (it has not been replayed)")
-    return blob_response(service, item.digest, "video/mp4", None)
+async def video(trial_id: Id, service: Lab) -> StreamingResponse:
+    """The task's first camera through the whole trial, rendered by replaying its record:
+    the first time it is asked for (which may take a while: 503 with ``Retry-After``
+    after two minutes, while the rendering goes on), or earlier, in the background."""
+    trial = await to_thread.run_sync(service.index.readable, trial_id)
+    if not trial.mcap:
+        raise ApiError(404, f"trial {trial_id} has no record, so no video")
+    try:
+        item = await service.videos.ask(trial_id, ASK_WAIT)
+    except VideoUnavailable as err:
+        raise ApiError(404, str(err)) from None
+    except TimeoutError:
+        raise ApiError(
+            503,
+            f"trial {trial_id}'s video is being rendered; ask again in a moment",
+            headers={"Retry-After": "10"},
+        ) from None
+    return await to_thread.run_sync(blob_response, service, item.digest, "video/mp4", None)

@@ -31,6 +31,7 @@ from labd.errors import LabError
 from labd.lab import Lab, LabConfig
 from labd.service import ServiceConfig
 from labd.sim import registry
+from labd.videos import MODES
 from repository.errors import ArchiveError, SchemaMismatch
 from repository.reservations import MAX_HORIZON, MAX_SLOT, Rules
 from repository.units import KiB, MiB
@@ -217,6 +218,13 @@ def add_parser(commands: Any) -> None:
         type=int,
         default=SERVICE.workers,
         help="trials run at once (default: %(default)s; 0: none)",
+    )
+    group.add_argument(
+        "--videos",
+        choices=MODES,
+        default=SERVICE.videos,
+        help="render each replayed record's camera video in the background, at the lowest"
+        " CPU priority, or only when someone asks for it (default: %(default)s)",
     )
     group.add_argument(
         "--sandbox",
@@ -473,6 +481,7 @@ def service_config(args: argparse.Namespace) -> ServiceConfig | None:
         canary_every=args.canary_every,
         rules=rules(args),
         signup=args.signup,
+        videos=args.videos,
     )
 
 

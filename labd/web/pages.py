@@ -178,6 +178,7 @@ def trial(request: Request, trial_id: Id, service: Lab, viewer: Viewer) -> HTMLR
     reruns = service.index.find(Filters(rerun_of=trial_id), limit=20).items
     logs = {stream: _log(service, getattr(record, stream)) for stream in ("stdout", "stderr")}
     derived = service.index.derived(trial_id)
+    replayed = _replayed(service, derived.get(REPLAY))
     return page(
         request,
         "trial.html",
@@ -187,8 +188,10 @@ def trial(request: Request, trial_id: Id, service: Lab, viewer: Viewer) -> HTMLR
             "reruns": reruns,
             "logs": logs,
             "summary": derived.get(SUMMARY),
-            "replayed": _replayed(service, derived.get(REPLAY)),
+            "replayed": replayed,
             "video": derived.get(VIDEO),
+            # a replayed record's video is rendered when first played, if not made yet
+            "renderable": bool(record.mcap) and bool(replayed and replayed.get("ticks")),
             "ended": record.status.ended,
             "evaluation": service.evaluations.of_trial(trial_id),
         },

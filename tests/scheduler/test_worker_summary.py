@@ -10,7 +10,6 @@ from labd.recorder.summary import decode
 from labd.trial import LabHost
 from repository.blobs import BlobStore
 from repository.well_known import SUMMARY, SUMMARY_MEDIA_TYPE
-from scheduler.runner import Progress
 from scheduler.worker import Worker, WorkerConfig
 from tests.labd.test_recorder import record
 from tests.scheduler.test_worker import claimed, queue, result  # noqa: F401  (fixtures)
@@ -43,7 +42,7 @@ def filed(queue, tmp_path, host, summary=120.0):  # noqa: F811
 
 async def test_a_filed_trial_gets_its_summary_beside_its_record(queue, tmp_path):  # noqa: F811
     worker, store, trial_id, mcap = filed(queue, tmp_path, LabHost())
-    await worker._summarize(trial_id, mcap, Progress())
+    await worker._summarize(trial_id, mcap)
     item = queue.index.derived(trial_id)[SUMMARY]
     assert item.media_type == SUMMARY_MEDIA_TYPE
     summary = decode(store.read_bytes(item.digest))
@@ -52,7 +51,7 @@ async def test_a_filed_trial_gets_its_summary_beside_its_record(queue, tmp_path)
 
 async def test_a_summary_that_fails_is_logged_and_the_trial_stays_filed(queue, tmp_path, caplog):  # noqa: F811
     worker, _, trial_id, mcap = filed(queue, tmp_path, FailingHost())
-    await worker._summarize(trial_id, mcap, Progress())
+    await worker._summarize(trial_id, mcap)
     assert SUMMARY not in queue.index.derived(trial_id)
     assert queue.trial(trial_id).status.ended
     assert "its summary could not be filed" in caplog.text and "damaged" in caplog.text
@@ -61,7 +60,7 @@ async def test_a_summary_that_fails_is_logged_and_the_trial_stays_filed(queue, t
 async def test_a_summary_past_its_time_is_given_up(queue, tmp_path, caplog):  # noqa: F811
     worker, _, trial_id, mcap = filed(queue, tmp_path, SlowHost(), summary=0.2)
     started = time.monotonic()
-    await worker._summarize(trial_id, mcap, Progress())
+    await worker._summarize(trial_id, mcap)
     assert time.monotonic() - started < 3
     assert SUMMARY not in queue.index.derived(trial_id)
     assert "its summary took longer than 0.2 s" in caplog.text
