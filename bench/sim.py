@@ -207,11 +207,26 @@ def client_main(argv: list[str]) -> None:
 
 
 class Server:
-    """``labd serve`` in its own process, on a free port."""
+    """``labd serve`` in its own process, on free ports, running no trials."""
 
     def __init__(self, *args: str) -> None:
         self.proc = subprocess.Popen(
-            [sys.executable, "-m", "labd", "serve", "--bridge-port", "0", "--no-playground", *args],
+            [
+                sys.executable,
+                "-m",
+                "labd",
+                "serve",
+                "--bridge-port",
+                "0",
+                "--http-port",
+                "0",
+                "--workers",
+                "0",
+                "--videos",
+                "asked",
+                "--no-playground",
+                *args,
+            ],
             cwd=ROOT,
             stdout=subprocess.PIPE,
             stderr=subprocess.DEVNULL,

@@ -46,8 +46,9 @@ class HelperError(LabError):
 class Helper:
     """One child process that runs one call at a time."""
 
-    def __init__(self, nice: int = 0, name: str = "helper") -> None:
+    def __init__(self, nice: int = 0, name: str = "helper", *, idle: bool = False) -> None:
         self.nice = nice
+        self.idle = idle  # of the idle scheduling class: it runs only when nothing else would
         self.name = name
         self._process: subprocess.Popen[bytes] | None = None
         self._lock = threading.Lock()
@@ -81,7 +82,7 @@ class Helper:
     def _started(self) -> subprocess.Popen[bytes]:
         if self._process is None or self._process.poll() is not None:
             self._process = subprocess.Popen(  # noqa: S603 - this Python, running this module
-                [sys.executable, "-m", "labd.offload", str(self.nice)],
+                [sys.executable, "-m", "labd.offload", str(self.nice), "idle" if self.idle else ""],
                 stdin=subprocess.PIPE,
                 stdout=subprocess.PIPE,
                 close_fds=True,
@@ -123,13 +124,16 @@ class Helper:
 class Helpers:
     """Up to ``size`` helpers; a call takes an idle one, starting one if none is idle."""
 
-    def __init__(self, size: int, *, nice: int = 0, name: str = "helper") -> None:
+    def __init__(
+        self, size: int, *, nice: int = 0, idle: bool = False, name: str = "helper"
+    ) -> None:
         self.size = size
         self._idle: queue.LifoQueue[Helper] = queue.LifoQueue()
         self._all: list[Helper] = []
         self._lock = threading.Lock()
         self._free = threading.Semaphore(size)
         self.nice = nice
+        self.idle = idle
         self.name = name
 
     def call(self, function: str, *args: Any, timeout: float | None = None, **kwargs: Any) -> Any:
@@ -139,7 +143,7 @@ class Helpers:
             try:
                 helper = self._idle.get_nowait()
             except queue.Empty:
-                helper = Helper(self.nice, self.name)
+                helper = Helper(self.nice, self.name, idle=self.idle)
                 with self._lock:
                     self._all.append(helper)
             try:
@@ -164,12 +168,13 @@ _pools: dict[str, Helpers] = {}
 _pools_lock = threading.Lock()
 
 
-def pool(purpose: str, size: int, *, nice: int = 0) -> Helpers:
+def pool(purpose: str, size: int, *, nice: int = 0, idle: bool = False) -> Helpers:
     """The process's pool for ``purpose`` (made at its first use, closed at exit)."""
     with _pools_lock:
         found = _pools.get(purpose)
         if found is None:
-            found = _pools[purpose] = Helpers(size, nice=nice, name=f"{purpose} helper")
+            name = f"{purpose} helper"
+            found = _pools[purpose] = Helpers(size, nice=nice, idle=idle, name=name)
         return found
 
 
@@ -221,11 +226,13 @@ def _read_exactly(stream: Any, size: int, deadline: float | None) -> bytes:
     return b"".join(chunks)
 
 
-def _serve(nice: int) -> None:
+def _serve(nice: int, idle: bool) -> None:
     """The child: answer calls until its input closes. Its results go to a copy of the
     standard output it was given; what the libraries print goes to standard error."""
     if nice:
         os.nice(nice)
+    if idle:
+        os.sched_setscheduler(0, os.SCHED_IDLE, os.sched_param(0))
     answers = os.fdopen(os.dup(1), "wb")
     os.dup2(2, 1)
     calls = sys.stdin.buffer
@@ -249,4 +256,4 @@ def _serve(nice: int) -> None:
 
 
 if __name__ == "__main__":
-    _serve(int(sys.argv[1]) if len(sys.argv) > 1 else 0)
+    _serve(int(sys.argv[1]) if len(sys.argv) > 1 else 0, sys.argv[2:3] == ["idle"])

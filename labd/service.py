@@ -174,6 +174,7 @@ class Service:
             self.host,
             (config.data / "work").resolve(),
             background=config.videos == "background",
+            busy=lambda: bool(self.queue.queued() or self.queue.running_workers()),
         )
         self.workers: list[Worker] = []
         self._tasks: list[asyncio.Task[None]] = []

@@ -183,13 +183,13 @@ class LabHost:
         self, mcap: Path, out: Path, *, seconds: float | None = None, background: bool = True
     ) -> Path | None:
         """Render the filed record's first camera at 10 frames a second into ``out``
-        (``labd.replay``), in a helper process (of the lowest CPU priority if
+        (``labd.replay``), in a helper process (of the idle scheduling class if
         ``background``); None if the record has no camera to render, or cannot be
         replayed here."""
         if self._own_types:
             return replay_filed(mcap, out, self.types, video=True).video
         if background:
-            helpers = offload.pool("background videos", 1, nice=VIDEO_NICE)
+            helpers = offload.pool("background videos", 1, nice=VIDEO_NICE, idle=True)
         else:
             helpers = offload.pool("videos", 2)
         timeout = None if seconds is None else seconds + HELPER_START

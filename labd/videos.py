@@ -9,9 +9,12 @@ and the service renders:
 - **when asked**: ``GET /api/trials/{id}/video`` (the trial page's player) renders the
   video if it is not made yet, at normal priority, and answers when it is (or 503 after
   ``ASK_WAIT`` seconds: the rendering goes on, ask again);
-- **in the background** (``labd serve --videos background``, the default): the newest
-  replayed record without a video, one at a time, in a helper process at the lowest
-  CPU priority (nice 19), so it uses only what trials leave of the machine.
+- **in the background** (``labd serve --videos background``, the default): while the
+  lab runs no trial and has none queued, the newest replayed record without a video,
+  one at a time, in a helper process of the idle scheduling class (``SCHED_IDLE``:
+  it runs only on a core that nothing else wants, and gives it up at once). A lockstep
+  tick is a millisecond or two of two processes waking each other, so even a process
+  at nice 19 beside it slowed trials by a third; an idle lab costs nothing.
 
 A video that cannot be made (a record with no camera, or that cannot be replayed here)
 is remembered with the reason until the service restarts; asking for it again gives the
@@ -25,6 +28,7 @@ import contextlib
 import logging
 import shutil
 import tempfile
+from collections.abc import Callable
 from pathlib import Path
 
 from labd.errors import LabError
@@ -54,6 +58,7 @@ class Videos:
         work: Path,
         *,
         background: bool = True,
+        busy: Callable[[], bool] = lambda: False,
         poll: float = 5.0,
         seconds: float = 1800.0,
     ) -> None:
@@ -62,6 +67,7 @@ class Videos:
         self.host = host
         self.work = work
         self.background = background
+        self.busy = busy  # whether trials are running or waiting: no background work then
         self.poll = poll
         self.seconds = seconds  # a render's limit
         self.wake = asyncio.Event()  # a record was replayed: look for work now
@@ -90,9 +96,7 @@ class Videos:
             return
         while not stop.is_set():
             try:
-                trial_id = await asyncio.to_thread(
-                    self.index.unrendered, VIDEO, {*self._failed, *self._rendering}
-                )
+                trial_id = await asyncio.to_thread(self._next)
             except Exception:  # the database away for a moment: try again later
                 log.exception("could not look for records to render")
                 trial_id = None
@@ -108,6 +112,12 @@ class Videos:
             except Exception:  # a bug: never let one record stop the rendering
                 log.exception("trial %d: its video could not be rendered", trial_id)
                 self._failed[trial_id] = "its video could not be rendered (the lab failed)"
+
+    def _next(self) -> int | None:
+        """The next record to render in the background, if the lab is idle."""
+        if self.busy():
+            return None
+        return self.index.unrendered(VIDEO, {*self._failed, *self._rendering})
 
     async def close(self) -> None:
         """Stop rendering: what is being rendered is not filed."""

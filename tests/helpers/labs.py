@@ -123,8 +123,11 @@ def lab_config(
 ) -> LabConfig:
     """A lab on loopback and free ports, its archive in ``data``, ``robots`` live (the
     playground only when there is no robot); with ``workers``, that many bubblewrap workers on the session's runtime
-    (``cache``) that take local repositories. ``service`` and ``lab`` set the rest."""
+    (``cache``) that take local repositories. ``service`` and ``lab`` set the rest. Videos
+    are rendered when asked for: a test that wants one asks (the background's renders
+    would only take CPU from the tests beside it)."""
     more: dict[str, Any] = dict(service or {})
+    more.setdefault("videos", "asked")
     if workers:
         if cache is None:
             raise ValueError("workers run controllers: give the session's runtime cache")

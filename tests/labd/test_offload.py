@@ -39,7 +39,7 @@ def test_a_call_past_its_time_kills_the_child_and_the_next_call_starts_another(h
     helper.call("os:getpid")
     first = helper.pid
     started = time.monotonic()
-    with pytest.raises(TimeoutError, match="took longer than 0.5 s"):
+    with pytest.raises(TimeoutError, match=r"took longer than 0\.5 s"):
         helper.call("time:sleep", 30, timeout=0.5)
     assert time.monotonic() - started < 10
     with pytest.raises(ProcessLookupError):
@@ -82,3 +82,12 @@ def test_a_pool_starts_a_second_helper_only_while_the_first_is_busy():
     finally:
         pool.close()
     assert pool.pids() == []
+
+
+def test_an_idle_helper_is_of_the_idle_scheduling_class():
+    idle = Helper(idle=True)
+    try:
+        pid = idle.call("os:getpid")
+        assert os.sched_getscheduler(pid) == os.SCHED_IDLE
+    finally:
+        idle.close()

@@ -54,7 +54,9 @@ def frames(data: bytes) -> int:
 
 
 async def test_a_video_is_rendered_when_first_asked_for_then_served_as_kept(
-    api, service, replayable  # noqa: F811
+    api,  # noqa: F811
+    service,  # noqa: F811
+    replayable,
 ):
     service.videos.host = host = Counting()
     trial_id = file_trial(service, replayable)
@@ -78,7 +80,9 @@ async def test_two_asking_at_once_share_one_render(api, service, replayable):  #
 
 
 async def test_a_record_that_cannot_be_rendered_is_a_404_saying_why_once(
-    api, service, unreplayable  # noqa: F811
+    api,  # noqa: F811
+    service,  # noqa: F811
+    unreplayable,
 ):
     service.videos.host = host = Counting()
     trial_id = file_trial(service, unreplayable)
@@ -91,7 +95,10 @@ async def test_a_record_that_cannot_be_rendered_is_a_404_saying_why_once(
 
 
 async def test_a_slow_render_is_a_503_to_come_back_to_and_goes_on(
-    api, service, replayable, monkeypatch  # noqa: F811
+    api,  # noqa: F811
+    service,  # noqa: F811
+    replayable,
+    monkeypatch,
 ):
     monkeypatch.setattr("labd.api.records.ASK_WAIT", 0.2)
     service.videos.host = Counting(pause=1.0)
@@ -117,7 +124,9 @@ async def test_a_trial_without_a_record_has_no_video(api, service):  # noqa: F81
 
 
 async def test_the_background_renders_replayed_records_newest_first(
-    service, replayable, tmp_path  # noqa: F811
+    service,  # noqa: F811
+    replayable,
+    tmp_path,
 ):
     host = Counting()
     made = Videos(service.index, service.store, host, tmp_path / "work", poll=0.1)
@@ -143,3 +152,27 @@ async def test_the_background_renders_replayed_records_newest_first(
     assert host.rendered == ["background", "background"]  # at the lowest priority
     assert VIDEO not in service.index.derived(unreplayed)  # not verified yet: not rendered
     assert list((tmp_path / "work").iterdir()) == []
+
+
+async def test_the_background_waits_while_trials_run_or_wait(service, replayable, tmp_path):  # noqa: F811
+    busy = [True]
+    host = Counting()
+    made = Videos(
+        service.index, service.store, host, tmp_path / "work", busy=lambda: busy[0], poll=0.1
+    )
+    trial_id = file_trial(service, replayable)
+    verdict = service.store.put_bytes(b'{"verified": true}')
+    service.index.put_derived(trial_id, Derived(REPLAY, verdict, 18, "application/json"))
+    stop = asyncio.Event()
+    running = asyncio.create_task(made.run(stop))
+    try:
+        await asyncio.sleep(1.0)
+        assert host.rendered == []  # the lab is busy: nothing rendered
+        busy[0] = False
+        async with asyncio.timeout(60):
+            while VIDEO not in service.index.derived(trial_id):
+                await asyncio.sleep(0.05)
+    finally:
+        stop.set()
+        await running
+    assert host.rendered == ["background"]
