@@ -125,7 +125,7 @@ class Service:
         clock: Callable[[], float] = time.time,
     ) -> None:
         self.config = config
-        self.host = LabHost(types)  # (the default types: records worked on in helper processes)
+        self.host = LabHost(types)
         config.data.mkdir(parents=True, exist_ok=True)
         self.cache = (config.cache or config.data / "cache").resolve()
         self.index = Index.open(config.database_url, clock=clock)

@@ -70,8 +70,9 @@ class LabHost:
     def __init__(
         self, types: TypeRegistry | None = None, config: BridgeConfig | None = None
     ) -> None:
-        self._own_types = types is not None  # else records are worked on in helper processes
         self.types = types or TypeRegistry.default()
+        # records are worked on in helper processes, which know the lab's own types only
+        self._own_types = not self.types.standard
         self.config = config or BridgeConfig(port=0, max_connections=MAX_CLIENTS)
 
     def tasks(self) -> list[str]:

@@ -164,6 +164,7 @@ class TypeRegistry:
         base: TypeRegistry | None = None,
     ) -> None:
         self.typestore = typestore
+        self.standard = False  # only the lab's own interfaces (``default()``, nothing extra)
         self._services = frozenset(services)
         self._actions = frozenset(actions)
         self._messages: dict[str, MessageType] = {}
@@ -206,7 +207,9 @@ class TypeRegistry:
             s, a = _load_interfaces(typestore, root)
             services += s
             actions += a
-        return cls(typestore, services, actions)
+        made = cls(typestore, services, actions)
+        made.standard = not extra
+        return made
 
     # -- lookup -------------------------------------------------------------------
 
