@@ -29,7 +29,6 @@ lab's sandbox as it is.
 
 from __future__ import annotations
 
-import contextlib
 import itertools
 import json
 import logging
@@ -42,8 +41,8 @@ from dataclasses import dataclass
 from typing import Any
 
 from websockets.exceptions import ConnectionClosed, InvalidHandshake, InvalidURI
-from websockets.sync.client import ClientConnection, connect
 
+from controllers.connection import Connection
 from controllers.errors import (
     ConnectionLost,
     EpisodeOver,
@@ -172,10 +171,10 @@ class Lab:
     Use ``Lab.connect`` to make one, and close it (or use ``with``) when done.
     """
 
-    def __init__(self, socket: ClientConnection, url: str, closing: contextlib.ExitStack) -> None:
+    def __init__(self, socket: Connection, url: str) -> None:
         self.url = url
         self._socket = socket
-        self._closing = closing  # closes the socket
+        self._stepping = False  # in lockstep: commands leave with the next step
         self._ids = itertools.count(1)
         self._subscriptions: dict[str, Subscription] = {}
         self._advertised: dict[str, str] = {}
@@ -193,18 +192,23 @@ class Lab:
         cls, url: str | None = None, *, key: str | None = None, timeout: float = 10.0
     ) -> Lab:
         """Connect to the robot at ``url`` (default: ``$LAB_BRIDGE_URL``, else
-        ``ws://127.0.0.1:9090``). ``key`` is sent first when the lab asks for one."""
+        ``ws://127.0.0.1:9090``). ``key`` is sent first when the lab asks for one.
+
+        Without ``url``, in a sandbox, it connects to the bridge's unix socket
+        (``$LAB_BRIDGE_SOCKET``) directly rather than through the relay on port 9090.
+        """
+        unix = None
+        if url is None:
+            unix = os.environ.get("LAB_BRIDGE_SOCKET") or None
+            if unix is not None and not os.path.exists(unix):
+                unix = None
         url = url or os.environ.get("LAB_BRIDGE_URL") or DEFAULT_URL
-        opener = connect(
-            url, open_timeout=timeout, max_size=MAX_FRAME, compression=None, legacy=False
-        )
-        closing = contextlib.ExitStack()
         try:
-            socket = closing.enter_context(opener)
+            socket = Connection.open(url, unix=unix, timeout=timeout, max_size=MAX_FRAME)
         except (OSError, TimeoutError, InvalidHandshake, InvalidURI) as err:
             # Refused, unreachable, or an HTTP answer instead of a WebSocket (404, 503).
             raise ConnectionLost(url, reason=str(err), opened=False) from err
-        lab = cls(socket, url, closing)
+        lab = cls(socket, url)
         if key is not None:
             lab._send({"op": "auth", "key": key})
         # Errors come back as status frames (warnings are only logged).
@@ -213,7 +217,7 @@ class Lab:
 
     def close(self) -> None:
         """Close the connection; the lab releases this client's topics and services."""
-        self._closing.close()
+        self._socket.close()
 
     def __enter__(self) -> Lab:
         return self
@@ -253,7 +257,9 @@ class Lab:
     def publish(self, topic: str, type_name: str, msg: Mapping[str, Any]) -> None:
         """Publish ``msg`` on ``topic``, advertising it (once) as ``type_name``.
 
-        Publishing does not wait. If the lab refuses the message (a NaN, a field the
+        Publishing does not wait. In lockstep (once ``step`` has been called) the
+        message leaves with the next ``step`` (or anything else that reads), in the same
+        write; before that, at once. If the lab refuses the message (a NaN, a field the
         type does not have), the next call that reads raises ``StatusError`` with the
         lab's sentence.
         """
@@ -263,7 +269,8 @@ class Lab:
                 {"op": "advertise", "id": self._id("advertise"), "topic": topic, "type": type_name}
             )
             self._advertised[topic] = type_name
-        self._send({"op": "publish", "id": self._id("publish"), "topic": topic, "msg": dict(msg)})
+        frame = {"op": "publish", "id": self._id("publish"), "topic": topic, "msg": dict(msg)}
+        self._send(frame, flush=not self._stepping)
 
     # -- services --------------------------------------------------------------------
 
@@ -324,6 +331,7 @@ class Lab:
         answer says the episode ended on this tick (its observations are in the
         subscriptions too) or had already ended.
         """
+        self._stepping = True
         answer = self._call(STEP, None, timeout)
         if answer.get("result") is False:
             self._raise_refusals()
@@ -447,13 +455,15 @@ class Lab:
 
     # -- writing ---------------------------------------------------------------------
 
-    def _send(self, frame: Message) -> None:
+    def _send(self, frame: Message, *, flush: bool = True) -> None:
         try:
             text = json.dumps(frame, allow_nan=False)
         except ValueError:  # NaN or infinity: sent as null, which the lab refuses by name
             text = json.dumps(_nulls(frame), allow_nan=False)
         try:
             self._socket.send(text)
+            if flush:
+                self._socket.flush()
         except ConnectionClosed as err:
             close = err.rcvd
             raise ConnectionLost(

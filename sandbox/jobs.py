@@ -102,6 +102,9 @@ def environment(
         # The same, in the two parts roslibpy.Ros(host=..., port=...) takes.
         env["LAB_BRIDGE_HOST"] = "127.0.0.1"
         env["LAB_BRIDGE_PORT"] = str(BRIDGE_PORT)
+        # The bridge's own unix socket, for a client that can skip the launcher's relay
+        # (the lab's client library does).
+        env["LAB_BRIDGE_SOCKET"] = rt.BRIDGE_SOCKET
     env.update(extra)
     return env
 

@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+import contextlib
 import http.server
 import math
+import socket
 import threading
 from urllib.parse import parse_qs, urlsplit
 
@@ -236,3 +238,45 @@ def test_a_key_opens_a_guarded_lab_and_a_refused_one_is_connection_lost(guarded)
     with Lab.connect(guarded.url, key="bad") as lab, pytest.raises(ConnectionLost) as lost:
         lab.step(timeout=10)
     assert lost.value.code == 1008 and "authorization refused" in str(lost.value)
+
+
+def test_in_a_sandbox_it_connects_to_the_bridges_unix_socket(maze, tmp_path, monkeypatch):
+    """Without a URL, with ``$LAB_BRIDGE_SOCKET`` (set in the sandboxes), the client goes
+    to that unix socket, not to ``$LAB_BRIDGE_URL``'s port (where the relay would be)."""
+    target = urlsplit(maze.url)
+    path = str(tmp_path / "bridge.sock")
+    accepted: list[int] = []
+
+    def pump(a, b):
+        with contextlib.suppress(OSError):
+            while data := a.recv(65536):
+                b.sendall(data)
+        with contextlib.suppress(OSError):
+            b.shutdown(socket.SHUT_WR)
+
+    def serve(listener):
+        unix, _ = listener.accept()
+        accepted.append(1)
+        with unix, socket.create_connection((target.hostname, target.port)) as tcp:
+            back = threading.Thread(target=pump, args=(unix, tcp))
+            back.start()
+            pump(tcp, unix)
+            back.join()
+
+    with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as listener:
+        listener.bind(path)
+        listener.listen()
+        forwarder = threading.Thread(target=serve, args=(listener,))
+        forwarder.start()
+        monkeypatch.setenv("LAB_BRIDGE_SOCKET", path)
+        monkeypatch.setenv("LAB_BRIDGE_URL", f"ws://127.0.0.1:9{target.path}")  # nothing there
+        with Lab.connect(timeout=10) as lab:
+            odom = lab.subscribe("/odom", ODOM)
+            lab.publish("/cmd_vel", TWIST, {"linear": {"x": 0.3}})
+            first = lab.step()
+            lab.publish("/cmd_vel", TWIST, {"linear": {"x": 0.3}})  # leaves with the step
+            second = lab.step()
+            assert second.number == first.number + 1
+            assert odom.latest["twist"]["twist"]["linear"]["x"] > 0
+        forwarder.join(10)
+    assert accepted == [1]
