@@ -152,6 +152,9 @@ class Connection:
             raise self._protocol.close_exc from err
         raise ConnectionClosed(None, None) from err
 
+    def _closed(self) -> bool:
+        return self._protocol.state is State.CLOSED
+
     def close(self) -> None:
         """Close the connection (the closing handshake, briefly), then the socket."""
         try:
@@ -160,7 +163,7 @@ class Connection:
                 self._out += self._protocol.data_to_send()
                 self.flush()
                 deadline = time.monotonic() + 1.0
-                while self._protocol.state is not State.CLOSED:
+                while not self._closed():
                     self._read(deadline)
         except (OSError, ConnectionClosed, TimeoutError):
             pass  # closed by the other side meanwhile, or too slow to say goodbye
