@@ -284,7 +284,11 @@ class LabTrial:
     async def start(self, socket: Path, manifest: Mapping[str, Any]) -> None:
         try:
             self.recorder = Recorder(
-                self.station.graph, self.out, digest_topics=self._digest_topics, manifest=manifest
+                self.station.graph,
+                self.out,
+                digest_topics=self._digest_topics,
+                manifest=manifest,
+                defer=True,  # written once a tick's answer has left
             )
         except RecordError as err:  # the disk is full
             raise TrialError(str(err)) from None

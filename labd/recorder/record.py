@@ -33,7 +33,11 @@ side and publishing node: a live robot's drive keeps the robot's and its driver'
 
 It runs on every control tick in the lab's event loop, so the per-message work is a
 dictionary look-up, the library's ``add_message`` and, for digest topics, two hash
-updates; compression happens once a chunk is full. The data digest is over topics, not
+updates; compression happens once a chunk is full. A recorder made with ``defer``
+(a trial's) keeps what it is told during a callback of the event loop and writes it
+just after: a lockstep tick's observations are encoded and written once the tick's
+answer has left for the controller, while the controller decides its next command,
+rather than before. The same messages are written in the same order. The data digest is over topics, not
 sides, as it was before records kept sides, so earlier records still compare with
 their reruns: a client's message can reach a digest topic only where the lab does not
 publish (a command), since the graph refuses clients the lab's topics.
@@ -41,6 +45,7 @@ publish (a command), since the graph refuses clients the lab's topics.
 
 from __future__ import annotations
 
+import asyncio
 import contextlib
 import hashlib
 import json
@@ -170,6 +175,7 @@ class Recorder:
         manifest: Mapping[str, Any] | None = None,
         chunk_size: int = CHUNK_SIZE,
         keep: Keep | None = None,
+        defer: bool = False,
     ) -> None:
         self.graph = graph
         self.folder = Path(folder)
@@ -200,6 +206,8 @@ class Recorder:
         self._end = -1
         self._has_manifest = False
         self._summary: RecordSummary | None = None
+        # (topic, message, side) told but not written yet: written by ``settle``
+        self._pending: list[tuple[Topic, Message, Side]] | None = [] if defer else None
         try:
             self._writer.start(profile=Profile.ROS2)
             if manifest_text is not None:
@@ -216,6 +224,33 @@ class Recorder:
             return
         if self.keep is not None and not self.keep(topic, message, side, sender):
             return
+        pending = self._pending
+        if pending is None:
+            self._write(topic, message, side)
+            return
+        if not pending:
+            try:
+                loop = asyncio.get_running_loop()
+            except RuntimeError:  # no event loop: at once
+                self._write(topic, message, side)
+                return
+            # Two turns of the loop: the first lets what this callback made ready (the
+            # bridge's write of the tick's answer) go first.
+            loop.call_soon(loop.call_soon, self.settle)
+        pending.append((topic, message, side))
+
+    def settle(self) -> None:
+        """Write what was told and kept for later (``defer``)."""
+        pending = self._pending
+        if not pending:
+            return
+        self._pending = []
+        for topic, message, side in pending:
+            if self._error is not None:
+                return
+            self._write(topic, message, side)
+
+    def _write(self, topic: Topic, message: Message, side: Side) -> None:
         channels = self._lab_channels if side is Side.LAB else self._client_channels
         data = message.cdr()
         time = message.stamp_ns
@@ -271,6 +306,7 @@ class Recorder:
     @property
     def data_digest(self) -> str:
         """The digest of what has been recorded so far."""
+        self.settle()
         return self._digest.hexdigest()
 
     @property
@@ -279,6 +315,7 @@ class Recorder:
         (at most ``chunk_size`` bytes before compression, or one larger message)."""
         if self._summary is not None:
             return self._summary.size
+        self.settle()
         if self._file.closed:
             return 0
         return self._file.tell()
@@ -286,6 +323,7 @@ class Recorder:
     @property
     def counts(self) -> dict[str, int]:
         """Messages recorded so far, per topic."""
+        self.settle()
         counts: dict[str, int] = {}
         for channel in self._by_key.values():
             counts[channel.topic] = counts.get(channel.topic, 0) + channel.count
@@ -310,6 +348,7 @@ class Recorder:
             return self._summary
         if self._tap in self.graph.taps:
             self.graph.taps.remove(self._tap)
+        self.settle()
         if self._error is not None:
             raise RecordError(self.path, self._error)
         try:
@@ -333,6 +372,8 @@ class Recorder:
         """Stop recording and delete the record: one that will not be filed."""
         if self._tap in self.graph.taps:
             self.graph.taps.remove(self._tap)
+        if self._pending is not None:
+            self._pending = []
         with contextlib.suppress(OSError):
             self._file.close()
             self.path.unlink(missing_ok=True)

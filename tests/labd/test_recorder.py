@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import asyncio
 import hashlib
 import re
 import shutil
@@ -584,3 +585,40 @@ def test_a_shorter_record_differs_where_it_ends(registry, tmp_path):
     assert difference.what == "record b ended before it"
     reverse = first_difference(b.summary.folder, a.summary.folder, a.topics)
     assert reverse is not None and reverse.a is None and reverse.index == difference.index
+
+
+async def test_a_deferred_recorder_writes_after_the_callback_the_same_record(registry, tmp_path):
+    """A trial's recorder (``defer``) keeps a tick's messages while the callback that made
+    them runs (the tick's answer leaves first) and writes them on the loop's next turns:
+    the same messages, in the same order, with the same digest as one that writes at once."""
+    graph = Graph(registry, name="deferred")
+    robot = Robot(graph, "icreate-maze", {}, 2)
+    topics = digest_topics(robot)
+    now = Recorder(graph, tmp_path / "now", digest_topics=topics)
+    later = Recorder(graph, tmp_path / "later", digest_topics=topics, defer=True)
+    client = graph.create_node("/controller", side=Side.CLIENT)
+    command = client.advertise("/cmd_vel", TWIST)
+    robot.publish()
+    for tick in range(15):
+        command.publish({"linear": {"x": 0.3}, "angular": {"z": 0.1 * (tick % 3)}})
+        step(client)
+        assert later._pending  # told, not written yet
+        await asyncio.sleep(0)
+        await asyncio.sleep(0)
+        assert not later._pending
+    robot.publish()  # told last, written by finish
+    assert later.counts == now.counts  # (reading the counts writes what was kept)
+    a, b = now.finish(), later.finish()
+    robot.close()
+    assert a.data_digest == b.data_digest
+    assert [m[2].data for m in mcap_messages(a.path)] == [m[2].data for m in mcap_messages(b.path)]
+
+
+def test_a_deferred_recorder_without_an_event_loop_writes_at_once(registry, tmp_path):
+    graph = Graph(registry, name="no loop")
+    robot = Robot(graph, "icreate-maze", {}, 5)
+    later = Recorder(graph, tmp_path / "later", digest_topics=digest_topics(robot), defer=True)
+    robot.publish()
+    assert not later._pending and later._by_key  # written: its channels exist
+    assert later.finish().counts["/lab/episode"] == 1
+    robot.close()
