@@ -181,6 +181,7 @@ class Lab:
                 self.http.start(), self.config.bridge.host, self.config.http_port, "--http-port"
             )
             await self.service.start()
+            await self.service.start_processes(_reachable(self.http.url()))
 
     def _live_work(self) -> Path | None:
         """Where live drives are recorded before they are filed (None: no archive)."""
@@ -258,3 +259,8 @@ async def _listen(start: Coroutine[Any, Any, None], host: str, port: int, flag: 
         if err.errno == errno.EADDRINUSE:
             raise PortInUse(host, port, flag) from None
         raise
+
+
+def _reachable(url: str) -> str:
+    """``url`` with an address this machine can connect to in place of a wildcard one."""
+    return url.replace("://0.0.0.0:", "://127.0.0.1:").replace("://[::]:", "://[::1]:")

@@ -32,6 +32,7 @@ from labd.graph.types import TypeRegistry
 from labd.live import Demonstration
 from labd.trial import LabHost, client_library
 from labd.videos import Videos
+from labd.workers import WorkerProcesses
 from repository.accounts import Accounts
 from repository.blobs import BlobStore
 from repository.errors import ArchiveError
@@ -75,6 +76,8 @@ class ServiceConfig:
     submit_threads: int = 8  # submissions resolved at once (each may wait on a git server)
     submit_waiting: int = 64  # more that wait for a thread; past these, 503
     videos: str = "background"  # or "asked": render a record's video only when asked for
+    worker_processes: int = 0  # workers in processes of their own (labd.workers)
+    worker_options: tuple[str, ...] = ()  # more labd worker options: what they may fetch
 
     @property
     def database_url(self) -> str:
@@ -177,6 +180,17 @@ class Service:
             busy=lambda: bool(self.queue.queued() or self.queue.running_workers()),
         )
         self.workers: list[Worker] = []
+        self.processes: WorkerProcesses | None = None
+        if config.worker_processes > 0:
+            self.processes = WorkerProcesses(
+                self.accounts,
+                config.data.resolve(),
+                config.worker_processes,
+                cache=self.cache,
+                heartbeat=config.heartbeat,
+                sandbox=config.sandbox,
+                options=config.worker_options,
+            )
         self._tasks: list[asyncio.Task[None]] = []
         self._stop = asyncio.Event()
         self.name = f"{host_prefix()}{os.getpid()}"
@@ -216,6 +230,11 @@ class Service:
             task.add_done_callback(self._worker_ended)
             self._tasks.append(task)
         log.info("%d worker(s) on %s", len(self.workers), backend.name)
+
+    async def start_processes(self, server: str) -> None:
+        """Start the worker processes, against this lab's HTTP API at ``server``."""
+        if self.processes is not None:
+            await self.processes.start(server)
 
     def _worker_ended(self, task: asyncio.Task[None]) -> None:
         """A worker's loop ends only when the service stops; anything else is a bug, logged."""
@@ -292,6 +311,8 @@ class Service:
 
     async def close(self) -> None:
         """Stop the workers; trials they held go back to the queue at once."""
+        if self.processes is not None:
+            await self.processes.close()
         self._stop.set()
         for task in self._tasks:
             task.cancel()

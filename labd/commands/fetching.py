@@ -72,6 +72,26 @@ def add_options(group: Any) -> None:
     )
 
 
+def argv(args: argparse.Namespace) -> list[str]:
+    """The options of ``add_options`` as given, for another labd command (the worker
+    processes ``labd serve`` starts fetch what it would)."""
+    out: list[str] = []
+    for scheme in args.schemes or ():
+        out += ["--allow-scheme", scheme]
+    if args.allow_local_repos:
+        out.append("--allow-local-repos")
+    out += ["--max-repo-mb", str(args.max_repo_mb), "--max-checkout-mb", str(args.max_checkout_mb)]
+    out += ["--fetch-timeout", f"{args.fetch_timeout:g}"]
+    for flag, items in (
+        ("--submodule-allow", args.submodule_allow),
+        ("--git-token", args.git_token),
+        ("--git-ssh-key", args.git_ssh_key),
+    ):
+        for item in items:
+            out += [flag, item]
+    return out
+
+
 def policy(args: argparse.Namespace, command: str) -> FetchPolicy:
     """The fetch policy the options describe (SystemExit with the reason if they are wrong)."""
     credentials = []

@@ -220,6 +220,15 @@ def add_parser(commands: Any) -> None:
         help="trials run at once (default: %(default)s; 0: none)",
     )
     group.add_argument(
+        "--worker-processes",
+        type=int,
+        default=SERVICE.worker_processes,
+        metavar="N",
+        help="trials run at once by worker processes of their own (labd worker against this"
+        " lab), beside --workers in this process: a trial's lab side gets a core of its own"
+        " (default: %(default)s)",
+    )
+    group.add_argument(
         "--videos",
         choices=MODES,
         default=SERVICE.videos,
@@ -482,6 +491,8 @@ def service_config(args: argparse.Namespace) -> ServiceConfig | None:
         rules=rules(args),
         signup=args.signup,
         videos=args.videos,
+        worker_processes=args.worker_processes,
+        worker_options=tuple(fetching.argv(args)),
     )
 
 

@@ -60,6 +60,11 @@ def add_parser(commands: Any) -> None:
         help="cache and work folders (default: %(default)s)",
     )
     p.add_argument(
+        "--cache",
+        type=Path,
+        help="mirrors and controller runtimes (default: DATA/cache)",
+    )
+    p.add_argument(
         "--heartbeat",
         type=float,
         default=DEFAULTS.heartbeat,
@@ -94,7 +99,7 @@ def main(args: argparse.Namespace) -> int:
     if not args.token:
         return fail(args, "give a worker's token (--token or LABD_TOKEN)")
     policy = fetching.policy(args, "labd worker")
-    cache = (args.data / "cache").resolve()
+    cache = (args.cache or args.data / "cache").resolve()
     work = (args.data / "work").resolve()
     work.mkdir(parents=True, exist_ok=True)
     try:

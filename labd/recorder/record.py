@@ -37,10 +37,12 @@ updates; compression happens once a chunk is full. A recorder made with ``defer`
 (a trial's) keeps what it is told during a callback of the event loop and writes it
 just after: a lockstep tick's observations are encoded and written once the tick's
 answer has left for the controller, while the controller decides its next command,
-rather than before. The same messages are written in the same order. The data digest is over topics, not
-sides, as it was before records kept sides, so earlier records still compare with
-their reruns: a client's message can reach a digest topic only where the lab does not
-publish (a command), since the graph refuses clients the lab's topics.
+rather than before. The same messages are written in the same order.
+
+The data digest is over topics, not sides, as it was before records kept sides, so
+earlier records still compare with their reruns: a client's message can reach a digest
+topic only where the lab does not publish (a command), since the graph refuses clients
+the lab's topics.
 """
 
 from __future__ import annotations
