@@ -61,7 +61,7 @@ def repository(folder: Path) -> Path:
 class Served:
     """`labd serve` on a data folder of its own, with ``workers`` bubblewrap workers."""
 
-    def __init__(self, data: Path, cache: Path, workers: int, videos: str) -> None:
+    def __init__(self, data: Path, cache: Path, workers: int, videos: str, processes: bool) -> None:
         self.data = data
         env = {**os.environ}
         data.mkdir(parents=True)
@@ -73,7 +73,9 @@ class Served:
         self.token = json.loads(made.stdout)["token"]
         self.process = subprocess.Popen(
             [sys.executable, "-m", "labd", "serve", "--data", str(data), "--cache", str(cache),
-             "--http-port", "0", "--bridge-port", "0", "--no-robots", "--workers", str(workers),
+             "--http-port", "0", "--bridge-port", "0", "--no-robots",
+             *(["--workers", "0", "--worker-processes", str(workers)] if processes
+               else ["--workers", str(workers)]),
              "--sandbox", "bwrap", "--allow-local-repos", "--videos", videos],
             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env,
         )  # fmt: skip
@@ -185,6 +187,11 @@ def main() -> None:
     parser.add_argument(
         "--videos", default="background", help="labd serve --videos (default: background)"
     )
+    parser.add_argument(
+        "--processes",
+        action="store_true",
+        help="the workers in processes of their own (labd serve --worker-processes)",
+    )
     parser.add_argument("--json", action="store_true")
     args = parser.parse_args()
     args.cache.mkdir(parents=True, exist_ok=True)
@@ -192,13 +199,20 @@ def main() -> None:
     work = Path(tempfile.mkdtemp(prefix="bench-evaluate-"))
     work.chmod(0o755)
     repo = repository(work / "maze")
-    results: dict[str, Any] = {"suite": args.suite, "videos": args.videos, "runs": {}}
+    results: dict[str, Any] = {
+        "suite": args.suite,
+        "videos": args.videos,
+        "processes": args.processes,
+        "runs": {},
+    }
     seeds: list[int] = []
     ticks: list[int] = []
     try:
         for workers in [int(w) for w in args.workers.split(",")]:
             print(f"[bench] {workers} worker(s)", file=sys.stderr)
-            served = Served(work / f"data-{workers}", args.cache, workers, args.videos)
+            served = Served(
+                work / f"data-{workers}", args.cache, workers, args.videos, args.processes
+            )
             try:
                 evaluation, filed, elapsed = evaluate(served, repo, args.suite)
             finally:

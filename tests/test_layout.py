@@ -28,12 +28,12 @@ ALLOWED = {
 }
 # labd's layers, bottom first: a module may import its own layer's package and lower ones.
 LAYERS = [
-    {"labd.errors", "labd.clock", "labd.config", "labd"},
+    {"labd.errors", "labd.clock", "labd.config", "labd.offload", "labd"},
     {"labd.graph"},
     {"labd.sim", "labd.bridge", "labd.recorder"},
     {"labd.station"},
     {"labd.trial", "labd.replay", "labd.live", "labd.exports", "labd.scripted"},
-    {"labd.service", "labd.authorizer"},
+    {"labd.service", "labd.authorizer", "labd.videos", "labd.workers"},
     {"labd.api"},
     {"labd.web"},
     {"labd.lab"},

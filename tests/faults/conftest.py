@@ -78,7 +78,8 @@ class Served:
     def start(self) -> Served:
         command = [
             sys.executable, "-m", "labd", "serve", "--data", str(self.data),
-            "--cache", str(self.cache), "--http-port", "0", "--bridge-port", "0", *self.args,
+            "--cache", str(self.cache), "--http-port", "0", "--bridge-port", "0",
+            "--videos", "asked", *self.args,
         ]  # fmt: skip
         self.output = []
         self.process = subprocess.Popen(
