@@ -175,7 +175,7 @@ def replay(
         )
     realtime = bool(manifest.get("controller", {}).get("realtime"))
     station = Station(
-        types or TypeRegistry.default(),
+        types or TypeRegistry.shared(),
         "replay",
         task,
         dict(manifest.get("parameters", {})),

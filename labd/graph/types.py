@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import enum
 import re
+import threading
 from collections.abc import Iterable, Iterator, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -147,6 +148,10 @@ def full_name(name: str, kind: str) -> str | None:
     return f"{pkg}/{kind}/{typ}"
 
 
+_SHARED: TypeRegistry | None = None
+_SHARED_LOCK = threading.Lock()
+
+
 class TypeRegistry:
     """All the types a graph knows, with their definitions.
 
@@ -210,6 +215,17 @@ class TypeRegistry:
         made = cls(typestore, services, actions)
         made.standard = not extra
         return made
+
+    @classmethod
+    def shared(cls) -> TypeRegistry:
+        """The lab's own types (``default()``), made once per process: for whoever only
+        reads them (a replay, a summary), which would otherwise parse every interface
+        and compile every serializer again each time."""
+        with _SHARED_LOCK:
+            global _SHARED
+            if _SHARED is None:
+                _SHARED = cls.default()
+            return _SHARED
 
     # -- lookup -------------------------------------------------------------------
 

@@ -159,7 +159,7 @@ def read(
 ) -> Reading:
     """One pass over the record: every tick's numbers, chosen frames, the robot's state."""
     deadline = None if seconds is None else time.monotonic() + seconds
-    typestore = (types or TypeRegistry.default()).typestore
+    typestore = (types or TypeRegistry.shared()).typestore
     known = typestore.fielddefs
     reading = Reading()
     try:

@@ -50,3 +50,10 @@ def test_tutorial_messages_are_known(registry: TypeRegistry):
     ]
     assert registry.message("example_interfaces/msg/Int64").fields[0].base == "int64"
     assert "example_interfaces/msg/String" in set(registry.message_names())
+
+
+def test_the_shared_registry_is_made_once_and_is_the_labs_own_types():
+    shared = TypeRegistry.shared()
+    assert TypeRegistry.shared() is shared
+    assert shared.standard and TypeRegistry.default().typestore is not shared.typestore
+    assert shared.message("nav_msgs/msg/Odometry").name == "nav_msgs/msg/Odometry"
