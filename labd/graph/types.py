@@ -148,7 +148,7 @@ def full_name(name: str, kind: str) -> str | None:
     return f"{pkg}/{kind}/{typ}"
 
 
-_SHARED: TypeRegistry | None = None
+_SHARED: dict[str, TypeRegistry] = {}  # "default": the registry ``shared`` made
 _SHARED_LOCK = threading.Lock()
 
 
@@ -222,10 +222,9 @@ class TypeRegistry:
         reads them (a replay, a summary), which would otherwise parse every interface
         and compile every serializer again each time."""
         with _SHARED_LOCK:
-            global _SHARED
-            if _SHARED is None:
-                _SHARED = cls.default()
-            return _SHARED
+            if "default" not in _SHARED:
+                _SHARED["default"] = cls.default()
+            return _SHARED["default"]
 
     # -- lookup -------------------------------------------------------------------
 
