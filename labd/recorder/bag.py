@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import functools
 import io
+import re
 import textwrap
 from collections.abc import Iterable
 from pathlib import Path
@@ -125,7 +126,85 @@ def bag_info(topics: Iterable[BagTopic], start: int, end: int) -> dict[str, Any]
 
 
 def to_yaml(value: Any) -> str:
-    """Block-style YAML in the mappings' own order (rosbag2's), each hash on one line."""
+    """Block-style YAML in the mappings' own order (rosbag2's), each hash on one line.
+
+    The bag information is made at the end of every trial, and the YAML library takes
+    about 13 ms for it; so what holds only mappings, lists, integers, booleans, None
+    and plain words is written here, as the library writes it (a test holds the two
+    to the same text), and anything else by the library.
+    """
+    fast: list[str] = []
+    if _plain(value, 0, fast, in_list=False):
+        return "\n".join(fast).strip()
+    return _library_yaml(value)
+
+
+_WORD = re.compile(r"[A-Za-z/_][A-Za-z0-9_/.\-]*")
+_NOT_WORDS = frozenset(
+    {"true", "false", "null", "yes", "no", "on", "off", "y", "n", "nan", "inf"}
+)  # (any case): what a reader would take for something else
+
+
+def _scalar(value: Any) -> str | None:
+    """``value`` as the YAML library writes it in block style; None if not simple."""
+    if value is None:
+        return "null"
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, int):
+        return str(value)
+    if isinstance(value, str):
+        if value == "":
+            return "''"
+        if _WORD.fullmatch(value) and value.lower() not in _NOT_WORDS:
+            return value
+    return None
+
+
+def _plain(value: Any, indent: int, out: list[str], *, in_list: bool) -> bool:
+    """Append ``value`` (a mapping or a list) as block YAML lines at ``indent``; False
+    if any part of it is not simple (nothing usable is appended then)."""
+    pad = " " * indent
+    if isinstance(value, dict):
+        if not value:
+            return False
+        first = True
+        for key, item in value.items():
+            if not isinstance(key, str) or _scalar(key) != key:
+                return False
+            lead = (pad[:-2] + "- ") if in_list and first else pad
+            first = False
+            if isinstance(item, dict | list):
+                if not item:
+                    out.append(f"{lead}{key}: {'{}' if isinstance(item, dict) else '[]'}")
+                    continue
+                out.append(f"{lead}{key}:")
+                nested = indent + 2 if isinstance(item, dict) else indent
+                if not _plain(item, nested, out, in_list=False):
+                    return False
+            else:
+                text = _scalar(item)
+                if text is None:
+                    return False
+                out.append(f"{lead}{key}: {text}")
+        return True
+    if isinstance(value, list):
+        for item in value:
+            if isinstance(item, dict):
+                if not _plain(item, indent + 2, out, in_list=True):
+                    return False
+            elif isinstance(item, list):
+                return False
+            else:
+                text = _scalar(item)
+                if text is None:
+                    return False
+                out.append(f"{pad}- {text}")
+        return True
+    return False
+
+
+def _library_yaml(value: Any) -> str:
     yaml = YAML(typ="safe")
     yaml.default_flow_style = False
     yaml.width = 4096

@@ -27,6 +27,7 @@ from labd.graph.types import TypeRegistry
 from labd.recorder import (
     Recorder,
     RecordSummary,
+    bag,
     data_digest,
     first_difference,
     read_channels,
@@ -622,3 +623,28 @@ def test_a_deferred_recorder_without_an_event_loop_writes_at_once(registry, tmp_
     assert not later._pending and later._by_key  # written: its channels exist
     assert later.finish().counts["/lab/episode"] == 1
     robot.close()
+
+
+@pytest.mark.parametrize(
+    "value",
+    [
+        {"a": 1, "b": {"c": [1, 2], "d": []}, "e": {}, "f": None, "g": True, "h": ""},
+        {"list": [{"x": 1, "y": {"z": "word"}}, {"x": 2}], "words": ["a/b", "c_d"]},
+        {"tricky": ["true", "No", "1.5", "a: b", "-x", "#c", " pad", "ünï", "null"]},
+        {"nested": [[1, 2], [3]], "float": 1.5, 3: "int key"},
+        {"qos": bag.dump_qos_v9([bag.qos(True), bag.qos(False)])},
+    ],
+    ids=["plain", "lists-of-mappings", "strings-to-quote", "not-plain", "qos"],
+)
+def test_the_bags_yaml_is_the_librarys_text(value):
+    """``bag.to_yaml`` writes simple values itself (a bag's information at the end of
+    every trial) and leaves the rest to the YAML library: the same text either way."""
+    assert bag.to_yaml(value) == bag._library_yaml(value)
+
+
+def test_a_records_bag_information_is_written_as_the_library_writes_it(registry, tmp_path):
+    run = record(registry, tmp_path / "r", "icreate-maze", ticks=3)
+    text = (run.summary.folder / bag.BAG_METADATA).read_text()
+    info = YAML(typ="safe").load(text)["rosbag2_bagfile_information"]
+    assert bag.to_yaml(info) == bag._library_yaml(info)
+    assert len(info["topics_with_message_count"]) > 5
