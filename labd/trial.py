@@ -229,7 +229,9 @@ class LabTrial:
         self.robot.on_tick = self._tick
         self.bridge = BridgeServer({"trial": self.station.graph}, host.config)
         self.recorder: Recorder | None = None
-        self._waiters: list[asyncio.Future[None]] = []
+        self.first_tick_at: float | None = None  # the loop's times of the first step,
+        self.last_tick_at: float | None = None  # and of the newest
+        self._ended: asyncio.Future[None] | None = None  # what ``ended`` waits for
         self._live: asyncio.Task[None] | None = None
         self._finished: str | None = None
         task_obj = self.robot.sim.task
@@ -268,16 +270,23 @@ class LabTrial:
     def model_files(self) -> dict[str, tuple[str, bytes]]:
         return self.robot.sim.model_files()
 
-    async def next_tick(self) -> None:
-        waiter = asyncio.get_running_loop().create_future()
-        self._waiters.append(waiter)
-        await waiter
+    async def ended(self) -> None:
+        if not self.robot.sim.running:
+            return
+        if self._ended is None or self._ended.done():
+            self._ended = asyncio.get_running_loop().create_future()
+        await self._ended
 
     def _tick(self) -> None:
-        waiters, self._waiters = self._waiters, []
-        for waiter in waiters:
-            if not waiter.done():
-                waiter.set_result(None)
+        """After every step: when, and whether the episode is over. (The runner wakes
+        at the end of the episode, or when no step came for a while, not every tick.)"""
+        now = asyncio.get_running_loop().time()
+        self.last_tick_at = now
+        if self.first_tick_at is None:
+            self.first_tick_at = now
+        ended = self._ended
+        if ended is not None and not ended.done() and not self.robot.sim.running:
+            ended.set_result(None)
 
     # -- its life -----------------------------------------------------------------------
 

@@ -76,8 +76,18 @@ class TrialLab(Protocol):
 
     def episode(self) -> Episode: ...
 
-    async def next_tick(self) -> None:
-        """Return when the task has advanced one more tick."""
+    @property
+    def first_tick_at(self) -> float | None:
+        """The event loop's time of the first step (tick 1); None before it."""
+        ...
+
+    @property
+    def last_tick_at(self) -> float | None:
+        """The event loop's time of the newest step; None before the first."""
+        ...
+
+    async def ended(self) -> None:
+        """Return once the episode is no longer running (at once if it is not)."""
         ...
 
     def metrics(self) -> dict[str, Any]: ...

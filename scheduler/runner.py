@@ -433,10 +433,12 @@ class _Trial:
         exit_task = asyncio.create_task(running.wait())
         lab = self.lab
         limits = self.options.limits
+        loop = asyncio.get_running_loop()
+        watching = loop.time()
         while True:
             episode = lab.episode()
-            if episode.tick > 0 and self.first_step is None:
-                self.first_step = asyncio.get_running_loop().time()
+            if self.first_step is None and lab.first_tick_at is not None:
+                self.first_step = lab.first_tick_at
             if not episode.running:
                 try:
                     exit_ = await asyncio.wait_for(asyncio.shield(exit_task), self.options.grace)
@@ -446,9 +448,17 @@ class _Trial:
             stall = self.options.first_step if episode.tick == 0 else self.options.stall
             if self.prepared.config.realtime:
                 stall = limits.wall
-            waiter = asyncio.create_task(lab.next_tick())
+            # Woken when the episode ends, the controller exits, or no step has come
+            # for ``stall`` seconds; not every tick.
+            last = lab.last_tick_at
+            quiet = loop.time() - (watching if last is None else max(watching, last))
+            if quiet >= stall:
+                exit_ = await running.stop()
+                tick = lab.episode().tick
+                return exit_, Ending.error(f"stalled at tick {tick}: no /lab/step for {stall:g} s")
+            waiter = asyncio.create_task(lab.ended())
             done, _ = await asyncio.wait(
-                {exit_task, waiter}, timeout=stall, return_when=asyncio.FIRST_COMPLETED
+                {exit_task, waiter}, timeout=stall - quiet, return_when=asyncio.FIRST_COMPLETED
             )
             waiter.cancel()
             with contextlib.suppress(asyncio.CancelledError):
@@ -457,10 +467,6 @@ class _Trial:
                 exit_ = exit_task.result()
                 episode = lab.episode()
                 return exit_, judge(exit_, episode, ended=not episode.running, limits=limits)
-            if not done:
-                exit_ = await running.stop()
-                tick = lab.episode().tick
-                return exit_, Ending.error(f"stalled at tick {tick}: no /lab/step for {stall:g} s")
 
     def _attachments(
         self, manifest: dict[str, Any], exit_: Exit | None, result: TrialResult

@@ -148,7 +148,10 @@ class StuckLab:
     def episode(self):
         return Episode(0, True, "running", "", achieved=False, diverged=False)
 
-    async def next_tick(self):
+    first_tick_at = None
+    last_tick_at = None
+
+    async def ended(self):
         await asyncio.Event().wait()
 
     def metrics(self):
