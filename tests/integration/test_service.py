@@ -68,7 +68,7 @@ class Lab:
 
     def start(self) -> None:
         command = [
-            sys.executable, "-m", "labd", "serve", "--data", str(self.data),
+            sys.executable, "-m", "labd", "--log-level", "INFO", "serve", "--data", str(self.data),
             "--cache", str(self.cache), "--http-port", "0", "--bridge-port", "0",
             "--no-robots", "--workers", "1", "--sandbox", "bwrap",
             "--lease", "3", "--allow-local-repos", *self.extra,
@@ -126,14 +126,26 @@ class Lab:
 
     def labd(self, *args: str, check: bool = True) -> subprocess.CompletedProcess[str]:
         env = {**os.environ, "LABD_SERVER": self.server, "LABD_TOKEN": self.token}
-        done = subprocess.run(
-            [sys.executable, "-m", "labd", *args],
-            capture_output=True,
-            text=True,
-            env=env,
-            timeout=300,
-            check=False,
-        )
+        try:
+            done = subprocess.run(
+                [sys.executable, "-m", "labd", *args],
+                capture_output=True,
+                text=True,
+                env=env,
+                timeout=300,
+                check=False,
+            )
+        except subprocess.TimeoutExpired as err:  # say what the lab was doing meanwhile
+            status = subprocess.run(
+                [sys.executable, "-m", "labd", "status"],
+                capture_output=True, text=True, env=env, timeout=60, check=False,
+            )  # fmt: skip
+            pytest.fail(
+                f"labd {' '.join(args)} did not end within 300 s; it said:\n"
+                f"{err.stderr if isinstance(err.stderr, str) else (err.stderr or b'').decode()}\n"
+                f"labd status:\n{status.stdout}{status.stderr}\n"
+                f"the lab's log, its end:\n{''.join(self.output[-150:])}"
+            )
         if check and done.returncode != 0:
             pytest.fail(f"labd {' '.join(args)} exited {done.returncode}:\n{done.stderr}")
         return done
