@@ -268,8 +268,10 @@ class Worker:
         verdict) is filed. The worker goes on to its next trial meanwhile: that work runs
         in helper processes, on a core the next trial leaves free."""
         task = self._deriving
-        if task is not None:
-            await asyncio.shield(task)
+        if task is not None and not task.done():
+            # (not ``await task``: its failure or cancellation is its own, never the
+            # worker's; ``wait`` raises only if the worker itself is cancelled)
+            await asyncio.wait({task})
 
     def _finish(self, trial_id: int, filing: Filing) -> tuple[bool, Filing]:
         """File the trial; a filing the lab refuses (its record does not bear it out: a

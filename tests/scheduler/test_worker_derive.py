@@ -104,3 +104,28 @@ async def test_a_stopped_worker_stops_what_it_was_making_of_its_last_record(
         await running  # its replay's thread ends on its own; the worker does not wait for it
     assert queue.index.trial(trial_id).status.ended
     assert REPLAY not in queue.index.derived(trial_id)
+
+
+async def test_a_record_whose_making_was_cancelled_does_not_stop_the_worker(
+    queue,  # noqa: F811
+    tmp_path,
+):
+    """What is made of the last record ending badly (cancelled, or a bug) is its own
+    business: the worker waiting for it goes on."""
+    config = WorkerConfig(name="w", work=tmp_path / "work", cache=tmp_path / "cache")
+    worker = Worker(queue, BlobStore(str(tmp_path / "blobs")), None, LabHost(), config)
+
+    async def forever():
+        await asyncio.Event().wait()
+
+    async def broken():
+        raise RuntimeError("a bug")
+
+    for made in (forever, broken):
+        worker._deriving = asyncio.create_task(made())
+        await asyncio.sleep(0)
+        if made is forever:
+            worker._deriving.cancel()
+        await asyncio.wait_for(worker.settled(), 5)  # returns; raises nothing
+        if made is broken:
+            assert isinstance(worker._deriving.exception(), RuntimeError)
