@@ -232,8 +232,8 @@ def add_parser(commands: Any) -> None:
         "--videos",
         choices=MODES,
         default=SERVICE.videos,
-        help="render each replayed record's camera video in the background, at the lowest"
-        " CPU priority, or only when someone asks for it (default: %(default)s)",
+        help="render replayed records' camera videos in the background while no trial runs or"
+        " waits, or only when someone asks for one (default: %(default)s)",
     )
     group.add_argument(
         "--sandbox",

@@ -149,7 +149,7 @@ async def test_the_background_renders_replayed_records_newest_first(
         made.wake.set()
         await running
     assert order == [newer, older]
-    assert host.rendered == ["background", "background"]  # at the lowest priority
+    assert host.rendered == ["background", "background"]  # in the idle class
     assert VIDEO not in service.index.derived(unreplayed)  # not verified yet: not rendered
     assert list((tmp_path / "work").iterdir()) == []
 
