@@ -22,9 +22,11 @@ Exit codes are listed in ``labd.commands.common`` and at the end of ``labd --hel
 from __future__ import annotations
 
 import argparse
+import faulthandler
 import json
 import logging
 import os
+import signal
 import sys
 from collections.abc import Callable, Sequence
 from typing import NoReturn
@@ -137,6 +139,8 @@ def _main(argv: Sequence[str] | None) -> int:
         force=True,
     )
     limit_repeats()  # a message repeated in a tight loop must not fill the disk
+    # ``kill -USR1 PID`` prints where every thread of a labd process is, on stderr
+    faulthandler.register(signal.SIGUSR1, all_threads=True)
     return MAINS[args.command](args)
 
 

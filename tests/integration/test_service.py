@@ -136,6 +136,9 @@ class Lab:
                 check=False,
             )
         except subprocess.TimeoutExpired as err:  # say what the lab was doing meanwhile
+            if self.process is not None and self.process.poll() is None:
+                self.process.send_signal(signal.SIGUSR1)  # its threads' stacks, to its log
+                time.sleep(2)
             status = subprocess.run(
                 [sys.executable, "-m", "labd", "status"],
                 capture_output=True, text=True, env=env, timeout=60, check=False,
@@ -144,7 +147,7 @@ class Lab:
                 f"labd {' '.join(args)} did not end within 300 s; it said:\n"
                 f"{err.stderr if isinstance(err.stderr, str) else (err.stderr or b'').decode()}\n"
                 f"labd status:\n{status.stdout}{status.stderr}\n"
-                f"the lab's log, its end:\n{''.join(self.output[-150:])}"
+                f"the lab's log, its end:\n{''.join(self.output[-400:])}"
             )
         if check and done.returncode != 0:
             pytest.fail(f"labd {' '.join(args)} exited {done.returncode}:\n{done.stderr}")
