@@ -306,12 +306,18 @@ class Worker:
                 return  # no more renewals: if stopping hangs too, the lease runs out
             # a renewal that gets no answer must not hold up the progress check above
             wait = max(3 * self.config.heartbeat, 5.0)
-            renewal = asyncio.to_thread(self.queue.heartbeat, trial_id, self.config.name)
-            try:
-                keep = await asyncio.wait_for(renewal, wait)
-            except TimeoutError:
+            renewal = asyncio.ensure_future(
+                asyncio.to_thread(self.queue.heartbeat, trial_id, self.config.name)
+            )
+            # (``wait``, not ``wait_for``: on Python 3.11 a ``wait_for`` whose inner call
+            # ends as the task is cancelled returns its result and drops the cancel, and
+            # this loop would renew the lease of a filed trial for ever)
+            done, _ = await asyncio.wait({renewal}, timeout=wait)
+            if not done:
                 self.log.warning("trial %d: heartbeat had no answer within %g s", trial_id, wait)
                 continue
+            try:
+                keep = renewal.result()
             except QueueError as err:  # a remote lab briefly away: the lease may still hold
                 self.log.warning("trial %d: heartbeat failed: %s", trial_id, err)
                 continue
@@ -459,9 +465,15 @@ def manifest_changes(a: dict[str, Any], b: dict[str, Any], prefix: str = "") -> 
 
 
 async def _stopped(task: asyncio.Task[None]) -> None:
-    task.cancel()
-    with contextlib.suppress(asyncio.CancelledError):
-        await task
+    """Cancel ``task`` and wait for its end; cancelled again should a cancel be lost (a
+    ``wait_for`` inside it may drop one on Python 3.11)."""
+    while not task.done():
+        task.cancel()
+        await asyncio.wait({task}, timeout=1.0)
+    if not task.cancelled() and task.exception() is not None:
+        logging.getLogger("scheduler.worker").error(
+            "%s failed", task.get_name(), exc_info=task.exception()
+        )
 
 
 def _name(err: BaseException) -> str:

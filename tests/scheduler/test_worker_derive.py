@@ -4,13 +4,14 @@ beside its next trial, in helper processes: the worker does not wait for it to c
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import json
 import time
 
 from labd.trial import LabHost
 from repository.blobs import BlobStore
 from repository.well_known import REPLAY, SUMMARY
-from scheduler.worker import Worker, WorkerConfig
+from scheduler.worker import Worker, WorkerConfig, _stopped
 from tests.labd.test_recorder import record
 from tests.scheduler.test_worker import COMMIT, queue, result  # noqa: F401  (fixtures)
 
@@ -129,3 +130,18 @@ async def test_a_record_whose_making_was_cancelled_does_not_stop_the_worker(
         await asyncio.wait_for(worker.settled(), 5)  # returns; raises nothing
         if made is broken:
             assert isinstance(worker._deriving.exception(), RuntimeError)
+
+
+async def test_a_task_that_loses_its_cancel_is_cancelled_again():
+    """On Python 3.11 a ``wait_for`` whose call ends as its task is cancelled drops the
+    cancel; a worker stopping its heartbeat must not wait for ever on one that did."""
+
+    async def stubborn():
+        with contextlib.suppress(asyncio.CancelledError):
+            await asyncio.sleep(30)  # the first cancel, lost
+        await asyncio.sleep(30)
+
+    task = asyncio.create_task(stubborn())
+    await asyncio.sleep(0)
+    await asyncio.wait_for(_stopped(task), 10)
+    assert task.cancelled()
