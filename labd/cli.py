@@ -22,7 +22,9 @@ Exit codes are listed in ``labd.commands.common`` and at the end of ``labd --hel
 from __future__ import annotations
 
 import argparse
+import contextlib
 import faulthandler
+import io
 import json
 import logging
 import os
@@ -140,7 +142,8 @@ def _main(argv: Sequence[str] | None) -> int:
     )
     limit_repeats()  # a message repeated in a tight loop must not fill the disk
     # ``kill -USR1 PID`` prints where every thread of a labd process is, on stderr
-    faulthandler.register(signal.SIGUSR1, all_threads=True)
+    with contextlib.suppress(io.UnsupportedOperation, ValueError):  # (a captured stderr)
+        faulthandler.register(signal.SIGUSR1, all_threads=True)
     return MAINS[args.command](args)
 
 
