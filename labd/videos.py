@@ -70,7 +70,6 @@ class Videos:
         self.busy = busy  # whether trials are running or waiting: no background work then
         self.poll = poll
         self.seconds = seconds  # a render's limit
-        self.wake = asyncio.Event()  # a record was replayed: look for work now
         self._rendering: dict[int, asyncio.Task[Derived]] = {}
         self._failed: dict[int, str] = {}
         self._asked = asyncio.Semaphore(ASKED_AT_ONCE)
@@ -101,9 +100,8 @@ class Videos:
                 log.exception("could not look for records to render")
                 trial_id = None
             if trial_id is None:
-                self.wake.clear()
                 with contextlib.suppress(TimeoutError):
-                    await asyncio.wait_for(self.wake.wait(), self.poll)
+                    await asyncio.wait_for(stop.wait(), self.poll)
                 continue
             try:
                 await self._start(trial_id, asked=False)

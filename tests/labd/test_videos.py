@@ -146,7 +146,6 @@ async def test_the_background_renders_replayed_records_newest_first(
                 await asyncio.sleep(0.05)
     finally:
         stop.set()
-        made.wake.set()
         await running
     assert order == [newer, older]
     assert host.rendered == ["background", "background"]  # in the idle class
