@@ -29,7 +29,7 @@ from urllib.parse import parse_qs, urlsplit
 from websockets.asyncio.server import Server, ServerConnection, serve, unix_serve
 from websockets.exceptions import ConnectionClosed
 from websockets.http11 import Request, Response
-from websockets.protocol import Event
+from websockets.protocol import Event, State
 
 from labd.addresses import PerAddress, address_of
 from labd.bridge.auth import AuthError, Authorizer, AuthUnavailable, KeyPolicy
@@ -342,6 +342,7 @@ class _Connection:
         self.session: Session | None = None
         self.key: str | None = None  # the key that opened the session, once granted
         self._ready = asyncio.Event()
+        self._writer_idle = False  # the write loop waits for frames (and writes none)
         self._tasks: set[asyncio.Task[None]] = set()
 
     # Transport
@@ -415,6 +416,8 @@ class _Connection:
         with contextlib.suppress(ConnectionClosed):
             while True:
                 session.receive(await recv(decode=False))
+                if self._writer_idle and self._ready.is_set():
+                    self._write_now(session)
                 count += 1
                 if count % YIELD_EVERY == 0:
                     await asyncio.sleep(0)
@@ -431,12 +434,38 @@ class _Connection:
                     ready.clear()
                     batch = self._collect(session)
                     if not batch:
-                        await ready.wait()
+                        self._writer_idle = True
+                        try:
+                            await ready.wait()
+                        finally:
+                            self._writer_idle = False
                         continue
                 if len(batch) == 1:
                     await ws.send(batch[0].data, text=batch[0].text)
                 else:
                     await self._send_batch(batch)
+
+    def _write_now(self, session: Session) -> None:
+        """Write what a frame just made, from the reader, while the writer is idle.
+
+        A lockstep tick's answer then leaves before the event loop turns again, rather
+        than one turn later when the writer wakes; the writer still does everything
+        that needs waiting (a full socket buffer, a closing connection)."""
+        ws = self.ws
+        transport = ws.transport
+        if ws.protocol.state is not State.OPEN or transport.get_write_buffer_size():
+            return
+        batch = self._collect(session)
+        self._ready.clear()
+        if not batch:
+            return
+        protocol = ws.protocol
+        for frame in batch:
+            if frame.text:
+                protocol.send_text(frame.data)
+            else:
+                protocol.send_binary(frame.data)
+        transport.write(b"".join(protocol.data_to_send()))
 
     @staticmethod
     def _collect(session: Session) -> list[OutFrame]:
