@@ -167,6 +167,45 @@ async def drive_over_bridge(url: str, task: str, ticks: int) -> dict[str, float]
     return {"ticks_per_s": ticks / elapsed}
 
 
+def drive_with_client_library(url: str, task: str, ticks: int) -> dict[str, float]:
+    """The same policy through the lab's own client library (``controllers.client``):
+    a blocking socket read on the caller's thread, a tick's commands sent with its
+    ``/lab/step`` in one write."""
+    from controllers.client import Lab
+
+    with Lab.connect(url) as lab:
+        if task == "icreate-maze":
+            bumper = lab.subscribe("/bumper", "lab_msgs/msg/Bumper")
+            odom = lab.subscribe("/odom", "nav_msgs/msg/Odometry")
+            goal = lab.subscribe("/goal", "geometry_msgs/msg/PointStamped")
+            command = ("/cmd_vel", "geometry_msgs/msg/Twist")
+        else:
+            lab.subscribe("/joint_states", "sensor_msgs/msg/JointState")
+            command = ("/base/cmd_vel", "geometry_msgs/msg/Twist")
+        lab.step()  # the first tick also collects the latched state
+        turning = 0
+        started = time.perf_counter()
+        for tick in range(ticks):
+            if task == "icreate-maze":
+                pose, target, bumped = odom.get()["pose"]["pose"], goal.get(), bumper.get()
+                yaw = 2 * math.atan2(pose["orientation"]["z"], pose["orientation"]["w"])
+                dx = target["point"]["x"] - pose["position"]["x"]
+                dy = target["point"]["y"] - pose["position"]["y"]
+                gx = math.cos(yaw) * dx + math.sin(yaw) * dy
+                gy = -math.sin(yaw) * dx + math.cos(yaw) * dy
+                linear, angular, turning = maze_policy(
+                    bumped["left"] or bumped["right"], gx, gy, turning
+                )
+            else:
+                linear, angular, _ = pr2_policy(tick)
+            lab.publish(
+                command[0], command[1], {"linear": {"x": linear}, "angular": {"z": angular}}
+            )
+            lab.step()
+        elapsed = time.perf_counter() - started
+    return {"ticks_per_s": ticks / elapsed}
+
+
 async def count_camera_frames(url: str, seconds: float) -> dict[str, float]:
     """Frames per second a subscriber receives from a live robot's camera."""
     async with websockets.connect(url, max_size=None, compression=None) as ws:
@@ -198,6 +237,8 @@ def client_main(argv: list[str]) -> None:
     mode, url, task, amount = argv
     if mode == "drive":
         result = asyncio.run(drive_over_bridge(url, task, int(amount)))
+    elif mode == "library":
+        result = drive_with_client_library(url, task, int(amount))
     else:
         result = asyncio.run(count_camera_frames(url, float(amount)))
     print(json.dumps(result))
@@ -286,11 +327,16 @@ def main() -> None:
         print(f"[bench] {task}: through the bridge", file=sys.stderr)
         with Server("--robot", f"bench={task}", "--lockstep", "--param", "time_limit=3600") as srv:
             remote = client("drive", srv.url, task, args.ticks)
+        print(f"[bench] {task}: through the bridge, the lab's client library", file=sys.stderr)
+        with Server("--robot", f"bench={task}", "--lockstep", "--param", "time_limit=3600") as srv:
+            library = client("library", srv.url, task, args.ticks)
         dt = local["control_timestep"]
         results["tasks"][task] = {
             "in_process_ticks_per_s": local["ticks_per_s"],
             "bridge_ticks_per_s": remote["ticks_per_s"],
             "ratio": remote["ticks_per_s"] / local["ticks_per_s"],
+            "library_ticks_per_s": library["ticks_per_s"],
+            "library_ratio": library["ticks_per_s"] / local["ticks_per_s"],
             "control_timestep": dt,
             "bridge_real_time_factor": remote["ticks_per_s"] * dt,
             "in_process_real_time_factor": local["ticks_per_s"] * dt,
@@ -319,13 +365,21 @@ def report(results: dict[str, Any], args: argparse.Namespace) -> None:
         f"  {args.ticks} control ticks each; {os.cpu_count()} CPUs; MUJOCO_GL="
         f"{os.environ.get('MUJOCO_GL')}\n"
     )
-    print(f"  {'task':14} {'in-process':>12} {'bridge':>12} {'ratio':>7} {'x real time':>12}")
+    print(
+        f"  {'task':14} {'in-process':>12} {'bridge':>12} {'ratio':>7} {'x real time':>12}"
+        f" {'library':>12} {'ratio':>7}"
+    )
     for task, r in results["tasks"].items():
         print(
             f"  {task:14} {r['in_process_ticks_per_s']:9,.0f}/s {r['bridge_ticks_per_s']:9,.0f}/s"
             f" {r['ratio']:7.2f} {r['bridge_real_time_factor']:11.0f}x"
+            f" {r['library_ticks_per_s']:9,.0f}/s {r['library_ratio']:7.2f}"
             f"   (control period {r['control_timestep'] * 1000:.0f} ms)"
         )
+    print(
+        "  bridge: a raw asyncio rosbridge client (websockets, one write a frame); library:"
+        " the lab's client library (controllers.client)"
+    )
     cam = results["camera"]
     print(
         f"\n  live camera, 320x240 JPEG: {cam['fps']:.1f} frames/s received "
