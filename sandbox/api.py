@@ -78,6 +78,7 @@ class Job:
     python_paths: Sequence[Path] = ()  # host folders mounted read-only, put on PYTHONPATH
     limits: Limits = field(default_factory=Limits)
     data: Path | None = None  # host folder mounted read-only at LAB_DATA_DIR (/mnt/data)
+    node_modules: Path | None = None  # host folder mounted read-only at /node_modules
 
 
 @dataclass(frozen=True)
@@ -126,6 +127,15 @@ class Backend(Protocol):
         """pip-install ``requirements`` into ``target``, in the sandbox, online.
 
         Only wheels are accepted (no code of the repository's runs at install time);
+        InstallError says why it failed.
+        """
+        ...
+
+    async def install_node(self, package: Path, lock: Path, target: Path) -> None:
+        """``npm ci`` of ``package`` (package.json) and ``lock`` (package-lock.json)
+        into ``target``, in the sandbox, online, with no install scripts run.
+
+        ``target/node_modules`` is then what a job mounts as its ``node_modules``;
         InstallError says why it failed.
         """
         ...

@@ -56,7 +56,9 @@ from .jobs import (
     install_failure,
     install_plan,
     job_plan,
+    node_install_plan,
     open_socket,
+    stage_node_package,
     stage_requirements,
     start_whole,
     wait_or_stop,
@@ -219,6 +221,21 @@ class BwrapBackend:
             shutil.rmtree(staging, ignore_errors=True)
         if ended.code != 0:
             raise install_failure(ended)
+
+    async def install_node(self, package: Path, lock: Path, target: Path) -> None:
+        target.mkdir(parents=True, exist_ok=True)
+        stage_node_package(package, lock, target)
+        plan = node_install_plan(self.runtime, target)
+        lease = self._lease()
+        try:
+            chown_tree(target, lease.uid)
+            run = await self._start(plan, lease)
+            ended = await wait_or_stop(run)  # a preparing deadline stops npm too
+        finally:
+            chown_tree(target, os.geteuid())
+            lease.release()
+        if ended.code != 0:
+            raise install_failure(ended, "npm")
 
     def _lease(self) -> UidLease:
         return self.uids.lease() if self.uids is not None else UidLease(os.getuid(), -1)

@@ -53,7 +53,9 @@ from .jobs import (
     install_failure,
     install_plan,
     job_plan,
+    node_install_plan,
     open_socket,
+    stage_node_package,
     stage_requirements,
     start_whole,
     wait_or_stop,
@@ -125,6 +127,19 @@ class DockerBackend:
             shutil.rmtree(staging, ignore_errors=True)
         if ended.code != 0:
             raise install_failure(ended)
+
+    async def install_node(self, package: Path, lock: Path, target: Path) -> None:
+        target.mkdir(parents=True, exist_ok=True)
+        stage_node_package(package, lock, target)
+        plan = node_install_plan(self.runtime, target)
+        try:
+            chown_tree(target, rt.SANDBOX_UID)
+            run = await self._start(plan)
+            ended = await wait_or_stop(run)  # a preparing deadline stops npm too
+        finally:
+            chown_tree(target, os.geteuid())
+        if ended.code != 0:
+            raise install_failure(ended, "npm")
 
     async def _start(self, plan: Plan) -> DockerRun:
         return await start_whole(self._launch(plan))

@@ -55,6 +55,19 @@ _PIP_PASSTHROUGH = (
     "https_proxy",
     "no_proxy",
 )
+# ... and npm inside the sandbox (a registry of its own, proxies).
+_NPM_PASSTHROUGH = (
+    "NPM_CONFIG_REGISTRY",
+    "npm_config_registry",
+    "HTTP_PROXY",
+    "HTTPS_PROXY",
+    "NO_PROXY",
+    "http_proxy",
+    "https_proxy",
+    "no_proxy",
+)
+_NPM_NOISE = ("code ", "errno ", "syscall ", "A complete log", "Log files were not written")
+NODE_COMMANDS = frozenset({"node", "nodejs", "npm", "npx"})
 
 
 @dataclass(frozen=True)
@@ -123,6 +136,11 @@ def job_plan(runtime: rt.Runtime, job: Job) -> Plan:
     """The plan of a controller job: its code, its python paths, the bridge; no network."""
     if not job.command:
         raise SandboxError("the job has no command")
+    if runtime.node is None and Path(job.command[0]).name in NODE_COMMANDS:
+        raise SandboxError(
+            f"cannot run {job.command[0]!r}: this lab's sandbox has no Node.js (the lab's"
+            f" host needs node {rt.NODE_MAJOR} or later, with npm, when the runtime is built)"
+        )
     bridge = job.bridge_socket is not None
     if job.bridge_socket is not None and not job.bridge_socket.is_socket():
         raise SandboxError(f"the bridge socket {job.bridge_socket} does not exist")
@@ -133,6 +151,8 @@ def job_plan(runtime: rt.Runtime, job: Job) -> Plan:
     if job.data is not None:
         mounts.append(Mount(job.data.resolve(), rt.DATA))
         env["LAB_DATA_DIR"] = rt.DATA
+    if job.node_modules is not None:
+        mounts.append(Mount(job.node_modules.resolve(), rt.SHARED_NODE_MODULES))
     for mount in mounts:
         if not mount.source.is_dir():
             raise SandboxError(f"{mount.source} is not a folder")
@@ -187,6 +207,66 @@ def install_plan(runtime: rt.Runtime, staged_requirements: Path, target: Path) -
     )
 
 
+def node_install_plan(runtime: rt.Runtime, target: Path) -> Plan:
+    """The plan of ``npm ci`` in ``target`` (package.json and its lock staged there), online.
+
+    Install scripts are not run (``--ignore-scripts``): no code of the repository's
+    packages runs at install time; dev dependencies are left out.
+    """
+    if runtime.node is None:
+        raise InstallError(
+            f"this lab's sandbox has no Node.js (the lab's host needs node {rt.NODE_MAJOR}"
+            " or later, with npm)"
+        )
+    command = [
+        runtime.node,
+        rt.NPM_CLI,
+        "ci",
+        "--ignore-scripts",
+        "--omit=dev",
+        "--no-audit",
+        "--no-fund",
+        "--no-update-notifier",
+        "--loglevel=error",
+    ]
+    env = environment(runtime, bridge=False, python_paths=0, extra={})
+    env.update({k: v for k, v in os.environ.items() if k in _NPM_PASSTHROUGH})
+    mounts = [Mount(target, rt.TARGET, writable=True)]
+    authorities = host_certificates()
+    if authorities is not None:
+        mounts.append(Mount(authorities, CERTIFICATES))
+        env["NODE_EXTRA_CA_CERTS"] = CERTIFICATES
+    return Plan(
+        argv=launcher_argv(runtime, command, bridge=False, cwd=rt.TARGET),
+        env=env,
+        mounts=tuple(mounts),
+        bridge_socket=None,
+        limits=INSTALL_LIMITS,
+        network=True,
+    )
+
+
+def stage_node_package(package: Path, lock: Path, target: Path) -> None:
+    """Copy a repository's package.json and package-lock.json into ``target`` for
+    ``npm ci``: each read only if it is itself a regular file (never through a link)."""
+    for source, name in ((package, "package.json"), (lock, "package-lock.json")):
+        data = _read_regular(source, name)
+        (target / name).write_bytes(data)
+        (target / name).chmod(0o644)
+
+
+def _read_regular(path: Path, what: str) -> bytes:
+    try:
+        fd = os.open(path, os.O_RDONLY | os.O_NOFOLLOW | os.O_NONBLOCK | os.O_CLOEXEC)
+    except OSError as err:
+        reason = "it is a symbolic link" if err.errno == errno.ELOOP else err.strerror
+        raise InstallError(f"{what} cannot be read: {reason}") from None
+    with os.fdopen(fd, "rb") as f:
+        if not stat.S_ISREG(os.fstat(f.fileno()).st_mode):
+            raise InstallError(f"{what} is not a regular file")
+        return f.read()
+
+
 def host_certificates() -> Path | None:
     """The certificate authorities the host's pip trusts, if it names or has a bundle."""
     for name in ("PIP_CERT", "REQUESTS_CA_BUNDLE", "SSL_CERT_FILE"):
@@ -223,15 +303,7 @@ def stage_requirements(requirements: Path, staging: Path) -> Path:
     symbolic link is refused, never read through), as UTF-8 text; the copy is what the
     sandbox sees, so it is the file that was checked.
     """
-    try:
-        fd = os.open(requirements, os.O_RDONLY | os.O_NOFOLLOW | os.O_NONBLOCK | os.O_CLOEXEC)
-    except OSError as err:
-        reason = "it is a symbolic link" if err.errno == errno.ELOOP else err.strerror
-        raise InstallError(f"the requirements file cannot be read: {reason}") from None
-    with os.fdopen(fd, "rb") as f:
-        if not stat.S_ISREG(os.fstat(f.fileno()).st_mode):
-            raise InstallError("the requirements file is not a regular file")
-        data = f.read()
+    data = _read_regular(requirements, "the requirements file")
     try:
         check_requirements(data.decode("utf-8"))
     except UnicodeDecodeError:
@@ -276,18 +348,31 @@ async def wait_or_stop(run: Supervised) -> Exit:
         raise
 
 
-def install_failure(ended: Exit) -> InstallError:
-    """The InstallError of a failed pip run, with the end of its output."""
+def install_failure(ended: Exit, tool: str = "pip") -> InstallError:
+    """The InstallError of a failed pip (or npm) run, with the end of its output."""
     log = (ended.stdout + b"\n" + ended.stderr).decode("utf-8", "replace").strip()
     tail = "\n".join(log.splitlines()[-40:])
     if ended.wall_exceeded:
-        reason = "pip ran out of time"
+        reason = f"{tool} ran out of time"
     elif ended.out_of_memory:
-        reason = "pip ran out of memory"
+        reason = f"{tool} ran out of memory"
+    elif tool == "npm":
+        reason = _npm_reason(log) or f"npm exited with {ended.code}"
     else:
         errors = [line for line in log.splitlines() if line.startswith("ERROR:")]
         reason = errors[-1].removeprefix("ERROR: ") if errors else f"pip exited with {ended.code}"
     return InstallError(reason, tail)
+
+
+def _npm_reason(log: str) -> str:
+    """npm's own reason in one line: its first ``npm error`` line but the codes."""
+    for line in log.splitlines():
+        for prefix in ("npm error", "npm ERR!"):
+            if line.startswith(prefix):
+                text = line.removeprefix(prefix).strip().removeprefix("notarget ")
+                if text and not text.startswith(_NPM_NOISE):
+                    return text[:300]
+    return ""
 
 
 class Stream:

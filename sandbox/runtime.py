@@ -10,6 +10,11 @@ the same tree, built once on the host from what the host has:
   plus the extra package folders the lab passes in (its controller client library);
 - ``/opt/labd/pip``: pip itself, put on ``PYTHONPATH`` only by ``install()``;
 - ``/opt/labd/launcher.py``: the first process of every job (see ``launcher.py``);
+- when the host has Node.js 20 or later with npm: its ``node`` at the same absolute path
+  (and on ``PATH``), and ``/opt/labd/node_modules``, installed from ``sandbox/node``'s
+  lock file: ``roslib`` (roslibjs 2.x) for every controller, found from ``/code``
+  through ``/node_modules/roslib``, and npm for the build step of a repository's own
+  packages (``install_node``);
 - the shared libraries all of those load (the closure of ``ldd`` over every ELF file),
   the dynamic loader, ``/bin/sh`` (dash) and ``/usr/bin/env``;
 - a minimal ``/etc`` (passwd and group with the sandbox user, hosts, nsswitch.conf; no
@@ -93,6 +98,15 @@ TARGET = f"{MNT}/target"  # install(): where pip puts the packages
 DATA = f"{MNT}/data"  # the job's data folder, read-only: LAB_DATA_DIR
 SANDBOX_UID = 64000  # the uid (and gid) a job sees itself as
 MOUNT_POINTS = ("code", "scratch", "proc", "dev", "run", "mnt", "sys")
+# Node.js: the runtime's own packages, and where a controller's imports look after
+# /code/node_modules (Node searches each parent folder's node_modules): roslib there by
+# default, a repository's installed packages mounted over it (with roslib added).
+NODE_SOURCE = Path(__file__).with_name("node")  # package.json and package-lock.json
+NODE_MODULES = f"{LABD_DIR}/node_modules"
+NPM_CLI = f"{NODE_MODULES}/npm/bin/npm-cli.js"
+SHARED_NODE_MODULES = "/node_modules"
+PROVIDED_NODE_PACKAGES = ("roslib",)  # what every controller may import without installing
+NODE_MAJOR = 20  # the oldest Node.js the runtime takes from the host
 
 # What of the host's standard library a controller does not need.
 _STDLIB_SKIP_DIRS = {
@@ -127,6 +141,8 @@ class Runtime:
     python: str  # the interpreter's absolute path, inside and on the host
     size: int  # bytes of its files
     build_seconds: float  # time it took to build; 0.0 when an existing one was reused
+    node: str | None = None  # Node.js's absolute path inside, None when the host had none
+    node_version: str | None = None  # e.g. "v20.20.2"
 
 
 def python_executable() -> Path:
@@ -136,6 +152,40 @@ def python_executable() -> Path:
     if not exe.is_file():
         raise RuntimeBuildError(f"no interpreter at {exe}")
     return exe
+
+
+@dataclass(frozen=True)
+class HostNode:
+    """The host's Node.js and npm, which the runtime is given."""
+
+    node: Path  # the binary itself (links resolved)
+    npm: Path  # the host's npm command, which installs the runtime's packages
+    version: str  # e.g. "v20.20.2"
+
+
+def host_node() -> HostNode | None:
+    """The host's ``node`` (20 or later) and ``npm``, or None: the runtime then has no
+    Node.js, and a controller run with ``node`` is told so."""
+    node, npm = shutil.which("node"), shutil.which("npm")
+    if node is None or npm is None:
+        return None
+    try:
+        done = subprocess.run(  # noqa: S603 - the host's own node
+            [node, "--version"], capture_output=True, text=True, timeout=30, check=True
+        )
+    except (OSError, subprocess.SubprocessError):
+        return None
+    version = done.stdout.strip()
+    try:
+        major = int(version.lstrip("v").split(".")[0])
+    except ValueError:
+        return None
+    if major < NODE_MAJOR:
+        log.warning(
+            "the host's node is %s; controllers in JavaScript need %d+", version, NODE_MAJOR
+        )
+        return None
+    return HostNode(Path(os.path.realpath(node)), Path(npm), version)
 
 
 def runtime_key(extra_packages: Sequence[Path] = ()) -> str:
@@ -150,9 +200,18 @@ def runtime_key(extra_packages: Sequence[Path] = ()) -> str:
         "launcher": _file_digest(Path(__file__).with_name("launcher.py")),
         "recipe": _file_digest(Path(__file__)),
         "extra": [[p.name, tree_digest(p, skip=_is_cache)] for p in extra_packages],
+        "node": _node_inputs(),
     }
     h.update(json.dumps(inputs, sort_keys=True).encode())
     return h.hexdigest()
+
+
+def _node_inputs() -> list[str] | None:
+    node = host_node()
+    if node is None:
+        return None
+    lock = [_file_digest(NODE_SOURCE / name) for name in ("package.json", "package-lock.json")]
+    return [str(node.node), node.version, _file_digest(node.node), *lock]
 
 
 def build_runtime(cache: Path, extra_packages: Sequence[Path] = ()) -> Runtime:
@@ -201,6 +260,8 @@ def build_runtime(cache: Path, extra_packages: Sequence[Path] = ()) -> Runtime:
         python=info["python"],
         size=info["size"],
         build_seconds=seconds,
+        node=info.get("node"),
+        node_version=info.get("node_version"),
     )
 
 
@@ -262,7 +323,11 @@ def _locked(path: Path) -> Iterator[None]:
 
 def _describe(rootfs: Path, seconds: float) -> dict[str, object]:
     size = sum(p.lstat().st_size for p in walk(rootfs) if p.is_file() and not p.is_symlink())
+    node = host_node()
+    has_node = node is not None and _inside(rootfs, node.node).is_file()
     return {
+        "node": str(node.node) if has_node and node else None,
+        "node_version": node.version if has_node and node else None,
         "digest": tree_digest(rootfs),
         "python": str(python_executable()),
         "size": size,
@@ -299,6 +364,9 @@ def _build(tmp: Path, extra: Sequence[Path]) -> None:
             ignore=shutil.ignore_patterns("__pycache__", "*.pyc"),
         )
     shutil.copyfile(Path(__file__).with_name("launcher.py"), labd / "launcher.py")
+    node = host_node()
+    if node is not None:
+        _add_node(rootfs, labd, node)
 
     # The shell, env, and every shared library all those ELF files load.
     usrbin = _inside(rootfs, Path(os.path.realpath("/bin")))
@@ -331,6 +399,39 @@ def _build(tmp: Path, extra: Sequence[Path]) -> None:
 
     _compile(rootfs, [_inside(rootfs, stdlib), labd / "site-packages", labd / "pip"])
     _normalize_modes(rootfs)
+
+
+def _add_node(rootfs: Path, labd: Path, node: HostNode) -> None:
+    """Node.js at its host path (and ``/usr/local/bin/node``), the runtime's packages
+    from ``sandbox/node``'s lock file, and ``/node_modules`` linking what is provided."""
+    binary = _inside(rootfs, node.node)
+    binary.parent.mkdir(parents=True, exist_ok=True)
+    shutil.copyfile(node.node, binary)
+    binary.chmod(0o755)
+    local = rootfs / "usr" / "local" / "bin"
+    local.mkdir(parents=True, exist_ok=True)
+    if not (local / "node").exists():
+        (local / "node").symlink_to(node.node)
+    for name in ("package.json", "package-lock.json"):
+        shutil.copyfile(NODE_SOURCE / name, labd / name)
+    command = [
+        str(node.npm),
+        "ci",
+        "--ignore-scripts",
+        "--no-audit",
+        "--no-fund",
+        "--no-update-notifier",
+        "--loglevel=error",
+    ]
+    done = subprocess.run(  # noqa: S603 - the host's npm, on the runtime's own lock file
+        command, cwd=labd, capture_output=True, text=True, check=False
+    )
+    if done.returncode != 0:
+        raise RuntimeBuildError(f"npm ci failed ({done.returncode}): {_tail(done.stderr)}")
+    shared = _inside(rootfs, Path(SHARED_NODE_MODULES))
+    shared.mkdir()
+    for name in PROVIDED_NODE_PACKAGES:
+        (shared / name).symlink_to(f"{NODE_MODULES}/{name}")
 
 
 def _inside(rootfs: Path, host_path: Path) -> Path:

@@ -17,6 +17,10 @@ folder's name being the package's (``my_msgs/msg/Debug.msg`` is ``my_msgs/msg/De
 Their texts go to the lab side of the trial (``TrialHost.open``), which registers them
 for that trial alone and refuses a malformed or conflicting one with its file and line.
 
+A ``package.json`` at the root that names ``dependencies`` needs its
+``package-lock.json`` beside it: the build step installs exactly what the lock says
+(``npm ci``, no install scripts), and the lock's digest goes into the manifest.
+
 ``[data]`` is resolved when the trial is submitted (``scheduler.data``): the query
 becomes a fixed list of records, pinned with their digests, so a rerun learns from the
 same data.
@@ -27,6 +31,7 @@ the repository, never through a symbolic link (which would be read on the lab's 
 
 from __future__ import annotations
 
+import json
 import tomllib
 from collections.abc import Mapping
 from dataclasses import dataclass, field
@@ -36,10 +41,17 @@ from typing import Any
 from repository.digests import sha256_json
 from repository.trial import MAX_ID, Kind, Outcome
 from repository.units import MiB
-from scheduler.errors import ControllerConfigError, FileNotInRepository, RepositoryFileError
+from scheduler.errors import (
+    ControllerConfigError,
+    FileNotInRepository,
+    NodePackagesError,
+    RepositoryFileError,
+)
 from scheduler.files import RepositoryFiles, parts_of
 
 FILE = "lab.toml"
+PACKAGE = "package.json"
+LOCK = "package-lock.json"
 KEYS = ("command", "task", "requirements", "realtime", "interfaces")
 DATA_KEYS = ("trials", "query")
 QUERY_KEYS = ("task", "kind", "outcome", "user", "limit")
@@ -78,6 +90,7 @@ class ControllerConfig:
     # their .msg, .srv and .action files: path in the repository -> text
     interface_files: Mapping[str, str] = field(default_factory=dict)
     data: DataSpec | None = None  # [data], when lab.toml has it
+    node_packages: bool = False  # package.json names dependencies: npm ci in the build step
 
     @property
     def interfaces_sha256(self) -> str | None:
@@ -125,7 +138,31 @@ def load(code: Path | RepositoryFiles) -> ControllerConfig:
         text=text,
         interfaces=folders,
         interface_files=interface_files,
+        node_packages=_node_packages(files),
     )
+
+
+def _node_packages(files: RepositoryFiles) -> bool:
+    """Whether the root's package.json names dependencies, which then need its lock."""
+    if not files.is_file(PACKAGE):
+        return False
+    try:
+        package = json.loads(files.read_text(PACKAGE))
+    except RepositoryFileError as err:
+        raise NodePackagesError(err.reason) from None
+    except ValueError as err:
+        raise NodePackagesError(f"{PACKAGE} is not valid JSON: {err}") from None
+    dependencies = package.get("dependencies") if isinstance(package, dict) else None
+    if dependencies is not None and not isinstance(dependencies, dict):
+        raise NodePackagesError(f"{PACKAGE}: dependencies must be an object")
+    if not dependencies:
+        return False
+    if not files.is_file(LOCK):
+        raise NodePackagesError(
+            f"{PACKAGE} names dependencies ({', '.join(sorted(dependencies)[:3])}) but the"
+            f" repository has no {LOCK}; run npm install and commit {LOCK}"
+        )
+    return True
 
 
 def _data(table: Any) -> DataSpec | None:

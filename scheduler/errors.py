@@ -13,6 +13,7 @@ TrialError                      a trial could not be prepared or run
 │   └── FileNotInRepository     there is nothing at that name
 ├── ControllerConfigError       lab.toml is missing or does not say what the lab needs
 ├── RequirementsError           the repository's requirements could not be installed
+├── NodePackagesError           its npm packages (package-lock.json) could not be installed
 └── DataUnavailable             a pinned record is gone, damaged, or no longer its digest
 QueueError                      a queue operation was refused
 ├── InvalidRequest              a submission names an unknown task, a bad parameter or seed
@@ -201,6 +202,13 @@ class RequirementsError(TrialError):
         self.reason = reason
         self.log = log
         super().__init__(f"requirements: {reason}")
+
+
+class NodePackagesError(TrialError):
+    def __init__(self, reason: str, log: str = "") -> None:
+        self.reason = reason
+        self.log = log
+        super().__init__(f"npm packages: {reason}")
 
 
 class DataUnavailable(TrialError):

@@ -31,6 +31,7 @@ def build(
     requirements_sha256: str | None,
     model_sha256: str,
     data: Sequence[PinnedRecord] = (),
+    node_packages_sha256: str | None = None,
 ) -> dict[str, Any]:
     manifest: dict[str, Any] = {
         "schema": SCHEMA,
@@ -56,6 +57,8 @@ def build(
     if controller.interfaces:  # only then, so manifests without keep their digests
         manifest["controller"]["interfaces"] = list(controller.interfaces)
         manifest["controller"]["interfaces_sha256"] = controller.interfaces_sha256
+    if node_packages_sha256 is not None:  # only then, likewise
+        manifest["controller"]["node_packages_sha256"] = node_packages_sha256
     if data:  # the records it learns from; without, earlier manifests keep their digests
         manifest["data"] = [record.manifest_entry() for record in data]
     return manifest

@@ -17,6 +17,11 @@ from sandbox.api import Exit, Limits
 from scheduler.host import Episode
 
 _FRAME = re.compile(r'^\s*File "(?P<file>[^"]+)", line (?P<line>\d+)(?:, in (?P<where>.+))?$')
+# Node.js: "    at main (file:///code/x.mjs:3:7)" or "    at file:///code/x.mjs:3:7"
+_NODE_FRAME = re.compile(
+    r"^\s+at (?:(?P<where>.+?) \()?(?:file://)?(?P<file>/[^:()]+):(?P<line>\d+):\d+\)?$"
+)
+_NODE_EXIT = re.compile(r"^Node\.js v\d+")  # the last line Node prints of an uncaught error
 
 
 def judge(exit_: Exit, episode: Episode, *, ended: bool, limits: Limits) -> Ending:
@@ -71,11 +76,14 @@ def episode_ending(episode: Episode) -> Ending:
 
 def crash_summary(stderr: bytes) -> str:
     """The end of a crash's stderr: a Python traceback's last frame (file and line) and
-    its error, or else the last meaningful line."""
+    its error, Node.js's uncaught error and its first frame in the controller's own
+    files, or else the last meaningful line."""
     lines = [line.rstrip() for line in stderr.decode("utf-8", "replace").splitlines()]
     lines = [line for line in lines if line.strip()]
     if not lines:
         return ""
+    if _NODE_EXIT.match(lines[-1]):
+        return _node_summary(lines[:-1])
     last = lines[-1].strip()[:300]
     for line in reversed(lines):
         match = _FRAME.match(line)
@@ -83,6 +91,24 @@ def crash_summary(stderr: bytes) -> str:
             where = f", in {match['where']}" if match["where"] else ""
             return f"{last} ({match['file']}, line {match['line']}{where})"
     return last
+
+
+def _node_summary(lines: list[str]) -> str:
+    """Node's uncaught error: the line before its last stack, and the stack's first frame
+    outside Node itself."""
+    end = max((i for i, line in enumerate(lines) if line.lstrip().startswith("at ")), default=-1)
+    if end < 0:
+        return lines[-1].strip()[:300] if lines else ""
+    start = end
+    while start > 0 and lines[start - 1].lstrip().startswith("at "):
+        start -= 1
+    message = lines[start - 1].strip()[:300] if start > 0 else ""
+    for line in lines[start : end + 1]:
+        match = _NODE_FRAME.match(line)
+        if match:
+            where = f", in {match['where']}" if match["where"] else ""
+            return f"{message} ({match['file']}, line {match['line']}{where})"
+    return message
 
 
 def _signal_name(number: int | None) -> str:

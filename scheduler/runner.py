@@ -40,13 +40,17 @@ from typing import Any
 from repository.digests import manifest_digest, readable_json
 from repository.errors import ArchiveError
 from repository.trial import Ending, Outcome, PinnedRecord, Status, Value
+from repository.units import MiB
 from repository.well_known import LOGS, MANIFEST, OUTCOME, RECORD_FILE
 from sandbox.api import Backend, Exit, InstallError, Job, Limits, Running, SandboxError
+from sandbox.runtime import NODE_MODULES, PROVIDED_NODE_PACKAGES
 from scheduler import controller as controller_config
+from scheduler.controller import LOCK, PACKAGE
 from scheduler.data import Archive, Blobs, materialize, resolve
 from scheduler.errors import (
     ControllerConfigError,
     DataUnavailable,
+    NodePackagesError,
     QueueError,
     RequirementsError,
     TrialError,
@@ -257,6 +261,8 @@ class _Prepared:
     python_paths: list[Path]
     requirements_sha: str | None
     data: Path | None = None  # the folder mounted at LAB_DATA_DIR
+    node_modules: Path | None = None  # the installed npm packages, mounted at /node_modules
+    node_packages_sha: str | None = None  # sha256 of package-lock.json
 
 
 async def _prepare(
@@ -283,6 +289,9 @@ async def _prepare(
             backend, code, config.requirements, cache
         )
         python_paths.append(target)
+    node_modules, node_sha = None, None
+    if config.node_packages:
+        node_modules, node_sha = await install_node_packages(backend, code, cache)
     data = None
     if config.data is not None and not spec.data:
         if resolver is None:
@@ -301,7 +310,19 @@ async def _prepare(
                 spec.data[0].trial, "cannot be fetched: this runner has no archive to read it from"
             )
         data = await asyncio.to_thread(materialize, spec.data, archive, host, cache)
-    return _Prepared(spec, source, config, task, values, host, python_paths, requirements_sha, data)
+    return _Prepared(
+        spec,
+        source,
+        config,
+        task,
+        values,
+        host,
+        python_paths,
+        requirements_sha,
+        data,
+        node_modules,
+        node_sha,
+    )
 
 
 async def install_requirements(
@@ -325,6 +346,39 @@ async def install_requirements(
         raise RequirementsError(err.reason, err.log) from None
     partial.rename(target)
     return target, sha
+
+
+MAX_LOCK = 32 * MiB  # bytes of package.json or package-lock.json the lab reads
+
+
+async def install_node_packages(backend: Backend, code: Path, cache: Path) -> tuple[Path, str]:
+    """``npm ci`` of the checkout's package.json and package-lock.json into a folder cached
+    by their digests and the runtime's; returns its ``node_modules`` and the lock's sha256.
+
+    What every controller is given (``roslib``) is added where the lock has none of it.
+    """
+    files = RepositoryFiles(code, limit=MAX_LOCK)
+    package, lock = files.read_bytes(PACKAGE), files.read_bytes(LOCK)
+    sha = hashlib.sha256(lock).hexdigest()
+    inputs = f"{hashlib.sha256(package).hexdigest()}:{sha}:{backend.runtime_digest()}"
+    target = cache / "node" / hashlib.sha256(inputs.encode()).hexdigest()[:32]
+    if target.is_dir():
+        return target / "node_modules", sha
+    partial = target.with_name(target.name + ".partial")
+    shutil.rmtree(partial, ignore_errors=True)
+    partial.mkdir(parents=True)
+    try:
+        await backend.install_node(code / PACKAGE, code / LOCK, partial)
+    except InstallError as err:
+        shutil.rmtree(partial, ignore_errors=True)
+        raise NodePackagesError(err.reason, err.log) from None
+    modules = partial / "node_modules"
+    modules.mkdir(exist_ok=True)
+    for name in PROVIDED_NODE_PACKAGES:
+        if not (modules / name).exists():
+            (modules / name).symlink_to(f"{NODE_MODULES}/{name}")
+    partial.rename(target)
+    return target / "node_modules", sha
 
 
 class _Trial:
@@ -361,6 +415,7 @@ class _Trial:
             seed=p.spec.seed,
             runtime=self.backend.runtime_digest(),
             requirements_sha256=p.requirements_sha,
+            node_packages_sha256=p.node_packages_sha,
             model_sha256=lab.model_sha256,
             data=p.spec.data,
         )
@@ -426,6 +481,7 @@ class _Trial:
             python_paths=p.python_paths,
             limits=self.options.limits,
             data=p.data,
+            node_modules=p.node_modules,
         )
 
     async def _watch(self, running: Running) -> tuple[Exit, Ending]:
