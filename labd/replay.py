@@ -238,6 +238,16 @@ def _run(path: Path, station: Station, renderers: Sequence[Any], realtime: bool)
             for topic in needed:  # render cameras from here on, as the record has them
                 watcher.subscribe(topic, None, _ignore, hidden=True)
                 watched.add(topic)
+            if index > 0 and not robot.sim.running:
+                # Commands sent after the episode's end (a controller that stepped once
+                # more and was told the episode had ended): the lab stepped no more.
+                if tick.observed:
+                    first = tick.observed[0]
+                    verdict.divergence = Divergence(
+                        robot.sim.tick, first.topic, first.log_time, "recorded after the end"
+                    )
+                    return verdict
+                break
             if index > 0:
                 for command in tick.commands:
                     if command.topic in commands:

@@ -76,6 +76,7 @@ def record(
     camera: bool = False,
     chunk_size: int | None = None,
     manifest: bool = False,
+    params: dict[str, Any] | None = None,
 ) -> Run:
     """Drive ``task`` in lockstep with seeded random Twist commands, recording it all.
 
@@ -83,7 +84,7 @@ def record(
     behaves differently once would.
     """
     graph = Graph(registry, name="recorder-test")
-    robot = Robot(graph, task, {}, seed)
+    robot = Robot(graph, task, params or {}, seed)
     topics = digest_topics(robot)
     options: dict[str, Any] = {} if chunk_size is None else {"chunk_size": chunk_size}
     if manifest:  # what a replay needs of a trial's manifest
@@ -117,7 +118,7 @@ def record(
                 if tick == change_at:
                     value["linear"]["x"] = value["linear"]["x"] / 2 + 0.25
                 publisher.publish(value)
-            step(client)
+            step(client, over=not robot.sim.running)
     finally:
         run.summary = recorder.finish()
     run.time_ns = robot.sim.time_ns
@@ -125,10 +126,11 @@ def record(
     return run
 
 
-def step(client: Any) -> None:
+def step(client: Any, *, over: bool = False) -> None:
+    """Call /lab/step: it succeeds, or, ``over`` (the episode has ended), says it cannot."""
     answers: list[Any] = []
     client.call_service("/lab/step", None, answers.append)
-    assert answers[0].response.data["success"], answers[0].response.data
+    assert answers[0].response.data["success"] is not over, answers[0].response.data
 
 
 def mcap_messages(path: Path) -> list[tuple[Any, Any, Any, Any]]:

@@ -31,6 +31,18 @@ def test_a_record_replays_identically(registry, tmp_path):
     assert str(verdict).startswith("replay verified: 15 ticks")
 
 
+def test_steps_after_the_episodes_end_replay(registry, tmp_path):
+    """A controller that steps on past the end (told each time that the episode is over)
+    leaves commands after the last tick; its record replays, with the episode's ticks."""
+    run = record(
+        registry, tmp_path / "a", MAZE, seed=3, ticks=13, params={"time_limit": 1}, manifest=True
+    )
+    assert run.robot.sim.tick == 10
+    verdict = replay(run.summary.path)
+    assert verdict.verified, verdict
+    assert verdict.ticks == 10
+
+
 def rewrite(source: Path, dest: Path, change=None, edit_manifest=None) -> Path:
     """Copy an MCAP record, passing each message's data through ``change`` and its
     manifest through ``edit_manifest``."""
