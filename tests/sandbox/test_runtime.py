@@ -8,10 +8,17 @@ from pathlib import Path
 import pytest
 
 import sandbox
-from sandbox.api import Backend, InstallError
+from sandbox.api import Backend, InstallError, Job, SandboxError
 from sandbox.bwrap import BwrapBackend
 from sandbox.docker import DockerBackend
-from sandbox.jobs import KEEP, Stream, check_requirements, decode_status
+from sandbox.jobs import (
+    KEEP,
+    Stream,
+    check_requirements,
+    decode_status,
+    job_plan,
+    node_install_plan,
+)
 from sandbox.runtime import Runtime, build_runtime, tree_digest
 
 pytestmark = pytest.mark.timeout(600)
@@ -51,6 +58,22 @@ def test_the_runtime_holds_what_controllers_need_and_no_more(runtime: Runtime) -
     assert not (stdlib / "site-packages").exists()
     assert not list(root.rglob("mujoco*")) and not list(root.rglob("dm_control*"))
     assert (root / "opt/labd/launcher.py").is_file()
+    # Node.js (the host has 20 or later) and roslib, found from /code through /node_modules
+    assert runtime.node is not None and (root / runtime.node.lstrip("/")).is_file()
+    assert runtime.node_version is not None and int(runtime.node_version[1:].split(".")[0]) >= 20
+    assert (root / "node_modules/roslib").is_symlink()
+    assert (root / "opt/labd/node_modules/roslib/package.json").is_file()
+    assert (root / "opt/labd/node_modules/npm/bin/npm-cli.js").is_file()
+
+
+def test_node_commands_without_node_in_the_runtime_say_so(tmp_path: Path) -> None:
+    """A runtime built on a host without Node.js refuses a node command in one line."""
+    runtime = Runtime(tmp_path, "0" * 64, "/usr/bin/python3.11", 0, 0.0, node=None)
+    job = Job(command=["node", "controller.mjs"], code=tmp_path, bridge_socket=None)
+    with pytest.raises(SandboxError, match=r"this lab's sandbox has no Node\.js"):
+        job_plan(runtime, job)
+    with pytest.raises(InstallError, match=r"this lab's sandbox has no Node\.js"):
+        node_install_plan(runtime, tmp_path)
 
 
 @pytest.mark.integration

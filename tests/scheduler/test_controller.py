@@ -7,7 +7,7 @@ import re
 import pytest
 
 from scheduler.controller import load
-from scheduler.errors import ControllerConfigError, RepositoryFileError
+from scheduler.errors import ControllerConfigError, NodePackagesError, RepositoryFileError
 
 
 def write(tmp_path, text):
@@ -127,3 +127,53 @@ def test_interfaces_are_never_read_through_a_link(tmp_path):
     write(root, '[controller]\ncommand = ["x"]\ninterfaces = "arm_msgs"\n')
     with pytest.raises(RepositoryFileError, match="arm_msgs/msg: it is a symbolic link"):
         load(root)
+
+
+@pytest.mark.parametrize(
+    ("package", "lock", "installs"),
+    [
+        (None, False, False),
+        ('{"name": "x", "type": "module"}', False, False),
+        ('{"devDependencies": {"eslint": "9.0.0"}}', False, False),
+        ('{"dependencies": {}}', False, False),
+        ('{"dependencies": {"three": "0.170.0"}}', True, True),
+    ],
+    ids=["none", "no-dependencies", "dev-only", "empty", "dependencies-and-lock"],
+)
+def test_npm_packages_are_installed_when_package_json_names_dependencies(
+    tmp_path, package, lock, installs
+):
+    """Only dependencies (not devDependencies) call for the build step's npm ci."""
+    write(tmp_path, '[controller]\ncommand = ["node", "controller.mjs"]\n')
+    if package is not None:
+        (tmp_path / "package.json").write_text(package)
+    if lock:
+        (tmp_path / "package-lock.json").write_text("{}")
+    assert load(tmp_path).node_packages is installs
+
+
+@pytest.mark.parametrize(
+    ("package", "expected"),
+    [
+        ('{"dependencies": {"three": "0.170.0", "ms": "2.1.3"}}', "names dependencies (ms, three)"),
+        ("{not json", "package.json is not valid JSON"),
+        ('{"dependencies": ["three"]}', "package.json: dependencies must be an object"),
+    ],
+    ids=["no-lock", "not-json", "not-an-object"],
+)
+def test_bad_npm_packages_say_what_is_wrong(tmp_path, package, expected):
+    """A package.json with dependencies but no lock file, or that is not what npm reads, is
+    refused with what to do."""
+    write(tmp_path, '[controller]\ncommand = ["node", "controller.mjs"]\n')
+    (tmp_path / "package.json").write_text(package)
+    with pytest.raises(NodePackagesError, match=re.escape(expected)):
+        load(tmp_path)
+
+
+def test_a_linked_lock_file_is_refused(tmp_path):
+    """package-lock.json as a symbolic link is refused, never read on the lab's host."""
+    write(tmp_path, '[controller]\ncommand = ["node", "controller.mjs"]\n')
+    (tmp_path / "package.json").write_text('{"dependencies": {"ms": "2.1.3"}}')
+    (tmp_path / "package-lock.json").symlink_to("/etc/passwd")
+    with pytest.raises(RepositoryFileError, match=r"package-lock\.json: it is a symbolic link"):
+        load(tmp_path)

@@ -100,6 +100,44 @@ def test_a_crash_summary_names_the_last_frame():
     assert crash_summary(b"") == ""
 
 
+NODE_CRASH = b"""file:///code/lib/plan.mjs:12
+    throw new RangeError("no way to the goal");
+    ^
+
+RangeError: no way to the goal
+    at plan (file:///code/lib/plan.mjs:12:11)
+    at file:///code/controller.mjs:40:3
+    at process.processTicksAndRejections (node:internal/process/task_queues:95:5)
+
+Node.js v20.20.2
+"""
+NODE_MISSING = b"""node:internal/modules/esm/resolve:853
+  throw new ERR_MODULE_NOT_FOUND(packageName, fileURLToPath(base), null);
+        ^
+
+Error [ERR_MODULE_NOT_FOUND]: Cannot find package 'three' imported from /code/controller.mjs
+    at packageResolve (node:internal/modules/esm/resolve:853:9)
+    at moduleResolve (node:internal/modules/esm/resolve:910:20) {
+  code: 'ERR_MODULE_NOT_FOUND'
+}
+
+Node.js v20.20.2
+"""
+
+
+def test_a_node_crash_summary_names_its_error_and_the_controllers_frame():
+    """Node's uncaught error: its error line and the first frame in the controller's own
+    files; an error raised inside Node itself: its error line alone."""
+    assert crash_summary(NODE_CRASH) == (
+        "RangeError: no way to the goal (/code/lib/plan.mjs, line 12, in plan)"
+    )
+    assert crash_summary(NODE_MISSING) == (
+        "Error [ERR_MODULE_NOT_FOUND]: Cannot find package 'three' imported from"
+        " /code/controller.mjs"
+    )
+    assert crash_summary(b"something odd\n\nNode.js v20.20.2\n") == "something odd"
+
+
 def test_manifest_digest_is_canonical():
     """Key order does not change the digest; any value does."""
     assert digest({"a": 1, "b": [1, 2]}) == digest({"b": [1, 2], "a": 1})
