@@ -54,6 +54,7 @@ test: lint $(JSSTAMP) $(WEBSTAMP)
 bench: $(STAMP) $(WEBSTAMP)
 	$(PY) bench/sim.py
 	$(PY) bench/trial.py
+	$(PY) bench/javascript.py
 	$(PY) bench/bridge.py
 	$(PY) bench/archive.py
 	$(PY) bench/web.py

@@ -37,6 +37,7 @@ from typing import Any
 import orjson
 import websockets
 
+from controllers.client import Lab
 from labd.sim.simulation import Simulation
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -171,8 +172,6 @@ def drive_with_client_library(url: str, task: str, ticks: int) -> dict[str, floa
     """The same policy through the lab's own client library (``controllers.client``):
     a blocking socket read on the caller's thread, a tick's commands sent with its
     ``/lab/step`` in one write."""
-    from controllers.client import Lab
-
     with Lab.connect(url) as lab:
         if task == "icreate-maze":
             bumper = lab.subscribe("/bumper", "lab_msgs/msg/Bumper")

@@ -61,6 +61,9 @@ class Unsandboxed:
     async def install(self, requirements: Path, target: Path) -> None:
         raise NotImplementedError("the benchmark's controller has no requirements")
 
+    async def install_node(self, package: Path, lock: Path, target: Path) -> None:
+        raise NotImplementedError("the benchmark's controller has no npm packages")
+
     async def start(self, job: Job) -> _Plain:
         assert job.bridge_socket is not None
         relay = await _relay(job.bridge_socket)
@@ -113,14 +116,17 @@ async def _relay(socket: Path) -> asyncio.Server:
     return await asyncio.start_server(handle, "127.0.0.1", 0)
 
 
-def trials(backend: Any, seeds: Sequence[int], cache: Path) -> list[dict[str, float]]:
+def trials(
+    backend: Any, seeds: Sequence[int], cache: Path, example: Path = EXAMPLE
+) -> list[dict[str, float]]:
+    """One trial of ``example`` per seed: its ticks, start, time per tick, data digest."""
     host = LabHost()
     out = []
     with tempfile.TemporaryDirectory(prefix="labd-bench-") as folder:
         for seed in seeds:
             result = asyncio.run(
                 run_trial(
-                    TrialSpec(source=str(EXAMPLE), seed=seed),
+                    TrialSpec(source=str(example), seed=seed),
                     backend=backend,
                     out=Path(folder) / f"{backend.name}-{seed}",
                     cache=cache,
