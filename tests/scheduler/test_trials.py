@@ -42,7 +42,7 @@ def run(backend, cache, host, tmp_path, source, **kwargs):
     )
 
 
-@pytest.mark.parametrize("example", ["icreate-maze", "pr2-pick-place"])
+@pytest.mark.parametrize("example", ["icreate-maze", "icreate-maze-js", "pr2-pick-place"])
 def test_examples_succeed_and_reproduce(backend, cache, host, tmp_path, example):
     """Each example controller succeeds at its task, and a second run gives the same data."""
     first = run(backend, cache, host, tmp_path, EXAMPLES / example, seed=1)
