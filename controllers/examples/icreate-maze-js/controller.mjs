@@ -33,6 +33,7 @@
 // decision), so the same seed gives the same run. Python's rounding (half to even) and
 // modulo (the sign of the divisor) are reproduced where the Python controller uses them.
 
+import { existsSync } from "node:fs";
 import { Ros, Service, Topic } from "roslib";
 
 const CELL = 0.75; // m: the maze's cells
@@ -789,8 +790,16 @@ class MazeSolver {
 
 // -- main -------------------------------------------------------------------------------
 
+/** Where the lab is: in a sandbox, the bridge's own unix socket (one hop fewer than the
+ * relay behind LAB_BRIDGE_URL; the `ws` package takes `ws+unix:` URLs), else the URL. */
+function bridgeUrl() {
+  const socket = process.env.LAB_BRIDGE_SOCKET;
+  if (socket && existsSync(socket)) return `ws+unix://${socket}:/`;
+  return process.env.LAB_BRIDGE_URL || DEFAULT_URL;
+}
+
 async function main() {
-  const url = process.env.LAB_BRIDGE_URL || DEFAULT_URL;
+  const url = bridgeUrl();
   let lab;
   try {
     lab = await Lab.connect(url);
