@@ -62,6 +62,19 @@ def maze_policy(
     return 0.3 * max(0.0, math.cos(heading)), max(-2.0, min(2.0, 2.0 * heading)), 0
 
 
+def maze_from_topics(
+    bumper: dict[str, Any], odom: dict[str, Any], goal: dict[str, Any], turning: int
+) -> tuple[float, float, int]:
+    """``maze_policy`` fed from the topics' messages: the goal in the robot's frame."""
+    pose = odom["pose"]["pose"]
+    yaw = 2 * math.atan2(pose["orientation"]["z"], pose["orientation"]["w"])
+    dx = goal["point"]["x"] - pose["position"]["x"]
+    dy = goal["point"]["y"] - pose["position"]["y"]
+    gx = math.cos(yaw) * dx + math.sin(yaw) * dy
+    gy = -math.sin(yaw) * dx + math.cos(yaw) * dy
+    return maze_policy(bumper["left"] or bumper["right"], gx, gy, turning)
+
+
 def pr2_policy(tick: int) -> tuple[float, float, float]:
     """Sway the base and the torso: exercises the whole model every tick."""
     return 0.2 * math.sin(tick / 10), 0.1 * math.cos(tick / 13), 0.15 + 0.1 * math.sin(tick / 20)
@@ -141,18 +154,8 @@ async def drive_over_bridge(url: str, task: str, ticks: int) -> dict[str, float]
         started = time.perf_counter()
         for tick in range(ticks):
             if task == "icreate-maze":
-                bumper, odom, goal = (
-                    latest["/bumper"],
-                    latest["/odom"]["pose"]["pose"],
-                    latest["/goal"],
-                )
-                yaw = 2 * math.atan2(odom["orientation"]["z"], odom["orientation"]["w"])
-                dx = goal["point"]["x"] - odom["position"]["x"]
-                dy = goal["point"]["y"] - odom["position"]["y"]
-                gx = math.cos(yaw) * dx + math.sin(yaw) * dy
-                gy = -math.sin(yaw) * dx + math.cos(yaw) * dy
-                linear, angular, turning = maze_policy(
-                    bumper["left"] or bumper["right"], gx, gy, turning
+                linear, angular, turning = maze_from_topics(
+                    latest["/bumper"], latest["/odom"], latest["/goal"], turning
                 )
             else:
                 linear, angular, _ = pr2_policy(tick)
@@ -186,14 +189,8 @@ def drive_with_client_library(url: str, task: str, ticks: int) -> dict[str, floa
         started = time.perf_counter()
         for tick in range(ticks):
             if task == "icreate-maze":
-                pose, target, bumped = odom.get()["pose"]["pose"], goal.get(), bumper.get()
-                yaw = 2 * math.atan2(pose["orientation"]["z"], pose["orientation"]["w"])
-                dx = target["point"]["x"] - pose["position"]["x"]
-                dy = target["point"]["y"] - pose["position"]["y"]
-                gx = math.cos(yaw) * dx + math.sin(yaw) * dy
-                gy = -math.sin(yaw) * dx + math.cos(yaw) * dy
-                linear, angular, turning = maze_policy(
-                    bumped["left"] or bumped["right"], gx, gy, turning
+                linear, angular, turning = maze_from_topics(
+                    bumper.get(), odom.get(), goal.get(), turning
                 )
             else:
                 linear, angular, _ = pr2_policy(tick)

@@ -43,29 +43,16 @@ CERTIFICATES = f"{rt.MNT}/ca-certificates.crt"  # install(): the host's trusted 
 # Options a requirements file may not use: they would build from source or run code.
 _FORBIDDEN_OPTIONS = ("-e", "--editable", "--no-binary", "--use-pep517", "--no-build-isolation")
 # Host settings pip inside the sandbox is told about (index mirrors, proxies).
+_PROXIES = ("HTTP_PROXY", "HTTPS_PROXY", "NO_PROXY", "http_proxy", "https_proxy", "no_proxy")
 _PIP_PASSTHROUGH = (
     "PIP_INDEX_URL",
     "PIP_EXTRA_INDEX_URL",
     "PIP_TRUSTED_HOST",
     "PIP_DEFAULT_TIMEOUT",
-    "HTTP_PROXY",
-    "HTTPS_PROXY",
-    "NO_PROXY",
-    "http_proxy",
-    "https_proxy",
-    "no_proxy",
+    *_PROXIES,
 )
 # ... and npm inside the sandbox (a registry of its own, proxies).
-_NPM_PASSTHROUGH = (
-    "NPM_CONFIG_REGISTRY",
-    "npm_config_registry",
-    "HTTP_PROXY",
-    "HTTPS_PROXY",
-    "NO_PROXY",
-    "http_proxy",
-    "https_proxy",
-    "no_proxy",
-)
+_NPM_PASSTHROUGH = ("NPM_CONFIG_REGISTRY", "npm_config_registry", *_PROXIES)
 _NPM_NOISE = ("code ", "errno ", "syscall ", "A complete log", "Log files were not written")
 NODE_COMMANDS = frozenset({"node", "nodejs", "npm", "npx"})
 
@@ -193,18 +180,7 @@ def install_plan(runtime: rt.Runtime, staged_requirements: Path, target: Path) -
         Mount(staged_requirements.parent, rt.REQUIREMENTS_DIR),
         Mount(target, rt.TARGET, writable=True),
     ]
-    authorities = host_certificates()
-    if authorities is not None:  # the host's trust (a proxy of its own may need it)
-        mounts.append(Mount(authorities, CERTIFICATES))
-        env["PIP_CERT"] = CERTIFICATES
-    return Plan(
-        argv=launcher_argv(runtime, command, bridge=False, cwd=rt.SCRATCH),
-        env=env,
-        mounts=tuple(mounts),
-        bridge_socket=None,
-        limits=INSTALL_LIMITS,
-        network=True,
-    )
+    return _online_plan(runtime, command, rt.SCRATCH, env, mounts, certificates_variable="PIP_CERT")
 
 
 def node_install_plan(runtime: rt.Runtime, target: Path) -> Plan:
@@ -232,12 +208,28 @@ def node_install_plan(runtime: rt.Runtime, target: Path) -> Plan:
     env = environment(runtime, bridge=False, python_paths=0, extra={})
     env.update({k: v for k, v in os.environ.items() if k in _NPM_PASSTHROUGH})
     mounts = [Mount(target, rt.TARGET, writable=True)]
+    return _online_plan(
+        runtime, command, rt.TARGET, env, mounts, certificates_variable="NODE_EXTRA_CA_CERTS"
+    )
+
+
+def _online_plan(
+    runtime: rt.Runtime,
+    command: Sequence[str],
+    cwd: str,
+    env: dict[str, str],
+    mounts: list[Mount],
+    *,
+    certificates_variable: str,
+) -> Plan:
+    """An install step's plan: the network, the install limits, and the host's trusted
+    authorities (a proxy of its own may need them) named by ``certificates_variable``."""
     authorities = host_certificates()
     if authorities is not None:
         mounts.append(Mount(authorities, CERTIFICATES))
-        env["NODE_EXTRA_CA_CERTS"] = CERTIFICATES
+        env[certificates_variable] = CERTIFICATES
     return Plan(
-        argv=launcher_argv(runtime, command, bridge=False, cwd=rt.TARGET),
+        argv=launcher_argv(runtime, command, bridge=False, cwd=cwd),
         env=env,
         mounts=tuple(mounts),
         bridge_socket=None,

@@ -188,8 +188,8 @@ def host_node() -> HostNode | None:
     return HostNode(Path(os.path.realpath(node)), Path(npm), version)
 
 
-def runtime_key(extra_packages: Sequence[Path] = ()) -> str:
-    """Digest of everything the runtime is built from."""
+def runtime_key(extra_packages: Sequence[Path] = (), node: HostNode | None = None) -> str:
+    """Digest of everything the runtime is built from (``node``: the host's, if any)."""
     h = hashlib.sha256()
     inputs = {
         "python": sys.version,
@@ -200,14 +200,13 @@ def runtime_key(extra_packages: Sequence[Path] = ()) -> str:
         "launcher": _file_digest(Path(__file__).with_name("launcher.py")),
         "recipe": _file_digest(Path(__file__)),
         "extra": [[p.name, tree_digest(p, skip=_is_cache)] for p in extra_packages],
-        "node": _node_inputs(),
+        "node": _node_inputs(node),
     }
     h.update(json.dumps(inputs, sort_keys=True).encode())
     return h.hexdigest()
 
 
-def _node_inputs() -> list[str] | None:
-    node = host_node()
+def _node_inputs(node: HostNode | None) -> list[str] | None:
     if node is None:
         return None
     lock = [_file_digest(NODE_SOURCE / name) for name in ("package.json", "package-lock.json")]
@@ -225,17 +224,18 @@ def build_runtime(cache: Path, extra_packages: Sequence[Path] = ()) -> Runtime:
         if not p.is_dir():
             raise RuntimeBuildError(f"extra package folder {p} does not exist")
     cache.mkdir(parents=True, exist_ok=True)
-    key = runtime_key(extra)
+    node = host_node()
+    key = runtime_key(extra, node)
     final = cache / f"runtime-{key[:32]}"
     with _locked(cache / f".runtime-{key[:32]}.lock"):
         if not (final / "runtime.json").is_file():
             started = time.monotonic()
             tmp = Path(tempfile.mkdtemp(prefix=".build-", dir=cache))
             try:
-                _build(tmp, extra)
+                _build(tmp, extra, node)
                 seconds = time.monotonic() - started
                 (tmp / "runtime.json").write_text(
-                    json.dumps(_describe(tmp / "rootfs", seconds), indent=2)
+                    json.dumps(_describe(tmp / "rootfs", seconds, node), indent=2)
                 )
                 tmp.chmod(0o755)  # the sandboxes' uids must reach the rootfs
                 if final.exists():  # a half-removed leftover without runtime.json
@@ -321,13 +321,11 @@ def _locked(path: Path) -> Iterator[None]:
         os.close(fd)
 
 
-def _describe(rootfs: Path, seconds: float) -> dict[str, object]:
+def _describe(rootfs: Path, seconds: float, node: HostNode | None) -> dict[str, object]:
     size = sum(p.lstat().st_size for p in walk(rootfs) if p.is_file() and not p.is_symlink())
-    node = host_node()
-    has_node = node is not None and _inside(rootfs, node.node).is_file()
     return {
-        "node": str(node.node) if has_node and node else None,
-        "node_version": node.version if has_node and node else None,
+        "node": None if node is None else str(node.node),
+        "node_version": None if node is None else node.version,
         "digest": tree_digest(rootfs),
         "python": str(python_executable()),
         "size": size,
@@ -337,7 +335,7 @@ def _describe(rootfs: Path, seconds: float) -> dict[str, object]:
     }
 
 
-def _build(tmp: Path, extra: Sequence[Path]) -> None:
+def _build(tmp: Path, extra: Sequence[Path], node: HostNode | None) -> None:
     rootfs = tmp / "rootfs"
     rootfs.mkdir()
     exe = python_executable()
@@ -364,7 +362,6 @@ def _build(tmp: Path, extra: Sequence[Path]) -> None:
             ignore=shutil.ignore_patterns("__pycache__", "*.pyc"),
         )
     shutil.copyfile(Path(__file__).with_name("launcher.py"), labd / "launcher.py")
-    node = host_node()
     if node is not None:
         _add_node(rootfs, labd, node)
 

@@ -31,7 +31,7 @@ import logging
 import shutil
 import tempfile
 import time
-from collections.abc import Mapping
+from collections.abc import Awaitable, Callable, Mapping
 from dataclasses import dataclass, field
 from enum import StrEnum
 from pathlib import Path
@@ -330,22 +330,16 @@ async def install_requirements(
 ) -> tuple[Path, str]:
     """Install the checkout's requirements file ``name`` into a folder cached by its hash
     and the runtime's (the file is read as the repository's own, never through a link)."""
-    file = code / name
     sha = hashlib.sha256(RepositoryFiles(code).read_bytes(name)).hexdigest()
     key = hashlib.sha256(f"{sha}:{backend.runtime_digest()}".encode()).hexdigest()[:32]
-    target = cache / "requirements" / key
-    if target.is_dir():
-        return target, sha
-    partial = target.with_name(target.name + ".partial")
-    shutil.rmtree(partial, ignore_errors=True)
-    partial.mkdir(parents=True)
-    try:
-        await backend.install(file, partial)
-    except InstallError as err:
-        shutil.rmtree(partial, ignore_errors=True)
-        raise RequirementsError(err.reason, err.log) from None
-    partial.rename(target)
-    return target, sha
+
+    async def install(partial: Path) -> None:
+        try:
+            await backend.install(code / name, partial)
+        except InstallError as err:
+            raise RequirementsError(err.reason, err.log) from None
+
+    return await _installed(cache / "requirements" / key, install), sha
 
 
 MAX_LOCK = 32 * MiB  # bytes of package.json or package-lock.json the lab reads
@@ -361,24 +355,37 @@ async def install_node_packages(backend: Backend, code: Path, cache: Path) -> tu
     package, lock = files.read_bytes(PACKAGE), files.read_bytes(LOCK)
     sha = hashlib.sha256(lock).hexdigest()
     inputs = f"{hashlib.sha256(package).hexdigest()}:{sha}:{backend.runtime_digest()}"
-    target = cache / "node" / hashlib.sha256(inputs.encode()).hexdigest()[:32]
+    key = hashlib.sha256(inputs.encode()).hexdigest()[:32]
+
+    async def install(partial: Path) -> None:
+        try:
+            await backend.install_node(code / PACKAGE, code / LOCK, partial)
+        except InstallError as err:
+            raise NodePackagesError(err.reason, err.log) from None
+        modules = partial / "node_modules"
+        modules.mkdir(exist_ok=True)
+        for name in PROVIDED_NODE_PACKAGES:
+            if not (modules / name).exists():
+                (modules / name).symlink_to(f"{NODE_MODULES}/{name}")
+
+    return await _installed(cache / "node" / key, install) / "node_modules", sha
+
+
+async def _installed(target: Path, install: Callable[[Path], Awaitable[None]]) -> Path:
+    """``target``, made by ``install`` into a partial folder renamed into place unless it
+    is there already; a failed install leaves nothing behind."""
     if target.is_dir():
-        return target / "node_modules", sha
+        return target
     partial = target.with_name(target.name + ".partial")
     shutil.rmtree(partial, ignore_errors=True)
     partial.mkdir(parents=True)
     try:
-        await backend.install_node(code / PACKAGE, code / LOCK, partial)
-    except InstallError as err:
+        await install(partial)
+    except BaseException:
         shutil.rmtree(partial, ignore_errors=True)
-        raise NodePackagesError(err.reason, err.log) from None
-    modules = partial / "node_modules"
-    modules.mkdir(exist_ok=True)
-    for name in PROVIDED_NODE_PACKAGES:
-        if not (modules / name).exists():
-            (modules / name).symlink_to(f"{NODE_MODULES}/{name}")
+        raise
     partial.rename(target)
-    return target / "node_modules", sha
+    return target
 
 
 class _Trial:

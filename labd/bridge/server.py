@@ -29,7 +29,7 @@ from urllib.parse import parse_qs, urlsplit
 from websockets.asyncio.server import Server, ServerConnection, serve, unix_serve
 from websockets.exceptions import ConnectionClosed
 from websockets.http11 import Request, Response
-from websockets.protocol import Event, State
+from websockets.protocol import Event, Protocol, State
 
 from labd.addresses import PerAddress, address_of
 from labd.bridge.auth import AuthError, Authorizer, AuthUnavailable, KeyPolicy
@@ -323,6 +323,16 @@ class _Failures:
             )
 
 
+def _frames_to_send(protocol: Protocol, batch: list[OutFrame]) -> list[bytes]:
+    """The bytes of ``batch``'s frames, made by websockets' own protocol object."""
+    for frame in batch:
+        if frame.text:
+            protocol.send_text(frame.data)
+        else:
+            protocol.send_binary(frame.data)
+    return protocol.data_to_send()
+
+
 class _Connection:
     """The ``Transport`` of one session: its socket, writer wake-up and auth calls."""
 
@@ -459,13 +469,7 @@ class _Connection:
         self._ready.clear()
         if not batch:
             return
-        protocol = ws.protocol
-        for frame in batch:
-            if frame.text:
-                protocol.send_text(frame.data)
-            else:
-                protocol.send_binary(frame.data)
-        transport.write(b"".join(protocol.data_to_send()))
+        transport.write(b"".join(_frames_to_send(ws.protocol, batch)))
 
     @staticmethod
     def _collect(session: Session) -> list[OutFrame]:
@@ -490,13 +494,7 @@ class _Connection:
         """
         ws = self.ws
         async with ws.send_context():
-            protocol = ws.protocol
-            for frame in batch:
-                if frame.text:
-                    protocol.send_text(frame.data)
-                else:
-                    protocol.send_binary(frame.data)
-            chunks = protocol.data_to_send()
+            chunks = _frames_to_send(ws.protocol, batch)
             if all(chunks):
                 ws.transport.write(b"".join(chunks))
             else:  # an end-of-stream marker: the connection is closing
