@@ -23,6 +23,9 @@ formats itself, so a handler turns it into a protocol reply without string surge
     │   └── EpisodeOverError       the episode has ended; no more steps
     ├── RecordError                a trial's record could not be written (a full disk)
     ├── SummaryError               a record could not be summarized for its page
+    ├── HostedError                a hosted repository refused a name, a path or a commit
+    │   ├── NotHosted              no such hosted repository, or no such commit in it
+    │   └── GitFailed              git itself failed on a hosted repository (a lab fault)
     └── PortInUse                  a port the lab was told to listen on is taken
 """
 
@@ -235,6 +238,41 @@ class RecordError(LabError):
 
 class SummaryError(LabError):
     """A record could not be summarized (unreadable, or it took too long)."""
+
+
+class HostedError(LabError):
+    """A hosted repository (``labd.hosted``) refused something: ``what`` (a user or
+    repository name, a file's path, a commit) and ``reason``, what to do instead."""
+
+    def __init__(self, what: str, reason: str) -> None:
+        self.what = what
+        self.reason = reason
+        super().__init__(f"{what}: {reason}")
+
+
+class NotHosted(HostedError):
+    """No repository ``user/name`` on this lab (``commit`` None), or no ``commit`` in it."""
+
+    def __init__(self, user: str, name: str, commit: str | None = None) -> None:
+        self.user = user
+        self.name = name
+        self.commit = commit
+        if commit is None:
+            super().__init__(f"repository {user}/{name}", "is not on this lab")
+        else:
+            super().__init__(f"repository {user}/{name}", f"has no commit {commit}")
+
+
+class GitFailed(HostedError):
+    """git failed on a hosted repository: ``command`` in ``repository``, and the last line
+    git wrote (``stderr``). The lab's fault (a full disk, a damaged repository), not the
+    caller's."""
+
+    def __init__(self, command: str, repository: str, stderr: str) -> None:
+        self.command = command
+        self.repository = repository
+        self.stderr = stderr
+        super().__init__(f"git {command} in {repository}", stderr)
 
 
 class PortInUse(LabError):

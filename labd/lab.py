@@ -180,6 +180,7 @@ class Lab:
             await _listen(
                 self.http.start(), self.config.bridge.host, self.config.http_port, "--http-port"
             )
+            self.service.serving_at(_reachable(self.http.url()))
             await self.service.start()
             await self.service.start_processes(_reachable(self.http.url()))
 

@@ -29,6 +29,7 @@ from typing import Any
 import sandbox
 from labd.config import DATA
 from labd.graph.types import TypeRegistry
+from labd.hosted import HostedRepos
 from labd.live import Demonstration
 from labd.trial import LabHost, client_library
 from labd.videos import Videos
@@ -78,6 +79,9 @@ class ServiceConfig:
     videos: str = "background"  # or "asked": render a record's video only when asked for
     worker_processes: int = 0  # workers in processes of their own (labd.workers)
     worker_options: tuple[str, ...] = ()  # more labd worker options: what they may fetch
+    # where people and workers reach the HTTP port (the playground's repositories are
+    # recorded under it); None: the address the lab listens on
+    public_url: str | None = None
 
     @property
     def database_url(self) -> str:
@@ -144,9 +148,13 @@ class Service:
         self.queue = Queue(
             self.index, config.queue, self.keyring, check=FilingCheck(self.store, self.host)
         )
+        # The playground's repositories (labd.hosted), served read-only at /git.
+        self.hosted = HostedRepos((config.data / "git").resolve())
         # However local paths are allowed, no submission reaches the lab's own files: its
-        # mirrors of repositories (some private), runtimes, trials at work, keys, blobs.
+        # mirrors of repositories (some private), runtimes, trials at work, keys, hosted
+        # repositories (fetched over HTTP like any other), blobs.
         own: tuple[Path, ...] = (self.cache, (config.data / "work").resolve(), keys)
+        own += (self.hosted.root,)
         if "://" not in config.blobs_url:
             own += (Path(config.blobs_url).resolve(),)
         self.fetch = replace(config.fetch, lab_folders=(*config.fetch.lab_folders, *own))
@@ -191,6 +199,7 @@ class Service:
                 sandbox=config.sandbox,
                 options=config.worker_options,
             )
+        self.git_url: str | None = None  # the hosted repositories' URL, once serving_at says
         self._tasks: list[asyncio.Task[None]] = []
         self._stop = asyncio.Event()
         self.name = f"{host_prefix()}{os.getpid()}"
@@ -230,6 +239,17 @@ class Service:
             task.add_done_callback(self._worker_ended)
             self._tasks.append(task)
         log.info("%d worker(s) on %s", len(self.workers), backend.name)
+
+    def serving_at(self, url: str) -> None:
+        """The lab's HTTP port answers at ``url`` (known once it listens): its hosted
+        repositories are at ``PUBLIC/git/`` (``public_url``, else ``url``), which this
+        lab's submissions and workers fetch like any repository, over git's HTTP."""
+        self.git_url = f"{(self.config.public_url or url).rstrip('/')}/git"
+        self.fetch = replace(self.fetch, hosted=(f"{self.git_url}/",))
+        self.submissions.policy = replace(self.submissions.policy, hosted=self.fetch.hosted)
+        if self.run_options.fetch is not None:
+            fetch = replace(self.run_options.fetch, hosted=self.fetch.hosted)
+            self.run_options = replace(self.run_options, fetch=fetch)
 
     async def start_processes(self, server: str) -> None:
         """Start the worker processes, against this lab's HTTP API at ``server``."""

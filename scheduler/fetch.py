@@ -95,6 +95,8 @@ AUTH_FAILED = re.compile(
     r"|Permission denied \(|returned error: 40[13]|HTTP 40[13]",
     re.IGNORECASE,
 )
+# the rest of a hosted repository's URL: user and name as the lab's names go (index.NAME)
+HOSTED_PATH = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]{0,63}/[A-Za-z0-9][A-Za-z0-9._-]{0,63}\.git")
 BRANCHES_AND_TAGS = ("+refs/heads/*:refs/heads/*", "+refs/tags/*:refs/tags/*")
 
 
@@ -128,6 +130,9 @@ class FetchPolicy:
     with ``/`` to mean a folder); ``("",)`` follows any.
     ``lab_folders``: folders of the lab itself (its cache of mirrors, its keys...), never
     taken as a repository even when local paths are allowed.
+    ``hosted``: URL prefixes of the repositories the lab hosts itself (the playground's,
+    ``http://LAB/git/``), fetched whatever ``schemes`` says of their scheme: they are the
+    lab's own, served read-only by git's smart HTTP.
     """
 
     schemes: frozenset[str] = DEFAULT_SCHEMES
@@ -140,6 +145,7 @@ class FetchPolicy:
     credentials: tuple[Credential, ...] = ()
     user_config: bool = False  # read ~/.gitconfig (helpers, rewrites): one's own machine only
     lab_folders: tuple[Path, ...] = ()
+    hosted: tuple[str, ...] = ()
 
     def credential_for(self, location: Location) -> Credential | None:
         """The credential for this URL: the one with the longest matching prefix."""
@@ -249,7 +255,7 @@ def locate(repository: str, policy: FetchPolicy) -> Location:
                 "has a user name or password in it; give the URL without them (the lab's"
                 " operator sets up access to private repositories)",
             )
-        if scheme not in policy.schemes:
+        if scheme not in policy.schemes and not _hosted(url, policy):
             raise SchemeNotAllowed(url, scheme, policy.schemes)
         if scheme == "file" and parts.netloc in ("", "localhost"):
             # file:///home/me/ctl is the folder /home/me/ctl: one repository, one name
@@ -262,6 +268,15 @@ def locate(repository: str, policy: FetchPolicy) -> Location:
     if "file" not in policy.schemes:
         raise SchemeNotAllowed(text, "file", policy.schemes)
     return _local(text, Path(text).expanduser(), policy)
+
+
+def _hosted(url: str, policy: FetchPolicy) -> bool:
+    """Whether ``url`` names one of the lab's own repositories: a hosted prefix, then
+    ``USER/NAME.git`` and nothing more (no query, no ``..``)."""
+    return any(
+        url.startswith(prefix) and HOSTED_PATH.fullmatch(url[len(prefix) :]) is not None
+        for prefix in policy.hosted
+    )
 
 
 def _local(given: str, path: Path, policy: FetchPolicy) -> Location:

@@ -1,5 +1,5 @@
 // Copies the browser files the lab's pages use (Swagger UI, ReDoc, uPlot, three.js,
-// roslibjs) from node_modules into labd/web/static/vendor/, which `labd serve` serves:
+// roslibjs, CodeMirror) from node_modules into labd/web/static/vendor/, which `labd serve` serves:
 // nothing is fetched from a CDN.
 // Run by `make setup` (npm ci, then this); the vendor folder is not committed.
 // three.js comes as one minified module too (esbuild), and every script and style gets
@@ -30,6 +30,8 @@ const FILES = {
   "three/addons/controls/OrbitControls.js": "three/examples/jsm/controls/OrbitControls.js",
   "three/LICENSE": "three/LICENSE",
   "roslib/LICENSE": "roslib/LICENSE",
+  "codemirror/LICENSE": "codemirror/LICENSE",
+  "codemirror/LICENSE.acorn": "acorn/LICENSE",
 };
 
 rmSync(vendor, { recursive: true, force: true });
@@ -63,6 +65,15 @@ for (const controls of ["OrbitControls", "TransformControls"]) {  // the 3D view
 await build({
   entryPoints: [join(modules, "roslib", "dist", "RosLib.js")],
   outfile: join(vendor, "roslib", "roslib.min.js"),
+  bundle: true, minify: true, format: "esm", platform: "browser", legalComments: "inline",
+  logLevel: "warning",
+});
+
+// CodeMirror 6 (the editor of /playground, with JavaScript and its linter's marks) as one
+// browser module: codemirror.mjs says what the page takes of it.
+await build({
+  entryPoints: [join(here, "codemirror.mjs")],
+  outfile: join(vendor, "codemirror", "codemirror.min.js"),
   bundle: true, minify: true, format: "esm", platform: "browser", legalComments: "inline",
   logLevel: "warning",
 });

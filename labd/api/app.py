@@ -20,6 +20,8 @@ its CSRF token (``labd.api.common``).
                                            booking live robots, their calendars, keys,
                                            and the authorizer (``labd.api.reservations``)
     /api/me, /api/tokens                   my account and tokens (``labd.api.accounts``)
+    /git/USER/NAME.git                     the playground's repositories, read-only over
+                                           git's smart HTTP (``labd.api.git``)
 
 Every body, success or error, is a model of ``labd.api.models``; errors are
 ``{"error": "what went wrong and what to do"}``, mapped from exceptions in one table
@@ -39,11 +41,21 @@ from fastapi.responses import JSONResponse, StreamingResponse
 from starlette.concurrency import run_in_threadpool
 
 from labd import __version__
-from labd.api import accounts, errors, evaluations, records, reservations, summaries, workers
+from labd.api import (
+    accounts,
+    errors,
+    evaluations,
+    playground,
+    records,
+    reservations,
+    summaries,
+    workers,
+)
 from labd.api.builds import Builds
 from labd.api.common import Lab, Writer, blob_response
 from labd.api.edges import Edges
 from labd.api.errors import ApiError, responses
+from labd.api.git import GitHttp
 from labd.api.models import (
     CancelView,
     CommitView,
@@ -111,9 +123,11 @@ def create_app(
         workers.blobs,
         accounts.router,
         reservations.router,
+        playground.router,
     )
     for part in parts:
         app.include_router(errors.declare_validation(part))
+    app.mount("/git", GitHttp(service.hosted), name="git")  # read-only git over HTTP
     app.add_middleware(Edges)
     return app
 

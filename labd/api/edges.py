@@ -10,8 +10,10 @@ all of it. ``Edges`` checks first:
    check the routes make (``labd.api.common.identify``), before a byte of the body is
    read; the connection is closed, so the rest is never sent.
 2. A body has a size limit per route (``limit``): ``BODY_LIMIT`` (1 MiB) for every JSON
-   body and form, ``MAX_BLOB`` for a worker's blob upload. A body over it is refused with
-   413: at once when its Content-Length says so, else as soon as the stream passes it.
+   body and form, ``MAX_BLOB`` for a worker's blob upload, ``MAX_UPLOAD`` (16 MiB) for a
+   git fetch from the lab's hosted repositories (``labd.api.git``). A body over it is
+   refused with 413: at once when its Content-Length says so, else as soon as the stream
+   passes it.
 """
 
 from __future__ import annotations
@@ -25,6 +27,7 @@ from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from labd.api import errors
 from labd.api.common import CSRF_HEADER, SAFE, SESSION_COOKIE, bearer, identify
+from labd.api.git import MAX_UPLOAD
 from labd.api.state import state_of
 from labd.api.workers import MAX_BLOB
 from repository.units import GiB, MiB
@@ -32,7 +35,10 @@ from repository.units import GiB, MiB
 BODY_LIMIT = MiB  # bytes: a JSON body or a form, on every route but a blob upload
 GATED = "/api/"  # writes under here need a writer
 # (method, path prefix) -> the body limit of the routes there; BODY_LIMIT elsewhere
-LIMITS: dict[tuple[str, str], int] = {("PUT", "/api/blobs/"): MAX_BLOB}
+LIMITS: dict[tuple[str, str], int] = {
+    ("PUT", "/api/blobs/"): MAX_BLOB,
+    ("POST", "/git/"): MAX_UPLOAD,
+}
 CLOSE = {"Connection": "close"}  # the rest of a refused body is never read
 
 

@@ -23,7 +23,8 @@ from fastapi.routing import APIRoute
 from starlette.exceptions import HTTPException
 
 from labd.api.models import ErrorBody
-from labd.errors import UnknownTaskError
+from labd.errors import GitFailed, HostedError, NotHosted, UnknownTaskError
+from labd.playground import NoNode, PlaygroundError
 from repository.errors import (
     AccountError,
     ArchiveError,
@@ -108,6 +109,11 @@ STATUS: dict[type[Exception], int] = {
     HeldOut: 403,  # an episode of a held-out suite: the operator's until it is retired
     BlobNotFound: 404,
     UnknownTaskError: 404,
+    NoNode: 503,  # the lab's machine has no Node.js to parse a script with
+    PlaygroundError: 422,  # a script that does not parse, or is too large
+    NotHosted: 404,  # no such hosted repository, or commit in it
+    GitFailed: 500,  # git failed on the lab's own repository: the lab's fault
+    HostedError: 422,  # a repository's name or a file's path the lab does not take
     BlobError: 500,  # a blob that no longer matches its digest: the store is damaged
     IndexLost: 503,  # the index's files changed under the lab: writes wait for a restart
     ArchiveError: 422,

@@ -22,6 +22,7 @@ import sys
 from dataclasses import replace
 from pathlib import Path
 from typing import Any
+from urllib.parse import urlsplit
 
 from labd import __version__
 from labd.commands import fetching
@@ -181,6 +182,13 @@ def add_parser(commands: Any) -> None:
         type=int,
         default=LAB.http_port,
         help="HTTP API port (default: %(default)s; 0: any free port)",
+    )
+    group.add_argument(
+        "--public-url",
+        metavar="URL",
+        help="the address people and remote workers reach the HTTP port at, such as"
+        " https://lab.example.org behind a proxy; the playground's repositories are"
+        " recorded under URL/git/ (default: http://HOST:PORT as the lab listens)",
     )
     group.add_argument(
         "--http-connections-per-address",
@@ -493,7 +501,23 @@ def service_config(args: argparse.Namespace) -> ServiceConfig | None:
         videos=args.videos,
         worker_processes=args.worker_processes,
         worker_options=tuple(fetching.argv(args)),
+        public_url=public_url(args.public_url),
     )
+
+
+def public_url(given: str | None) -> str | None:
+    """``--public-url`` checked: an http(s) address with no path, query or fragment."""
+    if given is None:
+        return None
+    parts = urlsplit(given)
+    if parts.scheme not in ("http", "https") or not parts.netloc or parts.path.strip("/"):
+        raise Refused(
+            f"--public-url {given}: give the lab's address as people reach it, such as"
+            " https://lab.example.org (http or https, no path)"
+        )
+    if parts.query or parts.fragment:
+        raise Refused(f"--public-url {given}: give it without a query or fragment")
+    return f"{parts.scheme}://{parts.netloc}"
 
 
 def bridge_config(args: argparse.Namespace) -> BridgeConfig:

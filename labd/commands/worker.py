@@ -16,6 +16,7 @@ import asyncio
 import os
 import signal
 import socket
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -99,6 +100,8 @@ def main(args: argparse.Namespace) -> int:
     if not args.token:
         return fail(args, "give a worker's token (--token or LABD_TOKEN)")
     policy = fetching.policy(args, "labd worker")
+    # the lab's own repositories (the playground's), over its HTTP port like its API
+    policy = replace(policy, hosted=(f"{args.server.rstrip('/')}/git/",))
     cache = (args.cache or args.data / "cache").resolve()
     work = (args.data / "work").resolve()
     work.mkdir(parents=True, exist_ok=True)

@@ -8,6 +8,7 @@ from __future__ import annotations
 import importlib
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from labd.errors import UnknownTaskError
@@ -47,6 +48,8 @@ class TaskSpec:
     # Its episode suites for evaluations (repository.evaluation): a public dev suite,
     # a held-out test suite; a suite's version goes up whenever its episodes change.
     suites: tuple[Suite, ...] = ()
+    # A roslibjs script for this task that /playground starts from (runs live and in a trial).
+    playground: Path | None = None
 
     def suite(self, name: str) -> Suite | None:
         return next((s for s in self.suites if s.name == name), None)

@@ -17,7 +17,7 @@ from fastapi.responses import HTMLResponse
 from labd.api.app import create_app as create_api
 from labd.api.site import RobotLink, Site
 from labd.service import Service
-from labd.web import accounts, evaluations, forms, pages, reservations, robots
+from labd.web import accounts, evaluations, forms, pages, playground, reservations, robots
 from labd.web.assets import Precompressed
 from labd.web.headers import SecurityHeaders
 from labd.web.problems import PageRoute
@@ -68,6 +68,7 @@ def install(app: FastAPI) -> None:
     app.include_router(forms.router)
     app.include_router(robots.router)
     app.include_router(robots.api)
+    app.include_router(playground.router)
     app.include_router(accounts.router)
     app.include_router(reservations.router)
     app.include_router(docs)

@@ -15,8 +15,12 @@
   bridge's port, where the live pages' roslibjs connects); never framed by anyone
   (``frame-ancestors 'none'``, and ``X-Frame-Options: DENY`` for older browsers); forms
   posted only to the lab.
+- A page that sets its own policy keeps it: the playground's runner, a frame of the
+  playground page with an opaque origin (``labd.web.playground``).
 - Every other answer (JSON, files): ``default-src 'none'; frame-ancestors 'none'``, so a
-  file opened in a browser runs nothing; the static files keep none (their own scripts).
+  file opened in a browser runs nothing; the static files keep none (their own scripts),
+  and roslibjs's may be loaded from anywhere (``Access-Control-Allow-Origin: *``), as
+  the runner's opaque origin loads it.
 """
 
 from __future__ import annotations
@@ -32,6 +36,7 @@ from labd.api.state import state_of
 ALWAYS = {"X-Content-Type-Options": "nosniff", "Referrer-Policy": "same-origin"}
 NOT_A_PAGE = "default-src 'none'; frame-ancestors 'none'"
 STATIC = "/static/"
+SHARED = "/static/vendor/roslib/"  # public npm code that the playground's runner loads
 
 
 def policy(nonce: str, site: Site, host: str) -> str:
@@ -77,10 +82,13 @@ class SecurityHeaders:
                 if headers.get("content-type", "").startswith("text/html"):
                     site = state_of(scope["app"]).site
                     host = _host(scope)
-                    headers["Content-Security-Policy"] = policy(nonce, site, host)
-                    headers["X-Frame-Options"] = "DENY"
+                    # a page may bring its own, stricter in its way (the playground's runner)
+                    headers.setdefault("Content-Security-Policy", policy(nonce, site, host))
+                    headers.setdefault("X-Frame-Options", "DENY")
                 elif not scope["path"].startswith(STATIC):
                     headers.setdefault("Content-Security-Policy", NOT_A_PAGE)
+                elif scope["path"].startswith(SHARED):
+                    headers["Access-Control-Allow-Origin"] = "*"
             await send(message)
 
         await self.app(scope, receive, with_headers)

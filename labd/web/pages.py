@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import datetime as dt
 import json
+import re
 from dataclasses import dataclass
 from typing import Annotated, Any
 
@@ -29,6 +30,7 @@ from labd.api.common import Lab
 from labd.api.errors import Invalid
 from labd.api.models import Id, trial_detail
 from labd.api.state import App
+from labd.errors import LabError
 from labd.sim import registry
 from labd.web.evaluations import task_board
 from labd.web.problems import PageRoute, on_form
@@ -194,9 +196,30 @@ def trial(request: Request, trial_id: Id, service: Lab, viewer: Viewer) -> HTMLR
             "renderable": bool(record.mcap) and bool(replayed and replayed.get("ticks")),
             "ended": record.status.ended,
             "evaluation": service.evaluations.of_trial(trial_id),
+            "playground": _playground(service, record),
         },
         user=viewer,
     )
+
+
+HOSTED = re.compile(
+    r"^https?://[^/]+/git/([A-Za-z0-9][A-Za-z0-9._-]*)/([A-Za-z0-9][A-Za-z0-9._-]*)\.git$"
+)
+
+
+def _playground(service: Lab, record: Trial) -> str | None:
+    """The playground page of a trial's script, when the trial ran a commit of one of
+    this lab's own repositories (found by its commit there, whatever address the lab had
+    when it ran)."""
+    found = HOSTED.match(record.repository)
+    if found is None or not record.commit:
+        return None
+    user, name = found.groups()
+    try:
+        service.hosted.read(user, name, record.commit)
+    except LabError:
+        return None
+    return f"/playground?repo={user}/{name}&commit={record.commit}"
 
 
 def _replayed(service: Lab, item: Derived | None) -> dict[str, Any] | None:

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import functools
 import math
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -466,6 +467,7 @@ TASK = TaskSpec(
     build=make,
     task_class=IcreateMaze,
     live_params={"control_rate": 20},  # teleoperation: a 20 Hz camera and smoother driving
+    playground=Path(__file__).with_name("playground.mjs"),
     suites=(
         Suite("dev", 1, seeds=tuple(range(20)), doc="20 mazes, seeds 0 to 19, default parameters"),
         Suite("test", 1, episodes=50, held_out=True, doc="50 mazes whose seeds are the lab's"),

@@ -18,6 +18,7 @@ from __future__ import annotations
 import math
 from collections import OrderedDict
 from collections.abc import Mapping
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -535,6 +536,7 @@ TASK = TaskSpec(
     params=PARAMS,
     build=make,
     task_class=TableTask,
+    playground=Path(__file__).with_name("playground.mjs"),
     suites=(
         Suite("dev", 1, seeds=tuple(range(20)), doc="20 tables, seeds 0 to 19, default parameters"),
         Suite("test", 1, episodes=50, held_out=True, doc="50 tables whose seeds are the lab's"),

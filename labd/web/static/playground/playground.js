@@ -1,0 +1,233 @@
+// The playground page (labd/web/playground.py): a CodeMirror editor holding a roslibjs
+// script, and two ways to run it.
+//
+// - Run live: the script runs in a frame of this page (/playground/runner, sandboxed: an
+//   opaque origin that reaches only the robot's bridge), connected to the chosen live
+//   robot with the person's slot key when the lab takes reservations. Whatever it prints
+//   is shown beside the robot's camera; Stop removes the frame, and with it the script's
+//   connection (its drive ends, and is filed like any drive).
+// - Run as a trial: the lab parses the script (its errors are shown at their line, and
+//   nothing is committed), commits it to the person's repository and queues a trial of
+//   that commit (POST /api/playground/trials); the page links to the trial.
+//
+// The script is kept in the browser's storage per task between visits, until it is run
+// as a trial or started again.
+
+import {
+  EditorView, basicSetup, javascript, lintGutter, parse, setDiagnostics,
+} from "/static/vendor/codemirror/codemirror.min.js";
+import { Ros } from "/static/vendor/roslib/roslib.min.js";
+import { camera } from "/static/live/lab.js";
+
+const cfg = JSON.parse(document.getElementById("playground-config").textContent);
+const $ = (id) => document.getElementById(id);
+const csrf = document.querySelector("meta[name=csrf-token]")?.content ?? "";
+const stored = `labd.playground.${cfg.task}`;
+const MAX_LINES = 2000; // of the console; older lines are dropped
+
+function status(text, level = "info") {
+  $("status").textContent = text;
+  $("status").dataset.level = level;
+}
+
+// -- the editor ---------------------------------------------------------------------------
+const initial = cfg.opened?.script ?? localStorage.getItem(stored) ?? cfg.template;
+const editor = new EditorView({
+  doc: initial,
+  extensions: [
+    EditorView.cspNonce.of($("editor").dataset.nonce), // its styles, under the page's policy
+    basicSetup,
+    EditorView.lineWrapping,
+    javascript(),
+    lintGutter(),
+    EditorView.updateListener.of((update) => {
+      if (!update.docChanged) return;
+      localStorage.setItem(stored, update.state.doc.toString());
+      editor.dispatch(setDiagnostics(update.state, [])); // an old mark no longer says anything
+    }),
+  ],
+  parent: $("editor"),
+});
+window.labPlayground = { editor, cfg };
+const script = () => editor.state.doc.toString();
+
+/** Mark the script's line ``line`` (1-based; column 0 = the whole line) with ``message``. */
+function mark(message, line, column = 0) {
+  const doc = editor.state.doc;
+  const at = doc.line(Math.min(Math.max(line, 1), doc.lines));
+  const from = column > 0 ? Math.min(at.from + column - 1, at.to) : at.from;
+  const to = column > 0 ? Math.min(from + 1, at.to) : at.to;
+  editor.dispatch(setDiagnostics(editor.state, [{ from, to: Math.max(to, from), severity: "error", message }]));
+  editor.dispatch({ selection: { anchor: from }, scrollIntoView: true });
+}
+
+$("reset-script").addEventListener("click", () => {
+  editor.dispatch({ changes: { from: 0, to: editor.state.doc.length, insert: cfg.template } });
+  localStorage.removeItem(stored);
+});
+$("task").addEventListener("change", (event) => event.target.form.submit());
+
+// -- the console --------------------------------------------------------------------------
+function print(text, level = "log") {
+  const line = document.createElement("div");
+  line.className = `pg-${level}`;
+  line.textContent = text;
+  const box = $("console");
+  box.append(line);
+  while (box.childElementCount > MAX_LINES) box.firstElementChild.remove();
+  box.scrollTop = box.scrollHeight;
+  box.dataset.lines = String(Number(box.dataset.lines || 0) + 1);
+}
+
+// -- the robot's camera (the page watches with its own connection) -------------------------
+let viewer = null;
+async function key(robot) {
+  if (!cfg.reservations) return null;
+  const answer = await fetch(`/api/robots/${robot}/key`, { credentials: "same-origin" });
+  if (answer.ok) return (await answer.json()).key;
+  const problem = await answer.json().catch(() => ({}));
+  throw new Error(problem.error || "no slot of yours on this robot runs now: book one on /reservations");
+}
+function address(robot, slotKey) {
+  const found = cfg.robots.find((r) => r.name === robot);
+  return slotKey ? `${found.bridge}?key=${encodeURIComponent(slotKey)}` : found.bridge;
+}
+async function watch(robot) {
+  if (viewer) viewer.close();
+  viewer = null;
+  if (!robot) return;
+  let slotKey = null;
+  try {
+    slotKey = await key(robot);
+  } catch {
+    if (cfg.reservations) return; // watching may need a key too; the script says why when run
+  }
+  const ros = new Ros({});
+  ros.on("error", () => status(`cannot reach ${robot}'s bridge`, "warning"));
+  await ros.connect(address(robot, slotKey));
+  viewer = ros;
+  camera({ ros, ux: () => {} }, $("camera"));
+}
+const robotChoice = () => (cfg.robots.length ? $("robot").value : null);
+$("robot").addEventListener("change", () => watch(robotChoice()));
+watch(robotChoice()).catch((err) => status(String(err), "warning"));
+
+// -- Run live -----------------------------------------------------------------------------
+let frame = null;
+function stop(why) {
+  if (frame) {
+    frame.remove();
+    frame = null;
+    window.removeEventListener("message", heard);
+  }
+  $("run-live").disabled = !cfg.robots.length;
+  $("stop").disabled = true;
+  document.body.dataset.running = "no";
+  if (why) status(why);
+}
+function heard(event) {
+  if (!frame || event.source !== frame.contentWindow) return;
+  const m = event.data || {};
+  if (m.op === "ready") {
+    frame.contentWindow.postMessage({ op: "run", code: script(), url: frame.dataset.url }, "*");
+    status(`running live on ${frame.dataset.robot}`);
+  } else if (m.op === "log") {
+    print(m.text, m.level);
+  } else if (m.op === "error") {
+    const at = m.line ? ` (line ${m.line})` : "";
+    print(`${m.text}${at}`, "error");
+    if (m.line) mark(m.text, m.line, m.column);
+    stop(`the script failed${at}: ${m.text}`);
+    $("status").dataset.level = "error";
+  } else if (m.op === "done") {
+    stop("the script ended");
+  }
+}
+/** Whether the script parses (acorn, as an ES module); if not, its error is marked. */
+function parses() {
+  try {
+    parse(script(), { ecmaVersion: "latest", sourceType: "module" });
+    return true;
+  } catch (err) {
+    const message = `SyntaxError: ${err.message.replace(/ \(\d+:\d+\)$/, "")}`;
+    const line = err.loc?.line ?? 1;
+    mark(message, line, (err.loc?.column ?? -1) + 1);
+    status(`line ${line}: ${message}`, "error");
+    return false;
+  }
+}
+$("run-live").addEventListener("click", async () => {
+  const robot = robotChoice();
+  if (!robot) return;
+  stop();
+  $("console").replaceChildren();
+  if (!parses()) return;
+  let slotKey = null;
+  try {
+    slotKey = await key(robot);
+  } catch (err) {
+    status(err.message, "warning");
+    return;
+  }
+  frame = document.createElement("iframe");
+  frame.sandbox = "allow-scripts"; // an opaque origin: the bridge, and nothing of yours
+  frame.className = "pg-runner";
+  frame.title = "the script, running";
+  frame.dataset.url = address(robot, slotKey);
+  frame.dataset.robot = robot;
+  window.addEventListener("message", heard);
+  frame.src = "/playground/runner";
+  document.body.append(frame);
+  $("run-live").disabled = true;
+  $("stop").disabled = false;
+  document.body.dataset.running = "yes";
+  status("starting…");
+});
+$("stop").addEventListener("click", () => stop("stopped: the script's connection is closed"));
+
+// -- Run as a trial -----------------------------------------------------------------------
+async function post(path, body) {
+  const answer = await fetch(path, {
+    method: "POST",
+    credentials: "same-origin",
+    headers: { "Content-Type": "application/json", "X-CSRF-Token": csrf },
+    body: JSON.stringify(body),
+  });
+  const said = await answer.json().catch(() => ({ error: `the lab answered ${answer.status}` }));
+  if (!answer.ok) throw new Error(said.error || `the lab answered ${answer.status}`);
+  return said;
+}
+$("run-trial")?.addEventListener("click", async () => {
+  const button = $("run-trial");
+  button.disabled = true;
+  try {
+    status("parsing the script…");
+    const parsed = await post("/api/playground/check", { script: script() });
+    if (!parsed.ok) {
+      mark(parsed.error, parsed.line, parsed.column);
+      status(`line ${parsed.line}: ${parsed.error} (nothing was committed)`, "error");
+      return;
+    }
+    status("committing and queueing…");
+    const run = await post("/api/playground/trials", {
+      name: $("name").value, task: cfg.task, script: script(), seed: Number($("seed").value || 0),
+    });
+    localStorage.removeItem(stored); // it is in the repository now
+    const t = run.trial;
+    const result = $("result");
+    result.replaceChildren(
+      "Trial ", Object.assign(document.createElement("a"), { href: `/trials/${t.id}`, textContent: `#${t.id}`, id: "trial-link" }),
+      ` of commit ${run.commit.slice(0, 12)} · `,
+      Object.assign(document.createElement("code"), { textContent: `git clone ${run.repository}` }),
+    );
+    result.dataset.trial = String(t.id);
+    result.dataset.commit = run.commit;
+    history.replaceState(null, "", new URL(run.playground).pathname + new URL(run.playground).search);
+    status(`trial #${t.id} queued: ${t.status}`);
+  } catch (err) {
+    status(err.message, "error");
+  } finally {
+    button.disabled = false;
+  }
+});
+document.body.dataset.ready = "yes";
