@@ -230,6 +230,7 @@ class HostedRepos:
     def _create(self, repo: Path) -> None:
         """Make the bare repository in a temporary folder, then move it into place, so a
         reader never finds one half made."""
+        repo.parent.mkdir(parents=True, exist_ok=True)
         temporary = Path(tempfile.mkdtemp(prefix=".new-", dir=repo.parent))
         try:
             self._git(

@@ -326,10 +326,13 @@ def git_environment(
     env |= {"GIT_TERMINAL_PROMPT": "0", "GIT_ASKPASS": "true", "GIT_CONFIG_NOSYSTEM": "1"}
     if not policy.user_config:
         env["GIT_CONFIG_GLOBAL"] = "/dev/null"
+    schemes = set(policy.schemes)
+    if _hosted(location.url, policy):  # the lab's own repository, over its own HTTP port
+        schemes.add(location.scheme)
     config = [
         ("core.hooksPath", "/dev/null"),
         ("protocol.allow", "never"),
-        *((f"protocol.{scheme}.allow", "always") for scheme in sorted(policy.schemes)),
+        *((f"protocol.{scheme}.allow", "always") for scheme in sorted(schemes)),
         ("gc.auto", "0"),  # pinned commits stay
         ("maintenance.auto", "false"),
         ("transfer.unpackLimit", "1"),  # always a pack: few files, and watchable as it grows

@@ -18,7 +18,8 @@ import pytest
 from labd import logs
 from labd.api import builds
 from labd.api.app import TrialQuery
-from labd.api.edges import BODY_LIMIT
+from labd.api.edges import BODY_LIMIT, limit
+from labd.api.git import GitLimits
 from labd.api.workers import MAX_BLOB
 from labd.commands import serve
 from labd.config import BridgeConfig, DriveLimits, HttpConfig
@@ -154,6 +155,11 @@ ROWS: list[tuple[str, str, Callable[[], object], object]] = [
     ("service.md", "Every JSON body and form is held to 1 MiB", lambda: BODY_LIMIT, MiB),
     ("service.md", "and a worker's blob upload to 4 GiB", lambda: MAX_BLOB, 4096 * MiB),
     ("service.md", "whole numbers from 1 to 2,147,483,647", lambda: MAX_ID, 2**31 - 1),
+    # docs/service.md: the playground's repositories over git's HTTP
+    ("service.md", "A fetch's request body is held to 16 MiB (413 above it)",
+     lambda: limit("POST", "/git/alice/robot.git/git-upload-pack"), 16 * MiB),
+    ("service.md", "the lab runs at most 8 of them at once", lambda: GitLimits().backends, 8),
+    ("service.md", "kills one that runs longer than 300 s", lambda: GitLimits().timeout, 300),
     # docs/service.md: many clients, and slow ones
     ("service.md", "| a request's line and headers | within 10 s |",
      lambda: (HTTP.header_timeout, serve_args().header_timeout), (10, 10)),

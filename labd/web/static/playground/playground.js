@@ -197,6 +197,20 @@ async function post(path, body) {
   if (!answer.ok) throw new Error(said.error || `the lab answered ${answer.status}`);
   return said;
 }
+/** Show the trial's progress until it ends: queued, running, then its outcome and why. */
+async function follow(trial) {
+  for (;;) {
+    const said = trial.outcome ? `${trial.outcome}: ${trial.reason}` : trial.reason || trial.status;
+    status(`trial #${trial.id} ${trial.status}${said && said !== trial.status ? ` · ${said}` : ""}`,
+      trial.outcome === "error" ? "error" : "info");
+    if (trial.status === "finished" || trial.status === "cancelled") break;
+    await new Promise((resolve) => setTimeout(resolve, 2000));
+    const answer = await fetch(`/api/trials/${trial.id}`, { credentials: "same-origin" });
+    if (!answer.ok) break;
+    trial = await answer.json();
+  }
+  $("result").dataset.ended = trial.status;
+}
 $("run-trial")?.addEventListener("click", async () => {
   const button = $("run-trial");
   button.disabled = true;
@@ -223,7 +237,7 @@ $("run-trial")?.addEventListener("click", async () => {
     result.dataset.trial = String(t.id);
     result.dataset.commit = run.commit;
     history.replaceState(null, "", new URL(run.playground).pathname + new URL(run.playground).search);
-    status(`trial #${t.id} queued: ${t.status}`);
+    follow(t);
   } catch (err) {
     status(err.message, "error");
   } finally {
