@@ -139,6 +139,8 @@ def test_a_script_becomes_a_trial_that_reproduces_and_clones(lab, watched, cache
     assert (trial.commit, trial.repository) == (commit, f"{service.git_url}/alice/wanderer.git")
     assert trial.outcome.value == "fail", trial.reason  # it left after 40 ticks, as written
     assert "before the episode ended" in trial.reason
+    page.wait_for_function("document.getElementById('result').dataset.ended === 'finished'")
+    assert page.locator("#status").inner_text().startswith(f"trial #{trial_id} finished · fail")
     shot(watched, "playground-trial")
 
     page.click("#trial-link")
