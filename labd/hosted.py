@@ -139,6 +139,8 @@ class HostedRepos:
         check_user(author)
         if isinstance(when, bool) or not isinstance(when, int) or when < 0:
             raise HostedError(f"time {when!r}", "must be whole seconds since 1970 (UTC)")
+        if not isinstance(message, str) or "\0" in message:
+            raise HostedError("commit message", "must be text without NUL characters")
         paths = sorted(files)
         check_paths(paths)
         with self._locked(user, name):

@@ -33,9 +33,11 @@ pytestmark = [pytest.mark.integration, pytest.mark.timeout(400)]
 
 # The maze's starting script, ending after 40 ticks (a trial's outcome is then "fail":
 # the controller left before the episode's end; what matters here is that it reproduces).
-SHORT = template("icreate-maze").replace(
-    "  if (!(await tick())) break;", "  if (!(await tick()) || ++ticks >= 40) break;"
-).replace("let bumps = 0;", "let bumps = 0;\nlet ticks = 0;")
+SHORT = (
+    template("icreate-maze")
+    .replace("  if (!(await tick())) break;", "  if (!(await tick()) || ++ticks >= 40) break;")
+    .replace("let bumps = 0;", "let bumps = 0;\nlet ticks = 0;")
+)
 
 
 @pytest.fixture(scope="module")
@@ -174,4 +176,7 @@ def test_a_script_becomes_a_trial_that_reproduces_and_clones(lab, watched, cache
         capture_output=True, text=True, timeout=300, check=False,
     )  # fmt: skip
     result = json.loads(done.stdout)
-    assert result["data_digest"] == trial.data_digest, (result["reason"], time.monotonic() - started)
+    assert result["data_digest"] == trial.data_digest, (
+        result["reason"],
+        time.monotonic() - started,
+    )

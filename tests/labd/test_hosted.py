@@ -163,12 +163,16 @@ def test_a_path_that_is_both_a_file_and_a_folder_is_refused(hosted):
         commit(hosted, {"src": b"x", "src/a": b"y"})
 
 
-def test_a_bad_author_or_time_is_refused(hosted):
-    """The author is a user name (it makes the address); the time is whole seconds."""
+def test_a_bad_author_time_or_message_is_refused(hosted):
+    """The author is a user name (it makes the address); the time is whole seconds; the
+    message has no NUL (git would refuse it)."""
     with pytest.raises(HostedError, match="user name 'a <b>'"):
         hosted.commit("alice", "robot", FILES, "m", author="a <b>", when=WHEN)
     with pytest.raises(HostedError, match="time -1: must be whole seconds"):
         hosted.commit("alice", "robot", FILES, "m", author="alice", when=-1)
+    with pytest.raises(HostedError, match="commit message: must be text without NUL"):
+        hosted.commit("alice", "robot", FILES, "a\0b", author="alice", when=WHEN)
+    assert hosted.head("alice", "robot") is None
 
 
 def test_two_threads_committing_at_once_lose_no_commit(hosted):
