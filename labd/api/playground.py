@@ -3,6 +3,7 @@
     POST /api/playground/check          does the script parse? (at which line, if not)
     POST /api/playground/trials         commit the script to the writer's repository
                                         USER/NAME and queue a trial of that commit
+    POST /api/playground/evaluations    the same, then evaluate it on a suite
     GET  /api/playground/{user}/{name}  a playground repository's script (?commit=)
 
 A playground trial is an ordinary trial: the lab commits the script as a controller
@@ -23,12 +24,15 @@ from starlette.concurrency import run_in_threadpool
 
 from labd.api.common import Lab, Writer
 from labd.api.errors import ApiError, responses
+from labd.api.evaluations import EvaluationView
+from labd.api.evaluations import view as evaluation_view
 from labd.api.models import TrialDetail, trial_detail
 from labd.api.state import App
 from labd.playground import MAX_SCRIPT, Script, ScriptError, check, files, script_of
 from labd.service import Service
 from labd.sim import registry
-from repository.index import NAME
+from repository.evaluation import EvaluationRequest
+from repository.index import NAME, User
 from repository.trial import Seed as SeedField
 from repository.trial import TrialRequest
 
@@ -70,6 +74,12 @@ class PlaygroundRequest(BaseModel):
     message: str = Field("", max_length=200, description="the commit's message")
 
 
+class PlaygroundEvaluationRequest(PlaygroundRequest):
+    """A script to commit as ``USER/NAME`` and evaluate on a suite of ``task``."""
+
+    suite: str = Field("dev", min_length=1, max_length=32, description="a suite of the task")
+
+
 class PlaygroundRun(BaseModel):
     """What a script became: its commit in the lab's repository, and the trial."""
 
@@ -77,6 +87,15 @@ class PlaygroundRun(BaseModel):
     commit: str
     playground: str  # the page that shows the script at this commit
     trial: TrialDetail
+
+
+class PlaygroundEvaluation(BaseModel):
+    """What a script became: its commit in the lab's repository, and the evaluation."""
+
+    repository: str
+    commit: str
+    playground: str
+    evaluation: EvaluationView
 
 
 class PlaygroundScript(BaseModel):
@@ -113,6 +132,60 @@ async def run_as_trial(
     """Commit the script to the writer's repository ``NAME`` (made on first use), then
     queue a trial of that commit, exactly as ``POST /api/trials`` would: 422 with the
     parser's message at its line when the script does not parse (nothing committed)."""
+    url, sha = await _commit(service, user, body)
+    request_ = TrialRequest(repository=url, ref=sha, task=body.task, seed=body.seed)
+    trial_id = await service.submissions.submit_async(user, request_)
+    app.on_submit()
+
+    def created() -> JSONResponse:
+        base = str(request.base_url).rstrip("/")
+        run = PlaygroundRun(
+            repository=url,
+            commit=sha,
+            playground=_page(base, user.name, body.name, sha),
+            trial=trial_detail(service.index.trial(trial_id), base),
+        )
+        headers = {"Location": run.trial.url}
+        return JSONResponse(run.model_dump(mode="json"), status_code=201, headers=headers)
+
+    return await run_in_threadpool(created)
+
+
+@router.post(
+    "/api/playground/evaluations",
+    status_code=201,
+    response_model=PlaygroundEvaluation,
+    responses=responses(400, 401, 403, 404, 413, 422, 429, 503),
+)
+async def run_as_evaluation(
+    body: PlaygroundEvaluationRequest, request: Request, service: Lab, app: App, user: Writer
+) -> JSONResponse:
+    """Commit the script as ``POST /api/playground/trials`` does, then evaluate that
+    commit on a suite of its task, exactly as ``POST /api/evaluations`` would."""
+    if registry.get(body.task).suite(body.suite) is None:
+        raise ApiError(404, f"{body.task} has no suite {body.suite!r}")
+    url, sha = await _commit(service, user, body)
+    asked = EvaluationRequest(repository=url, ref=sha, task=body.task, suite=body.suite)
+    evaluation_id = await service.submissions.in_pool(service.evaluator.submit, user, asked)
+    app.on_submit()
+
+    def created() -> JSONResponse:
+        base = str(request.base_url).rstrip("/")
+        made = PlaygroundEvaluation(
+            repository=url,
+            commit=sha,
+            playground=_page(base, user.name, body.name, sha),
+            evaluation=evaluation_view(service.evaluations.get(evaluation_id), base),
+        )
+        headers = {"Location": made.evaluation.url}
+        return JSONResponse(made.model_dump(mode="json"), status_code=201, headers=headers)
+
+    return await run_in_threadpool(created)
+
+
+async def _commit(service: Service, user: User, body: PlaygroundRequest) -> tuple[str, str]:
+    """Check the task, the name and the script, then commit the script: its
+    repository's URL and the commit (nothing is written when a check fails)."""
     registry.get(body.task)  # an unknown task is refused before anything is written
     url = _repository(service, user.name, body.name)
     script = Script(body.script, body.task)
@@ -129,23 +202,11 @@ async def run_as_trial(
             when=int(service.index.clock()),
         )
 
-    sha = await run_in_threadpool(commit)
-    request_ = TrialRequest(repository=url, ref=sha, task=body.task, seed=body.seed)
-    trial_id = await service.submissions.submit_async(user, request_)
-    app.on_submit()
+    return url, await run_in_threadpool(commit)
 
-    def created() -> JSONResponse:
-        base = str(request.base_url).rstrip("/")
-        run = PlaygroundRun(
-            repository=url,
-            commit=sha,
-            playground=f"{base}/playground?repo={user.name}/{body.name}&commit={sha}",
-            trial=trial_detail(service.index.trial(trial_id), base),
-        )
-        headers = {"Location": run.trial.url}
-        return JSONResponse(run.model_dump(mode="json"), status_code=201, headers=headers)
 
-    return await run_in_threadpool(created)
+def _page(base: str, user: str, name: str, sha: str) -> str:
+    return f"{base}/playground?repo={user}/{name}&commit={sha}"
 
 
 @router.get("/api/playground/{user}/{name}", responses=responses(404, 422))

@@ -76,6 +76,7 @@ def playground(  # noqa: PLR0917 (a page's query, each its own parameter)
         "opened": opened,
         "name": opened["name"] if opened else task,
         "template": template(task),
+        "suites": [suite.name for suite in registry.get(task).suites],
     }
     return page(
         request,

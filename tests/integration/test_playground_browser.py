@@ -180,3 +180,36 @@ def test_a_script_becomes_a_trial_that_reproduces_and_clones(lab, watched, cache
         result["reason"],
         time.monotonic() - started,
     )
+
+
+def test_a_script_is_evaluated_on_a_suite_of_its_task(lab, watched):
+    """The page's Evaluate commits the script and queues an evaluation of that commit on
+    every episode of the chosen suite; an unknown suite commits nothing."""
+    service = lab.lab.service
+    auth = {"Authorization": f"Bearer {lab.token}"}
+    body = {"name": "evaluated", "task": "icreate-maze", "script": SHORT, "suite": "nope"}
+    missing = httpx.post(lab.http_url("/api/playground/evaluations"), json=body, headers=auth)
+    assert missing.status_code == 404 and "no suite 'nope'" in missing.json()["error"]
+    assert service.hosted.head("alice", "evaluated") is None
+
+    page = watched.page
+    sign_in(lab, page)
+    page.wait_for_function("document.body.dataset.ready === 'yes'")
+    page.fill("#name", "evaluated")
+    set_script(page, SHORT)
+    assert page.locator("#suite").input_value() == "dev"
+    page.click("#evaluate")
+    page.wait_for_function("document.getElementById('result').dataset.evaluation !== undefined")
+    evaluation_id = int(page.locator("#result").get_attribute("data-evaluation"))
+    assert "20 episodes" in page.locator("#status").inner_text()
+    evaluation = service.evaluations.get(evaluation_id)
+    assert evaluation.repository == f"{service.git_url}/alice/evaluated.git"
+    assert evaluation.commit == service.hosted.head("alice", "evaluated")
+    shot(watched, "playground-evaluation")
+    cancelled = httpx.post(
+        lab.http_url(f"/api/evaluations/{evaluation_id}/cancel"), headers=auth, timeout=60
+    )
+    assert cancelled.status_code == 200, cancelled.text
+    page.click("#evaluation-link")
+    page.wait_for_url(f"**/evaluations/{evaluation_id}")
+    watched.check()

@@ -13,6 +13,7 @@ import shutil
 import pytest
 
 from labd import playground
+from labd.commands import serve
 from labd.playground import NoNode, PlaygroundError, Script, ScriptError, check, files
 from labd.sim import registry
 from repository.index import Filters
@@ -144,3 +145,25 @@ async def test_reading_a_script_that_is_not_there_is_404(api):
     """GET /api/playground/USER/NAME of nothing hosted is a 404 that says so."""
     missing = await api.get("/api/playground/alice/maze")
     assert missing.status_code == 404 and "alice" in missing.json()["error"]
+
+
+@pytest.mark.parametrize(
+    ("given", "kept"),
+    [
+        ("https://lab.example.org", "https://lab.example.org"),
+        ("http://10.0.0.5:8080/", "http://10.0.0.5:8080"),
+        (None, None),
+    ],
+)
+def test_public_url_is_an_address_without_a_path(given, kept):
+    """--public-url keeps scheme and host (a trailing slash dropped)."""
+    assert serve.public_url(given) == kept
+
+
+@pytest.mark.parametrize(
+    "given", ["lab.example.org", "ftp://lab", "https://lab/x", "https://lab?q=1", "https://"]
+)
+def test_public_url_refuses_what_is_not_an_address(given):
+    """Anything but http(s)://HOST[:PORT] is refused in one line naming the flag."""
+    with pytest.raises(serve.Refused, match="--public-url"):
+        serve.public_url(given)

@@ -387,3 +387,30 @@ def test_credentials_reach_only_their_urls_through_git_config_in_the_environment
     assert "-i '/keys/deploy key'" in command
     assert "IdentitiesOnly=yes" in command and "BatchMode=yes" in command
     assert TOKEN not in repr(policy) and TOKEN not in str(git_environment(other, policy, None))
+
+
+def test_the_labs_own_repositories_are_fetched_over_http_and_nothing_else_is(served, server, cache):
+    """Under an https-only policy, a URL under the lab's hosted prefix of the form
+    USER/NAME.git is fetched over http; its look-alikes (another path, a '..', another
+    host, a query) are refused as any http URL is."""
+    hosted = GitRepo.create(served / "alice" / "maze.git", {"lab.toml": "[controller]\n"})
+    prefix = server.url("")
+    policy = FetchPolicy(schemes=frozenset({"https"}), hosted=(prefix,))
+    found = resolve(f"{prefix}alice/maze.git", None, cache, policy)
+    assert found.commit == hosted.rev()
+    env = git_environment(Location(f"{prefix}alice/maze.git", "http"), policy, None)
+    allowed = {env[f"GIT_CONFIG_KEY_{i}"] for i in range(int(env["GIT_CONFIG_COUNT"]))}
+    assert "protocol.http.allow" in allowed
+    other = git_environment(Location(f"{prefix}robot", "http"), policy, None)
+    assert "protocol.http.allow" not in {
+        other[f"GIT_CONFIG_KEY_{i}"] for i in range(int(other["GIT_CONFIG_COUNT"]))
+    }
+    for url in (
+        f"{prefix}robot",
+        f"{prefix}alice/../robot.git",
+        f"{prefix}alice/maze.git?x=1",
+        f"{prefix}alice/sub/maze.git",
+        prefix.replace("127.0.0.1", "localhost") + "alice/maze.git",
+    ):
+        with pytest.raises(SchemeNotAllowed, match="scheme 'http' is not allowed"):
+            resolve(url, None, cache, policy)

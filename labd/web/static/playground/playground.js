@@ -211,37 +211,57 @@ async function follow(trial) {
   }
   $("result").dataset.ended = trial.status;
 }
-$("run-trial")?.addEventListener("click", async () => {
-  const button = $("run-trial");
-  button.disabled = true;
+/** Parse the script with the lab's Node.js; false (its error marked) if it does not. */
+async function parsedByTheLab() {
+  status("parsing the script…");
+  const parsed = await post("/api/playground/check", { script: script() });
+  if (parsed.ok) return true;
+  mark(parsed.error, parsed.line, parsed.column);
+  status(`line ${parsed.line}: ${parsed.error} (nothing was committed)`, "error");
+  return false;
+}
+function link(href, text, id) {
+  return Object.assign(document.createElement("a"), { href, textContent: text, id });
+}
+/** After a commit: the script is in the repository; the page's address names it. */
+function committed(run, what) {
+  localStorage.removeItem(stored);
+  const result = $("result");
+  result.replaceChildren(
+    ...what, ` of commit ${run.commit.slice(0, 12)} · `,
+    Object.assign(document.createElement("code"), { textContent: `git clone ${run.repository}` }),
+  );
+  result.dataset.commit = run.commit;
+  const page = new URL(run.playground);
+  history.replaceState(null, "", page.pathname + page.search);
+}
+/** ``work()`` with the writing buttons off, its failure shown. */
+async function writing(work) {
+  const buttons = [$("run-trial"), $("evaluate")].filter(Boolean);
+  buttons.forEach((b) => { b.disabled = true; });
   try {
-    status("parsing the script…");
-    const parsed = await post("/api/playground/check", { script: script() });
-    if (!parsed.ok) {
-      mark(parsed.error, parsed.line, parsed.column);
-      status(`line ${parsed.line}: ${parsed.error} (nothing was committed)`, "error");
-      return;
-    }
-    status("committing and queueing…");
-    const run = await post("/api/playground/trials", {
-      name: $("name").value, task: cfg.task, script: script(), seed: Number($("seed").value || 0),
-    });
-    localStorage.removeItem(stored); // it is in the repository now
-    const t = run.trial;
-    const result = $("result");
-    result.replaceChildren(
-      "Trial ", Object.assign(document.createElement("a"), { href: `/trials/${t.id}`, textContent: `#${t.id}`, id: "trial-link" }),
-      ` of commit ${run.commit.slice(0, 12)} · `,
-      Object.assign(document.createElement("code"), { textContent: `git clone ${run.repository}` }),
-    );
-    result.dataset.trial = String(t.id);
-    result.dataset.commit = run.commit;
-    history.replaceState(null, "", new URL(run.playground).pathname + new URL(run.playground).search);
-    follow(t);
+    if (await parsedByTheLab()) await work();
   } catch (err) {
     status(err.message, "error");
   } finally {
-    button.disabled = false;
+    buttons.forEach((b) => { b.disabled = false; });
   }
-});
+}
+const asked = () => ({ name: $("name").value, task: cfg.task, script: script() });
+$("run-trial")?.addEventListener("click", () => writing(async () => {
+  status("committing and queueing…");
+  const run = await post("/api/playground/trials", { ...asked(), seed: Number($("seed").value || 0) });
+  const t = run.trial;
+  committed(run, ["Trial ", link(`/trials/${t.id}`, `#${t.id}`, "trial-link")]);
+  $("result").dataset.trial = String(t.id);
+  await follow(t);
+}));
+$("evaluate")?.addEventListener("click", () => writing(async () => {
+  status("committing and queueing every episode…");
+  const made = await post("/api/playground/evaluations", { ...asked(), suite: $("suite").value });
+  const e = made.evaluation;
+  committed(made, ["Evaluation ", link(`/evaluations/${e.id}`, `#${e.id}`, "evaluation-link"), ` on ${e.suite}`]);
+  $("result").dataset.evaluation = String(e.id);
+  status(`evaluation #${e.id} queued: ${e.rows.length} episodes`);
+}));
 document.body.dataset.ready = "yes";
