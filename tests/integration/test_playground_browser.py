@@ -213,3 +213,40 @@ def test_a_script_is_evaluated_on_a_suite_of_its_task(lab, watched):
     page.click("#evaluation-link")
     page.wait_for_url(f"**/evaluations/{evaluation_id}")
     watched.check()
+
+
+@pytest.fixture
+def reserved(tmp_path):
+    """A lab whose live maze robot is driven only in a reserved slot; alice has one now."""
+    with running(lab_config(tmp_path / "data", (MAZE,), reservations=True)) as server:
+        server.token = server.lab.service.index.add_user("alice")
+        booked = httpx.post(
+            server.http_url("/api/reservations"),
+            json={"robot": "icreate-1", "minutes": 10},
+            headers={"Authorization": f"Bearer {server.token}"},
+        )
+        assert booked.status_code == 201, booked.text
+        yield server
+
+
+def test_run_live_under_reservations_drives_with_the_slots_key(reserved, watched):
+    """With reservations, a visitor without a slot is told to book one and nothing runs;
+    alice's script connects with her slot's key and drives as alice."""
+    page = watched.page
+    page.goto(reserved.http_url("/playground?robot=icreate-1"))
+    page.wait_for_function("document.body.dataset.ready === 'yes'")
+    page.click("#run-live")
+    page.wait_for_function("document.getElementById('status').dataset.level === 'warning'")
+    assert "slot" in page.locator("#status").inner_text()
+    assert page.locator("#stop").is_disabled() and driver(reserved) == ""
+
+    sign_in(reserved, page)
+    page.wait_for_function("document.body.dataset.ready === 'yes'")
+    page.select_option("#task", "icreate-maze")
+    page.wait_for_function("document.body.dataset.ready === 'yes'")
+    page.click("#run-live")
+    page.wait_for_function("Number(document.getElementById('console').dataset.lines || 0) >= 1")
+    reserved.wait_until(lambda: driver(reserved) == "alice", timeout=20)
+    page.click("#stop")
+    reserved.wait_until(lambda: driver(reserved) == "", timeout=20)
+    watched.check()
