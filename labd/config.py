@@ -105,9 +105,6 @@ class RobotConfig:
     live: bool = True  # wall clock; False: lockstep, stepped by /lab/step
 
 
-DEFAULT_ROBOTS = (RobotConfig("icreate-1", "icreate-maze"), RobotConfig("pr2-1", "pr2-table"))
-
-
 def assignment(text: str, *, last: bool = False) -> tuple[str, str]:
     """``NAME=VALUE`` as the pair ``(NAME, VALUE)``, both stripped: how a flag (``--param``,
     ``--robot``, ``--blobs-option``, ``--git-token``) or a form's line names a value. Split

@@ -28,25 +28,37 @@ import simplejpeg
 from labd.errors import LabError
 from labd.recorder import read_manifest
 from labd.replay import ReplayError, replay
+from labd.sim import registry
 from labd.sim.camera import Camera
-from labd.sim.features import LAYOUTS, layout_of
-from labd.sim.icreate import model as icreate_model
-from labd.sim.pr2 import model as pr2_model
 from repository.digests import manifest_digest
 from repository.errors import ExportError
 from repository.export import ExportFormat, ExportSummary, Layout, Source, export
 from repository.lerobot import DATA_PATH, EPISODES_PATH, LEROBOT
 
 log = logging.getLogger("labd.exports")
-MODEL_CAMERAS = {"icreate-maze": icreate_model.CAMERA, "pr2-table": pr2_model.CAMERA}
 ARRAYS = "arrays.npz"
 
 
 def layout(task: str) -> Layout:
+    """The export layout ``task`` declares (ExportError if it has none, or is unknown)."""
+    found = _layout(task)
+    if found is None:
+        raise ExportError(f"task {task!r} has no export layout")
+    return found
+
+
+def _layout(task: str) -> Layout | None:
     try:
-        return layout_of(task)
-    except KeyError:
-        raise ExportError(f"task {task!r} has no export layout") from None
+        return registry.get(task).layout
+    except LabError:  # a task this lab does not have (any more): its records are MCAP only
+        return None
+
+
+def _model_camera(task: str) -> str | None:
+    try:
+        return registry.get(task).camera
+    except LabError:
+        return None
 
 
 def provenance_of(mcap: Path, known: Mapping[str, Any]) -> dict[str, Any]:
@@ -85,10 +97,11 @@ def render(mcap: Path, camera: str, ticks: Sequence[int]) -> dict[int, bytes]:
     manifest = read_manifest(mcap) or {}
     task = manifest.get("task", {}).get("name", "")
     params = manifest.get("parameters", {})
-    if task not in MODEL_CAMERAS or camera != "camera":
+    model_camera = _model_camera(task)
+    if model_camera is None or camera != "camera":
         raise ExportError(f"the lab cannot render {camera!r} of task {task!r}")
     frames = _Frames(
-        Camera(MODEL_CAMERAS[task], "", int(params["camera_width"]), int(params["camera_height"])),
+        Camera(model_camera, "", int(params["camera_width"]), int(params["camera_height"])),
         ticks,
     )
     try:
@@ -133,7 +146,7 @@ def write_dataset(records: Sequence[tuple[Mapping[str, Any], Path]], out: Path) 
     by_task: dict[str, list[Source]] = {}
     for known, path in records:
         task = str(known["task"])
-        if task not in LAYOUTS:  # no layout: the MCAP records are the data
+        if _layout(task) is None:  # no layout: the MCAP records are the data
             log.info("no LeRobot dataset of %s: the task has no export layout", task)
             continue
         by_task.setdefault(task, []).append(Source(path, provenance_of(path, known)))

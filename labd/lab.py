@@ -24,12 +24,13 @@ from labd.authorizer import ref
 from labd.bridge.auth import Authorizer, HttpAuthorizer, KeyPolicy
 from labd.bridge.rosapi import Rosapi
 from labd.bridge.server import BridgeServer
-from labd.config import DATA, DEFAULT_ROBOTS, BridgeConfig, DriveLimits, HttpConfig, RobotConfig
+from labd.config import DATA, BridgeConfig, DriveLimits, HttpConfig, RobotConfig
 from labd.errors import PortInUse
 from labd.graph.graph import Graph
 from labd.graph.types import TypeRegistry
 from labd.live import Demonstration, Driving, Filings
 from labd.service import Service, ServiceConfig
+from labd.sim import registry
 from labd.sim.robot import LiveRunner, Robot
 from labd.station import Station
 from labd.web import RobotLink, Site, create_app
@@ -38,13 +39,18 @@ from repository.reservations import Reservation
 log = logging.getLogger("labd.lab")
 
 
+def _default_robots() -> tuple[RobotConfig, ...]:
+    """A live robot for each task that asks for one (``TaskSpec.robot``)."""
+    return tuple(RobotConfig(name, task) for name, task in registry.default_robots())
+
+
 @dataclass(frozen=True)
 class LabConfig:
     """Everything ``labd serve`` needs."""
 
     data: Path = DATA
     bridge: BridgeConfig = field(default_factory=BridgeConfig)
-    robots: tuple[RobotConfig, ...] = DEFAULT_ROBOTS
+    robots: tuple[RobotConfig, ...] = field(default_factory=_default_robots)
     # A graph without a robot, where clients reach each other and /rosapi.
     playground: bool = True
     http_port: int = 8080  # the HTTP API

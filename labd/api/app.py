@@ -69,7 +69,7 @@ from labd.api.models import (
     WorkerHealth,
     WorkerView,
     commit_view,
-    task_view,
+    task_list,
     trial_detail,
     trial_summary,
 )
@@ -78,7 +78,6 @@ from labd.api.state import App, AppState
 from labd.api.throttle import Throttle
 from labd.authorizer import ReservationAuthorizer
 from labd.service import Service
-from labd.sim import registry
 from repository.index import Filters
 from repository.reservations import Reservation
 from repository.trial import Kind, Outcome, Status, TrialRequest
@@ -215,8 +214,9 @@ def keys(service: Lab) -> Keys:
 
 @router.get("/api/tasks", tags=["tasks"])
 def tasks() -> TaskList:
-    """The tasks a trial can run, with their parameters."""
-    return TaskList(tasks=[task_view(name) for name in registry.names()])
+    """The tasks a trial can run, with their parameters (and the task plugins installed
+    but left out, with why)."""
+    return task_list()
 
 
 @router.post(

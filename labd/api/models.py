@@ -155,8 +155,26 @@ class TaskView(BaseModel):
     suites: list[SuiteInfo] = Field(description="its episode suites, for evaluations")
 
 
+class TaskProblem(BaseModel):
+    """A task plugin the lab left out, and why (``labd.sim.registry``)."""
+
+    plugin: str = Field(description="its entry point, NAME = module:attribute")
+    problem: str
+
+
 class TaskList(BaseModel):
     tasks: list[TaskView]
+    problems: list[TaskProblem] = Field(
+        default_factory=list, description="task plugins that are installed but left out"
+    )
+
+
+def task_list() -> TaskList:
+    """Every task this lab runs, and the plugins it left out."""
+    return TaskList(
+        tasks=[task_view(name) for name in registry.names()],
+        problems=[TaskProblem(plugin=p, problem=why) for p, why in registry.problems().items()],
+    )
 
 
 class WorkerView(BaseModel):

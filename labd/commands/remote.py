@@ -38,6 +38,7 @@ from labd.api.models import (
     TaskList,
     TrialDetail,
     TrialPage,
+    task_list,
 )
 from labd.commands import evaluate
 from labd.commands.common import (
@@ -125,6 +126,12 @@ def add_parsers(commands: Any) -> None:
     _export_parser(commands)
 
     p = commands.add_parser("tasks", help="the lab's tasks and their parameters")
+    p.add_argument(
+        "--local",
+        action="store_true",
+        help="the tasks this machine's labd runs (its installed task plugins), without asking"
+        " a lab",
+    )
     server_options(p)
 
     p = commands.add_parser("status", help="the lab now: the queue and what workers run")
@@ -150,6 +157,8 @@ def _export_parser(commands: Any) -> None:
 
 def main(args: argparse.Namespace) -> int:
     handler = COMMANDS[args.command]
+    if args.command == "tasks" and args.local:
+        return _show_tasks(task_list(), args)
     try:
         with ApiClient(args.server, getattr(args, "token", None)) as client:
             return int(handler(client, args))
@@ -346,8 +355,10 @@ def _export_many(client: ApiClient, args: argparse.Namespace, query: dict[str, A
 
 
 def _tasks(client: ApiClient, args: argparse.Namespace) -> int:
-    listing = client.get("/api/tasks", TaskList)
+    return _show_tasks(client.get("/api/tasks", TaskList), args)
 
+
+def _show_tasks(listing: TaskList, args: argparse.Namespace) -> int:
     def lines() -> Iterator[str]:
         for task in listing.tasks:
             yield f"{task.name} (version {task.version})"
@@ -360,6 +371,8 @@ def _tasks(client: ApiClient, args: argparse.Namespace) -> int:
                     f"  --suite {suite.name}  version {suite.version}, {suite.episodes}"
                     f" episodes, {kind}: {suite.doc}"
                 )
+        for left in listing.problems:
+            yield f"left out: the task plugin {left.plugin}: {left.problem}"
 
     emit(args, listing.model_dump(mode="json"), lines)
     return ExitCode.SUCCESS

@@ -27,7 +27,7 @@ from urllib.parse import urlsplit
 from labd import __version__
 from labd.commands import fetching
 from labd.commands.common import assignment, fail, param_option
-from labd.config import DEFAULT_ROBOTS, BridgeConfig, DriveLimits, HttpConfig, RobotConfig
+from labd.config import BridgeConfig, DriveLimits, HttpConfig, RobotConfig
 from labd.errors import LabError
 from labd.lab import Lab, LabConfig
 from labd.service import ServiceConfig
@@ -127,7 +127,7 @@ def add_parser(commands: Any) -> None:
         metavar="NAME=TASK",
         dest="robots",
         help="host a live robot running TASK at /robots/NAME (repeatable; default: "
-        + " and ".join(f"{r.name}={r.task}" for r in DEFAULT_ROBOTS)
+        + " and ".join(f"{name}={task}" for name, task in registry.default_robots())
         + ")",
     )
     serve.add_argument("--no-robots", action="store_true", help="host no robot")
@@ -460,7 +460,7 @@ def robot_configs(args: argparse.Namespace) -> tuple[RobotConfig, ...]:
         if args.robots:
             raise Refused("--robot and --no-robots contradict each other; give one")
         return ()
-    pairs = list(args.robots) if args.robots else [(r.name, r.task) for r in DEFAULT_ROBOTS]
+    pairs = list(args.robots) if args.robots else registry.default_robots()
     names = [name for name, _ in pairs]
     if len(set(names)) != len(names):
         raise Refused(f"two robots have the same name: {', '.join(names)}")
@@ -580,6 +580,8 @@ async def serve(config: LabConfig) -> None:
     if config.playground:
         print(f"  playground (no robot; clients meet here): {bridge.url('playground')}", flush=True)
     print(f"  {bridge.url()} serves the first of these.", flush=True)
+    for plugin, why in registry.problems().items():
+        print(f"  task plugin left out: {plugin}: {why}", flush=True)
     if config.reservations:
         watch = "anyone may watch" if config.watchers else "watching needs a key too"
         print(f"  live robots: only a reservation's key drives ({watch})", flush=True)

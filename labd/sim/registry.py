@@ -1,13 +1,34 @@
-"""The registry of tasks, as dm_control's suite keeps one: a name to a factory.
+"""The registry of tasks: each task is one module (or package) that declares everything
+the lab needs of it, and the lab finds tasks as plugins.
 
-Each task module defines ``TASK``, a ``TaskSpec``; ``get`` and ``names`` find them.
+A task module defines a ``TaskSpec`` (its factory and parameters, its topics through its
+``LabTask`` class, its export layout, the camera its records are rendered with, its
+episode suites, its live page, its starting script for the playground, its docs). The
+lab's other parts ask the spec; nothing else is keyed by a task's name.
+
+Tasks are found through the Python entry points of the group ``labd.tasks`` (as
+dm_control's suite collects its domains, but across installed packages): each entry
+point names a ``TaskSpec`` or a collection of them (a pack), e.g. in a package's
+``pyproject.toml``::
+
+    [project.entry-points."labd.tasks"]
+    my-task = "my_package.task:TASK"        # one TaskSpec
+    my-pack = "my_package.pack:TASKS"       # a tuple (or list) of TaskSpecs
+
+The lab's own tasks are registered the same way by its own package. A plugin that fails
+to import, names no TaskSpec, repeats a task's name or declares a topic the lab keeps
+for itself is a **problem**: it is left out with its reason (``problems()``: shown by
+``labd tasks`` and at ``labd serve`` start), and every other task still works.
 """
 
 from __future__ import annotations
 
-import importlib
-from collections.abc import Callable, Mapping
+import logging
+import re
+import threading
+from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass, field
+from importlib import metadata
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -17,12 +38,38 @@ from repository.evaluation import Suite
 
 if TYPE_CHECKING:
     from labd.sim.base import LabTask
+    from repository.export import Layout
 
-# name -> the module that defines it; imported only when the task is used.
-MODULES: Mapping[str, str] = {
-    "icreate-maze": "labd.sim.icreate.maze",
-    "pr2-table": "labd.sim.pr2.table",
-}
+log = logging.getLogger("labd.sim.registry")
+GROUP = "labd.tasks"
+NAME = re.compile(r"[a-z0-9][a-z0-9_.-]{0,63}")
+# names the robot node and the lab's live robots keep for themselves
+LAB_TOPICS = frozenset(
+    {
+        "/clock",
+        "/lab/episode",
+        "/lab/step",
+        "/lab/reset",
+        "/lab/drive",
+        "/lab/release",
+        "/lab/driver",
+        "/ux/events",
+        "/rosout",
+    }
+)
+
+
+@dataclass(frozen=True)
+class Console:
+    """A task's live page: a template of ``labd/web/templates`` (``robot.html`` shows the
+    camera and the episode) and the interfaces a session may be shown, the first the
+    default (a study draws between the first two)."""
+
+    template: str = "robot.html"
+    interfaces: tuple[str, ...] = ("video",)
+
+
+GENERIC = Console()
 
 
 @dataclass(frozen=True)
@@ -50,6 +97,13 @@ class TaskSpec:
     suites: tuple[Suite, ...] = ()
     # A roslibjs script for this task that /playground starts from (runs live and in a trial).
     playground: Path | None = None
+    # Its exports' rows (repository.export); None: the MCAP records are its data.
+    layout: Layout | None = None
+    # The model's camera that replays, videos and exports render (None: none).
+    camera: str | None = None
+    console: Console = GENERIC  # its live robots' page
+    # The live robot ``labd serve`` hosts for it when told of no robots (None: none).
+    robot: str | None = None
 
     def suite(self, name: str) -> Suite | None:
         return next((s for s in self.suites if s.name == name), None)
@@ -62,17 +116,97 @@ class TaskSpec:
         return observations, [c.name for c in self.task_class.commands]
 
 
+class Registry:
+    """The tasks of the installed plugins, loaded once, on first use (thread-safe)."""
+
+    def __init__(self, entry_points: Callable[[], Iterable[Any]] | None = None) -> None:
+        self._entry_points = entry_points or (lambda: metadata.entry_points(group=GROUP))
+        self._lock = threading.Lock()
+        self._specs: dict[str, TaskSpec] | None = None
+        self._problems: dict[str, str] = {}
+
+    def specs(self) -> Mapping[str, TaskSpec]:
+        with self._lock:
+            if self._specs is None:
+                self._specs = self._load()
+            return self._specs
+
+    def problems(self) -> dict[str, str]:
+        """Plugins left out (entry point ``NAME = module:attr`` -> why)."""
+        self.specs()
+        return dict(self._problems)
+
+    def _load(self) -> dict[str, TaskSpec]:
+        found: dict[str, TaskSpec] = {}
+        for point in sorted(self._entry_points(), key=_own_first):
+            where = f"{point.name} = {point.value}"
+            try:
+                loaded = point.load()
+            except Exception as err:  # a plugin's own bug: it is reported, the rest runs
+                log.warning("task plugin %s failed to load", where, exc_info=True)
+                self._problems[where] = f"failed to import: {type(err).__name__}: {err}"
+                continue
+            specs = [loaded] if isinstance(loaded, TaskSpec) else loaded
+            if not isinstance(specs, (list, tuple)) or not specs:
+                self._problems[where] = "names no TaskSpec (nor a tuple or list of them)"
+                continue
+            for spec in specs:
+                why = _refused(spec, found)
+                if why:
+                    self._problems[f"{where} ({getattr(spec, 'name', spec)!r})"] = why
+                else:
+                    found[spec.name] = spec
+        for where, why in self._problems.items():
+            log.warning("task plugin %s left out: %s", where, why)
+        return found
+
+
+def _own_first(point: Any) -> tuple[bool, str]:
+    """The lab's own tasks first (a plugin repeating one of their names is the problem)."""
+    return (not str(point.value).startswith("labd."), str(point.name))
+
+
+def _refused(spec: Any, found: Mapping[str, TaskSpec]) -> str:
+    """Why ``spec`` cannot be a task of this lab ("" if it can)."""
+    if not isinstance(spec, TaskSpec):
+        return f"is a {type(spec).__name__}, not a TaskSpec"
+    if not NAME.fullmatch(spec.name):
+        return (
+            "its name must be lowercase letters, digits, '.', '_' and '-' (at most 64),"
+            " starting with a letter or digit"
+        )
+    if spec.name in found:
+        return f"the task {spec.name!r} is registered already; give it another name"
+    observations, commands = spec.topics()
+    clash = sorted(set(observations + commands) & LAB_TOPICS)
+    if clash:
+        return f"declares {', '.join(clash)}, which the lab keeps for itself"
+    return ""
+
+
+REGISTRY = Registry()
+
+
 def names() -> list[str]:
-    return list(MODULES)
+    return list(REGISTRY.specs())
+
+
+def problems() -> dict[str, str]:
+    """The task plugins that were left out, and why."""
+    return REGISTRY.problems()
 
 
 def get(name: str) -> TaskSpec:
-    module = MODULES.get(name)
-    if module is None:
+    spec = REGISTRY.specs().get(name)
+    if spec is None:
         raise UnknownTaskError(name, names())
-    spec = importlib.import_module(module).TASK
-    assert isinstance(spec, TaskSpec)
     return spec
+
+
+def default_robots() -> list[tuple[str, str]]:
+    """The live robots ``labd serve`` hosts when told of none: (robot name, task) of each
+    task that declares one."""
+    return [(spec.robot, name) for name, spec in REGISTRY.specs().items() if spec.robot]
 
 
 def validate(name: str, given: Mapping[str, Any]) -> dict[str, Value]:

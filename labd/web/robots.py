@@ -20,7 +20,6 @@ experimenters. The page sends the assignment as its drive's ``interface``
 from __future__ import annotations
 
 import secrets
-from dataclasses import dataclass
 
 from fastapi import APIRouter, Request
 from fastapi.responses import HTMLResponse, Response
@@ -29,27 +28,14 @@ from pydantic import BaseModel
 from labd.api.errors import ApiError, responses
 from labd.api.site import RobotLink, Site
 from labd.api.state import App
+from labd.sim import registry
+from labd.sim.registry import Console
 from labd.web.problems import PageRoute
 from labd.web.render import page
 from labd.web.session import Viewer
 
 router = APIRouter(include_in_schema=False, route_class=PageRoute)
 api = APIRouter(tags=["robots"])
-
-
-@dataclass(frozen=True)
-class Console:
-    """A task's page: its template and the interfaces a session may be shown (A first)."""
-
-    template: str
-    interfaces: tuple[str, ...]
-
-
-CONSOLES = {
-    "icreate-maze": Console("robot_icreate.html", ("video", "perception")),
-    "pr2-table": Console("robot_pr2.html", ("scene",)),
-}
-PLAIN = Console("robot.html", ("video",))  # any other task: its camera and episode
 
 
 class RobotState(BaseModel):
@@ -146,7 +132,7 @@ def robot_page(
 ) -> HTMLResponse:
     lab = app.site
     robot = _robot(lab, name)
-    console = CONSOLES.get(robot.task, PLAIN)
+    console = registry.get(robot.task).console
     shown, assigned = assign(lab, console, interface)
     config = {
         "robot": robot.name,

@@ -34,10 +34,11 @@ from labd.sim.base import (
 )
 from labd.sim.camera import Camera
 from labd.sim.icreate import model
+from labd.sim.icreate.export import MAZE
 from labd.sim.icreate.layout import CELL, DIRECTIONS, Layout
 from labd.sim.icreate.tags import Detector, Tag, place
 from labd.sim.params import Param, Params
-from labd.sim.registry import TaskSpec
+from labd.sim.registry import Console, TaskSpec
 from repository.evaluation import Suite
 from repository.trial import EpisodeStatus
 
@@ -468,6 +469,10 @@ TASK = TaskSpec(
     task_class=IcreateMaze,
     live_params={"control_rate": 20},  # teleoperation: a 20 Hz camera and smoother driving
     playground=Path(__file__).with_name("playground.mjs"),
+    layout=MAZE,
+    camera=model.CAMERA,
+    console=Console("robot_icreate.html", ("video", "perception")),
+    robot="icreate-1",
     suites=(
         Suite("dev", 1, seeds=tuple(range(20)), doc="20 mazes, seeds 0 to 19, default parameters"),
         Suite("test", 1, episodes=50, held_out=True, doc="50 mazes whose seeds are the lab's"),

@@ -38,9 +38,10 @@ from labd.sim.base import (
 from labd.sim.camera import Camera
 from labd.sim.params import Param, Params, Value
 from labd.sim.pr2 import model, scene, topics
+from labd.sim.pr2.export import PR2
 from labd.sim.pr2.motion import ArmSolver, PoseTarget, Trajectory
 from labd.sim.pr2.physics import BASE, ODOM, OPTICAL, SERVOED, TORSO, Physics
-from labd.sim.registry import TaskSpec
+from labd.sim.registry import Console, TaskSpec
 from repository.evaluation import Suite
 from repository.trial import EpisodeStatus
 
@@ -537,6 +538,10 @@ TASK = TaskSpec(
     build=make,
     task_class=TableTask,
     playground=Path(__file__).with_name("playground.mjs"),
+    layout=PR2,
+    camera=model.CAMERA,
+    console=Console("robot_pr2.html", ("scene",)),
+    robot="pr2-1",
     suites=(
         Suite("dev", 1, seeds=tuple(range(20)), doc="20 tables, seeds 0 to 19, default parameters"),
         Suite("test", 1, episodes=50, held_out=True, doc="50 tables whose seeds are the lab's"),
