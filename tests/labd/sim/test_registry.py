@@ -95,7 +95,7 @@ def test_the_labs_own_tasks_win_a_name_taken_by_a_plugin():
 
 def test_an_unknown_task_names_the_known_ones():
     """get() of a task nobody registered is UnknownTaskError listing the tasks."""
-    with pytest.raises(UnknownTaskError, match="no task 'roomba'; the tasks are .*icreate-maze"):
+    with pytest.raises(UnknownTaskError, match=r"no task .roomba.; the tasks are .*icreate-maze"):
         registry.get("roomba")
 
 

@@ -45,7 +45,7 @@ def sim(task: str) -> Simulation:
 
 def test_unknown_task_lists_the_tasks():
     """Asking for a task that does not exist names the ones that do."""
-    with pytest.raises(UnknownTaskError, match="the tasks are .*icreate-maze.*pr2-table"):
+    with pytest.raises(UnknownTaskError, match=r"the tasks are .*icreate-maze.*pr2-table"):
         registry.get("roomba-party")
 
 
