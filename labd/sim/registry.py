@@ -23,10 +23,12 @@ for itself is a **problem**: it is left out with its reason (``problems()``: sho
 
 from __future__ import annotations
 
+import copy
+import dataclasses
 import logging
 import re
 import threading
-from collections.abc import Callable, Iterable, Mapping
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from importlib import metadata
 from pathlib import Path
@@ -73,6 +75,66 @@ GENERIC = Console()
 
 
 @dataclass(frozen=True)
+class Dimension:
+    """One value of a task's action vector: where it goes in which command message.
+
+    ``path`` is a dotted path into the message (``linear.x``; ``data.3`` and
+    ``points.0.positions.2`` index lists), set in a copy of the topic's template."""
+
+    name: str  # e.g. cmd_vel.linear.x
+    topic: str
+    path: str
+    low: float
+    high: float
+    neutral: float = 0.0  # what the robot does before any command
+
+
+@dataclass(frozen=True)
+class Actions:
+    """A task's commands as one vector of numbers: what an in-process learner acts with
+    (``labd.gym``) and the generic live page slides, turned into the messages a
+    controller would publish (``messages``), so a policy learnt one way runs the other.
+
+    ``templates``: per command topic, its type and a message each vector is set into
+    (fields not named by a dimension keep the template's values)."""
+
+    dimensions: tuple[Dimension, ...]
+    templates: Mapping[str, tuple[str, Mapping[str, Any]]]
+
+    def messages(self, vector: Sequence[float]) -> dict[str, dict[str, Any]]:
+        """The command messages, by topic, that ``vector`` stands for."""
+        if len(vector) != len(self.dimensions):
+            raise ValueError(f"an action has {len(self.dimensions)} values, not {len(vector)}")
+        made = {
+            topic: copy.deepcopy(dict(message)) for topic, (_, message) in self.templates.items()
+        }
+        for dimension, value in zip(self.dimensions, vector, strict=True):
+            clipped = min(max(float(value), dimension.low), dimension.high)
+            _set(made[dimension.topic], dimension.path.split("."), clipped)
+        return made
+
+    def describe(self) -> dict[str, Any]:
+        """As JSON, for the live page."""
+        return {
+            "dimensions": [dataclasses.asdict(d) for d in self.dimensions],
+            "templates": {
+                t: {"type": kind, "message": m} for t, (kind, m) in self.templates.items()
+            },
+        }
+
+
+def _set(message: Any, path: list[str], value: float) -> None:
+    here = message
+    for key in path[:-1]:
+        here = here[int(key)] if isinstance(here, list) else here[key]
+    last = path[-1]
+    if isinstance(here, list):
+        here[int(last)] = value
+    else:
+        here[last] = value
+
+
+@dataclass(frozen=True)
 class TaskSpec:
     """A registered task.
 
@@ -104,6 +166,8 @@ class TaskSpec:
     console: Console = GENERIC  # its live robots' page
     # The live robot ``labd serve`` hosts for it when told of no robots (None: none).
     robot: str | None = None
+    # Its commands as a vector of numbers (labd.gym, the generic live page); None: none.
+    actions: Actions | None = None
 
     def suite(self, name: str) -> Suite | None:
         return next((s for s in self.suites if s.name == name), None)

@@ -71,13 +71,13 @@ def _listings(
     observations: tuple[tuple[str, Shape], ...],
     camera: str,
     tasks: tuple[tuple[str, float, str, str], ...],
-    extra: dict[str, tuple[tuple[str, Shape], ...]] | None = None,
+    own: dict[str, tuple[tuple[str, Shape], ...]] | None = None,
 ) -> tuple[Listing, ...]:
-    """A domain's tasks: (task, threshold, basis, goal) each, with ``extra`` observations
-    for the tasks that have more keys than the domain's common ones."""
+    """A domain's tasks: (task, threshold, basis, goal) each; ``own`` observations for
+    the tasks whose keys are not the domain's common ones."""
     out = []
     for task, threshold, basis, goal in tasks:
-        keys = observations + (extra or {}).get(task, ())
+        keys = (own or {}).get(task, observations)
         out.append(
             Listing(
                 domain,
@@ -112,6 +112,15 @@ _HUMANOID = (
     *(f"{side}_{joint}" for side in ("right", "left") for joint in _LEG),
     *(f"{side}_{joint}" for side in ("right", "left") for joint in _ARM),
 )
+
+_FINGER_TURN = (
+    ("position", (4,)),
+    ("velocity", (3,)),
+    ("touch", (2,)),
+    ("target_position", (2,)),
+    ("dist_to_target", ()),
+)
+_FISH_SWIM = (("joint_angles", (7,)), ("upright", ()), ("target", (3,)), ("velocity", (13,)))
 
 CATALOG: tuple[Listing, ...] = (
     *_listings(
@@ -174,10 +183,7 @@ CATALOG: tuple[Listing, ...] = (
             ("turn_easy", 900.0, HOLD, "turn the body's tip into the large target"),
             ("turn_hard", 900.0, HOLD, "turn the body's tip into the small target"),
         ),
-        extra={
-            "turn_easy": (("target_position", (2,)), ("dist_to_target", ())),
-            "turn_hard": (("target_position", (2,)), ("dist_to_target", ())),
-        },
+        own={task: _FINGER_TURN for task in ("turn_easy", "turn_hard")},
     ),
     *_listings(
         "ball_in_cup",
@@ -238,7 +244,7 @@ CATALOG: tuple[Listing, ...] = (
             ("upright", 900.0, HOLD, "turn upright and stay so"),
             ("swim", 600.0, SPEED, "swim to the target and stay there"),
         ),
-        extra={"swim": (("target", (3,)),)},
+        own={"swim": _FISH_SWIM},
     ),
     *_listings(
         "swimmer",

@@ -38,7 +38,7 @@ from labd.sim.icreate.export import MAZE
 from labd.sim.icreate.layout import CELL, DIRECTIONS, Layout
 from labd.sim.icreate.tags import Detector, Tag, place
 from labd.sim.params import Param, Params
-from labd.sim.registry import Console, TaskSpec
+from labd.sim.registry import Actions, Console, Dimension, TaskSpec
 from repository.evaluation import Suite
 from repository.trial import EpisodeStatus
 
@@ -459,6 +459,21 @@ def make(
     return environment(physics, task, xml=xml, assets=assets, time_limit=time_limit)
 
 
+TWIST = {"linear": {"x": 0.0, "y": 0.0, "z": 0.0}, "angular": {"x": 0.0, "y": 0.0, "z": 0.0}}
+# /cmd_vel as a vector (labd.gym, the generic live page): forward speed and turn rate.
+ACTIONS = Actions(
+    dimensions=(
+        Dimension(
+            "cmd_vel.linear.x", CMD_VEL, "linear.x", -model.MAX_WHEEL_SPEED, model.MAX_WHEEL_SPEED
+        ),
+        Dimension(
+            "cmd_vel.angular.z", CMD_VEL, "angular.z", -model.MAX_TURN_RATE, model.MAX_TURN_RATE
+        ),
+    ),
+    templates={CMD_VEL: ("geometry_msgs/msg/Twist", TWIST)},
+)
+
+
 TASK = TaskSpec(
     name=IcreateMaze.name,
     version=IcreateMaze.version,
@@ -473,6 +488,7 @@ TASK = TaskSpec(
     camera=model.CAMERA,
     console=Console("robot_icreate.html", ("video", "perception")),
     robot="icreate-1",
+    actions=ACTIONS,
     suites=(
         Suite("dev", 1, seeds=tuple(range(20)), doc="20 mazes, seeds 0 to 19, default parameters"),
         Suite("test", 1, episodes=50, held_out=True, doc="50 mazes whose seeds are the lab's"),

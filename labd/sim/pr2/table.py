@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import math
 from collections import OrderedDict
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -41,7 +41,7 @@ from labd.sim.pr2 import model, scene, topics
 from labd.sim.pr2.export import PR2
 from labd.sim.pr2.motion import ArmSolver, PoseTarget, Trajectory
 from labd.sim.pr2.physics import BASE, ODOM, OPTICAL, SERVOED, TORSO, Physics
-from labd.sim.registry import Console, TaskSpec
+from labd.sim.registry import Actions, Console, Dimension, TaskSpec
 from repository.evaluation import Suite
 from repository.trial import EpisodeStatus
 
@@ -526,6 +526,66 @@ def make(
     return environment(physics, task, xml=xml, time_limit=time_limit)
 
 
+def _trajectory(joints: tuple[model.Joint, ...], start: Sequence[float]) -> dict[str, Any]:
+    """A one-point JointTrajectory to ``start``, reached within one tick at 10 Hz."""
+    point = {"positions": list(start), "time_from_start": {"sec": 0, "nanosec": 100_000_000}}
+    return {"joint_names": [j.name for j in joints], "points": [point]}
+
+
+def _actions() -> Actions:
+    """The PR2's commands as a vector (labd.gym, the generic live page): base velocity,
+    then joint position targets (torso, head, left arm, right arm), then grippers."""
+    base = (
+        Dimension(
+            "base.linear.x",
+            "/base/cmd_vel",
+            "linear.x",
+            -model.BASE_LINEAR_MAX,
+            model.BASE_LINEAR_MAX,
+        ),
+        Dimension(
+            "base.linear.y",
+            "/base/cmd_vel",
+            "linear.y",
+            -model.BASE_LINEAR_MAX,
+            model.BASE_LINEAR_MAX,
+        ),
+        Dimension(
+            "base.angular.z",
+            "/base/cmd_vel",
+            "angular.z",
+            -model.BASE_ANGULAR_MAX,
+            model.BASE_ANGULAR_MAX,
+        ),
+    )
+    groups = {
+        "/torso/command": ((model.TORSO,), (0.0,)),
+        "/head/command": (model.HEAD, model.HEAD_START),
+        "/left_arm/command": (model.ARMS["l"], model.TUCKED["l"]),
+        "/right_arm/command": (model.ARMS["r"], model.TUCKED["r"]),
+    }
+    joints = tuple(
+        Dimension(joint.name, topic, f"points.0.positions.{i}", joint.low, joint.high, start)
+        for topic, (group, starts) in groups.items()
+        for i, (joint, start) in enumerate(zip(group, starts, strict=True))
+    )
+    grippers = tuple(
+        Dimension(
+            f"{side}_gripper.opening", f"/{side}_gripper/command", "data", 0.0, model.GRIPPER_MAX
+        )
+        for side in ("left", "right")
+    )
+    twist = {"linear": {"x": 0.0, "y": 0.0, "z": 0.0}, "angular": {"x": 0.0, "y": 0.0, "z": 0.0}}
+    templates: dict[str, tuple[str, Mapping[str, Any]]] = {
+        "/base/cmd_vel": ("geometry_msgs/msg/Twist", twist)
+    }
+    for topic, (group, starts) in groups.items():
+        templates[topic] = (JOINT_TRAJECTORY, _trajectory(group, starts))
+    for side in ("left", "right"):
+        templates[f"/{side}_gripper/command"] = ("std_msgs/msg/Float64", {"data": 0.0})
+    return Actions(dimensions=(*base, *joints, *grippers), templates=templates)
+
+
 TASK = TaskSpec(
     name=TableTask.name,
     version=TableTask.version,
@@ -542,6 +602,7 @@ TASK = TaskSpec(
     camera=model.CAMERA,
     console=Console("robot_pr2.html", ("scene",)),
     robot="pr2-1",
+    actions=_actions(),
     suites=(
         Suite("dev", 1, seeds=tuple(range(20)), doc="20 tables, seeds 0 to 19, default parameters"),
         Suite("test", 1, episodes=50, held_out=True, doc="50 tables whose seeds are the lab's"),
