@@ -63,11 +63,12 @@ LAB_TOPICS = frozenset(
 
 @dataclass(frozen=True)
 class Console:
-    """A task's live page: a template of ``labd/web/templates`` (``robot.html`` shows the
-    camera and the episode) and the interfaces a session may be shown, the first the
+    """A task's live page: a template of ``labd/web/templates`` (``robot_generic.html``:
+    the camera, the model in 3D, a slider per action dimension, plots of the numeric
+    observations) and the interfaces a session may be shown, the first the
     default (a study draws between the first two)."""
 
-    template: str = "robot.html"
+    template: str = "robot_generic.html"
     interfaces: tuple[str, ...] = ("video",)
 
 

@@ -29,7 +29,7 @@ from labd.api.errors import ApiError, responses
 from labd.api.site import RobotLink, Site
 from labd.api.state import App
 from labd.sim import registry
-from labd.sim.registry import Console
+from labd.sim.registry import Console, TaskSpec
 from labd.web.problems import PageRoute
 from labd.web.render import page
 from labd.web.session import Viewer
@@ -147,6 +147,7 @@ def robot_page(
         "ratio": lab.interface_ratio,
         "interfaces": list(console.interfaces),
         "scene": str(request.url_for("robot_scene", name=robot.name)),
+        **_generic(registry.get(robot.task)),
     }
     return page(
         request,
@@ -154,6 +155,18 @@ def robot_page(
         {"robot": state(request, lab, robot), "config": config, "interface": shown},
         user=viewer,
     )
+
+
+PLOTTED = ("std_msgs/msg/Float64", "std_msgs/msg/Float64MultiArray")
+
+
+def _generic(spec: TaskSpec) -> dict[str, object]:
+    """What the generic page needs of a task: its action vector, its numeric topics."""
+    observations = spec.task_class.observations if spec.task_class is not None else ()
+    return {
+        "actions": spec.actions.describe() if spec.actions is not None else None,
+        "plots": [(o.name, o.type) for o in observations if o.type in PLOTTED],
+    }
 
 
 @api.get("/api/robots", response_model=list[RobotState])

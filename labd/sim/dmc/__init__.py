@@ -23,11 +23,20 @@ from __future__ import annotations
 
 from labd.sim.dmc.catalog import CATALOG, Listing
 from labd.sim.dmc.export import LAYOUTS, layout, layout_of
-from labd.sim.dmc.task import SuiteTask, task_class
+from labd.sim.dmc.task import SuiteTask, actions_of, task_class
 from labd.sim.registry import TaskSpec
 from repository.evaluation import Suite
 
-__all__ = ["CATALOG", "LAYOUTS", "TASKS", "Listing", "SuiteTask", "layout", "layout_of"]
+__all__ = [
+    "CATALOG",
+    "LAYOUTS",
+    "TASKS",
+    "Listing",
+    "SuiteTask",
+    "actions_of",
+    "layout",
+    "layout_of",
+]
 
 SUITES = (
     Suite(

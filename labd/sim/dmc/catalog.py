@@ -38,6 +38,7 @@ class Listing:
     time_limit: float  # s: the suite's episode (its step limit times the control timestep)
     control_timestep: float  # s: one lab tick, one environment step
     actuators: tuple[str, ...]  # the action spec's order
+    bounds: tuple[tuple[float, float], ...]  # each actuator's (minimum, maximum)
     observations: tuple[tuple[str, Shape], ...]  # the observation dict's keys, in order
     camera: str  # the model's camera 0, which the suite renders by default
     threshold: float  # the return at which an episode counts as solved
@@ -72,9 +73,11 @@ def _listings(
     camera: str,
     tasks: tuple[tuple[str, float, str, str], ...],
     own: dict[str, tuple[tuple[str, Shape], ...]] | None = None,
+    bounds: tuple[tuple[float, float], ...] | None = None,
 ) -> tuple[Listing, ...]:
     """A domain's tasks: (task, threshold, basis, goal) each; ``own`` observations for
-    the tasks whose keys are not the domain's common ones."""
+    the tasks whose keys are not the domain's common ones; ``bounds`` of the actuators
+    where they are not all [-1, 1]."""
     out = []
     for task, threshold, basis, goal in tasks:
         keys = (own or {}).get(task, observations)
@@ -85,6 +88,7 @@ def _listings(
                 time_limit,
                 control_timestep,
                 actuators,
+                bounds or ((-1.0, 1.0),) * len(actuators),
                 keys,
                 camera,
                 threshold,
@@ -103,6 +107,7 @@ _QUADRUPED = tuple(
     for leg in ("front_left", "front_right", "back_right", "back_left")
     for joint in ("yaw", "lift", "extend")
 )
+_QUADRUPED_BOUNDS = ((-1.0, 1.0), (-1.0, 1.1), (-0.8, 0.8)) * 4
 _LEG = ("hip_x", "hip_z", "hip_y", "knee", "ankle_x", "ankle_y")
 _ARM = ("shoulder1", "shoulder2", "elbow")
 _HUMANOID = (
@@ -260,6 +265,7 @@ CATALOG: tuple[Listing, ...] = (
         time_limit=20.0,
         control_timestep=0.02,
         actuators=_QUADRUPED,
+        bounds=_QUADRUPED_BOUNDS,
         observations=(
             ("egocentric_state", (44,)),
             ("torso_velocity", (3,)),

@@ -46,6 +46,7 @@ from labd.sim.base import CommandTopic, LabTask, ObservationTopic, Outcome, Stam
 from labd.sim.camera import Camera
 from labd.sim.dmc.catalog import Listing
 from labd.sim.params import Param, Params, Value
+from labd.sim.registry import Actions, Dimension
 from repository.trial import EpisodeStatus
 
 VERSION = "1"
@@ -250,7 +251,8 @@ class SuiteTask(LabTask):
         if len(values) != size:
             actuators = ", ".join(self.listing.actuators)
             raise MessageError(
-                f"must hold {size} values, one per actuator ({actuators}), got {len(values)}",
+                f"must hold {size} value{'s' if size > 1 else ''}, one per actuator "
+                f"({actuators}), got {len(values)}",
                 ["data"],
             )
         action = np.array([finite(float(v), "data", i) for i, v in enumerate(values)])
@@ -395,3 +397,19 @@ def task_class(listing: Listing) -> type[SuiteTask]:
     made = type(f"Dmc{title}", (SuiteTask,), attributes)
     assert issubclass(made, SuiteTask)
     return made
+
+
+def actions_of(listing: Listing) -> Actions:
+    """A pack task's commands as a vector: one dimension per actuator, each a value of
+    ``/action``'s ``data``, within the actuator's bounds, 0 before any command."""
+    size = listing.action_size
+    template = {"layout": {"dim": [], "data_offset": 0}, "data": [0.0] * size}
+    return Actions(
+        dimensions=tuple(
+            Dimension(name, ACTION, f"data.{i}", low, high)
+            for i, (name, (low, high)) in enumerate(
+                zip(listing.actuators, listing.bounds, strict=True)
+            )
+        ),
+        templates={ACTION: (ARRAY, template)},
+    )

@@ -1,0 +1,140 @@
+// The live page of any task without a page of its own: its camera, its model in 3D
+// (three.js, drawn by scene.js from /api/robots/NAME/scene and posed from the robot's
+// qpos there, a few times a second), a slider per dimension of its action vector
+// (TaskSpec.actions: each slider sets one path in one command message; the messages go
+// out through the bridge ten times a second once a slider moved), and a rolling plot of
+// each numeric observation topic (std_msgs Float64 and Float64MultiArray).
+
+import * as THREE from "three";
+import { OrbitControls } from "three/addons/controls/OrbitControls.min.js";
+import { Topic } from "/static/vendor/roslib/roslib.min.js";
+import { buildScene, frame } from "/static/scene.js";
+import { camera, config, connect } from "/static/live/lab.js";
+
+const $ = (id) => document.getElementById(id);
+const SEND_MS = 100;  // commands while the sliders are in use
+const POSE_MS = 250;  // the 3D scene's pose, from the lab's HTTP server
+const KEPT = 200;  // points of each plot
+const PALETTE = ["#1f77b4", "#d62728", "#2ca02c", "#ff7f0e", "#9467bd", "#8c564b", "#e377c2", "#17becf"];
+
+function el(tag, attrs = {}, ...children) {
+  const node = document.createElement(tag);
+  for (const [k, v] of Object.entries(attrs)) node.setAttribute(k, v);
+  node.append(...children);
+  return node;
+}
+
+/** The command messages a vector stands for (as registry.Actions.messages does). */
+export function messages(actions, vector) {
+  const made = {};
+  for (const [topic, { message }] of Object.entries(actions.templates)) made[topic] = structuredClone(message);
+  actions.dimensions.forEach((d, i) => {
+    const path = d.path.split(".");
+    let here = made[d.topic];
+    for (const key of path.slice(0, -1)) here = here[Array.isArray(here) ? Number(key) : key];
+    const last = path[path.length - 1];
+    here[Array.isArray(here) ? Number(last) : last] = Math.min(d.high, Math.max(d.low, vector[i]));
+  });
+  return made;
+}
+
+function sliders(live, actions) {
+  const box = $("sliders");
+  const vector = actions.dimensions.map((d) => d.neutral);
+  const inputs = actions.dimensions.map((d, i) => {
+    const input = el("input", { type: "range", min: d.low, max: d.high, step: (d.high - d.low) / 200, value: d.neutral, id: `action-${i}` });
+    const shown = el("output", { for: `action-${i}` }, d.neutral.toFixed(3));
+    input.addEventListener("input", () => {
+      vector[i] = Number(input.value);
+      shown.textContent = vector[i].toFixed(3);
+      start();
+    });
+    box.append(el("p", { class: "slider" }, el("label", { for: `action-${i}` }, d.name), input, shown));
+    return { input, shown };
+  });
+  const senders = Object.fromEntries(Object.entries(actions.templates).map(
+    ([topic, { type }]) => [topic, live.command(topic, type)]));
+  const send = () => {
+    for (const [topic, message] of Object.entries(messages(actions, vector))) senders[topic](message);
+    box.dataset.sent = String(Number(box.dataset.sent || 0) + 1);
+  };
+  let timer = null;
+  const start = () => { if (!timer) { send(); timer = setInterval(send, SEND_MS); } };
+  $("neutral").addEventListener("click", () => {
+    actions.dimensions.forEach((d, i) => {
+      vector[i] = d.neutral; inputs[i].input.value = d.neutral; inputs[i].shown.textContent = d.neutral.toFixed(3);
+    });
+    send();
+    clearInterval(timer);
+    timer = null;
+  });
+  live.onDriver.push(() => { if (!live.driving && timer) { clearInterval(timer); timer = null; } });
+}
+
+function plots(live, topics) {
+  const box = $("plots");
+  for (const [name, type] of topics) {
+    const holder = el("div", { class: "plot", id: `plot-${name.replaceAll("/", "_")}` });
+    box.append(el("h3", {}, name), holder);
+    let chart = null;
+    const t = [], series = [];
+    new Topic({ ros: live.ros, name, messageType: type, throttle_rate: 100, queue_length: 1 }).subscribe((m) => {
+      const values = Array.isArray(m.data) ? m.data : [m.data];
+      const now = live.episode ? live.episode.header.stamp.sec + live.episode.header.stamp.nanosec / 1e9 : t.length;
+      if (!chart) {
+        values.forEach(() => series.push([]));
+        chart = new uPlot({
+          width: Math.max(280, holder.clientWidth || 420), height: 140, legend: { show: values.length <= 8 },
+          series: [{ label: "s" }, ...values.map((_, i) => ({ label: `${i}`, stroke: PALETTE[i % PALETTE.length], points: { show: false } }))],
+        }, [t, ...series], holder);
+      }
+      t.push(now);
+      values.forEach((v, i) => series[i]?.push(v));
+      if (t.length > KEPT) { t.shift(); series.forEach((s) => s.shift()); }
+      chart.setData([t, ...series]);
+      holder.dataset.points = String(t.length);
+    });
+  }
+}
+
+async function scene3d(cfg) {
+  const holder = $("scene3d");
+  const width = holder.clientWidth || 560, height = Math.round(width * 0.7);
+  const renderer = new THREE.WebGLRenderer({ antialias: true });
+  renderer.setSize(width, height);
+  renderer.domElement.id = "generic-scene";
+  holder.replaceChildren(renderer.domElement);
+  let info = await (await fetch(cfg.scene)).json();
+  let scene = await buildScene(THREE, info);
+  scene.pose(info.qpos);
+  scene.world.updateMatrixWorld(true);
+  const { camera: eye, centre } = frame(THREE, scene.solids, [-1.2, -1.0, 0.8], width / height);
+  const orbit = new OrbitControls(eye, renderer.domElement);
+  orbit.target.copy(centre);
+  orbit.update();
+  let busy = false;
+  setInterval(async () => {  // the pose now (a new episode may bring a new model)
+    if (busy || document.visibilityState === "hidden") return;
+    busy = true;
+    try {
+      const next = await (await fetch(cfg.scene)).json();
+      if (next.seed !== info.seed) scene = await buildScene(THREE, next);
+      info = next;
+      scene.pose(info.qpos);
+      holder.dataset.posed = String(Number(holder.dataset.posed || 0) + 1);
+    } catch { /* the next one will do */ } finally { busy = false; }
+  }, POSE_MS);
+  renderer.setAnimationLoop(() => renderer.render(scene.world, eye));
+}
+
+connect(config()).then(async (live) => {
+  const cfg = live.config;
+  camera(live, $("camera"));
+  if (cfg.actions) sliders(live, cfg.actions);
+  plots(live, cfg.plots || []);
+  await scene3d(cfg).catch((err) => { $("scene3d").textContent = `the model could not be drawn: ${err}`; });
+  document.body.dataset.ready = "yes";
+}).catch((err) => {
+  $("status").textContent = `the page could not start: ${err}`;
+  throw err;
+});
