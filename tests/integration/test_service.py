@@ -349,9 +349,10 @@ def test_a_worker_on_another_machine(make_lab, tmp_path, cache):
 def test_cancel_a_running_trial(lab, tmp_path):
     """`labd cancel` stops a running trial at its worker's next heartbeat; it is filed as
     cancelled, and the queue goes on to the next trial."""
+    slower = SLOW.replace("range(200)", "range(2000)")  # ends by the cancel, however loaded
     repo = make_repo(
         tmp_path / "slow",
-        {"lab.toml": '[controller]\ncommand = ["python", "slow.py"]\n', "slow.py": SLOW},
+        {"lab.toml": '[controller]\ncommand = ["python", "slow.py"]\n', "slow.py": slower},
     )
     first = lab.json("submit", str(repo), "--task", "icreate-maze")
     quick = make_repo(tmp_path / "quick", {"lab.toml": TELLTALE_TOML, "c.py": TELLTALE})

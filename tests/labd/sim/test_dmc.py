@@ -28,7 +28,7 @@ from labd.errors import MessageError
 from labd.graph.codec import codec_for
 from labd.graph.graph import Graph
 from labd.sim.base import stamp_of
-from labd.sim.dmc import CATALOG, LAYOUTS, TASKS, Listing, layout
+from labd.sim.dmc import CATALOG, LAYOUTS, TASKS, Listing, SuiteTask, actions_of, layout
 from labd.sim.dmc.task import ARRAY, OPTICAL_FRAME, model_of, random_for
 from labd.sim.robot import Robot
 from labd.sim.simulation import Simulation
@@ -47,9 +47,8 @@ ONE_PER_DOMAIN = sorted({listing.domain: listing.name for listing in CATALOG}.va
 
 def listing_of(name: str) -> Listing:
     cls = PACK[name].task_class
-    assert cls is not None
-    listing: Listing = getattr(cls, "listing")
-    return listing
+    assert cls is not None and issubclass(cls, SuiteTask)
+    return cls.listing
 
 
 def action_message(values: Any) -> dict[str, Any]:
@@ -125,8 +124,8 @@ def test_rewards_and_observations_are_the_suites_bit_for_bit(name, seed):
         zip(episode.lab_observations, episode.suite_observations, episode.topics, strict=True)
     ):
         assert list(lab) == list(own), tick
-        for key, value in own.items():
-            value = np.asarray(value)
+        for key, given in own.items():
+            value = np.asarray(given)
             assert lab[key].dtype == value.dtype == np.float64, (tick, key)
             assert np.array_equal(lab[key], value), (tick, key)
             message = topics[f"/observation/{key}"]
@@ -164,6 +163,8 @@ def test_catalogue_is_the_environments(name):
     assert tuple(model.actuator(i).name for i in range(model.nu)) == listing.actuators
     spec = env.action_spec()
     assert spec.shape == (listing.action_size,)
+    bounds = np.broadcast_to(spec.minimum, spec.shape), np.broadcast_to(spec.maximum, spec.shape)
+    assert list(zip(*(b.tolist() for b in bounds), strict=True)) == list(listing.bounds)
     assert np.all(spec.minimum <= 0) and np.all(spec.maximum >= 0)  # zeros are an action
     observed = tuple((k, tuple(v.shape)) for k, v in env.observation_spec().items())
     assert observed == listing.observations
@@ -244,7 +245,7 @@ def test_bad_actions_are_refused_and_out_of_range_ones_clipped(name):
     task = sim.task
     size = listing_of(name).action_size
     assert np.array_equal(task.action(sim.physics), np.zeros(size))
-    with pytest.raises(MessageError, match=rf"^data must hold {size} values, one per actuator"):
+    with pytest.raises(MessageError, match=rf"^data must hold {size} values?, one per actuator"):
         task.command("/action", action_message([0.0] * (size + 1)))
     with pytest.raises(MessageError, match=rf"got {size - 1}$"):
         task.command("/action", action_message([0.0] * (size - 1)))
@@ -365,6 +366,22 @@ def test_layouts_read_the_topics_in_order(name):
     assert len(names) == len(set(names))
 
 
+def test_the_action_vector_is_the_action_topic(name, registry):
+    """``actions_of`` turns a vector into the /action message that acts it (clipped to
+    the actuators' bounds, which are the spec's), and its neutral vector is zeros."""
+    listing = listing_of(name)
+    actions = actions_of(listing)
+    assert [d.name for d in actions.dimensions] == list(listing.actuators)
+    assert [(d.low, d.high) for d in actions.dimensions] == list(listing.bounds)
+    sim = run(name, SEEDS[0]).sim
+    vector = [5.0, *[0.125] * (listing.action_size - 1)]
+    (message,) = actions.messages(vector).values()
+    sim.task.command("/action", codec_for(registry, ARRAY).normalize(message, NOW))
+    assert sim.task.action(sim.physics).tolist() == [listing.bounds[0][1], *vector[1:]]
+    neutral = actions.messages([d.neutral for d in actions.dimensions])["/action"]
+    assert neutral["data"] == [0.0] * listing.action_size
+
+
 def test_importing_the_pack_builds_no_environment():
     """``import labd.sim.dmc`` compiles no model (it must stay as fast as the lab's other
     imports): with every way to build one made to fail, the import still succeeds."""
@@ -398,5 +415,5 @@ def test_docs_table_every_task_with_its_threshold():
         actions, keys, episode, threshold = rows[listing.name][:4]
         assert int(actions) == listing.action_size, listing.name
         assert re.findall(r"`([a-z_]+)`", keys) == [k for k, _ in listing.observations]
-        assert episode == f"{listing.steps} × {listing.control_timestep:g} s", listing.name
+        assert episode == f"{listing.steps} steps of {listing.control_timestep:g} s", listing.name
         assert float(threshold) == listing.threshold, listing.name
