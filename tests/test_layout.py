@@ -32,7 +32,7 @@ LAYERS = [
     {"labd.graph"},
     {"labd.sim", "labd.bridge", "labd.recorder"},
     {"labd.station"},
-    {"labd.trial", "labd.replay", "labd.live", "labd.exports", "labd.scripted"},
+    {"labd.trial", "labd.replay", "labd.live", "labd.exports", "labd.scripted", "labd.gym"},
     {
         "labd.service",
         "labd.authorizer",

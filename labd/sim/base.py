@@ -35,6 +35,16 @@ from labd.sim.params import Params, Value
 from repository.trial import EpisodeStatus
 
 Stamp = dict[str, int]
+LARGEST_SEED = 2**32 - 1  # numpy's RandomState takes integer seeds up to this
+
+
+def random_state(seed: int) -> np.random.RandomState:
+    """numpy's ``RandomState(seed)`` for any lab seed (0 to 2**63 - 1): the seed itself
+    where numpy takes it, so those episodes stay as they were, else its two 32-bit halves
+    (the held-out suites draw 63-bit seeds)."""
+    if seed <= LARGEST_SEED:
+        return np.random.RandomState(seed)
+    return np.random.RandomState([seed & LARGEST_SEED, seed >> 32])
 
 
 @dataclass(frozen=True)

@@ -227,7 +227,8 @@ class Registry:
 
 
 def _own_first(point: Any) -> tuple[bool, str]:
-    """The lab's own tasks first (a plugin repeating one of their names is the problem)."""
+    """The lab's own tasks first (a plugin repeating one of their names is the one left
+    out), each group in the order of the entry points' names."""
     return (not str(point.value).startswith("labd."), str(point.name))
 
 

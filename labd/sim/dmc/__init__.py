@@ -61,6 +61,9 @@ def spec_of(listing: Listing) -> TaskSpec:
         build=cls.make,
         task_class=cls,
         suites=SUITES,
+        layout=layout_of(listing),
+        camera=listing.camera,
+        actions=actions_of(listing),
     )
 
 

@@ -42,7 +42,16 @@ from dm_control.rl import control
 from dm_control.suite import common
 
 from labd.errors import MessageError
-from labd.sim.base import CommandTopic, LabTask, ObservationTopic, Outcome, Stamp, finite
+from labd.sim.base import (
+    LARGEST_SEED,
+    CommandTopic,
+    LabTask,
+    ObservationTopic,
+    Outcome,
+    Stamp,
+    finite,
+    random_state,
+)
 from labd.sim.camera import Camera
 from labd.sim.dmc.catalog import Listing
 from labd.sim.params import Param, Params, Value
@@ -63,7 +72,6 @@ OPTICAL_FRAME = "camera_optical_frame"
 # MuJoCo's camera frame (x right, y up, looking down -z) to ROS's optical (z ahead, y down)
 TO_OPTICAL = np.diag([1.0, -1.0, -1.0])
 MOVING_JOINTS = (int(mujoco.mjtJoint.mjJNT_SLIDE), int(mujoco.mjtJoint.mjJNT_HINGE))
-LARGEST_SEED = 2**32 - 1  # numpy's RandomState takes integer seeds up to this
 
 
 def random_for(seed: int) -> int | np.random.RandomState:
@@ -71,9 +79,7 @@ def random_for(seed: int) -> int | np.random.RandomState:
     ``RandomState`` takes it (0 to 2**32 - 1, so ``suite.load`` with that seed is the same
     episode), else a generator seeded with its two 32-bit halves (held-out suites draw
     63-bit seeds)."""
-    if seed <= LARGEST_SEED:
-        return seed
-    return np.random.RandomState([seed & LARGEST_SEED, seed >> 32])
+    return seed if seed <= LARGEST_SEED else random_state(seed)
 
 
 def params_of(listing: Listing) -> Params:

@@ -34,6 +34,7 @@ from labd.sim.base import (
     Stamp,
     environment,
     finite,
+    random_state,
 )
 from labd.sim.camera import Camera
 from labd.sim.params import Param, Params, Value
@@ -513,7 +514,7 @@ def make(
     values: Mapping[str, Value], seed: int, *, time_limit: float | None = None
 ) -> control.Environment:
     """One pr2-table episode: the layout, hence the model, is drawn from ``seed``."""
-    random = np.random.RandomState(seed)
+    random = random_state(seed)
     plan = scene.layout(random, int(values["objects"]))
     xml = scene.world_xml(
         plan,

@@ -1,11 +1,13 @@
 """Drive a task in lockstep with seeded random commands and digest everything it publishes.
 
-Run as a program (``python -m tests.labd.sim.drive TASK SEED TICKS``) it prints one
-JSON object, so tests can compare what separate processes produced.
+Run as a program (``python -m tests.labd.sim.drive SEED TICKS TASK...``) it prints one
+JSON object, each task's result by its name, so tests can compare what separate
+processes produced.
 """
 
 from __future__ import annotations
 
+import copy
 import hashlib
 import json
 import sys
@@ -16,6 +18,7 @@ import numpy as np
 from labd.graph.codec import Codec, codec_for
 from labd.graph.graph import Graph
 from labd.graph.types import FLOATS, Kind, TypeRegistry
+from labd.sim.registry import TaskSpec
 from labd.sim.robot import Robot
 
 
@@ -33,6 +36,27 @@ def random_value(
             inner = codec_for(registry, field.message)
             out[field.name] = random_value(inner, registry, rng, scale)
     return out
+
+
+def random_command(
+    spec: TaskSpec,
+    topic: str,
+    codec: Codec,
+    registry: TypeRegistry,
+    rng: np.random.Generator,
+    scale: float = 1.0,
+) -> dict[str, Any]:
+    """``random_value``, except for a message whose numbers are a variable-length float
+    array (a task's ``/action``): there its length is the task's action vector's
+    (``TaskSpec.actions``), every value drawn from [-scale, scale] (not clipped)."""
+    sequences = [f for f in codec.type.fields if f.base in FLOATS and f.kind is Kind.SEQUENCE]
+    templates = spec.actions.templates if spec.actions is not None else {}
+    if not sequences or topic not in templates:
+        return random_value(codec, registry, rng, scale)
+    message = copy.deepcopy(dict(templates[topic][1]))
+    for field in sequences:
+        message[field.name] = rng.uniform(-scale, scale, len(message[field.name])).tolist()
+    return message
 
 
 def drive(
@@ -62,9 +86,9 @@ def drive(
     }
     rng = np.random.default_rng(seed)
     for _ in range(ticks):
-        for pub, codec in publishers.values():
+        for topic, (pub, codec) in publishers.items():
             if rng.random() < 0.5:
-                pub.publish(random_value(codec, registry, rng))
+                pub.publish(random_command(robot.sim.spec, topic, codec, registry, rng))
         answers: list[Any] = []
         client.call_service("/lab/step", None, answers.append)
         if not answers[0].response.data["success"]:
@@ -80,5 +104,5 @@ def drive(
 
 
 if __name__ == "__main__":
-    task, seed, ticks = sys.argv[1], int(sys.argv[2]), int(sys.argv[3])
-    print(json.dumps(drive(task, seed, ticks)))
+    seed, ticks, tasks = int(sys.argv[1]), int(sys.argv[2]), sys.argv[3:]
+    print(json.dumps({task: drive(task, seed, ticks) for task in tasks}))

@@ -417,3 +417,16 @@ def test_docs_table_every_task_with_its_threshold():
         assert re.findall(r"`([a-z_]+)`", keys) == [k for k, _ in listing.observations]
         assert episode == f"{listing.steps} steps of {listing.control_timestep:g} s", listing.name
         assert float(threshold) == listing.threshold, listing.name
+        assert rows[listing.name][4] == listing.basis, listing.name
+
+
+def test_docs_list_each_tasks_topics(name):
+    """Each task's own section of docs/tasks.md names its observation and command topics
+    exactly (as the shared suite, tests/labd/sim/test_tasks.py, checks)."""
+    text = (ROOT / "docs" / "tasks.md").read_text()
+    (body,) = [p for p in re.split(r"^## ", text, flags=re.M) if p.startswith(f"`{name}`")]
+    observations, commands = PACK[name].topics()
+    for section, topics in (("Observations", observations), ("Commands", commands)):
+        (table,) = [p for p in re.split(r"^### ", body, flags=re.M) if p.startswith(section)]
+        rows = [line.split("|")[1] for line in table.splitlines() if line.startswith("| `/")]
+        assert {t for row in rows for t in re.findall(r"`(/[^`]*)`", row)} == set(topics)

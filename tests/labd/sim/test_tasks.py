@@ -7,6 +7,8 @@ observations in another process.
 
 from __future__ import annotations
 
+import copy
+import fcntl
 import json
 import math
 import re
@@ -26,7 +28,7 @@ from labd.sim import registry
 from labd.sim.base import stamp_of
 from labd.sim.robot import Robot
 from labd.sim.simulation import Simulation
-from tests.labd.sim.drive import drive, random_value
+from tests.labd.sim.drive import drive, random_command
 
 ROOT = Path(__file__).resolve().parents[3]
 TASKS = registry.names()
@@ -107,7 +109,8 @@ def test_an_episode_driven_by_commands_keeps_to_the_specs(task, registry):
     _check_observation(timestep.observation, observation_spec, 0)
     for tick in range(1, TICKS + 1):
         for name, codec in codecs:  # each command, every field in [-5, 5]
-            value = codec.normalize(random_value(codec, registry, rng, 5.0), lambda: (0, 0))
+            drawn = random_command(sim.spec, name, codec, registry, rng, 5.0)
+            value = codec.normalize(drawn, lambda: (0, 0))
             lab_task.command(name, value)
         action = lab_task.action(sim.physics)
         action_spec.validate(action)  # its shape, dtype and bounds
@@ -141,6 +144,15 @@ def _stamps(value: Any) -> list[Any]:
     return []
 
 
+def _has_header(kind: str, registry: Any) -> bool:
+    """Whether a message of type ``kind`` holds a std_msgs Header, at any depth."""
+    fields = codec_for(registry, kind).type.fields
+    return any(
+        f.message is not None and ("Header" in f.message or _has_header(f.message, registry))
+        for f in fields
+    )
+
+
 def test_observations_are_stamped_with_simulation_time(task, registry):
     """Every header the robot publishes, nested ones too, carries its tick's simulation time."""
     graph = Graph(registry, name="stamps")
@@ -161,19 +173,26 @@ def test_observations_are_stamped_with_simulation_time(task, registry):
         robot.close()
     assert {topic for _, topic, _ in heard} == {o.name for o in robot.sim.task.observations}
     assert {tick for tick, _, _ in heard} == {0, 1, 2, 3}
+    headed = {o.name for o in robot.sim.task.observations if _has_header(o.type, registry)}
     for tick, topic, stamps in heard:
-        assert stamps, f"{topic} at tick {tick} has no header"
+        assert stamps or topic not in headed, f"{topic} at tick {tick} has no header"
         want = {"sec": tick * period_ns // 10**9, "nanosec": tick * period_ns % 10**9}
         assert all(stamp == want for stamp in stamps), (topic, tick, stamps)
 
 
-def _nan_message(codec: Any, registry: Any) -> tuple[dict[str, Any], list[str]] | None:
-    """The default message with its first float scalar set to NaN, and that field's path."""
-    value = codec.default()
+def _nan_message(
+    codec: Any, registry: Any, template: Any = None
+) -> tuple[dict[str, Any], list[str]] | None:
+    """The default message (or ``template``, a task's action message) with its first
+    float set to NaN, and that field's path (``data[0]`` for a float array)."""
+    value = codec.default() if template is None else copy.deepcopy(dict(template))
     for field in codec.type.fields:
         if field.base in FLOATS and field.kind is Kind.SCALAR:
             value[field.name] = math.nan
             return value, [field.name]
+        if field.base in FLOATS and field.kind is not Kind.SCALAR and value[field.name]:
+            value[field.name] = [math.nan, *list(value[field.name])[1:]]
+            return value, [f"{field.name}[0]"]
         if field.message and field.kind is Kind.SCALAR:
             inner = _nan_message(codec_for(registry, field.message), registry)
             if inner is not None:
@@ -187,7 +206,9 @@ def test_nan_commands_are_refused_naming_the_field(task, registry):
     sim = Simulation(task, {}, seed=1)
     checked = 0
     for command in sim.task.commands:
-        found = _nan_message(codec_for(registry, command.type), registry)
+        templates = sim.spec.actions.templates if sim.spec.actions is not None else {}
+        template = templates.get(command.name, (None, None))[1]
+        found = _nan_message(codec_for(registry, command.type), registry, template)
         if found is None:
             continue
         value, path = found
@@ -198,19 +219,32 @@ def test_nan_commands_are_refused_naming_the_field(task, registry):
     assert checked, "no command with a float field to check"
 
 
-def test_same_inputs_same_data_across_processes(task):
+@pytest.fixture(scope="session")
+def elsewhere(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Any]:
+    """Every task driven in one other process (one import of the simulator for all), once
+    for a whole parallel run: the first worker to ask drives, the others read its file."""
+    shared = tmp_path_factory.getbasetemp().parent  # the same folder for every worker
+    kept = shared / "tasks-driven-elsewhere.json"
+    with open(shared / "tasks-driven-elsewhere.lock", "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        if not kept.exists():
+            other = subprocess.run(
+                [sys.executable, "-m", "tests.labd.sim.drive", "5", str(TICKS), *TASKS],
+                cwd=ROOT,
+                check=True,
+                capture_output=True,
+                text=True,
+                timeout=600,
+            )
+            kept.write_text(other.stdout)
+    found: dict[str, Any] = json.loads(kept.read_text())
+    return found
+
+
+def test_same_inputs_same_data_across_processes(task, elsewhere):
     """Another process given the same task, seed and commands publishes identical bytes."""
     here = drive(task, 5, TICKS)
-    other = subprocess.run(
-        [sys.executable, "-m", "tests.labd.sim.drive", task, "5", str(TICKS)],
-        cwd=ROOT,
-        check=True,
-        capture_output=True,
-        text=True,
-        timeout=300,
-    )
-    there = json.loads(other.stdout)
-    assert there == here
+    assert elsewhere[task] == here
     assert here["counts"].get("/camera/image/compressed", 0) >= TICKS // 2
 
 
@@ -260,3 +294,11 @@ def test_docs_list_the_tasks_topics(task, sim):
     spec = registry.get(task)
     assert _documented_topics(spec.name, "Observations") == {o.name for o in sim.task.observations}
     assert _documented_topics(spec.name, "Commands") == {c.name for c in sim.task.commands}
+
+
+def test_the_largest_seed_builds_an_episode(task):
+    """Every task takes every seed a suite may draw (held-out seeds are 63-bit): the
+    largest builds an episode that steps."""
+    largest = Simulation(task, {}, seed=2**63 - 1)
+    largest.step()
+    assert (largest.seed, largest.tick) == (2**63 - 1, 1)
