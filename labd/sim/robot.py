@@ -397,6 +397,9 @@ class LiveRunner:
         while True:
             due = min(earliest, deadline) if self._commanded else deadline
             if loop.time() >= due:
+                # Late (ticks slower than their period): still let the loop's other work
+                # (clients, pages, the lab's own calls) run between two ticks.
+                await asyncio.sleep(0)
                 return
             wake = self._wake = loop.create_future()
             timer = loop.call_at(due, _resolve, wake)

@@ -66,6 +66,7 @@ JOINT_STATES = "/joint_states"
 TF = "/tf"
 CAMERA_INFO = "/camera/camera_info"
 CAMERA_IMAGE = "/camera/image/compressed"
+CAMERA_RATE = 25  # frames a second at most, in simulation time
 ARRAY = "std_msgs/msg/Float64MultiArray"
 WORLD = "world"
 OPTICAL_FRAME = "camera_optical_frame"
@@ -360,7 +361,10 @@ class SuiteTask(LabTask):
 
 def task_class(listing: Listing) -> type[SuiteTask]:
     """The ``SuiteTask`` subclass of one pack task: its name, parameters and topics as
-    class attributes, known without building an episode."""
+    class attributes, known without building an episode. Its camera shows at most
+    ``CAMERA_RATE`` frames a second: a 100 Hz task rendered every tick would take more
+    than a core live."""
+    frames = max(1, round(1 / (CAMERA_RATE * listing.control_timestep)))
     observations = [
         ObservationTopic(
             OBSERVATION + key,
@@ -377,7 +381,10 @@ def task_class(listing: Listing) -> type[SuiteTask]:
         ObservationTopic(
             CAMERA_IMAGE,
             "sensor_msgs/msg/CompressedImage",
-            f"the suite's camera {listing.camera!r}, JPEG",
+            f"the suite's camera {listing.camera!r}, JPEG, every {frames} ticks"
+            if frames > 1
+            else f"the suite's camera {listing.camera!r}, JPEG",
+            period=frames,
             on_demand=True,
         ),
     ]

@@ -85,6 +85,7 @@ function plots(live, topics) {
         values.forEach(() => series.push([]));
         chart = new uPlot({
           width: Math.max(280, holder.clientWidth || 420), height: 140, legend: { show: values.length <= 8 },
+          scales: { x: { time: false } },  // simulation seconds
           series: [{ label: "s" }, ...values.map((_, i) => ({ label: `${i}`, stroke: PALETTE[i % PALETTE.length], points: { show: false } }))],
         }, [t, ...series], holder);
       }
