@@ -524,8 +524,7 @@ class MazeSolver {
       lab.subscribe("/odom", "nav_msgs/msg/Odometry"),
       lab.subscribe("/bumper", "lab_msgs/msg/Bumper"),
       lab.subscribe("/ar_tags", "lab_msgs/msg/ArTagArray"),
-      lab.subscribe("/lab/episode", "lab_msgs/msg/Episode"),
-    ];
+    ];  // not /lab/episode: the step's answer says where the episode is (as in Python)
     const goal = await lab.subscribe("/goal", "geometry_msgs/msg/PointStamped").get();
     for (const topic of topics) await topic.get();
     return new MazeSolver(lab, goal.point);
