@@ -17,6 +17,7 @@ import pytest
 from labd import __version__
 from labd.api.app import create_app
 from labd.service import Service, ServiceConfig
+from labd.sim import registry
 from repository.trial import Filing
 from scheduler.fetch import FetchPolicy
 from scheduler.remote import PROTOCOL, PROTOCOL_HEADER, VERSION_HEADER
@@ -287,8 +288,10 @@ async def test_openapi_and_tasks(api):
                     assert content["application/json"]["schema"] == {
                         "$ref": "#/components/schemas/ErrorBody"
                     }, (method, path, status)
-    tasks = {t["name"]: t for t in (await api.get("/api/tasks")).json()["tasks"]}
-    assert set(tasks) == {"icreate-maze", "pr2-table"}
+    listing = (await api.get("/api/tasks")).json()
+    tasks = {t["name"]: t for t in listing["tasks"]}
+    assert list(tasks) == registry.names() and listing["problems"] == []
+    assert {"icreate-maze", "pr2-table", "dmc-cheetah-run"} <= set(tasks)
     assert tasks["icreate-maze"]["params"]["maze_size"]["type"] == "int"
 
 
