@@ -210,11 +210,14 @@ def problem(err: Exception, method: str = "", path: str = "") -> Problem:
 
 def told(err: Exception, said: Problem, method: str, path: str) -> None:
     """Log what the operator must hear of an answer: a bug, or a fault of the lab's own
-    (5xx), with its traceback; "not ready" (503) in one line."""
+    (5xx), with its traceback; "not ready" (503) and a limit's time running out (504)
+    in one line."""
     if not expected(err):
         log.error("%s %s failed", method, path, exc_info=err)
     elif said.status == 503:  # said loudly once where it was found, not per request
         log.warning("%s %s refused: the lab is not ready", method, path)
+    elif said.status == 504:  # the limit did its work: nothing of the lab's is broken
+        log.warning("%s %s: %s", method, path, said.message)
     elif said.status >= 500:
         log.error("%s %s: %s", method, path, said.message, exc_info=err)
 
