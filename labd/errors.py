@@ -31,6 +31,7 @@ formats itself, so a handler turns it into a protocol reply without string surge
 
 from __future__ import annotations
 
+import difflib
 import errno
 import os
 from collections.abc import Sequence
@@ -198,7 +199,9 @@ class UnknownTaskError(SimError):
     def __init__(self, name: str, known: Sequence[str]) -> None:
         self.name = name
         self.known = list(known)
-        super().__init__(f"no task {name!r}; the tasks are {', '.join(self.known)}")
+        close = difflib.get_close_matches(name, self.known, n=1)
+        hint = f" (did you mean {close[0]}?)" if close else ""
+        super().__init__(f"no task {name!r}{hint}; the tasks are {', '.join(self.known)}")
 
 
 class ParamError(SimError):

@@ -36,6 +36,7 @@ from repository.trial import Trial
 from sandbox.api import Limits, SandboxError
 from scheduler.client import ApiClient
 from scheduler.data import Archive, LocalArchive, RemoteArchive
+from scheduler.errors import InvalidRequest
 from scheduler.runner import RunOptions, TrialResult, TrialSpec, run_trial
 
 
@@ -89,17 +90,20 @@ def main(args: argparse.Namespace) -> int:
     options = RunOptions(limits=Limits(wall=args.wall))
     with contextlib.ExitStack() as stack:
         resolver = _archive(args, stack)
-        result = asyncio.run(
-            run_trial(
-                spec,
-                backend=backend,
-                host=LabHost(),
-                out=out,
-                cache=args.data / "cache",
-                options=options,
-                resolver=resolver,
+        try:
+            result = asyncio.run(
+                run_trial(
+                    spec,
+                    backend=backend,
+                    host=LabHost(),
+                    out=out,
+                    cache=args.data / "cache",
+                    options=options,
+                    resolver=resolver,
+                )
             )
-        )
+        except InvalidRequest as err:  # a task or parameter that is not there: a usage error
+            return fail(args, str(err))
     if args.json:
         print(json.dumps(result.to_json(), indent=2))
     else:

@@ -70,6 +70,28 @@ def test_labd_run_exits_by_outcome(cache, tmp_path, source, params, outcome, cod
     assert text.stdout.startswith(f"trial {outcome.upper()}: "), text.stdout
 
 
+@pytest.mark.parametrize(
+    ("given", "said"),
+    [
+        (["--task", "icreate-maz"], "no task 'icreate-maz' (did you mean icreate-maze?)"),
+        (["--param", "maze_sise=5"], "parameter maze_sise is not a parameter of this task"),
+    ],
+    ids=["task", "parameter"],
+)
+def test_labd_run_of_a_misspelt_task_or_parameter_is_a_usage_error(cache, tmp_path, given, said):
+    """A misspelt task or parameter is one line (a JSON error under --json) naming what
+    is there, and the usage error's exit code: no traceback, and not "fail"."""
+    make_backend("bwrap", cache)
+    data = tmp_path / "data"
+    shared_cache(data, cache)
+    for extra in ([], ["--json"]):
+        done = labd("run", str(MAZE), "--sandbox", "bwrap", "--data", str(data), *given, *extra)
+        assert done.returncode == 2, done.stderr
+        assert "Traceback" not in done.stderr + done.stdout
+        text = json.loads(done.stdout)["error"] if extra else done.stderr
+        assert said in text, text
+
+
 def test_errors_under_json_are_json_with_the_same_exit_code(tmp_path):
     """A command that cannot do its work prints {"error": ...} on stdout under --json,
     and one line on stderr without it; both exit 2 and show no traceback."""
