@@ -13,14 +13,17 @@ from collections.abc import Callable
 
 from fastapi import APIRouter, FastAPI, Request
 from fastapi.responses import HTMLResponse
+from starlette.exceptions import HTTPException
+from starlette.responses import Response
 
+from labd.api import errors
 from labd.api.app import create_app as create_api
 from labd.api.site import RobotLink, Site
 from labd.service import Service
 from labd.web import accounts, evaluations, forms, pages, playground, reservations, robots
 from labd.web.assets import Precompressed
 from labd.web.headers import SecurityHeaders
-from labd.web.problems import PageRoute
+from labd.web.problems import PageRoute, error_page
 from labd.web.render import STATIC, page
 from repository.reservations import Reservation
 
@@ -72,4 +75,19 @@ def install(app: FastAPI) -> None:
     app.include_router(accounts.router)
     app.include_router(reservations.router)
     app.include_router(docs)
+    app.add_exception_handler(HTTPException, _not_a_page)
     app.add_middleware(SecurityHeaders)
+
+
+NOT_PAGES = ("/api/", "/git/", "/static/", "/openapi.json")
+
+
+async def _not_a_page(request: Request, err: Exception) -> Response:
+    """A URL that is no route (404) or does not take the method (405): a browser asking
+    for a page gets the error page, anything else the API's JSON (``labd.api.errors``)."""
+    path = request.url.path
+    wants_page = "text/html" in request.headers.get("accept", "")
+    if wants_page and not path.startswith(NOT_PAGES) and request.method in ("GET", "HEAD"):
+        said = errors.problem(err, request.method, path)
+        return error_page(request, err, said)
+    return errors.answer(path, request.method, err)

@@ -122,6 +122,19 @@ async def test_unknown_things_are_pages_with_a_way_back(web):
     assert "no task &#39;juggling&#39;; the tasks are" in (await web.get("/tasks/juggling")).text
 
 
+async def test_a_url_that_is_no_page_is_a_page_for_a_browser(web):
+    """A browser (Accept: text/html) asking for a URL that is no route gets the 404
+    page; a client that does not ask for HTML, or asks under /api/, gets JSON."""
+    browser = {"Accept": "text/html,application/xhtml+xml"}
+    page = await web.get("/signin", headers=browser)
+    assert page.status_code == 404 and page.headers["content-type"].startswith("text/html")
+    assert "<h1>Not found</h1>" in page.text and "no such page or API route: /signin" in page.text
+    for path, headers in (("/signin", {}), ("/api/nothing", browser)):
+        said = await web.get(path, headers=headers)
+        assert said.status_code == 404 and said.headers["content-type"] == "application/json"
+        assert said.json() == {"error": f"no such page or API route: {path}"}
+
+
 def test_every_page_answers_errors_as_a_page(service):
     """Every route outside the API (its JSON under /api/, and the OpenAPI document) is a
     ``PageRoute``, so an error it raises is a page under the API's status, never JSON."""
