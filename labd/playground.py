@@ -28,6 +28,7 @@ import re
 import shutil
 import subprocess
 import tempfile
+import tomllib
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -162,10 +163,13 @@ def script_of(committed: dict[str, bytes]) -> Script | None:
     text, toml = committed.get(SCRIPT), committed.get(LAB_TOML)
     if text is None or toml is None:
         return None
-    task = re.search(rb'^task = "([^"]+)"$', toml, re.MULTILINE)
-    if task is None:
+    try:
+        task = tomllib.loads(toml.decode())["controller"]["task"]
+    except (UnicodeDecodeError, tomllib.TOMLDecodeError, KeyError, TypeError):
         return None
-    return Script(text.decode("utf-8", "replace"), task.group(1).decode())
+    if not isinstance(task, str):
+        return None
+    return Script(text.decode("utf-8", "replace"), task)
 
 
 def check(text: str, node: str | None = None) -> None:
@@ -208,7 +212,7 @@ def _parse_failure(stderr: str, lines: int) -> ScriptError:
     report = stderr.splitlines()
     line, column, message = 0, 0, ""
     for n, text in enumerate(report):
-        if not line and (where := WHERE.match(text)) and text.rstrip().endswith(where.group(1)):
+        if not line and (where := WHERE.match(text)):
             line = int(where.group(1))
             caret = report[n + 2] if n + 2 < len(report) else ""
             if caret.strip() and set(caret.strip()) == {"^"}:

@@ -63,18 +63,23 @@ class ScriptCheck(BaseModel):
     column: int | None = None
 
 
-class PlaygroundRequest(BaseModel):
-    """A script to commit as ``USER/NAME`` and run as a trial of ``task``."""
+class ScriptCommit(BaseModel):
+    """A script to commit as ``USER/NAME``, for ``task``."""
 
     model_config = ConfigDict(extra="forbid")
     name: Name
     task: str = Field(min_length=1, max_length=64, description="a task from /api/tasks")
     script: str = Field(max_length=MAX_SCRIPT, description="the script (an ES module)")
-    seed: SeedField = 0
     message: str = Field("", max_length=200, description="the commit's message")
 
 
-class PlaygroundEvaluationRequest(PlaygroundRequest):
+class PlaygroundRequest(ScriptCommit):
+    """A script to commit as ``USER/NAME`` and run as a trial of ``task``."""
+
+    seed: SeedField = 0
+
+
+class PlaygroundEvaluationRequest(ScriptCommit):
     """A script to commit as ``USER/NAME`` and evaluate on a suite of ``task``."""
 
     suite: str = Field("dev", min_length=1, max_length=32, description="a suite of the task")
@@ -137,18 +142,10 @@ async def run_as_trial(
     trial_id = await service.submissions.submit_async(user, request_)
     app.on_submit()
 
-    def created() -> JSONResponse:
-        base = str(request.base_url).rstrip("/")
-        run = PlaygroundRun(
-            repository=url,
-            commit=sha,
-            playground=_page(base, user.name, body.name, sha),
-            trial=trial_detail(service.index.trial(trial_id), base),
-        )
-        headers = {"Location": run.trial.url}
-        return JSONResponse(run.model_dump(mode="json"), status_code=201, headers=headers)
-
-    return await run_in_threadpool(created)
+    base = str(request.base_url).rstrip("/")
+    trial = await run_in_threadpool(lambda: trial_detail(service.index.trial(trial_id), base))
+    page = _page(base, user.name, body.name, sha)
+    return _created(PlaygroundRun(repository=url, commit=sha, playground=page, trial=trial))
 
 
 @router.post(
@@ -169,21 +166,16 @@ async def run_as_evaluation(
     evaluation_id = await service.submissions.in_pool(service.evaluator.submit, user, asked)
     app.on_submit()
 
-    def created() -> JSONResponse:
-        base = str(request.base_url).rstrip("/")
-        made = PlaygroundEvaluation(
-            repository=url,
-            commit=sha,
-            playground=_page(base, user.name, body.name, sha),
-            evaluation=evaluation_view(service.evaluations.get(evaluation_id), base),
-        )
-        headers = {"Location": made.evaluation.url}
-        return JSONResponse(made.model_dump(mode="json"), status_code=201, headers=headers)
-
-    return await run_in_threadpool(created)
+    base = str(request.base_url).rstrip("/")
+    made = await run_in_threadpool(service.evaluations.get, evaluation_id)
+    page = _page(base, user.name, body.name, sha)
+    evaluation = evaluation_view(made, base)
+    return _created(
+        PlaygroundEvaluation(repository=url, commit=sha, playground=page, evaluation=evaluation)
+    )
 
 
-async def _commit(service: Service, user: User, body: PlaygroundRequest) -> tuple[str, str]:
+async def _commit(service: Service, user: User, body: ScriptCommit) -> tuple[str, str]:
     """Check the task, the name and the script, then commit the script: its
     repository's URL and the commit (nothing is written when a check fails)."""
     registry.get(body.task)  # an unknown task is refused before anything is written
@@ -203,6 +195,12 @@ async def _commit(service: Service, user: User, body: PlaygroundRequest) -> tupl
         )
 
     return url, await run_in_threadpool(commit)
+
+
+def _created(made: PlaygroundRun | PlaygroundEvaluation) -> JSONResponse:
+    """201, with where the trial or evaluation is."""
+    where = made.trial.url if isinstance(made, PlaygroundRun) else made.evaluation.url
+    return JSONResponse(made.model_dump(mode="json"), status_code=201, headers={"Location": where})
 
 
 def _page(base: str, user: str, name: str, sha: str) -> str:

@@ -22,6 +22,7 @@ import json
 import re
 from dataclasses import dataclass
 from typing import Annotated, Any
+from urllib.parse import urlsplit
 
 from fastapi import APIRouter, Depends, Query, Request
 from fastapi.responses import HTMLResponse
@@ -202,20 +203,18 @@ def trial(request: Request, trial_id: Id, service: Lab, viewer: Viewer) -> HTMLR
     )
 
 
-HOSTED = re.compile(
-    r"^https?://[^/]+/git/([A-Za-z0-9][A-Za-z0-9._-]*)/([A-Za-z0-9][A-Za-z0-9._-]*)\.git$"
-)
+HOSTED = re.compile(r"^/git/([^/]+)/([^/]+)\.git$")  # the path of one of the lab's own
 
 
 def _playground(service: Lab, record: Trial) -> str | None:
     """The playground page of a trial's script, when the trial ran a commit of one of
     this lab's own repositories (found by its commit there, whatever address the lab had
     when it ran)."""
-    found = HOSTED.match(record.repository)
+    found = HOSTED.match(urlsplit(record.repository).path)
     if found is None or not record.commit:
         return None
     user, name = found.groups()
-    try:
+    try:  # which checks the names, before any path is made of them
         service.hosted.read(user, name, record.commit)
     except LabError:
         return None
