@@ -9,12 +9,17 @@
     labd users add|list|password|revoke|rotate
                                    the operator's: users, their passwords and tokens
     labd migrate                   the operator's: upgrade an archive's index in place
+    labd config show               the operator's: the effective settings, and their sources
     labd replay TRIAL|RECORD       re-simulate a record from its actions; render its cameras
     labd verify FILE|DIR           check a record or an export against its signature, offline
     labd keys rotate               the operator's: sign with a new key
     labd worker --server URL       run a lab's trials on this machine
     labd demo                      what `make demo` runs
     labd demonstrate               scripted maze demonstrations, filed in the archive
+
+Only the module of the command asked for is imported, so a command that talks to a lab
+starts without the simulator. ``labd serve`` and the operator's commands read the lab's
+configuration file and ``LABD_*`` variables (``labd.commands.settings``).
 
 Exit codes are listed in ``labd.commands.common`` and at the end of ``labd --help``.
 """
@@ -24,6 +29,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import faulthandler
+import importlib
 import io
 import json
 import logging
@@ -31,28 +37,61 @@ import os
 import signal
 import sys
 from collections.abc import Callable, Sequence
-from typing import NoReturn
+from dataclasses import dataclass
+from typing import Any, NoReturn
 
 from labd import __version__
-from labd.commands import (
-    demo,
-    demonstrate,
-    evaluate,
-    migrate,
-    remote,
-    replay,
-    reserve,
-    run,
-    serve,
-    suites,
-    users,
-    verify,
-    worker,
-)
-from labd.commands.common import EPILOG
+from labd.commands import settings
+from labd.commands.common import EPILOG, fail
 from labd.logs import limit_repeats
 
 log = logging.getLogger("labd")
+
+
+@dataclass(frozen=True)
+class Command:
+    """A command of ``labd``: the module under ``labd.commands`` that defines and runs it
+    (imported only when it is the one asked for), and its line in ``labd --help``."""
+
+    module: str
+    help: str
+
+
+COMMANDS = {
+    "serve": Command(
+        "serve", "run the lab: the bridge and robots, the HTTP API, the archive and its workers"
+    ),
+    "run": Command("run", "run a controller repository as one trial, locally"),
+    "submit": Command("remote", "queue a trial of a repository at a ref"),
+    "trials": Command("remote", "list trials in the archive, newest first"),
+    "show": Command("remote", "one trial: how it ended, what ran, its record"),
+    "logs": Command("remote", "print a trial's controller output"),
+    "download": Command("remote", "download a trial's MCAP record"),
+    "rerun": Command("remote", "rerun a trial, or a commit's trials, to check them"),
+    "cancel": Command("remote", "cancel a queued or running trial"),
+    "export": Command("remote", "export trials for learning: a row per control tick, every camera"),
+    "tasks": Command("remote", "the lab's tasks and their parameters"),
+    "status": Command("remote", "the lab now: the queue and what workers run"),
+    "evaluate": Command(
+        "evaluate", "score a commit on a task's suite of episodes, with its uncertainty"
+    ),
+    "evaluations": Command("evaluate", "list evaluations, newest first"),
+    "reserve": Command("reserve", "book a live robot for a slot; your bookings"),
+    "users": Command("users", "the operator's: the lab's users, their passwords and tokens"),
+    "suites": Command("suites", "the operator's: the tasks' episode suites"),
+    "migrate": Command(
+        "migrate", "the operator's: upgrade the archive's index to this labd's schema"
+    ),
+    "config": Command("settings", "the operator's: the effective settings and their sources"),
+    "keys": Command("verify", "the operator's: the keys the lab signs with"),
+    "verify": Command("verify", "check a record or an export against its signature"),
+    "replay": Command("replay", "re-simulate a record and compare; render videos"),
+    "demo": Command("demo", "serve the lab, submit the examples, show results"),
+    "demonstrate": Command(
+        "demonstrate", "scripted maze demonstrations, filed in the lab's archive"
+    ),
+    "worker": Command("worker", "run a lab's queued trials on this machine"),
+}
 
 
 class Parser(argparse.ArgumentParser):
@@ -65,7 +104,10 @@ class Parser(argparse.ArgumentParser):
         super().error(message)
 
 
-def build_parser() -> argparse.ArgumentParser:
+def build_parser(argv: Sequence[str] | None = None) -> argparse.ArgumentParser:
+    """The command line's parser. Only the module of the command ``argv`` names is
+    imported (``labd --version`` and ``labd trials`` need no simulator); the other
+    commands are listed by name. ``argv`` None: every command's module (the docs' tests)."""
     parser = Parser(
         prog="labd",
         description="The remote robot lab daemon.",
@@ -80,40 +122,47 @@ def build_parser() -> argparse.ArgumentParser:
         help="what the lab logs on stderr: INFO adds what it does, step by step"
         " (default: %(default)s)",
     )
-    commands = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
-    serve.add_parser(commands)
-    run.add_parser(commands)
-    remote.add_parsers(commands)
-    evaluate.add_parsers(commands)
-    reserve.add_parser(commands)
-    users.add_parser(commands)
-    suites.add_parser(commands)
-    migrate.add_parser(commands)
-    verify.add_parser(commands)
-    replay.add_parser(commands)
-    demo.add_parser(commands)
-    demonstrate.add_parser(commands)
-    worker.add_parser(commands)
+    commands = parser.add_subparsers(
+        dest="command", required=True, metavar="COMMAND", parser_class=Parser
+    )
+    wanted = list(COMMANDS) if argv is None else [_command_in(argv)]
+    for module in dict.fromkeys(COMMANDS[name].module for name in wanted if name in COMMANDS):
+        _module(module).add_parser(_Listed(commands))
+    for name, command in COMMANDS.items():
+        if name not in commands.choices:
+            commands.add_parser(name, help=command.help, add_help=False)
+        elif name in settings.CONFIGURED:
+            for leaf in settings.leaves(commands.choices[name]):
+                settings.add_config_option(leaf)
     return parser
 
 
-MAINS: dict[str, Callable[[argparse.Namespace], int]] = {
-    "serve": serve.main,
-    "run": run.main,
-    "reserve": reserve.main,
-    "users": users.main,
-    "suites": suites.main,
-    "evaluate": evaluate.main,
-    "evaluations": evaluate.main,
-    "migrate": migrate.main,
-    "verify": verify.main,
-    "replay": replay.main,
-    "keys": verify.main,
-    "demo": demo.main,
-    "demonstrate": demonstrate.main,
-    "worker": worker.main,
-    **dict.fromkeys(remote.COMMANDS, remote.main),
-}
+class _Listed:
+    """The commands' ``add_subparsers`` action, as a module sees it: its commands' lines
+    in ``labd --help`` are ``COMMANDS``'s."""
+
+    def __init__(self, commands: Any) -> None:
+        self._commands = commands
+
+    def add_parser(self, name: str, **options: Any) -> argparse.ArgumentParser:
+        options["help"] = COMMANDS[name].help
+        parser: argparse.ArgumentParser = self._commands.add_parser(name, **options)
+        return parser
+
+
+def _command_in(argv: Sequence[str]) -> str:
+    """The command ``argv`` names: its first word that is no option (nor an option's value)."""
+    words = iter(argv)
+    for word in words:
+        if word == "--log-level":
+            next(words, None)
+        elif not word.startswith("-"):
+            return word
+    return ""
+
+
+def _module(name: str) -> Any:
+    return importlib.import_module(f"labd.commands.{name}")
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -131,7 +180,9 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 
 def _main(argv: Sequence[str] | None) -> int:
-    args = build_parser().parse_args(argv)
+    argv = sys.argv[1:] if argv is None else list(argv)
+    parser = build_parser(argv)
+    args = parser.parse_args(argv)
     # force: a library may have configured the root logger on import (absl's logging
     # does, at dm_control's first message), which would make this call do nothing
     logging.basicConfig(
@@ -144,8 +195,10 @@ def _main(argv: Sequence[str] | None) -> int:
     # ``kill -USR1 PID`` prints where every thread of a labd process is, on stderr
     with contextlib.suppress(io.UnsupportedOperation, ValueError):  # (a captured stderr)
         faulthandler.register(signal.SIGUSR1, all_threads=True)
-    return MAINS[args.command](args)
-
-
-if __name__ == "__main__":
-    sys.exit(main())
+    if args.command in settings.CONFIGURED:
+        try:
+            settings.apply(parser, args, settings.given(build_parser, argv))
+        except settings.ConfigError as err:
+            return fail(args, str(err))
+    run: Callable[[argparse.Namespace], int] = _module(COMMANDS[args.command].module).main
+    return run(args)

@@ -8,9 +8,13 @@ ArchiveError                 the archive could not do what was asked
 ├── HeldOut                  an episode of a held-out suite: its seed and record are
 │                            the operator's until the suite version is retired
 ├── SchemaMismatch           the index was written by another version of labd
+├── IndexUnreachable         the index's database did not answer when opened
 ├── IndexLost                the index's files changed under the running lab (its WAL
 │                            deleted): writes are refused until the lab restarts
 ├── ExportError              a record could not be exported (format, content)
+├── BackupError              a backup could not be made or restored (repository.backup)
+│   ├── BackupDamaged        a backup is incomplete or its files were changed
+│   └── TargetNotEmpty       a restore's target already holds an archive
 ├── AccountError             an account could not be made or changed (name, password)
 │   └── BadCredentials       a wrong user name or password
 └── ReservationError         a booking the lab's rules refuse (the message names the rule)
@@ -87,6 +91,16 @@ class SchemaMismatch(ArchiveError):
         super().__init__(what)
 
 
+class IndexUnreachable(ArchiveError):
+    """The index's database did not answer when it was opened (a wrong address, a server
+    that is down, a refused password); ``where`` is its URL without a password."""
+
+    def __init__(self, where: str, reason: str) -> None:
+        self.where = where
+        self.reason = reason
+        super().__init__(f"cannot reach the index at {where}: {reason}")
+
+
 class IndexLost(ArchiveError):
     """The files of the index were deleted or replaced while the lab had them open
     (``repository.wal``): the lab refuses writes until it is restarted."""
@@ -100,6 +114,31 @@ class ExportError(ArchiveError):
     def __init__(self, reason: str) -> None:
         self.reason = reason
         super().__init__(f"export: {reason}")
+
+
+class BackupError(ArchiveError):
+    """A backup could not be made or restored; the message says why and what to do."""
+
+
+class BackupDamaged(BackupError):
+    """A backup that did not finish (no manifest), or whose files changed since."""
+
+    def __init__(self, folder: str, reason: str) -> None:
+        self.folder = folder
+        self.reason = reason
+        super().__init__(f"{folder} is not a whole backup: {reason}")
+
+
+class TargetNotEmpty(BackupError):
+    """A restore's target already holds an archive (rows, or hosted repositories)."""
+
+    def __init__(self, where: str, holds: str) -> None:
+        self.where = where
+        self.holds = holds
+        super().__init__(
+            f"{where} already holds {holds}; restore only into a new lab (an empty index,"
+            " no hosted repositories)"
+        )
 
 
 class AccountError(ArchiveError):

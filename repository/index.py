@@ -29,7 +29,13 @@ from typing import Any
 import sqlalchemy as sa
 from sqlalchemy.engine import Connection, Engine
 
-from repository.errors import ArchiveError, HeldOut, RecordNotFound, SchemaMismatch
+from repository.errors import (
+    ArchiveError,
+    HeldOut,
+    IndexUnreachable,
+    RecordNotFound,
+    SchemaMismatch,
+)
 from repository.tables import (
     derived,
     episodes,
@@ -182,6 +188,11 @@ class Index:
         index = cls(connect(url, **engine_options), clock=clock)
         try:
             index.create()
+        except sa.exc.OperationalError as err:
+            index.close()
+            where = index.engine.url.render_as_string(hide_password=True)
+            reason = str(err.orig or err).strip().splitlines()[0]
+            raise IndexUnreachable(where, reason) from None
         except BaseException:
             index.close()
             raise

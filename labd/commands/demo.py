@@ -27,6 +27,7 @@ import time
 from pathlib import Path
 from typing import Any
 
+from labd import datalock
 from labd.api.models import TrialDetail
 from labd.commands.common import ExitCode, exit_code, worst
 from labd.commands.remote import headline, wait
@@ -80,6 +81,17 @@ def free_port(preferred: int, host: str = "127.0.0.1") -> int:
 
 
 def main(args: argparse.Namespace) -> int:
+    running = datalock.holder(args.data)
+    if running is not None:  # before anything of the running demo's is rewritten
+        where = running.get("http", "an address it has not written yet")
+        print(
+            f"labd demo: a lab already serves {args.data} at {where} (pid"
+            f" {running.get('pid', '?')}): open that one, or stop it first",
+            file=sys.stderr,
+        )
+        return int(ExitCode.USAGE)
+    # stopped with SIGTERM (a service manager, `kill`): stop the lab it started too
+    signal.signal(signal.SIGTERM, _stop)
     folder = (args.data / "demo").resolve()
     folder.mkdir(parents=True, exist_ok=True)
     repos = {name: make_repository(name, folder / name) for name in EXAMPLES}
@@ -170,6 +182,10 @@ Try (in another terminal; the env file carries the lab's address and your token)
                 lab.wait(30)
             except subprocess.TimeoutExpired:
                 lab.kill()
+
+
+def _stop(signum: int, frame: object) -> None:
+    raise SystemExit(128 + signum)
 
 
 def make_repository(name: str, path: Path) -> Path:

@@ -33,7 +33,7 @@ REPLAYS = 120.0  # seconds to wait, after the last episode, for the replays' ver
 VERIFYING = " to verify them"
 
 
-def add_parsers(commands: Any) -> None:
+def add_parser(commands: Any) -> None:
     p = commands.add_parser(
         "evaluate", help="score a commit on a task's suite of episodes, with its uncertainty"
     )

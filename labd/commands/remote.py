@@ -60,7 +60,7 @@ from scheduler.errors import RemoteError
 from scheduler.queue import Cancel
 
 
-def add_parsers(commands: Any) -> None:
+def add_parser(commands: Any) -> None:
     p = commands.add_parser("submit", help="queue a trial of a repository at a ref")
     p.add_argument("repository", metavar="REPO_URL", help="a git URL, or a local repository")
     p.add_argument("--ref", help="branch, tag or commit (default: the repository's HEAD)")

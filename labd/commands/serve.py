@@ -28,6 +28,7 @@ from labd import __version__
 from labd.commands import fetching
 from labd.commands.common import assignment, fail, param_option
 from labd.config import BridgeConfig, DriveLimits, HttpConfig, RobotConfig
+from labd.datalock import DataLock
 from labd.errors import LabError
 from labd.lab import Lab, LabConfig
 from labd.service import ServiceConfig
@@ -565,13 +566,24 @@ def main(args: argparse.Namespace) -> int:
 
 
 async def serve(config: LabConfig) -> None:
-    """Run the lab until SIGINT or SIGTERM."""
+    """Run the lab until SIGINT or SIGTERM; the data folder is its own meanwhile."""
+    lock = DataLock.take(config.service.data) if config.service is not None else None
+    try:
+        await _serve(config, lock)
+    finally:
+        if lock is not None:
+            lock.release()
+
+
+async def _serve(config: LabConfig, lock: DataLock | None) -> None:
     lab = Lab(config)
     try:
         await lab.start()
     except BaseException:
         await lab.close()
         raise
+    if lock is not None and lab.http is not None:
+        lock.note(http=lab.http.url(), bridge=lab.bridge.url())
     bridge = lab.bridge
     print(f"labd {__version__}: rosbridge v2 on {bridge.url()}", flush=True)
     for name, robot in lab.robots.items():

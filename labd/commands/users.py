@@ -115,6 +115,12 @@ def add_parser(commands: Any) -> None:
 
 def main(args: argparse.Namespace) -> int:
     config = ServiceConfig(data=args.data, database=args.database)
+    if args.database is None and not (args.data / "index.sqlite").exists():
+        print(
+            f"labd users: {args.data} held no archive: a new one is made there (a lab"
+            " elsewhere: give its --config, or its --data and --database)",
+            file=sys.stderr,
+        )
     args.data.mkdir(parents=True, exist_ok=True)
     try:
         index = Index.open(config.database_url)
