@@ -208,6 +208,29 @@ class HostedRepos:
                 found.append(name)
         return sorted(found)
 
+    def users(self) -> list[str]:
+        """The users who have a folder of repositories, sorted."""
+        if not self.root.is_dir():
+            return []
+        return sorted(
+            entry.name
+            for entry in self.root.iterdir()
+            if entry.is_dir() and NAME.fullmatch(entry.name) is not None
+        )
+
+    def copy_all(self, dest: Path) -> list[str]:
+        """Copy every repository to ``dest/USER/NAME.git`` (``labd backup``), each while
+        its lock is held, so no commit is copied half made; ``USER/NAME`` of each."""
+        copied = []
+        for user in self.users():
+            for name in self.names(user):
+                target = dest / user / f"{name}.git"
+                target.parent.mkdir(parents=True, exist_ok=True)
+                with self._locked(user, name):
+                    shutil.copytree(self.path(user, name), target, symlinks=True)
+                copied.append(f"{user}/{name}")
+        return copied
+
     # -- git ---------------------------------------------------------------------------
 
     def _existing(self, user: str, name: str) -> Path:

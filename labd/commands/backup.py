@@ -1,0 +1,408 @@
+"""``labd backup`` and ``labd restore``: a whole lab copied while it runs, and brought up
+elsewhere.
+
+    labd backup DEST [--data DIR] [--database URL] [--blobs URL] [--blobs-option K=V] [--json]
+    labd restore SRC --data DIR [--database URL] [--blobs URL] [--blobs-option K=V] [--json]
+
+A backup folder holds the index (``index.sqlite``, whatever database the lab runs on),
+the blobs its rows name (``blobs/``), the lab's keys (``keys/``: the signing key, every
+public key it used, the secrets of reservations and held-out suites) and the
+playground's hosted repositories (``git/``), and, written last, ``backup.json``. The
+steps run in that order while the lab goes on (``repository.backup`` says why the
+result is consistent): the index at one moment, then the blobs, which never change and
+were stored before any row named them, then the keys, of which none is ever removed,
+then each repository under its lock, whose commits only ever add. A second backup into
+the same folder copies only the blobs it lacks.
+
+The manifest is removed when a backup starts and written only once everything else is
+on disk, so a backup that failed (a full disk, an unreadable blob: one line, exit 3)
+never looks finished, and ``labd restore`` refuses it. ``labd restore`` also refuses a
+target that holds an archive already, a backup whose index file changed, and one of a
+newer schema; an older one is upgraded as ``labd migrate`` would. It copies the blobs,
+keys and repositories first and the rows last, in one transaction, so a restore that
+failed can be run again. Stop the target lab while it runs.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import shutil
+import sys
+import time
+from collections.abc import Callable
+from dataclasses import asdict
+from pathlib import Path
+from typing import Any
+
+import sqlalchemy as sa
+
+from labd import __version__
+from labd.commands.common import ExitCode, assignment, emit, fail, json_option
+from labd.config import DATA
+from labd.hosted import HostedRepos
+from labd.service import ServiceConfig
+from repository import backup as store
+from repository.blobs import BlobStore
+from repository.errors import ArchiveError, BackupDamaged, BackupError, TargetNotEmpty
+from repository.index import SCHEMA_VERSION, connect
+from repository.signing import SIGNING
+
+KEYS = "keys"
+GIT = "git"
+PROGRESS_EVERY = 2.0  # seconds between progress lines on stderr
+
+
+class Failed(Exception):
+    """A backup or restore stopped; ``code`` is the exit code (2 refused, 3 failed)."""
+
+    def __init__(self, message: str, code: ExitCode) -> None:
+        self.code = code
+        super().__init__(message)
+
+
+def _where(parser: argparse.ArgumentParser, data_help: str, default: Path | None) -> None:
+    parser.add_argument("--data", type=Path, default=default, help=data_help)
+    parser.add_argument("--database", help="SQLAlchemy URL (default: sqlite:///DATA/index.sqlite)")
+    parser.add_argument(
+        "--blobs",
+        help="blob store: a folder or an fsspec URL such as s3://bucket/prefix"
+        " (default: DATA/blobs)",
+    )
+    parser.add_argument(
+        "--blobs-option",
+        action="append",
+        default=[],
+        type=assignment,
+        metavar="NAME=VALUE",
+        help="an fsspec storage option for --blobs (repeatable; S3 keys come from"
+        " AWS_ACCESS_KEY_ID and AWS_SECRET_ACCESS_KEY)",
+    )
+    json_option(parser)
+
+
+def add_backup_parser(commands: Any) -> None:
+    p = commands.add_parser(
+        "backup",
+        help="copy the lab (index, blobs, keys, hosted repositories) into a folder, online",
+    )
+    p.add_argument(
+        "dest",
+        type=Path,
+        metavar="DEST",
+        help="a new folder, or an earlier backup's (then only new blobs are copied)",
+    )
+    _where(p, "the lab's data folder (default: %(default)s)", DATA)
+
+
+def add_restore_parser(commands: Any) -> None:
+    p = commands.add_parser("restore", help="bring a backup up as a new lab")
+    p.add_argument("src", type=Path, metavar="SRC", help="a folder labd backup made")
+    _where(p, "the new lab's data folder (required; its keys and repositories go there)", None)
+
+
+def add_parser(commands: Any) -> None:
+    """Both commands: ``backup`` and ``restore``."""
+    add_backup_parser(commands)
+    add_restore_parser(commands)
+
+
+def main(args: argparse.Namespace) -> int:
+    run = backup if args.command == "backup" else restore
+    try:
+        data = run(args)
+    except Failed as err:
+        return fail(args, str(err), err.code)
+    except BackupDamaged as err:
+        return fail(args, str(err), ExitCode.ERROR)
+    except BackupError as err:  # refused: a target not empty, a schema, no archive there
+        return fail(args, str(err), ExitCode.USAGE)
+    except ArchiveError as err:
+        return fail(args, str(err), ExitCode.ERROR)
+    except OSError as err:
+        return fail(args, _os_error(err), ExitCode.ERROR)
+    except sa.exc.SQLAlchemyError as err:
+        return fail(args, _database_error(err), ExitCode.ERROR)
+    emit(args, data, lambda: _said(args.command, data))
+    return 0
+
+
+# -- backup ----------------------------------------------------------------------------------
+
+
+def backup(args: argparse.Namespace) -> dict[str, Any]:
+    """Make or refresh the backup in ``args.dest``; its summary."""
+    config = _config(args)
+    dest: Path = args.dest
+    if args.database is None and not (config.data / "index.sqlite").exists():
+        raise Failed(
+            f"no lab in {config.data} (no index.sqlite); give --data or --database",
+            ExitCode.USAGE,
+        )
+    if dest.resolve() == config.data.resolve():
+        raise Failed("DEST is the lab's own data folder; give another folder", ExitCode.USAGE)
+    if dest.exists() and any(dest.iterdir()) and not _looks_like_backup(dest):
+        raise Failed(
+            f"{dest} holds other files; give a new or empty folder, or an earlier backup's",
+            ExitCode.USAGE,
+        )
+    dest.mkdir(parents=True, exist_ok=True)
+    (dest / store.MANIFEST_FILE).unlink(missing_ok=True)  # unfinished from here on
+
+    shot = store.snapshot(config.database_url, dest / store.INDEX_FILE)
+    progress = Progress("backup")
+    source = BlobStore(config.blobs_url, dict(config.blob_options) or None)
+    copied, unreadable = _copy_blobs(
+        dest / store.INDEX_FILE, source, BlobStore(str(dest / store.BLOBS)), progress
+    )
+    keys = _replace(dest / KEYS, lambda new: _copy_keys(config.data / KEYS, new), private=True)
+    repos = _replace(dest / GIT, lambda new: HostedRepos(config.data / GIT).copy_all(new))
+    if unreadable:
+        raise Failed(
+            f"{unreadable} in {source.url}; the backup is not finished (no backup.json):"
+            " repair the store (a rerun's record heals its blob), then back up again",
+            ExitCode.ERROR,
+        )
+    os.sync()  # every file of the backup on disk before the manifest says it is whole
+    manifest = store.Manifest(
+        labd=__version__,
+        schema=shot.schema,
+        made=shot.made,
+        index_sha256=store.file_sha256(dest / store.INDEX_FILE),
+        rows=shot.rows,
+        blobs=copied.blobs,
+        blob_bytes=copied.total_bytes,
+        keys=keys,
+        git=repos,
+    )
+    manifest.write(dest)
+    return {
+        "backup": str(dest),
+        **asdict(manifest),
+        "trials": manifest.trials,
+        "copied": {"blobs": copied.copied, "bytes": copied.bytes, "present": copied.present},
+    }
+
+
+def _looks_like_backup(folder: Path) -> bool:
+    return any((folder / name).exists() for name in (store.MANIFEST_FILE, store.INDEX_FILE))
+
+
+def _copy_keys(source: Path, dest: Path) -> list[str]:
+    """The key folder's files, the signing key first: a rotation meanwhile adds a public
+    key, copied after it, and never removes one."""
+    if not source.is_dir():
+        return []
+    names = sorted(p.name for p in source.iterdir() if p.is_file() and not p.name.startswith("."))
+    names.sort(key=lambda name: name != SIGNING)
+    for name in names:
+        shutil.copy2(source / name, dest / name)
+    return names
+
+
+def _replace(
+    folder: Path, fill: Callable[[Path], list[str]], *, private: bool = False
+) -> list[str]:
+    """Fill a new folder beside ``folder``, then put it in ``folder``'s place."""
+    new = folder.with_name(f".{folder.name}.new")
+    old = folder.with_name(f".{folder.name}.old")
+    for leftover in (new, old):
+        shutil.rmtree(leftover, ignore_errors=True)
+    new.mkdir(mode=0o700 if private else 0o777)
+    made = fill(new)
+    if folder.exists():
+        folder.rename(old)
+    new.rename(folder)
+    shutil.rmtree(old, ignore_errors=True)
+    return made
+
+
+# -- restore ---------------------------------------------------------------------------------
+
+
+def restore(args: argparse.Namespace) -> dict[str, Any]:
+    """Bring the backup in ``args.src`` up in the lab ``args.data`` names; a summary."""
+    if args.data is None:
+        raise Failed("give --data DIR: the new lab's data folder", ExitCode.USAGE)
+    config = _config(args)
+    src: Path = args.src
+    manifest = store.Manifest.read(src)
+    manifest.check(src)
+    if config.data.resolve() == src.resolve():
+        raise Failed("--data is the backup's own folder; give the new lab's", ExitCode.USAGE)
+    config.data.mkdir(parents=True, exist_ok=True)
+    hosted = HostedRepos(config.data / GIT)
+    if held := [f"{u}/{n}" for u in hosted.users() for n in hosted.names(u)]:
+        raise TargetNotEmpty(str(config.data / GIT), f"hosted repositories ({', '.join(held)})")
+    engine = connect(config.database_url)
+    try:
+        store.check_empty(engine)
+        progress = Progress("restore")
+        target = BlobStore(config.blobs_url, dict(config.blob_options) or None)
+        with store.readable_index(src, manifest) as index:
+            backed_up = BlobStore(str(src / store.BLOBS))
+            copied, unreadable = _copy_blobs(index, backed_up, target, progress)
+            if unreadable:
+                raise Failed(
+                    f"{unreadable} in the backup {src}; nothing was restored into the index",
+                    ExitCode.ERROR,
+                )
+            keys = _restore_keys(src / KEYS, config.data / KEYS)
+            repos = _restore_git(HostedRepos(src / GIT), config.data / GIT)
+            rows = store.restore_index(index, engine)
+    finally:
+        engine.dispose()
+    return {
+        "restored": str(src),
+        "data": str(config.data),
+        "database": store._shown(config.database_url),
+        "blobs_url": config.blobs_url,
+        "made": manifest.made,
+        "schema": {"backup": manifest.schema, "now": SCHEMA_VERSION},
+        "rows": rows,
+        "trials": rows.get("trials", 0),
+        "copied": {"blobs": copied.copied, "bytes": copied.bytes, "present": copied.present},
+        "keys": keys,
+        "git": repos,
+    }
+
+
+def _restore_keys(source: Path, dest: Path) -> list[str]:
+    """The backup's keys into the lab's key folder, each file whole (renamed into place);
+    a file of the same name is replaced, other public keys stay."""
+    dest.mkdir(mode=0o700, parents=True, exist_ok=True)
+    names = sorted(p.name for p in source.iterdir() if p.is_file()) if source.is_dir() else []
+    for name in names:
+        tmp = dest / f".{name}.restore"
+        shutil.copy2(source / name, tmp)
+        tmp.replace(dest / name)
+    return names
+
+
+def _restore_git(backup: HostedRepos, root: Path) -> list[str]:
+    """The backup's hosted repositories into ``root`` (names held to the lab's rule)."""
+    restored = []
+    for user in backup.users():
+        for name in backup.names(user):
+            target = root / user / f"{name}.git"
+            target.parent.mkdir(parents=True, exist_ok=True)
+            tmp = target.with_name(f".{name}.restore")
+            shutil.rmtree(tmp, ignore_errors=True)
+            shutil.copytree(backup.path(user, name), tmp, symlinks=True)
+            tmp.rename(target)
+            restored.append(f"{user}/{name}")
+    return restored
+
+
+# -- shared ----------------------------------------------------------------------------------
+
+
+def _config(args: argparse.Namespace) -> ServiceConfig:
+    return ServiceConfig(
+        data=args.data,
+        database=args.database,
+        blobs=args.blobs,
+        blob_options=dict(args.blobs_option),
+    )
+
+
+def _copy_blobs(
+    index: Path, source: BlobStore, dest: BlobStore, progress: Progress
+) -> tuple[store.BlobCopy, str]:
+    """Copy the blobs the index names; what was done, and the unreadable ones in words
+    ("" if none)."""
+    with store.index_connection(index) as db:
+        total = store.count_named(db)
+        copied = store.copy_blobs(store.named_blobs(db), total, source, dest, progress)
+        shown = [
+            f"{digest} ({store.owner(db, digest)}: {why})"
+            for digest, why in list(copied.unreadable.items())[:3]
+        ]
+    progress.end(copied.blobs, total, copied.bytes)
+    if not shown:
+        return copied, ""
+    more = len(copied.unreadable) - len(shown)
+    listed = "; ".join(shown) + (f"; and {more} more" if more > 0 else "")
+    return copied, f"{len(copied.unreadable)} blob(s) could not be read: {listed}"
+
+
+class Progress:
+    """Progress of a long copy on stderr, a line every ``PROGRESS_EVERY`` seconds."""
+
+    def __init__(self, command: str) -> None:
+        self.command = command
+        self.started = time.monotonic()
+        self.last = self.started
+        self.shown = False
+
+    def __call__(self, done: int, total: int, copied: int) -> None:
+        now = time.monotonic()
+        if now - self.last >= PROGRESS_EVERY:
+            self.last = now
+            self.shown = True
+            self._line(done, total, copied, "")
+
+    def end(self, done: int, total: int, copied: int) -> None:
+        """The last line, if any was shown: a short copy says nothing."""
+        if self.shown:
+            self._line(done, total, copied, f" in {time.monotonic() - self.started:.0f} s")
+
+    def _line(self, done: int, total: int, copied: int, more: str) -> None:
+        line = f"labd {self.command}: blobs {done}/{total}, {_size(copied)} copied{more}"
+        print(line, file=sys.stderr, flush=True)
+
+
+def _size(n: int) -> str:
+    """A number of bytes, as a person reads it."""
+    if n < 1024:
+        return f"{n:,} bytes"
+    size = float(n)
+    for unit in ("KiB", "MiB", "GiB"):
+        size /= 1024
+        if size < 1024 or unit == "GiB":
+            break
+    return f"{size:.1f} {unit}"
+
+
+def _os_error(err: OSError) -> str:
+    where = f"{err.filename}: " if err.filename else ""
+    if err.errno == 28:  # ENOSPC
+        return f"{where}no space left on the device; the backup is not finished (no backup.json)"
+    return f"{where}{err.strerror or err}"
+
+
+def _database_error(err: sa.exc.SQLAlchemyError) -> str:
+    cause = getattr(err, "orig", None) or err
+    first = str(cause).strip().splitlines()[0] if str(cause).strip() else type(cause).__name__
+    if "disk is full" in first or "database or disk is full" in first:
+        return f"{first}: no space left on the device; the backup is not finished"
+    return f"the database: {first}"
+
+
+def _said(command: str, data: dict[str, Any]) -> list[str]:
+    copied = data["copied"]
+    blobs = (
+        f"{copied['blobs']} blob(s) copied ({_size(copied['bytes'])}),"
+        f" {copied['present']} already there"
+    )
+    if command == "backup":
+        return [
+            f"backed up {data['trials']} trial(s) (the index as of {data['made']}) into"
+            f" {data['backup']}",
+            f"  blobs: {blobs}",
+            f"  keys: {len(data['keys'])} file(s); hosted repositories: {len(data['git'])}",
+            f"  index {data['index_sha256']}; the backup holds the lab's signing key: keep it"
+            " private",
+        ]
+    schema = data["schema"]
+    upgraded = (
+        f" (upgraded from schema {schema['backup']})" if schema["backup"] != schema["now"] else ""
+    )
+    return [
+        f"restored {data['trials']} trial(s) from {data['restored']} (as of {data['made']})"
+        f" into {data['database']}{upgraded}",
+        f"  blobs: {blobs} into {data['blobs_url']}",
+        f"  keys: {len(data['keys'])} file(s); hosted repositories: {len(data['git'])}",
+        f"  start it: labd serve --data {data['data']}"
+        + (f" --database {data['database']}" if not data["database"].startswith("sqlite") else ""),
+    ]
