@@ -1,0 +1,74 @@
+"""One lab per data folder, as an operator meets it: a second `labd serve` or `labd demo`
+on a folder in use is refused in one line naming the running lab, and rewrites nothing of
+it; `labd demo` stopped with SIGTERM takes its `labd serve` with it."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+from pathlib import Path
+
+import psutil
+
+from labd.commands.demo import free_port
+from labd.datalock import holder
+from tests.faults.conftest import gone, wait_for
+
+
+def labd(*args: str, timeout: float = 60) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(
+        [sys.executable, "-m", "labd", *args],
+        capture_output=True,
+        text=True,
+        timeout=timeout,
+        check=False,
+    )
+
+
+def test_a_second_lab_on_a_folder_in_use_is_refused_naming_the_first(served, tmp_path):
+    lab = served("--no-robots", "--workers", "0").start()
+    second = labd(
+        "serve", "--data", str(lab.data), "--http-port", "0", "--bridge-port", "0", "--no-robots"
+    )
+    assert second.returncode == 2, second.stderr
+    lines = second.stderr.strip().splitlines()
+    assert len(lines) == 1, second.stderr
+    assert f"in use by the lab at {lab.server} (pid {lab.pid})" in lines[0]
+    assert lab.process is not None and lab.process.poll() is None  # the first goes on
+    refused = labd("demo", "--data", str(lab.data), "--exit")
+    assert refused.returncode == 2
+    assert f"already serves {lab.data} at {lab.server}" in refused.stderr
+    assert not (lab.data / "demo").exists()  # nothing of the running lab's rewritten
+    lab.stop()
+    assert holder(lab.data) is None  # the folder is free for the next lab
+    again = served("--no-robots", "--workers", "0", data=lab.data).start()
+    assert again.server
+
+
+def test_the_demo_stopped_with_sigterm_stops_its_lab(tmp_path: Path):
+    data = tmp_path / "data"
+    ports = ["--http-port", str(free_port(0)), "--bridge-port", str(free_port(0))]
+    demo = subprocess.Popen(
+        [sys.executable, "-m", "labd", "demo", "--data", str(data), "--sandbox", "bwrap", *ports],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+        start_new_session=True,
+    )
+    try:
+        found = wait_for("the demo's lab", lambda: holder(data), timeout=120)
+        serve = psutil.Process(int(found["pid"]))
+        assert "serve" in serve.cmdline()
+        os.kill(demo.pid, signal.SIGTERM)
+        assert demo.wait(60) == 128 + signal.SIGTERM
+        gone([serve], timeout=40)
+        assert holder(data) is None
+    finally:
+        if demo.poll() is None:
+            os.killpg(demo.pid, signal.SIGKILL)
+        for child in psutil.process_iter(["cmdline"]):
+            if str(data) in " ".join(child.info["cmdline"] or []):
+                child.kill()
+    assert json.loads((data / "labd.lock").read_text() or "{}") == {}
