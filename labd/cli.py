@@ -9,6 +9,7 @@
     labd users add|list|password|revoke|rotate
                                    the operator's: users, their passwords and tokens
     labd migrate                   the operator's: upgrade an archive's index in place
+    labd backup DEST | restore SRC the operator's: copy the archive while it runs; bring it up
     labd config show               the operator's: the effective settings, and their sources
     labd replay TRIAL|RECORD       re-simulate a record from its actions; render its cameras
     labd verify FILE|DIR           check a record or an export against its signature, offline
@@ -82,6 +83,8 @@ COMMANDS = {
     "migrate": Command(
         "migrate", "the operator's: upgrade the archive's index to this labd's schema"
     ),
+    "backup": Command("backup", "the operator's: a consistent copy of the archive, while it runs"),
+    "restore": Command("backup", "the operator's: bring a backup up as a new lab"),
     "config": Command("settings", "the operator's: the effective settings and their sources"),
     "keys": Command("verify", "the operator's: the keys the lab signs with"),
     "verify": Command("verify", "check a record or an export against its signature"),
