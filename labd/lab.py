@@ -152,6 +152,8 @@ class Lab:
         elif authorizer is None and config.bridge.authorizer_url:
             authorizer = self._own_authorizer = HttpAuthorizer(config.bridge.authorizer_url)
         self.bridge = BridgeServer(self.graphs, config.bridge, authorizer, policies=policies)
+        if self.service is not None:
+            self.service.metrics.bridge = self.bridge.traffic
 
     async def start(self) -> None:
         self._loop = asyncio.get_running_loop()
@@ -178,6 +180,8 @@ class Lab:
             for name, station in self.stations.items()
             if station.robot.live
         }
+        if self.service is not None:
+            self.service.metrics.drives = self.drives
         if self.app is not None:  # the pages link to the robots on the port now known
             state_of(self.app).site = replace(
                 self.site, bridge_port=self.bridge.port, drives=self.drives, robots_loop=self._loop

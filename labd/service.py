@@ -31,6 +31,7 @@ from labd.config import DATA
 from labd.graph.types import TypeRegistry
 from labd.hosted import HostedRepos
 from labd.live import Demonstration
+from labd.metrics import LabMetrics
 from labd.trial import LabHost, client_library
 from labd.videos import Videos
 from labd.workers import WorkerProcesses
@@ -188,6 +189,7 @@ class Service:
             busy=lambda: bool(self.queue.queued() or self.queue.running_workers()),
         )
         self.workers: list[Worker] = []
+        self.ended_workers: set[str] = set()  # the workers whose loop ended (labd.health)
         self.processes: WorkerProcesses | None = None
         if config.worker_processes > 0:
             self.processes = WorkerProcesses(
@@ -203,6 +205,7 @@ class Service:
         self._tasks: list[asyncio.Task[None]] = []
         self._stop = asyncio.Event()
         self.name = f"{host_prefix()}{os.getpid()}"
+        self.metrics = LabMetrics(self)  # GET /metrics
 
     async def start(self) -> None:
         """Start rendering videos; requeue what a killed predecessor left running; start
@@ -258,6 +261,7 @@ class Service:
 
     def _worker_ended(self, task: asyncio.Task[None]) -> None:
         """A worker's loop ends only when the service stops; anything else is a bug, logged."""
+        self.ended_workers.add(task.get_name())
         if not task.cancelled() and task.exception() is not None:
             log.error("worker %s died", task.get_name(), exc_info=task.exception())
 
@@ -323,6 +327,7 @@ class Service:
                 REPLAY, self.store.put_file(verdict_file), len(done.verdict), "application/json"
             ),
         )
+        self.metrics.replayed(done.verdict)
 
     def wake(self) -> None:
         """A trial was queued: let idle workers claim it now."""

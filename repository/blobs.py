@@ -25,6 +25,7 @@ with s3fs options such as ``{"endpoint_url": ..., "key": ..., "secret": ...}``).
 
 from __future__ import annotations
 
+import collections
 import contextlib
 import hashlib
 import io
@@ -80,6 +81,10 @@ class BlobStore:
         self._fs: Any = fs
         self._root: str = root.rstrip("/")
         self.local = isinstance(fs, LocalFileSystem)
+        # Operations that failed since the store was opened, by kind: ``read`` and
+        # ``write`` (the disk or the object store), ``corrupt`` (a damaged blob found).
+        # A blob that is not there is no error of the store. For the lab's metrics.
+        self.errors: collections.Counter[str] = collections.Counter()
 
     def __repr__(self) -> str:
         return f"BlobStore({self.url!r})"
@@ -106,21 +111,23 @@ class BlobStore:
         If reading fails, the error propagates and nothing is stored.
         """
         tmp = f"{self._root}/{TMP}/{uuid.uuid4().hex}"
-        self._fs.makedirs(f"{self._root}/{TMP}", exist_ok=True)
+        with self._counting("write"):
+            self._fs.makedirs(f"{self._root}/{TMP}", exist_ok=True)
         hasher = hashlib.sha256()
         size = 0
         try:
-            with self._fs.open(tmp, "wb") as out:
+            with self._counting("write"), self._fs.open(tmp, "wb") as out:
                 while chunk := stream.read(CHUNK_SIZE):
                     hasher.update(chunk)
                     out.write(chunk)
                     size += len(chunk)
             digest = f"{ALGORITHM}:{hasher.hexdigest()}"
             final = self.path(digest)
-            if self.local:
-                created = self._settle_local(tmp, final)
-            else:
-                created = self._settle_remote(tmp, final)
+            with self._counting("write"):
+                if self.local:
+                    created = self._settle_local(tmp, final)
+                else:
+                    created = self._settle_remote(tmp, final)
         finally:
             self._discard(tmp)
         if created:
@@ -174,12 +181,16 @@ class BlobStore:
 
     def exists(self, digest: str) -> bool:
         """Whether the store holds a blob named ``digest`` (its bytes are not checked)."""
-        return bool(self._fs.exists(self.path(digest)))
+        path = self.path(digest)
+        with self._counting("read"):
+            return bool(self._fs.exists(path))
 
     def size(self, digest: str) -> int:
         """The blob's length in bytes (BlobNotFound if absent)."""
+        path = self.path(digest)
         try:
-            return int(self._fs.size(self.path(digest)))
+            with self._counting("read"):
+                return int(self._fs.size(path))
         except FileNotFoundError:
             raise BlobNotFound(digest) from None
 
@@ -197,17 +208,58 @@ class BlobStore:
     def _chunks(self, digest: str, path: str, chunk_size: int) -> Iterator[bytes]:
         hasher = hashlib.sha256()
         try:
-            stream = self._fs.open(path, "rb")
+            with self._counting("read"):
+                stream = self._fs.open(path, "rb")
         except FileNotFoundError:
             raise BlobNotFound(digest) from None
         with stream:
-            while chunk := stream.read(chunk_size):
+            while chunk := self._read(stream, chunk_size):
                 hasher.update(chunk)
                 yield chunk
         actual = f"{ALGORITHM}:{hasher.hexdigest()}"
         if actual != digest:
             log.error("%s: blob %s is damaged: its bytes hash to %s", self, digest, actual)
+            self.errors["corrupt"] += 1
             raise BlobCorrupt(digest, actual)
+
+    def _read(self, stream: BinaryIO, size: int) -> bytes:
+        with self._counting("read"):
+            return stream.read(size)
+
+    @contextlib.contextmanager
+    def _counting(self, kind: str) -> Iterator[None]:
+        """Count an error of the store's filesystem as ``kind`` (and let it go on)."""
+        try:
+            yield
+        except FileNotFoundError:  # no such blob: a question's answer, not a failure
+            raise
+        except Exception:  # counted, never swallowed: whatever the filesystem raised
+            self.errors[kind] += 1
+            raise
+
+    # -- health --------------------------------------------------------------------------
+
+    def check(self) -> None:
+        """Raise what the store's filesystem raises if it does not answer (``/readyz``).
+
+        Cheap: a local store's root, or the nearest folder above it while no blob has
+        been written, must be a folder the lab may write in; an object store lists its
+        root (one request), or its bucket while the root holds nothing yet.
+        """
+        if self.local:
+            folder = Path(self._root)
+            while not folder.exists() and folder != folder.parent:
+                folder = folder.parent
+            if not folder.is_dir():
+                raise NotADirectoryError(f"{folder} is not a folder")
+            if not os.access(folder, os.W_OK | os.X_OK):
+                raise PermissionError(f"{folder} is not writable by the lab")
+            return
+        self._fs.invalidate_cache(self._root)
+        try:
+            self._fs.ls(self._root, detail=False)
+        except FileNotFoundError:  # nothing stored yet: the bucket must answer
+            self._fs.ls(self._root.split("/", 1)[0], detail=False)
 
     def read_bytes(self, digest: str) -> bytes:
         """The whole blob, checked (BlobNotFound, BlobCorrupt)."""

@@ -80,9 +80,16 @@ class Queue:
         self.check = check
         self.clock = index.clock
         self.health: dict[str, Health] = {}  # what each worker last said of itself
+        # When each worker last claimed, renewed a lease or reported (``clock``): which
+        # workers are alive, for ``/readyz`` and the metrics (``labd.health``).
+        self.seen: dict[str, float] = {}
         # Called with a trial's id once it has ended (finished or cancelled), after its
         # transaction: an evaluation signs itself when its last episode has ended.
         self.on_ended: list[Callable[[int], None]] = []
+        # Called after a worker's filing is stored, and after a derived artifact is
+        # kept (the lab's metrics: trials' wall time, replay verdicts).
+        self.on_filed: list[Callable[[int, Filing], None]] = []
+        self.on_derived: list[Callable[[int, Derived], None]] = []
 
     # -- submitting ---------------------------------------------------------------------
 
@@ -174,11 +181,7 @@ class Queue:
 
     def _ended(self, trial_ids: Sequence[int]) -> None:
         for trial_id in trial_ids:
-            for call in self.on_ended:
-                try:
-                    call(trial_id)
-                except Exception:  # a hook's bug must not undo the filing that called it
-                    log.exception("trial %d: after it ended, %s failed", trial_id, call)
+            _call(self.on_ended, trial_id)
 
     def cancel(self, trial_id: int, user: User) -> Cancel:
         """Cancel a queued trial now, or ask the worker of a running one to stop.
@@ -223,6 +226,7 @@ class Queue:
         SQLite, writers take turns anyway. Either way the UPDATE is conditional on the
         trial still being queued.
         """
+        self.seen[worker] = self.clock()
         self.requeue_expired()
         for _ in range(5):  # another worker may take the chosen trial first
             now = self.clock()
@@ -297,6 +301,7 @@ class Queue:
 
     def heartbeat(self, trial_id: int, worker: str) -> bool:
         """Renew the lease; False if the trial is no longer this worker's or must stop."""
+        self.seen[worker] = self.clock()
         with self.index.begin() as db:
             renewed = db.execute(
                 sa.update(T)
@@ -342,6 +347,7 @@ class Queue:
         if done != 1:
             log.warning("worker %s finished trial %d after losing it; dropped", worker, trial_id)
             return False
+        _call(self.on_filed, trial_id, filing)
         self._ended([trial_id])
         return True
 
@@ -423,6 +429,7 @@ class Queue:
             )
             return False
         self.index.put_derived(trial_id, item)
+        _call(self.on_derived, trial_id, item)
         return True
 
     def requeue_expired(self) -> list[int]:
@@ -478,6 +485,7 @@ class Queue:
 
     def report(self, health: Health) -> None:
         """Keep what a worker says of its health (its canaries), for the lab's status."""
+        self.seen[health.worker] = self.clock()
         self.health[health.worker] = health
 
     def running(self) -> list[Trial]:
@@ -516,6 +524,15 @@ class Queue:
         if ids:
             self.requeue_expired()
         return ids
+
+
+def _call(hooks: Sequence[Callable[..., None]], trial_id: int, *more: Any) -> None:
+    """Call each hook with the trial's id (and ``more``) after what it follows is stored."""
+    for call in hooks:
+        try:
+            call(trial_id, *more)
+        except Exception:  # a hook's bug must not undo the filing that called it
+            log.exception("trial %d: after it was filed or ended, %s failed", trial_id, call)
 
 
 def _lock_user(db: Connection, name: str) -> bool:

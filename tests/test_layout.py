@@ -40,6 +40,8 @@ LAYERS = [
         "labd.workers",
         "labd.hosted",
         "labd.playground",
+        "labd.health",
+        "labd.metrics",
     },
     {"labd.api"},
     {"labd.web"},

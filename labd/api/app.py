@@ -5,6 +5,8 @@ needs a token, sent as ``Authorization: Bearer TOKEN`` (``labd users add NAME`` 
 one; a user makes more on the tokens page), or a signed-in page's session cookie with
 its CSRF token (``labd.api.common``).
 
+    GET  /healthz, /readyz                 the process answers; it can work (``labd.health``)
+    GET  /metrics                          Prometheus' text format (``labd.metrics``)
     GET  /api/status                       the queue and what each busy worker runs
     GET  /api/tasks                        the tasks and their parameters
     POST /api/trials                       submit: repository, ref, task, params, seed
@@ -37,10 +39,10 @@ from dataclasses import dataclass
 from typing import Annotated, Literal
 
 from fastapi import APIRouter, Depends, FastAPI, Query, Request
-from fastapi.responses import JSONResponse, StreamingResponse
+from fastapi.responses import JSONResponse, Response, StreamingResponse
 from starlette.concurrency import run_in_threadpool
 
-from labd import __version__
+from labd import __version__, health
 from labd.api import (
     accounts,
     errors,
@@ -77,6 +79,7 @@ from labd.api.site import Site
 from labd.api.state import App, AppState
 from labd.api.throttle import Throttle
 from labd.authorizer import ReservationAuthorizer
+from labd.metrics import CONTENT_TYPE
 from labd.service import Service
 from repository.index import Filters
 from repository.reservations import Reservation
@@ -200,10 +203,32 @@ def healthz() -> Health:
 
 @router.get("/readyz", tags=["lab"], responses=responses(503))
 def readyz(service: Lab) -> Health:
-    """The lab can take writes: its index's files are the ones it opened (503 with what
-    happened and what to do, if not; ``repository.wal``)."""
-    service.index.check()
-    return Health(status="ready")
+    """The lab can do its work: its index and blob store answer, and a worker can run
+    trials (a lab with no workers of its own is ready without one, and says so); 503
+    naming each check that failed and what it found (``labd.health``)."""
+    checks = health.readiness(service)
+    failed = [f"{c.name}: {c.detail}" for c in checks if not c.ok]
+    if failed:
+        raise ApiError(503, "not ready: " + "; ".join(failed))
+    return Health(status="ready", checks={c.name: c.detail for c in checks})
+
+
+@router.get(
+    "/metrics",
+    tags=["lab"],
+    response_class=Response,
+    responses={
+        200: {
+            "content": {CONTENT_TYPE: {"schema": {"type": "string"}}},
+            "description": "the metrics, in Prometheus' text format (docs/metrics.md)",
+        }
+    },
+)
+def metrics(service: Lab) -> Response:
+    """The lab's metrics for Prometheus: trials, evaluations, the queue, workers, the
+    bridge's clients and frames, live drivers, replay verdicts, the blob store's errors.
+    Public, for an operator's scraper: counts only, no names."""
+    return Response(service.metrics.exposition(), media_type=CONTENT_TYPE)
 
 
 @router.get("/api/keys", tags=["lab"])

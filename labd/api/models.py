@@ -106,9 +106,13 @@ class CancelView(BaseModel):
 
 
 class Health(BaseModel):
-    """``/healthz``: the process answers (ok); ``/readyz``: it takes writes (ready)."""
+    """``/healthz``: the process answers (ok); ``/readyz``: its index, blob store and
+    workers answer (ready), each check saying what it found (``labd.health``)."""
 
     status: str
+    checks: dict[str, str] = Field(
+        default_factory=dict, description="/readyz: index, store, workers: what each found"
+    )
 
 
 class Keys(BaseModel):

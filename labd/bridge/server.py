@@ -22,6 +22,7 @@ import logging
 import ssl
 from collections import deque
 from collections.abc import Coroutine, Mapping
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 from urllib.parse import parse_qs, urlsplit
@@ -45,6 +46,16 @@ YIELD_EVERY = 64  # frames a reader handles before letting other clients run
 BATCH_FRAMES = 64  # frames the writer joins into one socket write, at most
 BATCH_BYTES = 256 * KiB  # ... and bytes
 MAX_REASON = 123  # bytes of a close frame's reason
+
+
+@dataclass(slots=True)
+class Traffic:
+    """A graph's clients now and the frames they sent and were sent since the bridge
+    started: plain integers that the hot path adds to and the lab's metrics read."""
+
+    clients: int = 0
+    received: int = 0
+    sent: int = 0
 
 
 class BridgeServer:
@@ -71,6 +82,7 @@ class BridgeServer:
             raise ValueError("a graph that takes keys needs an authorizer")
         self.failures = _Failures(config.auth_failures, config.auth_failure_window)
         self.connections: set[_Connection] = set()
+        self.traffic = {name: Traffic() for name in self.graphs}  # by graph
         # Each address's connections: those let in, and those still in their handshake.
         self.admitted = PerAddress(config.max_connections_per_address)
         self.opening = PerAddress(config.max_connections_per_address)
@@ -193,7 +205,8 @@ class BridgeServer:
         query = parse_qs(urlsplit(ws.request.path if ws.request else "").query)
         key = query.get("key", [None])[0]
         address = ws.remote_address[0] if ws.remote_address else "unix"
-        conn = _Connection(ws, self.authorizer, name, address, self.failures)
+        traffic = self.traffic[name]
+        conn = _Connection(ws, self.authorizer, name, address, self.failures, traffic=traffic)
         session = Session(
             graph,
             self.config,
@@ -208,6 +221,7 @@ class BridgeServer:
         conn.session = session
         session.node.address = address
         self.connections.add(conn)
+        traffic.clients += 1
         log.info(
             "client %d connected from %s to %s", session.client_id, ws.remote_address, graph.name
         )
@@ -216,6 +230,7 @@ class BridgeServer:
             await conn.read_loop()
         finally:
             self.connections.discard(conn)
+            traffic.clients -= 1
             session.close()
             writer.cancel()
             with contextlib.suppress(asyncio.CancelledError):
@@ -343,12 +358,15 @@ class _Connection:
         graph: str,
         address: str,
         failures: _Failures,
+        *,
+        traffic: Traffic,
     ) -> None:
         self.ws = ws
         self.authorizer = authorizer
         self.graph = graph
         self.address = address
         self.failures = failures
+        self.traffic = traffic
         self.session: Session | None = None
         self.key: str | None = None  # the key that opened the session, once granted
         self._ready = asyncio.Event()
@@ -422,10 +440,12 @@ class _Connection:
         session = self.session
         assert session is not None
         recv = self.ws.recv
+        traffic = self.traffic
         count = 0
         with contextlib.suppress(ConnectionClosed):
             while True:
                 session.receive(await recv(decode=False))
+                traffic.received += 1
                 if self._writer_idle and self._ready.is_set():
                     self._write_now(session)
                 count += 1
@@ -437,6 +457,7 @@ class _Connection:
         assert session is not None
         ready = self._ready
         ws = self.ws
+        traffic = self.traffic
         with contextlib.suppress(ConnectionClosed):
             while True:
                 batch = self._collect(session)
@@ -454,6 +475,7 @@ class _Connection:
                     await ws.send(batch[0].data, text=batch[0].text)
                 else:
                     await self._send_batch(batch)
+                traffic.sent += len(batch)
 
     def _write_now(self, session: Session) -> None:
         """Write what a frame just made, from the reader, while the writer is idle.
@@ -470,6 +492,7 @@ class _Connection:
         if not batch:
             return
         transport.write(b"".join(_frames_to_send(ws.protocol, batch)))
+        self.traffic.sent += len(batch)
 
     @staticmethod
     def _collect(session: Session) -> list[OutFrame]:

@@ -333,7 +333,7 @@ def test_a_deleted_wal_is_detected_and_writes_are_refused(lab: Served, tmp_path:
     refusal = answer.json()["error"]
     assert f"{wal} was deleted or replaced" in refusal
     assert "nothing is lost" in refusal and "restart labd serve" in refusal
-    assert ready.status_code == 503 and ready.json() == {"error": refusal}
+    assert ready.status_code == 503 and ready.json() == {"error": f"not ready: index: {refusal}"}
     assert refusal in lab.log
     lab.kill()  # a crash: the WAL's content is wherever the lab put it
     lab.start()

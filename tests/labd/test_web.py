@@ -140,7 +140,7 @@ def test_every_page_answers_errors_as_a_page(service):
     ``PageRoute``, so an error it raises is a page under the API's status, never JSON."""
     app = create_app(service, Site(), on_submit=lambda: None)
     pages = [r for r in _leaves(app.routes) if not r.path.startswith("/api/")]
-    pages = [r for r in pages if r.path not in ("/healthz", "/readyz")]
+    pages = [r for r in pages if r.path not in ("/healthz", "/readyz", "/metrics")]
     assert {"/", "/trials/{trial_id}", "/session", "/docs", "/reservations"} <= {
         r.path for r in pages
     }
