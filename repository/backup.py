@@ -194,12 +194,16 @@ class Snapshot:
     rows: dict[str, int]
 
 
-def snapshot(url: str, path: Path, *, clock: Callable[[], float] | None = None) -> Snapshot:
+def snapshot(url: str, path: Path) -> Snapshot:
     """Copy every row of the index at ``url`` (this labd's schema) into a new SQLite file
     at ``path``, in one read transaction; the file appears only once whole.
 
     ArchiveError if there is no index at ``url`` or it has another schema.
     """
+    database = sa.make_url(url).database
+    if url.startswith("sqlite") and database and Path(database).resolve() == path.resolve():
+        raise BackupError(f"{path} is the index itself; back it up into another folder")
+    path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(f".{path.name}.part")
     tmp.unlink(missing_ok=True)
     out = sa.create_engine(sqlite_url(tmp), poolclass=NullPool)
@@ -488,12 +492,11 @@ def check_empty(engine: Engine) -> None:
     """TargetNotEmpty if the index on ``engine`` holds any row (of trials, or any other)."""
     held = rows_held(engine)
     if held:
-        counts = ", ".join(f"{n} {name}" for name, n in held.items())
-        first = f"{held[trials.name]} trials" if trials.name in held else counts
-        raise TargetNotEmpty(
-            f"the index at {_shown(str(engine.url))}",
-            first + (f" ({counts})" if first != counts else ""),
-        )
+        if trials.name in held:
+            holds = f"{held[trials.name]} trial(s)"
+        else:
+            holds = "rows of " + ", ".join(f"{name} ({n})" for name, n in sorted(held.items()))
+        raise TargetNotEmpty(f"the index at {_shown(str(engine.url))}", holds)
 
 
 @contextlib.contextmanager

@@ -231,12 +231,13 @@ def restore(args: argparse.Namespace) -> dict[str, Any]:
     if config.data.resolve() == src.resolve():
         raise Failed("--data is the backup's own folder; give the new lab's", ExitCode.USAGE)
     config.data.mkdir(parents=True, exist_ok=True)
-    hosted = HostedRepos(config.data / GIT)
-    if held := [f"{u}/{n}" for u in hosted.users() for n in hosted.names(u)]:
-        raise TargetNotEmpty(str(config.data / GIT), f"hosted repositories ({', '.join(held)})")
     engine = connect(config.database_url)
     try:
         store.check_empty(engine)
+        hosted = HostedRepos(config.data / GIT)
+        if held := [f"{u}/{n}" for u in hosted.users() for n in hosted.names(u)]:
+            listed = ", ".join(held)
+            raise TargetNotEmpty(str(config.data / GIT), f"hosted repositories ({listed})")
         progress = Progress("restore")
         target = BlobStore(config.blobs_url, dict(config.blob_options) or None)
         with store.readable_index(src, manifest) as index:
