@@ -23,6 +23,7 @@ from prometheus_client.parser import text_string_to_metric_families
 from labd.api.app import create_app
 from labd.metrics import CONTENT_TYPE
 from labd.service import Service, ServiceConfig
+from labd.workers import LOCAL_WORKERS
 from repository.evaluation_index import Evaluations
 from repository.trial import Status
 from scheduler.remote import PROTOCOL, PROTOCOL_HEADER
@@ -368,3 +369,24 @@ async def test_the_blob_stores_errors_are_counted(service):
     assert (damaged.status_code, missing.status_code) == (500, 404)
     errors = {dict(k)["operation"]: v for k, v in found.items()}
     assert errors == {"corrupt": 1, "write": 1, "read": 0}
+
+
+async def test_the_labs_worker_processes_are_counted_apart_from_remote_ones(tmp_path, sqlite_url):
+    """A worker of the lab's own processes (the ``local-workers`` account) is counted as
+    ``process``, and makes a lab that runs worker processes ready; a remote one as
+    ``remote``."""
+    service = make_service(tmp_path, sqlite_url, worker_processes=1)
+    try:
+        async with Api(service) as api:
+            unready = await api.get("/readyz")
+            for user in (LOCAL_WORKERS, "farm"):
+                token = service.index.add_user(user, worker=True)
+                headers = {"Authorization": f"Bearer {token}", PROTOCOL_HEADER: str(PROTOCOL)}
+                await api.post("/api/workers/claim", json={"worker": "w1"}, headers=headers)
+            ready = await api.get("/readyz")
+            counted = (await scrape(api))["labd_workers"]
+    finally:
+        service.index.close()
+    assert unready.status_code == 503
+    assert ready.json()["checks"]["workers"] == "workers ready: 1 in processes, 1 remote"
+    assert {dict(k)["kind"]: v for k, v in counted.items() if v} == {"process": 1, "remote": 1}
