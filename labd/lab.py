@@ -136,6 +136,7 @@ class Lab:
                 config.http_port,
                 config.http,
                 trusted_proxies=config.trusted_proxies,
+                tls=_tls(config.bridge),
             )
         self._own_authorizer: HttpAuthorizer | None = None
         policies: dict[str, KeyPolicy] = {}
@@ -192,7 +193,18 @@ class Lab:
             )
             self.service.serving_at(_reachable(self.http.url()))
             await self.service.start()
-            await self.service.start_processes(_reachable(self.http.url()))
+            await self.service.start_processes(*self._for_workers(self.http.url()))
+
+    def _for_workers(self, url: str) -> tuple[str, dict[str, str]]:
+        """Where the lab's worker processes reach it, and what they add to their
+        environment: under TLS, the public address (which its certificate names) when
+        there is one, else loopback, trusting the lab's own certificate."""
+        service = self.service.config if self.service is not None else None
+        if self.config.bridge.tls_cert is None:
+            return _reachable(url), {}
+        if service is not None and service.public_url:
+            return service.public_url, {}
+        return _reachable(url), {"SSL_CERT_FILE": str(self.config.bridge.tls_cert)}
 
     def _live_work(self) -> Path | None:
         """Where live drives are recorded before they are filed (None: no archive)."""
@@ -270,6 +282,12 @@ async def _listen(start: Coroutine[Any, Any, None], host: str, port: int, flag: 
         if err.errno == errno.EADDRINUSE:
             raise PortInUse(host, port, flag) from None
         raise
+
+
+def _tls(bridge: BridgeConfig) -> tuple[Path, Path] | None:
+    if bridge.tls_cert is None or bridge.tls_key is None:
+        return None
+    return bridge.tls_cert, bridge.tls_key
 
 
 def _reachable(url: str) -> str:

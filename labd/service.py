@@ -254,10 +254,11 @@ class Service:
             fetch = replace(self.run_options.fetch, hosted=self.fetch.hosted)
             self.run_options = replace(self.run_options, fetch=fetch)
 
-    async def start_processes(self, server: str) -> None:
-        """Start the worker processes, against this lab's HTTP API at ``server``."""
+    async def start_processes(self, server: str, env: dict[str, str] | None = None) -> None:
+        """Start the worker processes, against this lab's HTTP API at ``server``, with
+        ``env`` added to their environment."""
         if self.processes is not None:
-            await self.processes.start(server)
+            await self.processes.start(server, env)
 
     def _worker_ended(self, task: asyncio.Task[None]) -> None:
         """A worker's loop ends only when the service stops; anything else is a bug, logged."""

@@ -72,11 +72,15 @@ class WorkerProcesses:
         self.accounts.revoke_all(LOCAL_WORKERS)
         return self.accounts.new_token(LOCAL_WORKERS, f"worker processes of pid {os.getpid()}")[1]
 
-    async def start(self, server: str) -> None:
-        """Start the children against ``server`` (this lab's HTTP address)."""
+    async def start(self, server: str, env: dict[str, str] | None = None) -> None:
+        """Start the children against ``server`` (this lab's HTTP address), with ``env``
+        added to their environment. The lab's own ``LABD_*`` settings are not theirs: a
+        child takes what it runs from its command line."""
         token = await asyncio.to_thread(self.token)
+        base = {k: v for k, v in os.environ.items() if not k.startswith("LABD_")}
+        environ = {**base, **(env or {}), "LABD_TOKEN": token}
         for n in range(self.count):
-            task = asyncio.create_task(self._keep(n, server, token), name=f"worker process {n}")
+            task = asyncio.create_task(self._keep(n, server, environ), name=f"worker process {n}")
             self._tasks.append(task)
         log.info("%d worker process(es) for %s", self.count, server)
 
@@ -90,9 +94,8 @@ class WorkerProcesses:
             argv += ["--sandbox", self.sandbox]
         return argv + list(self.options)
 
-    async def _keep(self, n: int, server: str, token: str) -> None:
+    async def _keep(self, n: int, server: str, env: dict[str, str]) -> None:
         """Run child ``n``, and again whenever it ends, until the service stops."""
-        env = {**os.environ, "LABD_TOKEN": token}
         while not self._stopping:
             child = await asyncio.create_subprocess_exec(
                 *self.argv(server), env=env, stdin=asyncio.subprocess.DEVNULL

@@ -13,7 +13,9 @@ the request's first byte, else it gets a 408 and is closed (a slowloris client h
 a connection only so long), and one address may hold only so many connections at once.
 
 The socket is bound before uvicorn starts, so port 0 works and the real port is known.
-uvicorn's own signal handling is off: ``labd serve`` handles SIGINT and SIGTERM.
+With a certificate (``labd serve --tls-cert``, the same as the bridge's) it serves
+https://, and the session and CSRF cookies are marked Secure. uvicorn's own signal
+handling is off: ``labd serve`` handles SIGINT and SIGTERM.
 ``X-Forwarded-For`` is believed only from the proxies the operator names
 (``trusted_proxies``, ``labd serve --trusted-proxy``); by default from nobody, so a
 client cannot pick the address the throttles count it under.
@@ -27,6 +29,7 @@ import logging
 import socket
 import threading
 from collections.abc import Iterator
+from pathlib import Path
 from typing import Any
 
 import h11
@@ -57,8 +60,10 @@ class HttpServer:
         config: HttpConfig | None = None,
         *,
         trusted_proxies: tuple[str, ...] = (),
+        tls: tuple[Path, Path] | None = None,
     ) -> None:
         self.app = app
+        self.tls = tls  # (certificate, key), PEM: https://
         self.host = host
         self.port = port
         self.trusted_proxies = trusted_proxies
@@ -70,7 +75,8 @@ class HttpServer:
 
     def url(self) -> str:
         host = f"[{self.host}]" if ":" in self.host else self.host
-        return f"http://{host}:{self.port}"
+        scheme = "https" if self.tls is not None else "http"
+        return f"{scheme}://{host}:{self.port}"
 
     async def start(self) -> None:
         """Listen, and serve on the ``http`` thread; returns once it serves."""
@@ -100,6 +106,8 @@ class HttpServer:
             # uvicorn's default trusts X-Forwarded-For from 127.0.0.1 (or $FORWARDED_ALLOW_IPS)
             proxy_headers=bool(self.trusted_proxies),
             forwarded_allow_ips=list(self.trusted_proxies),
+            ssl_certfile=self.tls[0] if self.tls else None,
+            ssl_keyfile=self.tls[1] if self.tls else None,
         )
         server = self._server = _Server(config)
         self._thread = threading.Thread(

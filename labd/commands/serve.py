@@ -97,7 +97,12 @@ def add_parser(commands: Any) -> None:
         " key: a withdrawn key disconnects its client within this (default: %(default)g;"
         " 0: never)",
     )
-    serve.add_argument("--tls-cert", type=Path, help="certificate (PEM) to serve wss://")
+    serve.add_argument(
+        "--tls-cert",
+        type=Path,
+        help="certificate (PEM): the robots are served at wss://, the pages and API at"
+        " https:// (their cookies marked Secure) (default: none, plain ws:// and http://)",
+    )
     serve.add_argument("--tls-key", type=Path, help="private key (PEM) of --tls-cert")
     serve.add_argument(
         "--max-connections",

@@ -110,9 +110,9 @@ class Served:
                 break
             if not line:
                 pytest.fail("labd serve exited:\n" + self.log)
-            if found := re.search(r"rosbridge v2 on (ws://\S+)", line):
+            if found := re.search(r"rosbridge v2 on (wss?://\S+)", line):
                 self.bridge = found.group(1).rstrip("/")
-            if found := re.search(r"HTTP API on (http://\S+?)/api", line):
+            if found := re.search(r"HTTP API on (https?://\S+?)/api", line):
                 self.server = found.group(1)
             if (service and line.startswith("  workers:")) or (
                 not service and "serves the first of these" in line
