@@ -34,7 +34,7 @@ import json
 import os
 import shutil
 import tempfile
-from collections.abc import Callable, Iterator, Mapping
+from collections.abc import Callable, Iterator
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
@@ -565,19 +565,6 @@ def _move_sequences(db: Connection) -> None:
         largest = sa.select(sa.func.max(column)).scalar_subquery()
         sequence = sa.func.pg_get_serial_sequence(table.name, column.name)
         db.execute(sa.select(sa.func.setval(sequence, sa.func.coalesce(largest, 0) + 1, False)))
-
-
-def rows_of(index: Path) -> Mapping[str, int]:
-    """The rows per table in a backup's index file (for a report)."""
-    engine = sa.create_engine(sqlite_url(index), poolclass=NullPool)
-    try:
-        with engine.connect() as db:
-            return {
-                t.name: int(db.execute(sa.select(sa.func.count()).select_from(t)).scalar_one())
-                for t in TABLES.sorted_tables
-            }
-    finally:
-        engine.dispose()
 
 
 @contextlib.contextmanager

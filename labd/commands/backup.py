@@ -26,6 +26,7 @@ failed can be run again. Stop the target lab while it runs.
 from __future__ import annotations
 
 import argparse
+import errno
 import os
 import shutil
 import sys
@@ -51,6 +52,10 @@ from repository.signing import SIGNING
 KEYS = "keys"
 GIT = "git"
 PROGRESS_EVERY = 2.0  # seconds between progress lines on stderr
+UNFINISHED = {  # what a failure leaves, as its message ends
+    "backup": "the backup is not finished (no backup.json)",
+    "restore": "nothing was restored into the index (run the restore again once fixed)",
+}
 
 
 class Failed(Exception):
@@ -120,9 +125,9 @@ def main(args: argparse.Namespace) -> int:
     except ArchiveError as err:
         return fail(args, str(err), ExitCode.ERROR)
     except OSError as err:
-        return fail(args, _os_error(err), ExitCode.ERROR)
+        return fail(args, _os_error(err, UNFINISHED[args.command]), ExitCode.ERROR)
     except sa.exc.SQLAlchemyError as err:
-        return fail(args, _database_error(err), ExitCode.ERROR)
+        return fail(args, _database_error(err, UNFINISHED[args.command]), ExitCode.ERROR)
     emit(args, data, lambda: _said(args.command, data))
     return 0
 
@@ -365,19 +370,19 @@ def _size(n: int) -> str:
     return f"{size:.1f} {unit}"
 
 
-def _os_error(err: OSError) -> str:
+def _os_error(err: OSError, unfinished: str) -> str:
     where = f"{err.filename}: " if err.filename else ""
-    if err.errno == 28:  # ENOSPC
-        return f"{where}no space left on the device; the backup is not finished (no backup.json)"
-    return f"{where}{err.strerror or err}"
+    if err.errno == errno.ENOSPC:
+        return f"{where}no space left on the device; {unfinished}"
+    return f"{where}{err.strerror or err}; {unfinished}"
 
 
-def _database_error(err: sa.exc.SQLAlchemyError) -> str:
+def _database_error(err: sa.exc.SQLAlchemyError, unfinished: str) -> str:
     cause = getattr(err, "orig", None) or err
     first = str(cause).strip().splitlines()[0] if str(cause).strip() else type(cause).__name__
-    if "disk is full" in first or "database or disk is full" in first:
-        return f"{first}: no space left on the device; the backup is not finished"
-    return f"the database: {first}"
+    if "disk is full" in first:
+        return f"no space left on the device ({first}); {unfinished}"
+    return f"the database: {first}; {unfinished}"
 
 
 def _said(command: str, data: dict[str, Any]) -> list[str]:
