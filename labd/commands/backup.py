@@ -26,12 +26,14 @@ failed can be run again. Stop the target lab while it runs.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import errno
+import logging
 import os
 import shutil
 import sys
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import asdict
 from pathlib import Path
 from typing import Any
@@ -103,7 +105,7 @@ def add_backup_parser(commands: Any) -> None:
 def add_restore_parser(commands: Any) -> None:
     p = commands.add_parser("restore", help="bring a backup up as a new lab")
     p.add_argument("src", type=Path, metavar="SRC", help="a folder labd backup made")
-    _where(p, "the new lab's data folder (required; its keys and repositories go there)", None)
+    _where(p, "the new lab's data folder, for its keys and repositories (no default)", None)
 
 
 def add_parser(commands: Any) -> None:
@@ -254,8 +256,13 @@ def restore(args: argparse.Namespace) -> dict[str, Any]:
                     ExitCode.ERROR,
                 )
             keys = _restore_keys(src / KEYS, config.data / KEYS)
-            repos = _restore_git(HostedRepos(src / GIT), config.data / GIT)
+            # the repositories wait beside DATA/git until the rows are in, so a restore
+            # that failed leaves DATA/git empty and can be run again
+            staged = config.data / f".{GIT}.restore"
+            shutil.rmtree(staged, ignore_errors=True)
+            repos = _copy_git(HostedRepos(src / GIT), staged)
             rows = store.restore_index(index, engine)
+            _move_git(staged, config.data / GIT, repos)
     finally:
         engine.dispose()
     return {
@@ -285,19 +292,26 @@ def _restore_keys(source: Path, dest: Path) -> list[str]:
     return names
 
 
-def _restore_git(backup: HostedRepos, root: Path) -> list[str]:
-    """The backup's hosted repositories into ``root`` (names held to the lab's rule)."""
-    restored = []
+def _copy_git(backup: HostedRepos, root: Path) -> list[str]:
+    """The backup's hosted repositories into ``root`` (names held to the lab's rule);
+    ``USER/NAME`` of each."""
+    copied = []
     for user in backup.users():
         for name in backup.names(user):
             target = root / user / f"{name}.git"
             target.parent.mkdir(parents=True, exist_ok=True)
-            tmp = target.with_name(f".{name}.restore")
-            shutil.rmtree(tmp, ignore_errors=True)
-            shutil.copytree(backup.path(user, name), tmp, symlinks=True)
-            tmp.rename(target)
-            restored.append(f"{user}/{name}")
-    return restored
+            shutil.copytree(backup.path(user, name), target, symlinks=True)
+            copied.append(f"{user}/{name}")
+    return copied
+
+
+def _move_git(staged: Path, root: Path, repos: list[str]) -> None:
+    """Move the staged repositories into the lab's ``root`` (renames, on one disk)."""
+    for repo in repos:
+        user, name = repo.split("/")
+        (root / user).mkdir(parents=True, exist_ok=True)
+        (staged / user / f"{name}.git").rename(root / user / f"{name}.git")
+    shutil.rmtree(staged, ignore_errors=True)
 
 
 # -- shared ----------------------------------------------------------------------------------
@@ -317,7 +331,7 @@ def _copy_blobs(
 ) -> tuple[store.BlobCopy, str]:
     """Copy the blobs the index names; what was done, and the unreadable ones in words
     ("" if none)."""
-    with store.index_connection(index) as db:
+    with store.index_connection(index) as db, _store_quiet():
         total = store.count_named(db)
         copied = store.copy_blobs(store.named_blobs(db), total, source, dest, progress)
         shown = [
@@ -330,6 +344,22 @@ def _copy_blobs(
     more = len(copied.unreadable) - len(shown)
     listed = "; ".join(shown) + (f"; and {more} more" if more > 0 else "")
     return copied, f"{len(copied.unreadable)} blob(s) could not be read: {listed}"
+
+
+@contextlib.contextmanager
+def _store_quiet() -> Iterator[None]:
+    """The blob store's own error for each damaged blob unsaid (unless --log-level asks
+    for detail): the command's last line names the blobs it could not read, once."""
+    logger = logging.getLogger("repository.blobs")
+    if logging.getLogger().getEffectiveLevel() < logging.WARNING:
+        yield
+        return
+    level = logger.level
+    logger.setLevel(logging.CRITICAL)
+    try:
+        yield
+    finally:
+        logger.setLevel(level)
 
 
 class Progress:

@@ -31,25 +31,13 @@ from tests.helpers.githttp import GitRepo
 
 pytestmark = pytest.mark.integration
 
-# `labd backup` and `labd restore` as the command line runs them: through `labd` itself
-# once it lists them, else through the module's own parser.
-RUNNER = """
-import argparse, sys
-from labd import cli
-from labd.commands import backup
-if "backup" in getattr(cli, "MAINS", {}):
-    sys.exit(cli.main(sys.argv[1:]))
-parser = argparse.ArgumentParser(prog="labd")
-backup.add_parser(parser.add_subparsers(dest="command", required=True))
-sys.exit(backup.main(parser.parse_args(sys.argv[1:])))
-"""
 WHEN = 1_700_000_000
 
 
 def labd(*args: str) -> subprocess.CompletedProcess[str]:
     """``labd backup ...`` or ``labd restore ...``, in a process of its own."""
     return subprocess.run(
-        [sys.executable, "-c", RUNNER, *args],
+        [sys.executable, "-m", "labd", *args],
         capture_output=True,
         text=True,
         timeout=300,

@@ -4,7 +4,6 @@ finished; a restore refuses what it must."""
 
 from __future__ import annotations
 
-import argparse
 import json
 import os
 import stat
@@ -13,7 +12,7 @@ from pathlib import Path
 
 import pytest
 
-from labd.commands import backup as command
+from labd import cli
 from labd.hosted import HostedRepos
 from repository import backup
 from repository.blobs import BlobStore
@@ -28,9 +27,7 @@ WHEN = 1_700_000_000
 
 def labd(capsys: pytest.CaptureFixture[str], *argv: str) -> tuple[int, str, str]:
     """Run ``labd backup|restore ...`` in this process: its exit code, stdout, stderr."""
-    parser = argparse.ArgumentParser(prog="labd")
-    command.add_parser(parser.add_subparsers(dest="command", required=True))
-    code = command.main(parser.parse_args(list(argv)))
+    code = cli.main(list(argv))
     out, err = capsys.readouterr()
     return code, out, err
 
@@ -153,3 +150,26 @@ def test_a_backup_never_writes_into_a_folder_of_other_files(lab, tmp_path, capsy
     assert sorted(p.name for p in other.iterdir()) == ["notes.txt"]
     code, _, err = labd(capsys, "backup", str(data), "--data", str(data))
     assert code == 2 and "the lab's own data folder" in err
+
+
+def test_a_restore_that_failed_can_be_run_again(lab, tmp_path, capsys):
+    """A record damaged in the backup: the restore exits 3 naming it, the new lab's
+    index stays empty and its DATA/git holds nothing; once the blob is whole again the
+    same restore succeeds into the same folder."""
+    data, blobs = lab
+    dest, restored = tmp_path / "backup", tmp_path / "restored"
+    assert labd(capsys, "backup", str(dest), "--data", str(data))[0] == 0
+    record = Path(BlobStore(str(dest / "blobs")).path(blobs["mcap"]))
+    whole = record.read_bytes()
+    record.chmod(0o644)
+    record.write_bytes(b"A" + whole[1:])
+    code, _, err = labd(capsys, "restore", str(dest), "--data", str(restored))
+    assert code == 3, err
+    assert f"{blobs['mcap']} (trial 1's record: damaged" in err
+    assert "nothing was restored into the index" in err
+    assert not (restored / "git").exists()
+    record.write_bytes(whole)
+    code, out, err = labd(capsys, "restore", str(dest), "--data", str(restored), "--json")
+    assert code == 0, err
+    assert json.loads(out)["copied"] == {"blobs": 1, "bytes": len(whole), "present": 3}
+    assert sorted(p.name for p in restored.iterdir()) == ["blobs", "git", "index.sqlite", "keys"]
