@@ -502,6 +502,16 @@ class Queue:
             ).scalar_one()
         return int(count)
 
+    def queued_before(self, trial_id: int) -> int:
+        """How many trials submitted before ``trial_id`` still wait for a worker."""
+        with self.index.engine.connect() as db:
+            count = db.execute(
+                sa.select(sa.func.count())
+                .select_from(T)
+                .where(T.c.status == QUEUED, T.c.id < trial_id)
+            ).scalar_one()
+        return int(count)
+
     def trial(self, trial_id: int) -> Trial:
         """A trial's record (a worker compares a rerun with its original)."""
         return self.index.trial(trial_id)

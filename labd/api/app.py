@@ -286,8 +286,12 @@ def list_trials(request: Request, service: Lab, q: Annotated[TrialQuery, Depends
 
 @router.get("/api/trials/{trial_id}", tags=["trials"], responses=responses(403, 404))
 def show(trial_id: Id, request: Request, service: Lab) -> TrialDetail:
-    """One trial: its outcome, what was asked, what came out, its manifest."""
-    return trial_detail(service.index.readable(trial_id), _base(request))
+    """One trial: its outcome, what was asked, what came out, its manifest; while it is
+    queued, how many wait before it."""
+    trial = trial_detail(service.index.readable(trial_id), _base(request))
+    if trial.status is Status.QUEUED:
+        trial.queued_ahead = service.queue.queued_before(trial_id)
+    return trial
 
 
 @router.get(

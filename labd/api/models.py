@@ -93,6 +93,11 @@ class TrialDetail(TrialSummary):
     digest_topics: list[str] | None
     worker: str | None
     cancel_requested: bool = Field(description="its worker has been asked to stop it")
+    queued_ahead: int | None = Field(
+        None,
+        description="while it is queued: trials submitted before it that still wait (the"
+        " queue takes turns between submitters, so it may start sooner)",
+    )
     signature: dict[str, Any] | None = Field(
         description="the lab's signature of the filed record: statement, key id, signature"
     )

@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import argparse
 import shutil
+import sys
 import tempfile
 import time
 import zipfile
@@ -38,6 +39,7 @@ from labd.api.models import (
     TaskList,
     TrialDetail,
     TrialPage,
+    WorkerView,
     task_list,
 )
 from labd.commands import evaluate
@@ -180,7 +182,7 @@ def _submit(client: ApiClient, args: argparse.Namespace) -> int:
         return ExitCode.SUCCESS
     if not args.json:
         print("\n".join(_queued_lines(row)), flush=True)
-    [row] = wait(client, [row.id])
+    [row] = wait(client, [row.id], progress=_stderr)
     emit(args, _json(row), lambda: _trial_lines(row))
     return exit_code(row.status, row.outcome)
 
@@ -265,7 +267,7 @@ def _rerun(client: ApiClient, args: argparse.Namespace) -> int:
     if not args.json:
         for row in made:
             print(f"trial {row.id} queued: a rerun of trial {row.rerun_of}", flush=True)
-    done = wait(client, [row.id for row in made])
+    done = wait(client, [row.id for row in made], progress=_stderr)
     emit(args, [_json(r) for r in done], lambda: [_verdict_line(row) for row in done])
     return worst(_rerun_code(row) for row in done)
 
@@ -409,19 +411,54 @@ COMMANDS: dict[str, Callable[[ApiClient, argparse.Namespace], int]] = {
 }
 
 
-def wait(client: ApiClient, trial_ids: list[int], poll: float = 1.0) -> list[TrialDetail]:
-    """Wait until every trial has ended."""
+def wait(
+    client: ApiClient,
+    trial_ids: list[int],
+    poll: float = 1.0,
+    progress: Callable[[str], None] | None = None,
+) -> list[TrialDetail]:
+    """Wait until every trial has ended; ``progress`` is told each trial's state in a
+    line whenever it changes (its place in the queue, then its worker's stage)."""
     pending = set(trial_ids)
     rows: dict[int, TrialDetail] = {}
+    said: dict[int, str] = {}
     while pending:
+        running: dict[int, WorkerView] | None = None
         for trial_id in sorted(pending):
             row = client.get(f"/api/trials/{trial_id}", TrialDetail)
             if row.status.ended:
                 rows[trial_id] = row
                 pending.discard(trial_id)
+                continue
+            if progress is None:
+                continue
+            if row.status is Status.RUNNING and running is None:
+                running = {w.trial: w for w in client.get("/api/status", LabStatus).running}
+            line = _progress(row, (running or {}).get(trial_id))
+            if said.get(trial_id) != line:
+                said[trial_id] = line
+                progress(line)
         if pending:
             time.sleep(poll)
     return [rows[t] for t in trial_ids]
+
+
+def _progress(row: TrialDetail, worker: WorkerView | None) -> str:
+    """Where a trial that has not ended is, in a line."""
+    if row.status is Status.QUEUED:
+        ahead = row.queued_ahead
+        if ahead is None:
+            return f"trial {row.id}: queued"
+        return f"trial {row.id}: queued, " + (
+            "next" if ahead == 0 else f"{ahead} submitted before it still waiting"
+        )
+    where = f" on {worker.worker}" if worker is not None else ""
+    stage = f": {worker.stage}" if worker is not None and worker.stage else ""
+    return f"trial {row.id}: running{where}{stage}"
+
+
+def _stderr(line: str) -> None:
+    print(line, file=sys.stderr, flush=True)
 
 
 # -- printing ----------------------------------------------------------------------------
