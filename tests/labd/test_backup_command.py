@@ -19,7 +19,8 @@ from repository.blobs import BlobStore
 from repository.index import Index
 from repository.reservations import load_secret
 from repository.signing import SIGNING, Keyring
-from tests.faults.conftest import small_disk  # noqa: F401 (a fixture)
+from tests.faults.conftest import s3, small_disk  # noqa: F401 (fixtures)
+from tests.faults.slow import S3Server
 from tests.repository.test_backup import fill
 
 WHEN = 1_700_000_000
@@ -173,3 +174,36 @@ def test_a_restore_that_failed_can_be_run_again(lab, tmp_path, capsys):
     assert code == 0, err
     assert json.loads(out)["copied"] == {"blobs": 1, "bytes": len(whole), "present": 3}
     assert sorted(p.name for p in restored.iterdir()) == ["blobs", "git", "index.sqlite", "keys"]
+
+
+@pytest.mark.integration
+def test_blobs_in_a_bucket_are_backed_up_and_restored_into_a_bucket(
+    tmp_path,
+    capsys,
+    s3: S3Server,  # noqa: F811 (the fixture)
+):
+    """A lab whose blobs are in an S3 bucket: the backup copies them from it, and the
+    restore puts them under another prefix, where a second restore finds them all."""
+    data = tmp_path / "lab"
+    data.mkdir()
+    option = f"endpoint_url={s3.url}"
+    index = Index.open(backup.sqlite_url(data / "index.sqlite"))
+    bucket = BlobStore("s3://lab-archive/records", {"endpoint_url": s3.url})
+    blobs = fill(index, bucket)
+    index.close()
+    dest = tmp_path / "backup"
+    code, out, err = labd(capsys, "backup", str(dest), "--data", str(data),
+                          "--blobs", "s3://lab-archive/records", "--blobs-option", option,
+                          "--json")  # fmt: skip
+    assert code == 0, err
+    assert json.loads(out)["copied"]["blobs"] == 4
+    restore = ["--blobs", "s3://lab-archive/restored", "--blobs-option", option, "--json"]
+    code, out, err = labd(capsys, "restore", str(dest), "--data", str(tmp_path / "r"), *restore)
+    assert code == 0, err
+    assert json.loads(out)["copied"]["blobs"] == 4
+    s3.fs.invalidate_cache()
+    restored = BlobStore("s3://lab-archive/restored", {"endpoint_url": s3.url})
+    assert restored.read_bytes(blobs["mcap"]) == b"a record" * 1000
+    code, out, err = labd(capsys, "restore", str(dest), "--data", str(tmp_path / "r2"), *restore)
+    assert code == 0, err
+    assert json.loads(out)["copied"] == {"blobs": 0, "bytes": 0, "present": 4}
