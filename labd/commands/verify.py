@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 from pathlib import Path
 from typing import Any
 
@@ -55,7 +56,11 @@ def add_parser(commands: Any) -> None:
     p = commands.add_parser("verify", help="check a record or an export against its signature")
     p.add_argument("target", type=Path, metavar="FILE|DIR", help="an MCAP record or an export")
     p.add_argument("--key", type=Path, help="the lab's public keys: a PEM file or /api/keys JSON")
-    p.add_argument("--server", help="fetch the keys from this lab instead (online)")
+    p.add_argument(
+        "--server",
+        default=os.environ.get("LABD_SERVER"),
+        help="fetch the keys from this lab, online (default: $LABD_SERVER; --key wins)",
+    )
     p.add_argument(
         "--signature", type=Path, help="a record's signature (default: FILE.sig.json beside it)"
     )
@@ -234,7 +239,9 @@ def _keys(args: argparse.Namespace) -> dict[str, Ed25519PublicKey]:
         with ApiClient(args.server) as client:
             answer = client.request("GET", "/api/keys")
         return load_keys(answer.content, f"{args.server}/api/keys")
-    raise ValueError("give the lab's keys: --key FILE (from its /api/keys), or --server URL")
+    raise ValueError(
+        "give the lab's keys: --key FILE (from its /api/keys), or --server URL (or $LABD_SERVER)"
+    )
 
 
 def _rotate(args: argparse.Namespace) -> int:

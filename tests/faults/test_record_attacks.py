@@ -336,3 +336,10 @@ def test_a_workers_filing_is_checked_against_its_record_before_signing(archive: 
     done = archive.verify(path)
     assert done.returncode == 0, done.stderr
     assert f"verified: trial {trial_id} (icreate-maze, fail)" in done.stdout
+
+
+def test_verify_fetches_the_keys_from_labd_server(archive: Archive) -> None:
+    """With no --key, `labd verify` asks the lab that $LABD_SERVER names for its keys."""
+    done = archive.labd("verify", str(archive.records[0]))  # LABD_SERVER is the lab's
+    assert done.returncode == 0, done.stderr
+    assert "verified" in done.stdout.lower() or "signed" in done.stdout.lower(), done.stdout
