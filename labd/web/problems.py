@@ -19,6 +19,7 @@ from typing import Any
 from urllib.parse import urlsplit
 
 from fastapi import Request
+from fastapi.exceptions import RequestValidationError
 from fastapi.routing import APIRoute
 from starlette.responses import Response
 
@@ -88,10 +89,19 @@ class PageRoute(APIRoute):
                 if not errors.expected(err):
                     raise
                 said = errors.problem(err, request.method, request.url.path)
+                if _unnamable(err):  # /trials/abc: no page is at such a URL
+                    said = Problem(404, f"no such page: {request.url.path}")
                 errors.told(err, said, request.method, request.url.path)
                 return error_page(request, err, said)
 
         return page_handler
+
+
+def _unnamable(err: Exception) -> bool:
+    """Whether ``err`` refuses only the URL's own path (a trial id that is no number)."""
+    if not isinstance(err, RequestValidationError):
+        return False
+    return all(tuple(p.get("loc", ()))[:1] == ("path",) for p in err.errors())
 
 
 def error_page(request: Request, err: Exception, said: Problem) -> Response:

@@ -133,6 +133,13 @@ async def test_a_url_that_is_no_page_is_a_page_for_a_browser(web):
         said = await web.get(path, headers=headers)
         assert said.status_code == 404 and said.headers["content-type"] == "application/json"
         assert said.json() == {"error": f"no such page or API route: {path}"}
+    for path in ("/trials/abc", "/evaluations/-x", "/trials/99999999999999999999999"):
+        page = await web.get(path, headers=browser)  # a page's URL that cannot name one
+        assert page.status_code == 404, path
+        assert page.headers["content-type"].startswith("text/html"), path
+        assert f"no such page: {path}" in page.text, path
+    said = await web.get("/api/trials/abc")
+    assert said.status_code == 422 and "trial_id" in said.json()["error"]
 
 
 def test_every_page_answers_errors_as_a_page(service):
