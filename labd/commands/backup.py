@@ -40,7 +40,7 @@ from typing import Any
 
 import sqlalchemy as sa
 
-from labd import __version__
+from labd import __version__, datalock
 from labd.commands.common import ExitCode, assignment, emit, fail, json_option
 from labd.config import DATA
 from labd.hosted import HostedRepos
@@ -232,6 +232,10 @@ def restore(args: argparse.Namespace) -> dict[str, Any]:
     if args.data is None:
         raise Failed("give --data DIR: the new lab's data folder", ExitCode.USAGE)
     config = _config(args)
+    running = datalock.holder(config.data)
+    if running is not None:
+        where = running.get("http", f"pid {running.get('pid', '?')}")
+        raise Failed(f"a lab serves {config.data} ({where}): stop it, then restore", ExitCode.USAGE)
     src: Path = args.src
     manifest = store.Manifest.read(src)
     manifest.check(src)

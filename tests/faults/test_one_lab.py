@@ -42,6 +42,9 @@ def test_a_second_lab_on_a_folder_in_use_is_refused_naming_the_first(served, tmp
     assert refused.returncode == 2
     assert f"already serves {lab.data} at {lab.server}" in refused.stderr
     assert not (lab.data / "demo").exists()  # nothing of the running lab's rewritten
+    restore = labd("restore", str(tmp_path / "a-backup"), "--data", str(lab.data))
+    assert restore.returncode == 2
+    assert f"a lab serves {lab.data} ({lab.server}): stop it" in restore.stderr
     lab.stop()
     assert holder(lab.data) is None  # the folder is free for the next lab
     again = served("--no-robots", "--workers", "0", data=lab.data).start()
