@@ -69,9 +69,12 @@ class LiveScene(BaseModel):
 
 
 def bridge_url(request: Request, lab: Site, name: str) -> str:
+    """Where a page reaches robot ``name``: the host it was served from, at the bridge's
+    port; ``wss://`` when the bridge has its own certificate, or when the page came over
+    https (a TLS proxy in front of both ports: browsers refuse ws:// from such a page)."""
     host = request.url.hostname or "127.0.0.1"
     host = f"[{host}]" if ":" in host else host
-    scheme = "wss" if lab.bridge_tls else "ws"
+    scheme = "wss" if lab.bridge_tls or request.url.scheme == "https" else "ws"
     port = lab.bridge_port if lab.bridge_port is not None else 9090
     return f"{scheme}://{host}:{port}/robots/{name}"
 
