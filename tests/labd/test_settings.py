@@ -151,3 +151,17 @@ def test_a_data_folder_has_one_holder_and_says_who(tmp_path):
     first.release()
     assert holder(tmp_path) is None
     DataLock.take(tmp_path).release()
+
+
+def test_the_documented_example_is_a_configuration_the_lab_takes(tmp_path):
+    """docs/service.md's example file applies to `labd serve` and `labd worker` as it says."""
+    docs = (Path(__file__).parents[2] / "docs" / "service.md").read_text()
+    example = docs.split("## Configuration", 1)[1].split("```toml\n", 1)[1].split("```", 1)[0]
+    lab = write(tmp_path / "labd.toml", example)
+    args, found = configured(["serve", "--config", str(lab)])
+    assert args.robots == [("icreate-1", "icreate-maze"), ("pr2-1", "pr2-table")]
+    assert args.data == Path("/srv/lab") and args.reservations is True
+    assert args.worker_processes == 2 and args.public_url == "https://lab.example.org"
+    assert all(s.source == "default" or s.source.endswith("[serve]") for s in found.values())
+    worker, _ = configured(["worker", "--config", str(lab)])
+    assert worker.server == "https://lab.example.org"
