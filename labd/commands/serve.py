@@ -559,6 +559,8 @@ def main(args: argparse.Namespace) -> int:
     sys.setswitchinterval(SWITCH_INTERVAL)
     try:
         lab_config = config(args)
+        if getattr(args, "config", None) is not None:
+            print(f"labd serve: settings from {args.config} (labd config show lists them)")
         asyncio.run(serve(lab_config))
     except Refused as err:
         return fail(args, str(err))

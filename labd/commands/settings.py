@@ -196,6 +196,7 @@ def apply(
     command = chain[1].prog.split()[-1] if len(chain) > 1 else ""
     settings = {key: action for each in chain for key, action in options(each).items()}
     path = config_path(args, environ)
+    args.config = path  # the file read, for the command to say
     document = read(path) if path is not None else {}
     tables: list[tuple[str, dict[str, Any]]] = []
     if path is not None:

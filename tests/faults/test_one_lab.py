@@ -11,6 +11,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import httpx
 import psutil
 
 from labd.commands.demo import free_port
@@ -75,3 +76,18 @@ def test_the_demo_stopped_with_sigterm_stops_its_lab(tmp_path: Path):
             if str(data) in " ".join(child.info["cmdline"] or []):
                 child.kill()
     assert json.loads((data / "labd.lock").read_text() or "{}") == {}
+
+
+def test_labd_serve_runs_as_its_configuration_file_says(served, tmp_path):
+    """A real lab takes its settings from --config, a LABD_ variable overriding the file:
+    here sign-up on and no robots (the file), the playground kept (a variable over the file)."""
+    config = tmp_path / "lab.toml"
+    config.write_text(
+        "[serve]\nsignup = true\nno_robots = true\nno_playground = true\nworkers = 0\n"
+    )
+    lab = served("--config", str(config), env={"LABD_NO_PLAYGROUND": "0"}).start()
+    assert f"settings from {config}" in lab.log
+    assert "robot " not in lab.log and "playground (no robot" in lab.log
+    assert httpx.get(f"{lab.server}/signup", timeout=30).status_code == 200
+    status = httpx.get(f"{lab.server}/api/status", timeout=30).json()
+    assert status["local_workers"] == 0
