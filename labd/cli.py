@@ -70,7 +70,7 @@ COMMANDS = {
     "download": Command("remote", "download a trial's MCAP record"),
     "rerun": Command("remote", "rerun a trial, or a commit's trials, to check them"),
     "cancel": Command("remote", "cancel a queued or running trial"),
-    "export": Command("remote", "export trials for learning: a row per control tick, every camera"),
+    "export": Command("export", "export trials for learning: a row per control tick, every camera"),
     "tasks": Command("remote", "the lab's tasks and their parameters"),
     "status": Command("remote", "the lab now: the queue and what workers run"),
     "evaluate": Command(
@@ -186,6 +186,11 @@ def _main(argv: Sequence[str] | None) -> int:
     argv = sys.argv[1:] if argv is None else list(argv)
     parser = build_parser(argv)
     args = parser.parse_args(argv)
+    if args.command in settings.CONFIGURED:
+        try:
+            settings.apply(parser, args, settings.given(build_parser, argv))
+        except settings.ConfigError as err:
+            return fail(args, str(err))
     # force: a library may have configured the root logger on import (absl's logging
     # does, at dm_control's first message), which would make this call do nothing
     logging.basicConfig(
@@ -198,10 +203,5 @@ def _main(argv: Sequence[str] | None) -> int:
     # ``kill -USR1 PID`` prints where every thread of a labd process is, on stderr
     with contextlib.suppress(io.UnsupportedOperation, ValueError):  # (a captured stderr)
         faulthandler.register(signal.SIGUSR1, all_threads=True)
-    if args.command in settings.CONFIGURED:
-        try:
-            settings.apply(parser, args, settings.given(build_parser, argv))
-        except settings.ConfigError as err:
-            return fail(args, str(err))
     run: Callable[[argparse.Namespace], int] = _module(COMMANDS[args.command].module).main
     return run(args)
