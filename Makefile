@@ -10,7 +10,7 @@ JSSTAMP := $(JS)/node_modules/.installed
 WEB     := web
 WEBSTAMP := labd/web/static/vendor/.built
 
-.PHONY: setup demo test lint unit bench clean
+.PHONY: setup demo test lint unit bench clean deploy-image deploy-smoke
 
 setup: $(STAMP) $(JSSTAMP) $(WEBSTAMP)
 
@@ -50,6 +50,16 @@ unit: $(STAMP)
 
 test: lint $(JSSTAMP) $(WEBSTAMP)
 	$(PY) -m pytest -n $(JOBS) --dist loadgroup --durations=20
+
+# The container images (labd:VERSION, labd-postgres:VERSION), built from this machine, and
+# the deployment's smoke test: deploy/docker-compose.yml brought up on free ports, a
+# submission, an evaluation, a rerun and a verified download through it, then torn down.
+# About 4 minutes, so not part of `make test`; docs/operate.md. Both need root and Docker.
+deploy-image: $(STAMP) $(WEBSTAMP)
+	$(PY) deploy/build-image
+
+deploy-smoke: $(STAMP) $(WEBSTAMP)
+	$(PY) deploy/smoke
 
 bench: $(STAMP) $(WEBSTAMP)
 	$(PY) bench/sim.py
