@@ -32,7 +32,7 @@ import sqlalchemy as sa
 from labd.workers import LOCAL_WORKERS
 from repository.errors import IndexLost
 from repository.tables import meta
-from scheduler.canary import State
+from scheduler.states import State
 
 if TYPE_CHECKING:
     from labd.service import Service

@@ -42,7 +42,7 @@ import re
 import secrets
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any
 
 import sqlalchemy as sa
 from sqlalchemy.engine import Connection
@@ -58,6 +58,7 @@ from repository.errors import (
     UnknownKey,
 )
 from repository.index import Index
+from repository.slots import State
 from repository.tables import reservations
 from repository.units import moment
 
@@ -71,8 +72,6 @@ SECRET_BYTES = 32
 KEY = re.compile(r"labd_rk_([1-9][0-9]{0,11})_([A-Za-z0-9_-]{43})", re.ASCII)
 MAX_SLOT = DAY  # the longest ``max_slot`` an operator may set
 MAX_HORIZON = 365 * DAY  # the furthest ``horizon`` an operator may set
-
-State = Literal["upcoming", "current", "ended", "released"]
 
 
 @dataclass(frozen=True)

@@ -12,6 +12,9 @@ Two evaluations of the same suite are paired by episode (the same seed, so the s
 maze or table). Whether A succeeds more often than B is McNemar's exact test: only the
 episodes where exactly one succeeded count, and under "neither is better" each of those
 is a fair coin. The paired reward difference has a bootstrap interval like the mean.
+
+Only the bootstrap needs numpy, and imports it when it runs: a client that reads
+evaluations (``repository.evaluation``'s models, the ``labd`` command) loads none of it.
 """
 
 from __future__ import annotations
@@ -19,8 +22,6 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
-
-import numpy as np
 
 Z95 = 1.959963984540054  # the standard normal's 97.5th percentile
 RESAMPLES = 2000  # bootstrap resamples: the interval's ends move by well under 1 % of its width
@@ -63,6 +64,8 @@ def bootstrap_mean(
         return None
     if len(values) == 1:
         return Interval(values[0], values[0])
+    import numpy as np  # noqa: PLC0415 (slow to load: only where a bootstrap runs)
+
     data = np.asarray(values, dtype=float)
     picks = np.random.default_rng(seed).integers(0, len(data), size=(resamples, len(data)))
     low, high = np.quantile(data[picks].mean(axis=1), [0.025, 0.975])

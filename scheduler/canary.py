@@ -19,26 +19,18 @@ import tempfile
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
-from enum import StrEnum
 from pathlib import Path
 from typing import TYPE_CHECKING
 
 from repository.errors import ArchiveError
 from scheduler.errors import QueueError
 from scheduler.runner import RunOptions, TrialSpec, run_trial
+from scheduler.states import State
 
 if TYPE_CHECKING:
     from scheduler.worker import Worker
 
 log = logging.getLogger("scheduler.canary")
-
-
-class State(StrEnum):
-    """A worker's state as its canaries found it; a remote worker reports it by value."""
-
-    OK = "ok"  # its canaries reproduced, or it has none
-    CHECKING = "checking"  # it is rerunning them
-    OUT = "out"  # one did not reproduce: out of the pool, it claims nothing more
 
 
 @dataclass(frozen=True)

@@ -25,7 +25,6 @@ from __future__ import annotations
 import logging
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
-from enum import StrEnum
 from typing import Any, TypeVar
 
 import sqlalchemy as sa
@@ -37,6 +36,7 @@ from repository.tables import trials as T
 from repository.trial import Claim, Filing, Kind, Outcome, PinnedRecord, Status, Trial
 from scheduler.canary import Health
 from scheduler.errors import FilingRefused, NotYours, QuotaExceeded
+from scheduler.states import Cancel
 
 log = logging.getLogger("scheduler.queue")
 DAY = 86400.0
@@ -53,14 +53,6 @@ class QueueConfig:
 
 QUEUED, RUNNING = Status.QUEUED.value, Status.RUNNING.value
 R = TypeVar("R")
-
-
-class Cancel(StrEnum):
-    """What cancelling did."""
-
-    CANCELLED = "cancelled"  # it was queued: it will never run
-    STOPPING = "stopping"  # it runs: its worker stops it at its next heartbeat
-    ENDED = "ended"  # it had ended already: nothing was done
 
 
 class Queue:

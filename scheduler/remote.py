@@ -20,9 +20,10 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from repository.index import Derived
 from repository.trial import MAX_SIZE, Claim, Filing, Trial
-from scheduler.canary import Health, State
+from scheduler.canary import Health
 from scheduler.client import ApiClient, version
 from scheduler.errors import ApiRefused, FilingRefused, RemoteError
+from scheduler.states import State
 
 PROTOCOL = 3  # 1: labd 0.1 (status succeeded/failed); 2: status and outcome apart;
 # 3: the lab holds a filing to its record (422 if not borne out), no metrics without one

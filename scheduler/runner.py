@@ -33,7 +33,6 @@ import tempfile
 import time
 from collections.abc import Awaitable, Callable, Mapping
 from dataclasses import dataclass, field
-from enum import StrEnum
 from pathlib import Path
 from typing import Any
 
@@ -61,6 +60,7 @@ from scheduler.host import TrialHost, TrialLab
 from scheduler.manifest import build as build_manifest
 from scheduler.outcome import judge, storage_failure
 from scheduler.source import Source, checkout
+from scheduler.states import Stage
 
 log = logging.getLogger("scheduler.runner")
 
@@ -91,15 +91,6 @@ class RunOptions:
     def run_deadline(self) -> float:
         """The longest a started controller may take before the trial must be over."""
         return self.limits.wall + self.first_step + self.grace + self.slack
-
-
-class Stage(StrEnum):
-    """What a trial's worker is doing with it: the runner's stages, then the worker's."""
-
-    STARTING = "starting"
-    PREPARING = "preparing"  # fetching, checking out, building the controller
-    RUNNING = "running"  # the controller and the robot, in lockstep or on the wall clock
-    FILING = "filing"  # the record stored and filed with the lab
 
 
 class Progress:

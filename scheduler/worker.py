@@ -39,11 +39,12 @@ from repository.index import Derived
 from repository.trial import Claim, Ending, Filing, Status, Trial
 from repository.well_known import LOGS, RECORD_FILE, REPLAY, SUMMARY, SUMMARY_MEDIA_TYPE
 from sandbox.api import Backend
-from scheduler.canary import Canaries, Health, State
+from scheduler.canary import Canaries, Health
 from scheduler.errors import FilingRefused, QueueError
 from scheduler.host import TrialHost
 from scheduler.outcome import storage_failure
-from scheduler.runner import Progress, RunOptions, Stage, TrialResult, TrialSpec, run_trial
+from scheduler.runner import Progress, RunOptions, TrialResult, TrialSpec, run_trial
+from scheduler.states import Stage, State
 
 
 class Jobs(Protocol):

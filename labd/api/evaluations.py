@@ -14,12 +14,12 @@ from typing import Annotated
 
 from fastapi import APIRouter, Depends, Query, Request
 from fastapi.responses import JSONResponse
-from pydantic import BaseModel, Field
+from pydantic import BaseModel
 from starlette.concurrency import run_in_threadpool
 
 from labd.api.common import Lab, Writer
 from labd.api.errors import ApiError, responses
-from labd.api.models import Id, TaskView, task_view
+from labd.api.models import EvaluationPage, EvaluationView, Id, TaskView, task_view
 from labd.api.state import App
 from labd.sim import registry
 from repository.evaluation import (
@@ -33,18 +33,6 @@ from repository.evaluation import (
 from repository.evaluation_index import EvaluationFilters
 
 router = APIRouter(tags=["evaluations"])
-
-
-class EvaluationView(Evaluation):
-    """An evaluation, with where to find it."""
-
-    url: str = Field(description="this evaluation in the API")
-    page: str = Field(description="its web page")
-
-
-class EvaluationPage(BaseModel):
-    evaluations: list[EvaluationView]
-    next: int | None = Field(description="`before` for the next page; null on the last")
 
 
 class Leaderboard(BaseModel):

@@ -3,23 +3,29 @@
 Every 2xx body is one of these models (so ``/openapi.json`` describes it), built from
 the archive's typed record (``repository.trial.Trial``); every error is ``ErrorBody``.
 A trial's headline is its outcome: ``success``, ``fail`` or ``error`` once finished.
+
+The bodies a client reads back (trials, the lab's status, evaluations, reservations)
+are here rather than beside their routes, and this module imports only the light
+vocabulary of the archive and the scheduler: the ``labd`` commands that talk to a lab
+import it without FastAPI, SQLAlchemy or the simulator.
 """
 
 from __future__ import annotations
 
 import datetime as dt
 from collections.abc import Collection
-from typing import Annotated, Any
+from typing import TYPE_CHECKING, Annotated, Any
 
 from pydantic import BaseModel, Field, StringConstraints
 
 from labd.sim import registry
-from repository.evaluation import SuiteInfo
-from repository.index import CommitPage
+from repository.evaluation import Evaluation, SuiteInfo
+from repository.slots import State as SlotState
 from repository.trial import MAX_ID, Kind, Outcome, PinnedRecord, Status, Trial, Value
-from scheduler.canary import State
-from scheduler.queue import Cancel
-from scheduler.runner import Stage
+from scheduler.states import Cancel, Stage, State
+
+if TYPE_CHECKING:
+    from repository.index import CommitPage
 
 # What a client names a record by, checked where it comes in: an id past the index's
 # range, or a digest that is not one, is a 422 saying so, never a query that fails.
@@ -216,6 +222,55 @@ class LabStatus(BaseModel):
     running: list[WorkerView]
     local_workers: int
     workers: list[WorkerHealth]
+
+
+class EvaluationView(Evaluation):
+    """An evaluation, with where to find it."""
+
+    url: str = Field(description="this evaluation in the API")
+    page: str = Field(description="its web page")
+
+
+class EvaluationPage(BaseModel):
+    evaluations: list[EvaluationView]
+    next: int | None = Field(description="`before` for the next page; null on the last")
+
+
+class ReservationView(BaseModel):
+    """A booked slot: who, which robot, when. Never its key."""
+
+    id: int
+    robot: str
+    user: str
+    start: dt.datetime
+    end: dt.datetime = Field(description="when it ends, after any release")
+    booked_end: dt.datetime = Field(description="the end as booked or extended")
+    created: dt.datetime
+    released: dt.datetime | None
+    state: SlotState = Field(description="upcoming, current, ended or released")
+    minutes: float
+    calendar: str = Field(description="the robot's calendar page")
+
+
+class ReservationList(BaseModel):
+    reservations: list[ReservationView]
+
+
+class KeyView(BaseModel):
+    """A slot's key: it opens ``robot`` from the slot's start to its end."""
+
+    key: str = Field(description='present it in the first frame, {"op": "auth", "key": ...}')
+    robot: str
+    path: str = Field(description="the robot's path on the lab's bridge, /robots/NAME")
+    seconds: float = Field(description="seconds left in the slot now (0 before it starts)")
+    reservation: ReservationView
+
+
+class Booked(BaseModel):
+    """A new reservation and its key."""
+
+    reservation: ReservationView
+    key: KeyView
 
 
 def summary(trial: Trial, base: str) -> dict[str, Any]:

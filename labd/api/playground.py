@@ -24,9 +24,8 @@ from starlette.concurrency import run_in_threadpool
 
 from labd.api.common import Lab, Writer
 from labd.api.errors import ApiError, responses
-from labd.api.evaluations import EvaluationView
 from labd.api.evaluations import view as evaluation_view
-from labd.api.models import TrialDetail, trial_detail
+from labd.api.models import EvaluationView, TrialDetail, trial_detail
 from labd.api.state import App
 from labd.playground import MAX_SCRIPT, Script, ScriptError, check, files, script_of
 from labd.service import Service

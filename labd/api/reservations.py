@@ -37,36 +37,16 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from labd.api.common import Caller, Lab, Writer
 from labd.api.errors import ApiError, responses
-from labd.api.models import Id
+from labd.api.models import Booked, Id, KeyView, ReservationList, ReservationView
 from labd.api.state import App, AppState
 from repository.errors import KeyRefused, UnknownKey
-from repository.reservations import Reservation, State, when
+from repository.reservations import Reservation, when
 from repository.units import moment
 
 router = APIRouter(tags=["reservations"])
 CALLBACK = re.compile(r"[A-Za-z_$][\w$]*(\.[A-Za-z_$][\w$]*){0,4}")
 NO_STORE = {"Cache-Control": "no-store"}
 PAST = 30 * 86400.0  # how far back a calendar feed goes
-
-
-class ReservationView(BaseModel):
-    """A booked slot: who, which robot, when. Never its key."""
-
-    id: int
-    robot: str
-    user: str
-    start: dt.datetime
-    end: dt.datetime = Field(description="when it ends, after any release")
-    booked_end: dt.datetime = Field(description="the end as booked or extended")
-    created: dt.datetime
-    released: dt.datetime | None
-    state: State = Field(description="upcoming, current, ended or released")
-    minutes: float
-    calendar: str = Field(description="the robot's calendar page")
-
-
-class ReservationList(BaseModel):
-    reservations: list[ReservationView]
 
 
 class BookRequest(BaseModel):
@@ -85,23 +65,6 @@ class ExtendRequest(BaseModel):
     model_config = ConfigDict(extra="forbid")
     end: dt.datetime | None = None
     minutes: float | None = Field(None, description="minutes added to the slot's end")
-
-
-class KeyView(BaseModel):
-    """A slot's key: it opens ``robot`` from the slot's start to its end."""
-
-    key: str = Field(description='present it in the first frame, {"op": "auth", "key": ...}')
-    robot: str
-    path: str = Field(description="the robot's path on the lab's bridge, /robots/NAME")
-    seconds: float = Field(description="seconds left in the slot now (0 before it starts)")
-    reservation: ReservationView
-
-
-class Booked(BaseModel):
-    """A new reservation and its key."""
-
-    reservation: ReservationView
-    key: KeyView
 
 
 class AuthAnswer(BaseModel):

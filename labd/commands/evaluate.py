@@ -21,7 +21,7 @@ import time
 from collections.abc import Iterator
 from typing import Any
 
-from labd.api.evaluations import EvaluationPage, EvaluationView
+from labd.api.models import EvaluationPage, EvaluationView
 from labd.commands.common import ExitCode, emit, fail, server_options
 from repository.errors import ArchiveError
 from repository.trial import Outcome, Status

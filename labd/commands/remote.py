@@ -9,8 +9,7 @@
     labd rerun COMMIT|TRIAL [--all] [--wait]
     labd rerun COMMIT --evaluations [--all] [--wait]   (labd.commands.evaluate)
     labd cancel TRIAL
-    labd export TRIAL --format lerobot|parquet [-o DIR]     (the formats of repository.formats)
-    labd export --task T [--kind K --outcome O --user U --limit N] [--trials ID ...] --format F
+    labd export TRIAL --format F | --task T ... --format F   (labd.commands.export)
     labd tasks
     labd status
 
@@ -22,15 +21,11 @@ the server are printed as it words them. Exit codes are in ``labd.commands.commo
 from __future__ import annotations
 
 import argparse
-import shutil
 import sys
-import tempfile
 import time
-import zipfile
 from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
-from urllib.parse import urlencode
 
 from labd.api.models import (
     CancelView,
@@ -54,12 +49,11 @@ from labd.commands.common import (
 )
 from repository.digests import readable_json
 from repository.errors import ArchiveError
-from repository.formats import FORMATS
 from repository.trial import Kind, Outcome, Status
-from repository.well_known import EXPORT_SIGNATURE, SIGNATURE_SIDECAR
+from repository.well_known import SIGNATURE_SIDECAR
 from scheduler.client import ApiClient
 from scheduler.errors import RemoteError
-from scheduler.queue import Cancel
+from scheduler.states import Cancel
 
 
 def add_parser(commands: Any) -> None:
@@ -125,8 +119,6 @@ def add_parser(commands: Any) -> None:
     p.add_argument("trial", type=int, metavar="TRIAL", help="the trial's number")
     server_options(p, write=True)
 
-    _export_parser(commands)
-
     p = commands.add_parser("tasks", help="the lab's tasks and their parameters")
     p.add_argument(
         "--local",
@@ -137,23 +129,6 @@ def add_parser(commands: Any) -> None:
     server_options(p)
 
     p = commands.add_parser("status", help="the lab now: the queue and what workers run")
-    server_options(p)
-
-
-def _export_parser(commands: Any) -> None:
-    p = commands.add_parser(
-        "export", help="export trials for learning: a row per control tick, every camera"
-    )
-    p.add_argument("trial", type=int, nargs="?", metavar="TRIAL", help="one trial's number")
-    p.add_argument("--format", required=True, choices=sorted(FORMATS), help="the format")
-    p.add_argument("-o", "--output", type=Path, help="the folder (default: trial-N-FORMAT)")
-    many = p.add_argument_group("many trials as one dataset, one episode each (as [data])")
-    many.add_argument("--trials", type=int, nargs="+", default=[], metavar="ID", help="by id")
-    many.add_argument("--task", help="the query: trials of this task")
-    many.add_argument("--kind", choices=[k.value for k in Kind], help="... of this kind")
-    many.add_argument("--outcome", choices=[o.value for o in Outcome], help="... that ended so")
-    many.add_argument("--user", help="... submitted (or driven) by this user")
-    many.add_argument("--limit", type=int, help="... the newest this many")
     server_options(p)
 
 
@@ -293,69 +268,6 @@ def _cancel(client: ApiClient, args: argparse.Namespace) -> int:
     return fail(args, f"trial {row.id} had already ended ({_state(row)}); nothing to cancel")
 
 
-def _export(client: ApiClient, args: argparse.Namespace) -> int:
-    """The lab makes the export (once; it keeps it beside the record); this downloads it."""
-    query = {k: getattr(args, k) for k in ("task", "kind", "outcome", "user", "limit")}
-    if args.trials or any(v is not None for v in query.values()):
-        return _export_many(client, args, query)
-    if args.trial is None:
-        return fail(args, "name a TRIAL, or trials to export together (--trials, --task ...)")
-    fmt = FORMATS[args.format]
-    out = args.output or Path(f"trial-{args.trial}-{fmt.name}")
-    if out.exists() and (not out.is_dir() or any(out.iterdir())):
-        return fail(args, f"{out} already exists: give a new or empty folder (-o)")
-    with tempfile.TemporaryDirectory(prefix="labd-export-") as folder:
-        got = Path(folder) / "export"
-        size = client.download(f"/api/trials/{args.trial}/export/{fmt.name}", got)
-        out.mkdir(parents=True, exist_ok=True)
-        if fmt.served is not None:  # the export's one file; its signature is served beside it
-            shutil.move(got, out / fmt.served)
-            signature = client.request(
-                "GET", f"/api/trials/{args.trial}/export/{fmt.name}/signature"
-            ).json()
-            (out / EXPORT_SIGNATURE).write_bytes(readable_json(signature))
-        else:  # a zip of the export's folder, its signature in it
-            with zipfile.ZipFile(got) as archive:
-                archive.extractall(out)
-    frames = fmt.frames(out)
-    info = {"path": str(out), "format": args.format, "frames": frames, "bytes": size}
-    emit(args, info, lambda: [f"{out}: {frames} frames ({args.format}, {size:,} bytes)"])
-    return ExitCode.SUCCESS
-
-
-def _export_many(client: ApiClient, args: argparse.Namespace, query: dict[str, Any]) -> int:
-    """Many trials as one dataset: the lab chooses them as lab.toml's [data] does."""
-    ids = ([args.trial] if args.trial is not None else []) + list(args.trials)
-    params: list[tuple[str, str | int]] = [("trials", i) for i in ids]
-    params += [(k, v) for k, v in query.items() if v is not None]
-    fmt = FORMATS[args.format]
-    out = args.output or Path(f"export-{fmt.name}")
-    if out.exists() and (not out.is_dir() or any(out.iterdir())):
-        return fail(args, f"{out} already exists: give a new or empty folder (-o)")
-    with tempfile.TemporaryDirectory(prefix="labd-export-") as folder:
-        got = Path(folder) / "export.zip"
-        path = f"/api/exports/{fmt.name}?" + urlencode(params)
-        size = client.download(path, got)
-        out.mkdir(parents=True, exist_ok=True)
-        with zipfile.ZipFile(got) as archive:
-            archive.extractall(out)
-    frames = fmt.frames(out)
-    episodes = fmt.episodes(out)
-    info = {
-        "path": str(out),
-        "format": args.format,
-        "frames": frames,
-        "episodes": episodes,
-        "bytes": size,
-    }
-    emit(
-        args,
-        info,
-        lambda: [f"{out}: {episodes} episodes, {frames} frames ({args.format}, {size:,} bytes)"],
-    )
-    return ExitCode.SUCCESS
-
-
 def _tasks(client: ApiClient, args: argparse.Namespace) -> int:
     return _show_tasks(client.get("/api/tasks", TaskList), args)
 
@@ -384,7 +296,8 @@ def _status(client: ApiClient, args: argparse.Namespace) -> int:
     now = client.get("/api/status", LabStatus)
 
     def lines() -> Iterator[str]:
-        yield f"labd {now.version}: {now.queued} queued, {len(now.running)} running"
+        own = f"{now.local_workers} worker{'s' if now.local_workers != 1 else ''} in the lab"
+        yield f"labd {now.version}: {now.queued} queued, {len(now.running)} running; {own}"
         for w in now.running:
             stage = f", {w.stage} for {w.stage_seconds:.0f} s" if w.stage else ""
             ran = f"{w.running_seconds:.0f} s" if w.running_seconds is not None else "?"
@@ -405,7 +318,6 @@ COMMANDS: dict[str, Callable[[ApiClient, argparse.Namespace], int]] = {
     "download": _download,
     "rerun": _rerun,
     "cancel": _cancel,
-    "export": _export,
     "tasks": _tasks,
     "status": _status,
 }

@@ -18,7 +18,7 @@ import argparse
 import datetime as dt
 from typing import Any
 
-from labd.api.reservations import Booked, KeyView, ReservationList, ReservationView
+from labd.api.models import Booked, KeyView, ReservationList, ReservationView
 from labd.commands.common import emit, fail, server_options
 from repository.errors import ArchiveError
 from scheduler.client import ApiClient

@@ -42,7 +42,7 @@ from repository.index import Derived, Filters, Order
 from repository.trial import Kind, Outcome, Status, Trial
 from repository.units import KiB
 from repository.well_known import REPLAY, SUMMARY, VIDEO
-from scheduler.canary import State
+from scheduler.states import State
 
 router = APIRouter(include_in_schema=False, route_class=PageRoute)
 PAGE = 50
