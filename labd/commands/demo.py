@@ -80,15 +80,31 @@ def free_port(preferred: int, host: str = "127.0.0.1") -> int:
     raise OSError("no free port")
 
 
+def _serve_command(args: argparse.Namespace, http_port: int, bridge_port: int) -> list[str]:
+    """The demo's ``labd serve``: this Python, the demo's folder and ports."""
+    command = [sys.executable, "-m", "labd", "serve", "--data", str(args.data)]
+    command += ["--http-port", str(http_port), "--bridge-port", str(bridge_port)]
+    command += ["--allow-local-repos"]  # the examples are submitted by their repositories' paths
+    if args.sandbox:
+        command += ["--sandbox", args.sandbox]
+    return command
+
+
+def _already_served(data: Path) -> str | None:
+    """Why the demo cannot start on ``data``: a lab serves it already (None: none does)."""
+    running = datalock.holder(data)
+    if running is None:
+        return None
+    where = running.get("http", "an address it has not written yet")
+    return (
+        f"labd demo: a lab already serves {data} at {where} (pid"
+        f" {running.get('pid', '?')}): open that one, or stop it first"
+    )
+
+
 def main(args: argparse.Namespace) -> int:
-    running = datalock.holder(args.data)
-    if running is not None:  # before anything of the running demo's is rewritten
-        where = running.get("http", "an address it has not written yet")
-        print(
-            f"labd demo: a lab already serves {args.data} at {where} (pid"
-            f" {running.get('pid', '?')}): open that one, or stop it first",
-            file=sys.stderr,
-        )
+    if refused := _already_served(args.data):  # before anything of its is rewritten
+        print(refused, file=sys.stderr)
         return int(ExitCode.USAGE)
     # stopped with SIGTERM (a service manager, `kill`): stop the lab it started too
     signal.signal(signal.SIGTERM, _stop)
@@ -102,21 +118,7 @@ def main(args: argparse.Namespace) -> int:
     env_file = folder / "env"
     env_file.write_text(f"export LABD_SERVER={server}\nexport LABD_TOKEN={token}\n")
     env_file.chmod(0o600)
-    command = [
-        sys.executable,
-        "-m",
-        "labd",
-        "serve",
-        "--data",
-        str(args.data),
-        "--http-port",
-        str(http_port),
-        "--bridge-port",
-        str(bridge_port),
-        "--allow-local-repos",  # the examples are submitted by their repositories' paths
-    ]
-    if args.sandbox:
-        command += ["--sandbox", args.sandbox]
+    command = _serve_command(args, http_port, bridge_port)
     print("starting:", " ".join(command), flush=True)
     lab = subprocess.Popen(command)  # noqa: S603 - this Python, running labd serve
     client = ApiClient(server, token, connect_attempts=1)

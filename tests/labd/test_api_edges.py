@@ -179,17 +179,19 @@ async def test_ids_and_digests_are_bounded_in_the_openapi_document(app):
 
 
 async def test_an_id_past_32_bits_is_a_422_on_either_database(tmp_path, database_url):
-    """Trial 2^31 is a 422 naming the range, on SQLite and on PostgreSQL (whose INTEGER id
-    columns end at 2^31 - 1), for the API and the trial's page alike."""
+    """Trial 2^31 is a 422 naming the range in the API, on SQLite and on PostgreSQL (whose
+    INTEGER id columns end at 2^31 - 1); the trial's page at such a URL is no page (404)."""
     service = Service(ServiceConfig(data=tmp_path / "data", database=database_url, workers=0))
     try:
         app = create_app(service, Site(), on_submit=lambda: None)
         async with httpx.AsyncClient(
             transport=httpx.ASGITransport(app=app), base_url="http://lab.test"
         ) as client:
-            for path in (f"/api/trials/{2**31}", f"/trials/{2**31}", f"/api/trials?before={2**31}"):
+            for path in (f"/api/trials/{2**31}", f"/api/trials?before={2**31}"):
                 answer = await client.get(path)
                 assert answer.status_code == 422, (path, answer.text)
+            page = await client.get(f"/trials/{2**31}")
+            assert page.status_code == 404 and f"no such page: /trials/{2**31}" in page.text
             assert (await client.get(f"/api/trials/{2**31 - 1}")).status_code == 404
     finally:
         service.index.close()
