@@ -70,6 +70,7 @@ bench: $(STAMP) $(WEBSTAMP)
 	$(PY) bench/web.py
 	$(PY) bench/replay.py
 	$(PY) bench/live.py
+	$(PY) bench/cli.py
 	$(PY) bench/knn.py
 	$(PY) bench/evaluate.py
 
