@@ -11,6 +11,11 @@ from repository.well_known import UX_EVENTS
 DATA = Path("lab-data")  # where a lab keeps its archive, caches and runs, unless told
 
 
+def database_url(data: Path, database: str | None = None) -> str:
+    """The index's SQLAlchemy URL: ``database``, else the SQLite file in ``data``."""
+    return database or f"sqlite:///{(data / 'index.sqlite').resolve()}"
+
+
 @dataclass(frozen=True)
 class BridgeConfig:
     """How the rosbridge server listens and what it allows each client."""

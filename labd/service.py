@@ -27,7 +27,7 @@ from pathlib import Path
 from typing import Any
 
 import sandbox
-from labd.config import DATA
+from labd.config import DATA, database_url
 from labd.graph.types import TypeRegistry
 from labd.hosted import HostedRepos
 from labd.live import Demonstration
@@ -86,7 +86,7 @@ class ServiceConfig:
 
     @property
     def database_url(self) -> str:
-        return self.database or f"sqlite:///{(self.data / 'index.sqlite').resolve()}"
+        return database_url(self.data, self.database)
 
     @property
     def blobs_url(self) -> str:

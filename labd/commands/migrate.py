@@ -14,8 +14,7 @@ from pathlib import Path
 from typing import Any
 
 from labd.commands.common import emit, fail, json_option
-from labd.config import DATA
-from labd.service import ServiceConfig
+from labd.config import DATA, database_url
 from repository.errors import ArchiveError
 from repository.index import connect
 from repository.migrate import upgrade
@@ -34,10 +33,9 @@ def add_parser(commands: Any) -> None:
 
 
 def main(args: argparse.Namespace) -> int:
-    config = ServiceConfig(data=args.data, database=args.database)
     if args.database is None and not (args.data / "index.sqlite").exists():
         return fail(args, f"no archive in {args.data} (no index.sqlite); give --data or --database")
-    engine = connect(config.database_url)
+    engine = connect(database_url(args.data, args.database))
     try:
         done = upgrade(engine)
     except ArchiveError as err:

@@ -26,8 +26,7 @@ from pathlib import Path
 from typing import Any
 
 from labd.commands.common import emit, fail, json_option
-from labd.config import DATA
-from labd.service import ServiceConfig
+from labd.config import DATA, database_url
 from repository.accounts import Accounts
 from repository.errors import ArchiveError
 from repository.index import Index, UserLimits
@@ -114,7 +113,6 @@ def add_parser(commands: Any) -> None:
 
 
 def main(args: argparse.Namespace) -> int:
-    config = ServiceConfig(data=args.data, database=args.database)
     if args.database is None and not (args.data / "index.sqlite").exists():
         print(
             f"labd users: {args.data} held no archive: a new one is made there (a lab"
@@ -123,7 +121,7 @@ def main(args: argparse.Namespace) -> int:
         )
     args.data.mkdir(parents=True, exist_ok=True)
     try:
-        index = Index.open(config.database_url)
+        index = Index.open(database_url(args.data, args.database))
         try:
             return ACTIONS[args.action](args, index, Accounts(index))
         finally:
