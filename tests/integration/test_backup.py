@@ -178,5 +178,9 @@ def test_a_backup_of_a_running_lab_restores_a_lab_that_serves_the_same_records(
 
     refused = labd("restore", str(dest), "--data", str(restored_data), *target)
     assert refused.returncode == 2, refused.stdout + refused.stderr
+    assert f"a lab serves {restored_data} ({second.server})" in refused.stderr
+    second.stop()  # stopped, the restored lab's index still refuses a second restore
+    refused = labd("restore", str(dest), "--data", str(restored_data), *target)
+    assert refused.returncode == 2, refused.stdout + refused.stderr
     assert "already holds 2 trial(s)" in refused.stderr
     assert len(refused.stderr.strip().splitlines()) == 1

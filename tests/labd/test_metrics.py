@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import os
 import re
+import uuid
 from pathlib import Path
 
 import httpx
@@ -187,10 +188,13 @@ async def test_readyz_follows_an_s3_store(tmp_path, sqlite_url, monkeypatch):
     endpoint = f"http://{host}:{port}"
     monkeypatch.setenv("AWS_ACCESS_KEY_ID", "testing")
     monkeypatch.setenv("AWS_SECRET_ACCESS_KEY", "testing")
-    s3fs.S3FileSystem(endpoint_url=endpoint, key="testing", secret="testing").mkdir("lab")
+    # moto keeps its buckets per process, across servers: a name of this test's own
+    bucket = f"lab-readyz-{uuid.uuid4().hex[:12]}"
+    s3fs.S3FileSystem(endpoint_url=endpoint, key="testing", secret="testing").mkdir(bucket)
     options = {"endpoint_url": endpoint, "key": "testing", "secret": "testing"}
     options["config_kwargs"] = {"retries": {"max_attempts": 1}}  # fail fast once it is gone
-    service = make_service(tmp_path, sqlite_url, blobs="s3://lab/blobs", blob_options=options)
+    blobs = f"s3://{bucket}/blobs"
+    service = make_service(tmp_path, sqlite_url, blobs=blobs, blob_options=options)
     try:
         async with Api(service) as api:
             empty = await api.get("/readyz")

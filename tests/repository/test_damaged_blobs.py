@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import hashlib
 import os
+import uuid
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -64,8 +65,9 @@ def s3_store() -> Iterator[BlobStore]:
     server.start()
     host, port = server.get_host_and_port()
     options = {"endpoint_url": f"http://{host}:{port}", "key": "testing", "secret": "testing"}
-    s3fs.S3FileSystem(**options).mkdir("lab")
-    yield BlobStore("s3://lab/archive", options)
+    bucket = f"lab-{uuid.uuid4().hex[:12]}"  # moto keeps buckets per process, across servers
+    s3fs.S3FileSystem(**options).mkdir(bucket)
+    yield BlobStore(f"s3://{bucket}/archive", options)
     server.stop()
 
 
