@@ -145,8 +145,9 @@ LIMITS = Limits(memory=256 * MiB, processes=32, output=2 * MiB, wall=60.0)
         ),
         ("hangs", ["stalled at tick 0: no /lab/step for 3 s"]),
         ("prints-gigabytes", ["printed more than 2 MiB"]),
-        # held to its processes, the fork bomb leaves the lab free to see it never step
-        ("forks-without-end", ["stalled at tick 0: no /lab/step for 3 s"]),
+        # held to its processes, the fork bomb leaves the lab free to see it never step;
+        # its 32 processes may also reach the memory limit first (seen on a loaded machine)
+        ("forks-without-end", ["stalled at tick 0: no /lab/step for 3 s", "out of memory"]),
         ("allocates-without-end", ["out of memory", "MemoryError"]),
         ("resolves-a-name", ["gaierror"]),
         ("writes-outside", ["Read-only file system", "Permission denied"]),
