@@ -3,6 +3,7 @@ sandboxes (one runtime for the session) and the lab's side of a trial."""
 
 from __future__ import annotations
 
+import contextlib
 import os
 import secrets
 from collections.abc import Callable, Iterator
@@ -142,20 +143,36 @@ def database_url(request: pytest.FixtureRequest, tmp_path: Any) -> Iterator[str]
     if request.param == "sqlite":
         yield f"sqlite:///{tmp_path / 'index.sqlite'}"
         return
+    with postgres_databases() as fresh:
+        yield fresh()
+
+
+@contextlib.contextmanager
+def postgres_databases() -> Iterator[Callable[[], str]]:
+    """``fresh()``: the URL of a new, empty PostgreSQL database, each call another, all
+    dropped at the end. The server is the one ``.ci/postgres`` starts
+    (``LABD_TEST_POSTGRES_URL``); without it the test skips, except in CI where it fails."""
     admin_url = os.environ.get("LABD_TEST_POSTGRES_URL")
     if not admin_url:
         if os.environ.get("CI"):
             pytest.fail("LABD_TEST_POSTGRES_URL is not set: .ci/postgres starts a server")
         pytest.skip("no PostgreSQL server (run .ci/postgres and set LABD_TEST_POSTGRES_URL)")
-    name = f"labd_test_{secrets.token_hex(6)}"
     admin = sa.create_engine(admin_url, isolation_level="AUTOCOMMIT")
-    with admin.connect() as db:
-        db.execute(sa.text(f'CREATE DATABASE "{name}"'))
+    made: list[str] = []
+
+    def fresh() -> str:
+        name = f"labd_test_{secrets.token_hex(6)}"
+        with admin.connect() as db:
+            db.execute(sa.text(f'CREATE DATABASE "{name}"'))
+        made.append(name)
+        return admin_url.rsplit("/", 1)[0] + "/" + name
+
     try:
-        yield admin_url.rsplit("/", 1)[0] + "/" + name
+        yield fresh
     finally:
         with admin.connect() as db:
-            db.execute(sa.text(f'DROP DATABASE IF EXISTS "{name}" WITH (FORCE)'))
+            for name in made:
+                db.execute(sa.text(f'DROP DATABASE IF EXISTS "{name}" WITH (FORCE)'))
         admin.dispose()
 
 

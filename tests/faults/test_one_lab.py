@@ -16,16 +16,7 @@ import psutil
 from labd.commands.demo import free_port
 from labd.datalock import holder
 from tests.faults.conftest import gone, wait_for
-
-
-def labd(*args: str, timeout: float = 60) -> subprocess.CompletedProcess[str]:
-    return subprocess.run(
-        [sys.executable, "-m", "labd", *args],
-        capture_output=True,
-        text=True,
-        timeout=timeout,
-        check=False,
-    )
+from tests.integration.test_commands import labd
 
 
 def test_a_second_lab_on_a_folder_in_use_is_refused_naming_the_first(served, tmp_path):

@@ -12,8 +12,6 @@ from __future__ import annotations
 
 import hashlib
 import json
-import os
-import secrets
 import subprocess
 import sys
 from collections.abc import Callable, Iterator
@@ -22,9 +20,9 @@ from typing import Any
 
 import httpx
 import pytest
-import sqlalchemy as sa
 
 from labd.hosted import HostedRepos
+from tests.conftest import postgres_databases
 from tests.faults.conftest import Served, wait_for
 from tests.faults.slow import controller
 from tests.helpers.githttp import GitRepo
@@ -60,26 +58,8 @@ def databases(request: pytest.FixtureRequest) -> Iterator[Callable[[], list[str]
     if request.param == "sqlite":
         yield lambda: []
         return
-    admin_url = os.environ.get("LABD_TEST_POSTGRES_URL")
-    if not admin_url:
-        if os.environ.get("CI"):
-            pytest.fail("LABD_TEST_POSTGRES_URL is not set: .ci/postgres starts a server")
-        pytest.skip("no PostgreSQL server (run .ci/postgres and set LABD_TEST_POSTGRES_URL)")
-    admin = sa.create_engine(admin_url, isolation_level="AUTOCOMMIT")
-    made: list[str] = []
-
-    def fresh() -> list[str]:
-        name = f"labd_test_{secrets.token_hex(6)}"
-        with admin.connect() as db:
-            db.execute(sa.text(f'CREATE DATABASE "{name}"'))
-        made.append(name)
-        return ["--database", admin_url.rsplit("/", 1)[0] + "/" + name]
-
-    yield fresh
-    with admin.connect() as db:
-        for name in made:
-            db.execute(sa.text(f'DROP DATABASE IF EXISTS "{name}" WITH (FORCE)'))
-    admin.dispose()
+    with postgres_databases() as fresh:
+        yield lambda: ["--database", fresh()]
 
 
 @pytest.fixture

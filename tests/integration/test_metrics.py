@@ -18,21 +18,11 @@ from repository.trial import TrialRequest
 from tests.helpers.githttp import GitRepo
 from tests.helpers.labs import MAZE, ServerThread, lab_config, running
 from tests.integration.test_browser import wait_ended
+from tests.integration.test_page_headers import STEPS
 from tests.labd.test_metrics import documented, samples
 
 pytestmark = [pytest.mark.integration, pytest.mark.timeout(400)]
 
-STEPS = """\
-from controllers.client import EpisodeOver, Lab
-
-with Lab.connect() as lab:
-    try:
-        for tick in range(30):
-            lab.publish("/cmd_vel", "geometry_msgs/msg/Twist", {"linear": {"x": 0.15}})
-            lab.step()
-    except EpisodeOver:
-        pass
-"""
 TOML = '[controller]\ncommand = ["python", "c.py"]\ntask = "icreate-maze"\n'
 ROBOT = (("robot", "icreate-1"),)
 
