@@ -116,10 +116,8 @@ def options(parser: argparse.ArgumentParser) -> dict[str, argparse.Action]:
     found: dict[str, argparse.Action] = {}
     for action in parser._actions:
         longs = [o for o in action.option_strings if o.startswith("--")]
-        if not longs or (action.default is argparse.SUPPRESS and action.nargs == 0):
-            continue
-        key = longs[0][2:].replace("-", "_")
-        if key not in NOT_SETTINGS:
+        key = longs[0][2:].replace("-", "_") if longs else ""
+        if key and key not in NOT_SETTINGS:
             found[key] = action
     return found
 
