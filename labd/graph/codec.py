@@ -14,8 +14,9 @@ their defaults, ``uint8[]`` may be base64 or a list of numbers, times may use th
 ROS 1 names (``secs``/``nsecs``) or the string ``"now"``, a ``std_msgs/Header``
 without a stamp is stamped with the graph's time, and anything else that does not
 fit raises ``MessageError`` naming the field. ``to_json`` and ``to_cbor`` render
-normal form for the wire; ``to_rosbags``/``from_rosbags`` cross to the rosbags
-classes used for CDR (recording, ``cbor-raw``).
+normal form for the wire; ``to_cdr`` encodes it for recording and ``cbor-raw``
+(``labd.graph.cdr``); ``to_rosbags``/``from_rosbags`` cross to the rosbags classes,
+used to decode CDR.
 
 Converters are compiled once per type into closures: the success path builds no
 strings and never looks at a type description.
@@ -33,6 +34,7 @@ import orjson
 from cbor2 import CBORTag
 
 from labd.errors import MessageError
+from labd.graph.cdr import to_cdr_function
 from labd.graph.types import BINARY, FLOATS, INTEGER_RANGES, Field, Kind, MessageType, TypeRegistry
 
 Now = Callable[[], tuple[int, int]]
@@ -91,7 +93,9 @@ class Codec:
 
     def __init__(self, registry: TypeRegistry, mtype: MessageType) -> None:
         self.type = mtype
+        self.registry = registry
         self.type_store = registry.typestore
+        self._to_cdr: Converter | None = None
         self.has_binary = False  # any uint8[] inside, at any depth (for memory estimates)
         # Filled in by ``codec_for`` once every nested codec exists (types may nest deeply).
         self.normalize: Normalizer
@@ -99,6 +103,18 @@ class Codec:
         self.to_rosbags: Converter
         self.from_rosbags: Converter
         self.to_cbor: Converter
+
+    def to_cdr(self, value: dict[str, Any]) -> bytes:
+        """The CDR (little-endian, with its header) of a value in normal form."""
+        encode = self._to_cdr
+        if encode is None:
+            encode = self._to_cdr = to_cdr_function(self.registry, self.type.name)
+            if encode is None:  # a type the direct encoder cannot lay out
+                encode = self._to_cdr = self._rosbags_cdr
+        return encode(value)
+
+    def _rosbags_cdr(self, value: dict[str, Any]) -> bytes:
+        return bytes(self.type_store.serialize_cdr(self.to_rosbags(value), self.type.name))
 
 
 def codec_for(registry: TypeRegistry, name: str) -> Codec:

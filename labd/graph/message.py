@@ -46,9 +46,7 @@ class Message:
     def cdr(self) -> bytes:
         """The CDR (little-endian) serialization, as ROS 2 and MCAP carry it."""
         if self._cdr is None:
-            store = self.codec.type_store
-            obj = self.codec.to_rosbags(self.data)
-            self._cdr = bytes(store.serialize_cdr(obj, self.type_name))
+            self._cdr = self.codec.to_cdr(self.data)
         return self._cdr
 
     def size_hint(self) -> int:

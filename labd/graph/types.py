@@ -174,6 +174,7 @@ class TypeRegistry:
         self._actions = frozenset(actions)
         self._messages: dict[str, MessageType] = {}
         self._codecs: dict[str, Any] = {}
+        self._cdr: dict[str, Any] = {}
         self.base = base  # the registry this one extends, if any
 
     def extended(
@@ -279,6 +280,10 @@ class TypeRegistry:
     def codec_cache(self) -> dict[str, Any]:
         """Storage for compiled converters, keyed by type name (see ``codec``)."""
         return self._codecs
+
+    def cdr_cache(self) -> dict[str, Any]:
+        """Storage for compiled CDR encoders, keyed by type name (``labd.graph.cdr``)."""
+        return self._cdr
 
     def _build(self, name: str) -> MessageType:
         consts, fields = self.typestore.fielddefs[name]
