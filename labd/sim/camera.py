@@ -60,9 +60,9 @@ class Camera:
 
     def info(self, physics: Any, stamp: Stamp) -> dict[str, Any]:
         """sensor_msgs/msg/CameraInfo: a pinhole camera without distortion."""
-        f = self.focal(physics)
-        cx, cy = self.center()
-        return {
+        f = float(self.focal(physics))
+        cx, cy = (float(c) for c in self.center())
+        return {  # in normal form: the robot publishes it unvalidated
             "header": {"stamp": stamp, "frame_id": self.frame_id},
             "height": self.height,
             "width": self.width,
@@ -71,6 +71,9 @@ class Camera:
             "k": [f, 0.0, cx, 0.0, f, cy, 0.0, 0.0, 1.0],
             "r": [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0],
             "p": [f, 0.0, cx, 0.0, 0.0, f, cy, 0.0, 0.0, 0.0, 1.0, 0.0],
+            "binning_x": 0,
+            "binning_y": 0,
+            "roi": {"x_offset": 0, "y_offset": 0, "height": 0, "width": 0, "do_rectify": False},
         }
 
     def to_optical(self, physics: Any, points: np.ndarray) -> np.ndarray:

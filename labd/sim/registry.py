@@ -169,6 +169,11 @@ class TaskSpec:
     robot: str | None = None
     # Its commands as a vector of numbers (labd.gym, the generic live page); None: none.
     actions: Actions | None = None
+    # Its observations are built in normal form (labd.graph.codec: every field, in
+    # order, of the exact type), so the robot publishes them without validating them
+    # again. The lab's own tasks are held to it by tests/labd/sim/test_normal_form.py;
+    # a task from elsewhere is validated unless it says so.
+    normal_form: bool = False
 
     def suite(self, name: str) -> Suite | None:
         return next((s for s in self.suites if s.name == name), None)

@@ -34,7 +34,7 @@ TICKS = 25
 SEED = 7
 
 
-def _command(type_name: str, sim: Any, rng: random.Random) -> dict[str, Any] | None:
+def command_for(type_name: str, sim: Any, rng: random.Random) -> dict[str, Any] | None:
     """A command of ``type_name`` with seeded numbers, or None to send none this tick."""
     if type_name == "geometry_msgs/msg/Twist":
         return {
@@ -73,7 +73,7 @@ def episode_digest(types: TypeRegistry, task: str) -> str:
             if not station.robot.sim.running:
                 break
             for command in commands:
-                value = _command(command.type, station.robot.sim, rng)
+                value = command_for(command.type, station.robot.sim, rng)
                 if value is not None:
                     publishers[command.name].publish(value)
             station.robot.step()

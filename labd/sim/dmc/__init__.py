@@ -64,6 +64,7 @@ def spec_of(listing: Listing) -> TaskSpec:
         layout=layout_of(listing),
         camera=listing.camera,
         actions=actions_of(listing),
+        normal_form=True,
     )
 
 

@@ -493,4 +493,5 @@ TASK = TaskSpec(
         Suite("dev", 1, seeds=tuple(range(20)), doc="20 mazes, seeds 0 to 19, default parameters"),
         Suite("test", 1, episodes=50, held_out=True, doc="50 mazes whose seeds are the lab's"),
     ),
+    normal_form=True,
 )

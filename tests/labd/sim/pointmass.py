@@ -132,10 +132,14 @@ class PointMass(LabTask):
 
 
 def make(
-    values: dict[str, Any], seed: int, *, time_limit: float | None = None
+    values: dict[str, Any],
+    seed: int,
+    *,
+    time_limit: float | None = None,
+    kind: type[PointMass] = PointMass,
 ) -> control.Environment:
     physics = mujoco.Physics.from_xml_string(XML)
-    task = PointMass(values, np.random.RandomState(seed))
+    task = kind(values, np.random.RandomState(seed))
     task.model_xml = XML
     limit = values["time_limit"] if time_limit is None else time_limit
     return control.Environment(physics, task, time_limit=limit, control_timestep=0.1)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import dataclasses
 import math
 
 import pytest
@@ -11,6 +12,7 @@ import pytest
 from labd.errors import MessageError
 from labd.graph.graph import Graph, Side
 from labd.sim.robot import WATCHDOG, LiveRunner, Robot
+from tests.labd.sim import pointmass
 from tests.labd.sim.pointmass import TASK
 
 
@@ -288,3 +290,32 @@ def test_a_late_subscriber_gets_what_was_published_once(registry):
     client.subscribe("/goal", None, got.append)
     assert len(got) == 1 and got[0].data["header"]["stamp"] == {"sec": 0, "nanosec": 200_000_000}
     robot.close()
+
+
+def test_a_task_not_built_in_normal_form_is_validated(registry):
+    """A task that does not claim to build its observations in normal form (one from
+    elsewhere) has them validated as a client's would be: a /pose with a field left
+    out and an int for a float64 reaches a subscriber whole and typed."""
+
+    class Sloppy(pointmass.PointMass):
+        def observe(self, physics, topic, stamp):
+            data = super().observe(physics, topic, stamp)
+            if topic == "/pose":
+                del data["point"]["z"]  # a default, which validation fills in
+                data["point"]["x"] = 1  # an int where the type says float64
+            return data
+
+    def make(values, seed, **kwargs):
+        return pointmass.make(values, seed, kind=Sloppy, **kwargs)
+
+    for trusted, expected in ((False, {"x": 1.0, "y": 0.0, "z": 0.0}), (True, None)):
+        spec = dataclasses.replace(TASK, build=make, normal_form=trusted)
+        graph = Graph(registry, name=f"sloppy-{trusted}")
+        robot = Robot(graph, spec, {}, seed=3)
+        got = record(graph.create_node("/watcher"), "/pose")
+        robot.publish()
+        if expected is not None:
+            assert got[-1]["point"] == expected
+            assert type(got[-1]["point"]["x"]) is float
+        else:  # what a task that claims normal form builds is passed on as built
+            assert got[-1]["point"] == {"x": 1, "y": 0.0}
