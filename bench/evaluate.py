@@ -93,7 +93,16 @@ class Served:
         self.process.wait(60)
 
 
-def evaluate(served: Served, repo: Path, suite: str) -> tuple[dict[str, Any], float]:
+def busy_seconds() -> tuple[float, float]:
+    """The machine's CPU seconds spent busy and in all, summed over its cores
+    (``/proc/stat``: everything but idle and I/O wait is busy)."""
+    fields = [int(v) for v in Path("/proc/stat").read_text().split("\n", 1)[0].split()[1:]]
+    tick = os.sysconf("SC_CLK_TCK")
+    idle = fields[3] + fields[4]
+    return (sum(fields) - idle) / tick, sum(fields) / tick
+
+
+def evaluate(served: Served, repo: Path, suite: str) -> tuple[dict[str, Any], float, float]:
     """Submit an evaluation and follow it until its episodes are filed and replayed; the
     evaluation, and the seconds from submitting to its last episode filed and to its last
     replay's verdict."""
@@ -213,8 +222,10 @@ def main() -> None:
             served = Served(
                 work / f"data-{workers}", args.cache, workers, args.videos, args.processes
             )
+            busy_before, _ = busy_seconds()
             try:
                 evaluation, filed, elapsed = evaluate(served, repo, args.suite)
+                busy = busy_seconds()[0] - busy_before
             finally:
                 served.stop()
             score = evaluation
@@ -224,6 +235,10 @@ def main() -> None:
                 "episodes_per_hour": round(3600 * score["episodes"] / elapsed),
                 "success_rate": score["success_rate"],
                 "verified": score["verified"],
+                # the whole machine's CPU while it ran: what an episode costs, and how
+                # many cores were busy on average (2 of 2: the machine was full)
+                "cpu_seconds_per_episode": round(busy / score["episodes"], 3),
+                "cores_busy": round(busy / elapsed, 2),
             }
             results["episodes"] = score["episodes"]
             if not ticks:  # the episodes' seeds (the operator's, read here) and ticks
@@ -258,11 +273,15 @@ def report(results: dict[str, Any]) -> None:
     print(f"A {n}-episode maze evaluation (suite {suite}) of the example controller, labd serve")
     print(f"  (bubblewrap; each episode summarized and replayed; {os.cpu_count()} CPUs;")
     print("  seconds from submitting to the last replay's verdict)\n")
-    print(f"  {'':22} {'seconds':>8} {'episodes/h':>11} {'of the limit':>13}  rate  verified")
+    print(
+        f"  {'':22} {'seconds':>8} {'episodes/h':>11} {'of the limit':>13}  rate  verified"
+        "  CPU s/episode  cores busy"
+    )
     for workers, r in results["runs"].items():
         print(
             f"  {workers} worker(s){'':12} {r['seconds']:8.1f} {r['episodes_per_hour']:11d}"
-            f" {r['ratio_to_physics']:12.1%}  {r['success_rate']:.0%}  {r['verified']}"
+            f" {r['ratio_to_physics']:12.1%}  {r['success_rate']:.0%}  {r['verified']!s:8}"
+            f" {r['cpu_seconds_per_episode']:13.2f} {r['cores_busy']:11.2f}"
         )
     print(
         f"  {'the physics alone':22} {results['physics_seconds']:8.1f}"

@@ -21,15 +21,18 @@ lab made. A file over it is a ``RecordFileError`` naming the part and the limit.
 
 from __future__ import annotations
 
-import dataclasses
+import io
+import struct
 from collections.abc import Collection, Iterator
 from typing import IO
 
 import zstandard
+from mcap.data_stream import ReadDataStream
 from mcap.exceptions import McapError, RecordLengthLimitExceeded
+from mcap.opcode import Opcode
 from mcap.reader import SeekingReader
 from mcap.records import Channel, Chunk, McapRecord, Message, Schema
-from mcap.stream_reader import StreamReader, breakup_chunk
+from mcap.stream_reader import StreamReader
 
 from repository.errors import ArchiveError
 from repository.units import MiB
@@ -91,8 +94,45 @@ def open_chunk(chunk: Chunk, limit: int = MAX_PART) -> list[McapRecord]:
             f"a chunk declares {declared:,} bytes decompressed and holds {len(data):,}:"
             " the file was damaged or made to mislead"
         )
-    opened = dataclasses.replace(chunk, compression="", data=data)
-    return list(breakup_chunk(opened, validate_crc=False))
+    return _chunk_records(data)
+
+
+_HEAD = struct.Struct("<BQ")  # a record's opcode and length
+_MESSAGE = struct.Struct("<HIQQ")  # channel id, sequence, log time, publish time
+
+
+def _chunk_records(data: bytes) -> list[McapRecord]:
+    """The records of a chunk's decompressed bytes.
+
+    Messages, nearly all of a chunk, are read here with one ``struct`` call each (mcap's
+    own reader takes a method call per field: a fifth of a replay); schemas and channels
+    by mcap's classes. A record that runs past the chunk's end is a ``RecordFileError``.
+    """
+    out: list[McapRecord] = []
+    view = memoryview(data)
+    position, end = 0, len(data)
+    head, body, message = _HEAD.size, _MESSAGE.size, Opcode.MESSAGE
+    while position < end:
+        if position + head > end:
+            raise RecordFileError("a chunk ends inside a record's header: the file was damaged")
+        opcode, length = _HEAD.unpack_from(data, position)
+        start = position + head
+        position = start + length
+        if position > end:
+            raise RecordFileError("a record runs past the end of its chunk: the file was damaged")
+        if opcode == message:
+            if length < body:
+                raise RecordFileError("a message record is too short: the file was damaged")
+            channel_id, sequence, log_time, publish_time = _MESSAGE.unpack_from(data, start)
+            out.append(
+                Message(channel_id, log_time, bytes(view[start + body : position]), publish_time,
+                        sequence)
+            )  # fmt: skip
+        elif opcode in (Opcode.CHANNEL, Opcode.SCHEMA):
+            stream = ReadDataStream(io.BytesIO(view[start:position]))
+            out.append(Channel.read(stream) if opcode == Opcode.CHANNEL else Schema.read(stream))
+        # any other record in a chunk is skipped, as mcap's reader does
+    return out
 
 
 def _zstd(data: bytes, declared: int) -> bytes:

@@ -3,6 +3,7 @@ file larger than the limit ever held, whatever the file declares."""
 
 from __future__ import annotations
 
+import struct
 import tracemalloc
 from pathlib import Path
 
@@ -102,3 +103,27 @@ def test_open_chunk_refuses_other_compressions():
     )  # fmt: skip
     with pytest.raises(RecordFileError, match="compressed with 'lz4'"):
         open_chunk(chunk)
+
+
+def test_a_chunk_cut_inside_a_record_is_refused():
+    """A chunk whose last record runs past its end, or ends inside a record's header,
+    or holds a message too short to have its fields, is refused as damaged; a whole one
+    reads, skipping a kind of record a chunk should not hold."""
+
+    def chunk(data: bytes) -> Chunk:
+        return Chunk(
+            compression="", data=data, message_start_time=0, message_end_time=0,
+            uncompressed_crc=0, uncompressed_size=len(data),
+        )  # fmt: skip
+
+    message = struct.pack("<BQHIQQ", 5, 22 + 3, 1, 7, 100, 100) + b"abc"
+    footer = struct.pack("<BQ", 2, 1) + b"\0"  # a footer: not a chunk's, skipped
+    (read,) = open_chunk(chunk(message + footer))
+    assert (read.channel_id, read.sequence, read.log_time, read.data) == (1, 7, 100, b"abc")
+    for damaged, said in (
+        (message[:-1], "runs past the end"),
+        (message + b"\5\0", "inside a record's header"),
+        (struct.pack("<BQ", 5, 4) + b"abcd", "too short"),
+    ):
+        with pytest.raises(RecordFileError, match=said):
+            open_chunk(chunk(damaged))
