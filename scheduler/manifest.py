@@ -7,6 +7,7 @@ digest, and a rerun of a manifest is expected to give the same data.
 
 from __future__ import annotations
 
+import functools
 import platform
 from collections.abc import Mapping, Sequence
 from importlib import metadata
@@ -65,6 +66,13 @@ def build(
 
 
 def versions() -> dict[str, str]:
+    """The versions a manifest records (a new dict each call, for the caller to keep)."""
+    return dict(_versions())
+
+
+@functools.cache
+def _versions() -> dict[str, str]:
+    # Read once per process: looking packages up in their metadata took 10 ms a trial.
     return {
         "labd": _version("labd"),
         "mujoco": _version("mujoco"),
