@@ -53,8 +53,17 @@ def difference(built: Any, normal: Any, path: str = "") -> str | None:
     return None if built == normal else f"{path}: {built!r}, normal form has {normal!r}"
 
 
+def test_the_labs_own_tasks_claim_normal_form() -> None:
+    """The maze, the PR2 and the dm_control pack publish unvalidated."""
+    own = [n for n in registry.names() if registry.get(n).build.__module__.startswith("labd.")]
+    assert len(own) >= 28
+    assert [n for n in own if not registry.get(n).normal_form] == []
+
+
 @pytest.mark.parametrize("task", sorted(registry.names()))
 def test_observations_are_built_in_normal_form(task: str) -> None:
+    if not registry.get(task).normal_form:
+        pytest.skip("the robot validates this task's observations: it does not claim normal form")
     station = Station(
         TypeRegistry.shared(), "normal", task, {}, SEED, live=False, protected_prefixes=()
     )
