@@ -23,8 +23,7 @@ stopped answering.
 
 Messages are plain ``dict`` values in the rosbridge JSON form (ROS 2 dialect:
 ``{"sec", "nanosec"}`` stamps, ``pkg/msg/Type`` names). The client is for one
-thread. It uses the standard library and ``websockets`` only, so it runs in the
-lab's sandbox as it is.
+thread. It uses the standard library only, so it runs in the lab's sandbox as it is.
 """
 
 from __future__ import annotations
@@ -40,9 +39,7 @@ from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
-from websockets.exceptions import ConnectionClosed, InvalidHandshake, InvalidURI
-
-from controllers.connection import Connection
+from controllers.connection import Connection, ConnectionClosed, InvalidHandshake, InvalidURI
 from controllers.errors import (
     ConnectionLost,
     EpisodeOver,
@@ -423,10 +420,7 @@ class Lab:
         except TimeoutError:
             raise LabTimeout(what, timeout) from None
         except ConnectionClosed as err:
-            close = err.rcvd
-            raise ConnectionLost(
-                self.url, close.code if close else None, close.reason if close else ""
-            ) from err
+            raise ConnectionLost(self.url, err.code, err.reason) from err
         frame = json.loads(data)
         if not isinstance(frame, dict):
             self.log.warning("ignored a frame that is not a JSON object: %.200s", data)
@@ -465,10 +459,7 @@ class Lab:
             if flush:
                 self._socket.flush()
         except ConnectionClosed as err:
-            close = err.rcvd
-            raise ConnectionLost(
-                self.url, close.code if close else None, close.reason if close else ""
-            ) from err
+            raise ConnectionLost(self.url, err.code, err.reason) from err
 
     def _id(self, op: str) -> str:
         return f"{op}:{next(self._ids)}"
