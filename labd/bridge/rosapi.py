@@ -14,12 +14,11 @@ from typing import Any
 import orjson
 
 from labd.errors import GraphError, UnknownTypeError
-from labd.graph.codec import PLACEHOLDER
 from labd.graph.graph import Graph, Node
 from labd.graph.message import Message
 from labd.graph.names import is_protected
 from labd.graph.services import ServiceCall
-from labd.graph.types import Field, Kind, MessageType
+from labd.graph.types import PLACEHOLDER, Field, Kind, MessageType
 
 ROS_VERSION = 2
 DISTRO = "jazzy"

@@ -67,21 +67,13 @@ def _export(client: ApiClient, args: argparse.Namespace) -> int:
         return fail(args, "name a TRIAL, or trials to export together (--trials, --task ...)")
     fmt = FORMATS[args.format]
     out = args.output or Path(f"trial-{args.trial}-{fmt.name}")
-    if out.exists() and (not out.is_dir() or any(out.iterdir())):
+    if _taken(out):
         return fail(args, f"{out} already exists: give a new or empty folder (-o)")
-    with tempfile.TemporaryDirectory(prefix="labd-export-") as folder:
-        got = Path(folder) / "export"
-        size = client.download(f"/api/trials/{args.trial}/export/{fmt.name}", got)
-        out.mkdir(parents=True, exist_ok=True)
-        if fmt.served is not None:  # the export's one file; its signature is served beside it
-            shutil.move(got, out / fmt.served)
-            signature = client.request(
-                "GET", f"/api/trials/{args.trial}/export/{fmt.name}/signature"
-            ).json()
-            (out / EXPORT_SIGNATURE).write_bytes(readable_json(signature))
-        else:  # a zip of the export's folder, its signature in it
-            with zipfile.ZipFile(got) as archive:
-                archive.extractall(out)
+    path = f"/api/trials/{args.trial}/export/{fmt.name}"
+    size = _download(client, path, out, into=fmt.served)
+    if fmt.served is not None:  # the export's one file; its signature is served beside it
+        signature = client.request("GET", f"{path}/signature").json()
+        (out / EXPORT_SIGNATURE).write_bytes(readable_json(signature))
     frames = fmt.frames(out)
     info = {"path": str(out), "format": args.format, "frames": frames, "bytes": size}
     emit(args, info, lambda: [f"{out}: {frames} frames ({args.format}, {size:,} bytes)"])
@@ -95,15 +87,9 @@ def _export_many(client: ApiClient, args: argparse.Namespace, query: dict[str, A
     params += [(k, v) for k, v in query.items() if v is not None]
     fmt = FORMATS[args.format]
     out = args.output or Path(f"export-{fmt.name}")
-    if out.exists() and (not out.is_dir() or any(out.iterdir())):
+    if _taken(out):
         return fail(args, f"{out} already exists: give a new or empty folder (-o)")
-    with tempfile.TemporaryDirectory(prefix="labd-export-") as folder:
-        got = Path(folder) / "export.zip"
-        path = f"/api/exports/{fmt.name}?" + urlencode(params)
-        size = client.download(path, got)
-        out.mkdir(parents=True, exist_ok=True)
-        with zipfile.ZipFile(got) as archive:
-            archive.extractall(out)
+    size = _download(client, f"/api/exports/{fmt.name}?" + urlencode(params), out)
     frames = fmt.frames(out)
     episodes = fmt.episodes(out)
     info = {
@@ -119,3 +105,23 @@ def _export_many(client: ApiClient, args: argparse.Namespace, query: dict[str, A
         lambda: [f"{out}: {episodes} episodes, {frames} frames ({args.format}, {size:,} bytes)"],
     )
     return ExitCode.SUCCESS
+
+
+def _taken(out: Path) -> bool:
+    """Whether ``out`` is a file or a folder with something in it."""
+    return out.exists() and (not out.is_dir() or any(out.iterdir()))
+
+
+def _download(client: ApiClient, path: str, out: Path, *, into: str | None = None) -> int:
+    """Download ``path`` into the folder ``out``: the one file named ``into``, or else a
+    zip of a folder, unpacked there. Its size in bytes."""
+    with tempfile.TemporaryDirectory(prefix="labd-export-") as folder:
+        got = Path(folder) / "export"
+        size = client.download(path, got)
+        out.mkdir(parents=True, exist_ok=True)
+        if into is not None:
+            shutil.move(got, out / into)
+        else:
+            with zipfile.ZipFile(got) as archive:
+                archive.extractall(out)
+    return size

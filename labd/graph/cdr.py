@@ -31,47 +31,34 @@ from typing import Any
 
 import numpy as np
 
-from labd.graph.types import FLOATS, Field, Kind, TypeRegistry
+from labd.graph.types import BINARY, NUMPY_DTYPES, PLACEHOLDER, Field, Kind, TypeRegistry
 
 HEADER = b"\x00\x01\x00\x00"  # CDR, little-endian, no options
-PLACEHOLDER = "structure_needs_at_least_one_member"
 
 Encoder = Callable[[Any, bytearray], None]
 
-# struct code and size of each primitive
-_PRIMITIVES: dict[str, tuple[str, int]] = {
-    "bool": ("?", 1),
-    "byte": ("B", 1),
-    "char": ("B", 1),
-    "int8": ("b", 1),
-    "uint8": ("B", 1),
-    "int16": ("h", 2),
-    "uint16": ("H", 2),
-    "int32": ("i", 4),
-    "uint32": ("I", 4),
-    "int64": ("q", 8),
-    "uint64": ("Q", 8),
-    "float32": ("f", 4),
-    "float64": ("d", 8),
+# The struct code of each primitive; its size and numpy type are those of NUMPY_DTYPES.
+_CODES = {
+    "bool": "?",
+    "byte": "B",
+    "char": "B",
+    "int8": "b",
+    "uint8": "B",
+    "int16": "h",
+    "uint16": "H",
+    "int32": "i",
+    "uint32": "I",
+    "int64": "q",
+    "uint64": "Q",
+    "float32": "f",
+    "float64": "d",
 }
-_DTYPES = {
-    "bool": np.dtype("bool"),
-    "byte": np.dtype("<u1"),
-    "char": np.dtype("<u1"),
-    "int8": np.dtype("<i1"),
-    "uint8": np.dtype("<u1"),
-    "int16": np.dtype("<i2"),
-    "uint16": np.dtype("<u2"),
-    "int32": np.dtype("<i4"),
-    "uint32": np.dtype("<u4"),
-    "int64": np.dtype("<i8"),
-    "uint64": np.dtype("<u8"),
-    "float32": np.dtype("<f4"),
-    "float64": np.dtype("<f8"),
-}
-# Fixed arrays that ``struct`` packs exactly as numpy converts them. float32 is not one:
-# struct refuses a float64 beyond float32's range where numpy makes it infinite.
-_STRUCT_ARRAYS = frozenset(_PRIMITIVES) - FLOATS - {"char", "byte", "uint8"} | {"float64"}
+_DTYPES = {name: np.dtype(NUMPY_DTYPES[name]) for name in _CODES}
+_PRIMITIVES = {name: (code, _DTYPES[name].itemsize) for name, code in _CODES.items()}
+# Fixed arrays that ``struct`` packs exactly as numpy converts them: not float32 (struct
+# refuses a float64 beyond float32's range where numpy makes it infinite), and not the
+# binary ones, which are ``bytes`` in normal form.
+_STRUCT_ARRAYS = frozenset(_CODES) - BINARY - {"float32"}
 
 
 class Unsupported(Exception):

@@ -35,7 +35,17 @@ from cbor2 import CBORTag
 
 from labd.errors import MessageError
 from labd.graph.cdr import to_cdr_function
-from labd.graph.types import BINARY, FLOATS, INTEGER_RANGES, Field, Kind, MessageType, TypeRegistry
+from labd.graph.types import (
+    BINARY,
+    FLOATS,
+    INTEGER_RANGES,
+    NUMPY_DTYPES,
+    PLACEHOLDER,
+    Field,
+    Kind,
+    MessageType,
+    TypeRegistry,
+)
 
 Now = Callable[[], tuple[int, int]]
 Normalizer = Callable[[Any, Now], Any]
@@ -44,24 +54,6 @@ Converter = Callable[[Any], Any]
 NAN = float("nan")
 TIME_TYPES = frozenset({"builtin_interfaces/msg/Time", "builtin_interfaces/msg/Duration"})
 HEADER = "std_msgs/msg/Header"
-# rosbags (like ROS 2's IDL) gives empty messages this member; JSON never shows it.
-PLACEHOLDER = "structure_needs_at_least_one_member"
-
-_NUMPY_DTYPES = {
-    "bool": "bool",
-    "int8": "<i1",
-    "uint8": "<u1",
-    "char": "<u1",
-    "byte": "<u1",
-    "int16": "<i2",
-    "uint16": "<u2",
-    "int32": "<i4",
-    "uint32": "<u4",
-    "int64": "<i8",
-    "uint64": "<u8",
-    "float32": "<f4",
-    "float64": "<f8",
-}
 # RFC 8746 typed-array tags, little-endian, as rosbridge's cbor compression uses.
 _CBOR_TAGS = {
     "uint16": 69,
@@ -469,7 +461,7 @@ def _field_to_rosbags(registry: TypeRegistry, field: Field) -> Converter:
     if field.base is not None:
         if field.base == "string":
             return list
-        dtype = np.dtype(_NUMPY_DTYPES[field.base])
+        dtype = np.dtype(NUMPY_DTYPES[field.base])
         if field.is_binary:
             return lambda v: np.frombuffer(v, dtype=dtype)
         return lambda v: np.asarray(v, dtype=dtype)
@@ -511,7 +503,7 @@ def _field_to_cbor(registry: TypeRegistry, field: Field) -> Converter:
         tag = _CBOR_TAGS.get(field.base)
         if field.kind is Kind.SCALAR or tag is None:
             return _identity
-        dtype = np.dtype(_NUMPY_DTYPES[field.base])
+        dtype = np.dtype(NUMPY_DTYPES[field.base])
         return lambda v: CBORTag(tag, np.asarray(v, dtype=dtype).tobytes())
     nested = codec_for(registry, field.message or "")
     if nested.to_cbor is _identity:

@@ -233,8 +233,7 @@ class Publisher:
 
     def publish(self, value: Mapping[str, Any] | Message, *, latch: bool | None = None) -> Message:
         """Validate and deliver one message; returns it as delivered."""
-        if self.closed:
-            raise self.revoked or NotFoundError("publisher", self.topic.name, "it was closed")
+        self._check_open()
         topic = self.topic
         if isinstance(value, Message):
             message = self.node.graph.message(topic.type_name, value)
@@ -252,12 +251,15 @@ class Publisher:
         tick. ``tests/labd/sim/test_normal_form.py`` holds every task to that form;
         anything a client sends goes through ``publish``.
         """
-        if self.closed:
-            raise self.revoked or NotFoundError("publisher", self.topic.name, "it was closed")
+        self._check_open()
         topic = self.topic
         message = Message(topic.codec, data, self.node.graph.clock())
         topic.deliver(message, self.latch, self.side, self.node)
         return message
+
+    def _check_open(self) -> None:
+        if self.closed:
+            raise self.revoked or NotFoundError("publisher", self.topic.name, "it was closed")
 
     def revoke(self, reason: GraphError) -> None:
         """Close this publisher for ``reason``, which every later ``publish`` raises."""

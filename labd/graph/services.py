@@ -15,9 +15,9 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
 from labd.errors import MessageError
-from labd.graph.codec import PLACEHOLDER, codec_for
+from labd.graph.codec import codec_for
 from labd.graph.message import Message
-from labd.graph.types import MessageType, ServiceType
+from labd.graph.types import PLACEHOLDER, MessageType, ServiceType
 
 if TYPE_CHECKING:
     from labd.graph.graph import Node

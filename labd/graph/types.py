@@ -57,6 +57,24 @@ INTEGER_RANGES: dict[str, tuple[int, int]] = {
 }
 FLOATS = frozenset({"float32", "float64", "float128"})
 BINARY = frozenset({"uint8", "char"})  # arrays of these travel as base64 in JSON
+# The little-endian numpy type of each primitive, as CDR lays arrays of it out.
+NUMPY_DTYPES = {
+    "bool": "bool",
+    "int8": "<i1",
+    "uint8": "<u1",
+    "char": "<u1",
+    "byte": "<u1",
+    "int16": "<i2",
+    "uint16": "<u2",
+    "int32": "<i4",
+    "uint32": "<u4",
+    "int64": "<i8",
+    "uint64": "<u8",
+    "float32": "<f4",
+    "float64": "<f8",
+}
+# rosbags (like ROS 2's IDL) gives empty messages this member; JSON never shows it.
+PLACEHOLDER = "structure_needs_at_least_one_member"
 
 
 @dataclass(frozen=True)
