@@ -31,6 +31,37 @@ from tests.helpers.sandboxes import BACKENDS, make_backend, runtime_cache
 T = TypeVar("T")
 
 
+_SPENT: dict[str, float] = {}  # seconds by test file (setup, call and teardown)
+_BUSY: dict[str, float] = {}  # seconds by xdist worker
+
+
+def pytest_runtest_logreport(report: pytest.TestReport) -> None:
+    """Add up where a run's time goes (on xdist's controller, its workers' reports)."""
+    path = report.nodeid.split("::", 1)[0]
+    _SPENT[path] = _SPENT.get(path, 0.0) + report.duration
+    node = getattr(report, "node", None)
+    worker = getattr(getattr(node, "gateway", None), "id", "main")
+    _BUSY[worker] = _BUSY.get(worker, 0.0) + report.duration
+
+
+@pytest.hookimpl(trylast=True)
+def pytest_terminal_summary(terminalreporter: Any) -> None:
+    """A few lines, just above the short summary, that say where the time went: the
+    slowest files and each worker's busy time (a slow CI run shows its cause in its tail)."""
+    if not _SPENT:
+        return
+    slowest = sorted(_SPENT.items(), key=lambda kv: -kv[1])[:8]
+    terminalreporter.write_sep("=", "where the time went")
+    terminalreporter.write_line(
+        "slowest files: "
+        + ", ".join(f"{path.removeprefix('tests/')} {s:.0f} s" for path, s in slowest)
+    )
+    terminalreporter.write_line(
+        f"all tests: {sum(_SPENT.values()):.0f} s; busy by worker: "
+        + ", ".join(f"{w} {s:.0f} s" for w, s in sorted(_BUSY.items()))
+    )
+
+
 def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
     """Tests that measure rates run one at a time on one worker of a parallel run
     (pytest-xdist's ``--dist loadgroup``), so no two of them share the cores."""

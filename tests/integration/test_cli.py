@@ -11,11 +11,14 @@ import orjson
 import pytest
 from websockets.sync.client import connect
 
+from tests.helpers.labs import shared_cache
+
 pytestmark = pytest.mark.integration
 
 
-def test_serve_starts_answers_and_stops_on_sigterm(tmp_path):
+def test_serve_starts_answers_and_stops_on_sigterm(tmp_path, cache):
     """labd serve prints its URL, answers rosapi there, and exits cleanly on SIGTERM."""
+    shared_cache(tmp_path, cache)  # its workers find the session's runtime, not a cold build
     with subprocess.Popen(
         [
             sys.executable,

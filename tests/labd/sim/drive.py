@@ -105,4 +105,5 @@ def drive(
 
 if __name__ == "__main__":
     seed, ticks, tasks = int(sys.argv[1]), int(sys.argv[2]), sys.argv[3:]
-    print(json.dumps({task: drive(task, seed, ticks) for task in tasks}))
+    for task in tasks:  # a line each, as it is driven: a reader waits only for its task
+        print(json.dumps({task: drive(task, seed, ticks)}), flush=True)

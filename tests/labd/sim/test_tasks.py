@@ -14,6 +14,8 @@ import math
 import re
 import subprocess
 import sys
+import time
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -220,32 +222,51 @@ def test_nan_commands_are_refused_naming_the_field(task, registry):
     assert checked, "no command with a float field to check"
 
 
+# sh -c: run "$4"... with its output to "$1" and errors to "$2", then its status to "$3"
+SH_STATUS = 'out=$1 err=$2 rc=$3; shift 3; "$@" >"$out" 2>"$err"; echo $? >"$rc"'
+
+
 @pytest.fixture(scope="session")
-def elsewhere(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Any]:
+def elsewhere(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Callable[[str], Any]]:
     """Every task driven in one other process (one import of the simulator for all), once
-    for a whole parallel run: the first worker to ask drives, the others read its file."""
+    for a whole parallel run: the first worker to ask starts it, and every worker reads a
+    task's line from its output as soon as it is written (it drives the tasks in order)."""
     shared = tmp_path_factory.getbasetemp().parent  # the same folder for every worker
-    kept = shared / "tasks-driven-elsewhere.json"
+    kept, status, errors = (shared / f"tasks-driven-elsewhere.{x}" for x in ("jsonl", "rc", "err"))
+    other: subprocess.Popen[bytes] | None = None
     with open(shared / "tasks-driven-elsewhere.lock", "w") as lock:
         fcntl.flock(lock, fcntl.LOCK_EX)
         if not kept.exists():
-            other = subprocess.run(
-                [sys.executable, "-m", "tests.labd.sim.drive", "5", str(TICKS), *TASKS],
+            kept.touch()
+            command = [sys.executable, "-m", "tests.labd.sim.drive", "5", str(TICKS), *TASKS]
+            # its exit status goes to a file, for the workers that did not start it
+            other = subprocess.Popen(
+                ["sh", "-c", SH_STATUS, "sh", kept, errors, status, *command],
                 cwd=ROOT,
-                check=True,
-                capture_output=True,
-                text=True,
-                timeout=600,
             )
-            kept.write_text(other.stdout)
-    found: dict[str, Any] = json.loads(kept.read_text())
-    return found
+
+    def driven(task: str) -> Any:
+        deadline = time.monotonic() + 600
+        while time.monotonic() < deadline:
+            ended = status.exists()  # before reading: then every line it wrote is there
+            for line in kept.read_text().splitlines(keepends=True):
+                if line.endswith("\n") and task in (found := json.loads(line)):
+                    return found[task]
+            if ended:
+                said = errors.read_text()[-2000:]
+                pytest.fail(f"the other process ended ({status.read_text().strip()}): {said}")
+            time.sleep(0.05)
+        pytest.fail(f"the other process did not drive {task} in 600 s")
+
+    yield driven
+    if other is not None:
+        other.wait(timeout=600)
 
 
 def test_same_inputs_same_data_across_processes(task, elsewhere):
     """Another process given the same task, seed and commands publishes identical bytes."""
     here = drive(task, 5, TICKS)
-    assert elsewhere[task] == here
+    assert elsewhere(task) == here
     camera = next(o for o in registry.get(task).task_class.observations if o.name == CAMERA)
     assert here["counts"].get(CAMERA, 0) >= TICKS // max(1, camera.period) // 2
 
