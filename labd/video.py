@@ -20,6 +20,7 @@ import numpy as np
 from dm_control.mujoco.engine import MovableCamera
 
 from labd.errors import LabError
+from labd.sim.camera import release
 
 SCENE = "scene"  # the third-person view
 FIRST = ""  # the model's first camera, whatever its name (a worker's video of any task)
@@ -82,7 +83,10 @@ class Video:
         if time + 1e-9 < self._next:
             return
         self._next += self.period
-        pixels = self._render(physics)  # an unknown camera fails here, before any file
+        try:
+            pixels = self._render(physics)  # an unknown camera fails here, before any file
+        finally:
+            release(physics)  # its GL context may be freed on another thread
         if self._container is None:
             self._open()
         frame = av.VideoFrame.from_ndarray(np.ascontiguousarray(pixels), format="rgb24")
