@@ -49,7 +49,7 @@ unit: $(STAMP)
 	$(PY) -m pytest -m "not integration" -n $(JOBS)
 
 test: lint $(JSSTAMP) $(WEBSTAMP)
-	$(PY) -m pytest -n $(JOBS) --dist loadgroup --durations=20
+	$(PY) -m pytest -n $(JOBS) --dist loadgroup --durations=12
 
 # The container images (labd:VERSION, labd-postgres:VERSION), built from this machine, and
 # the deployment's smoke test: deploy/docker-compose.yml brought up on free ports, a
