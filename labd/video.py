@@ -20,7 +20,7 @@ import numpy as np
 from dm_control.mujoco.engine import MovableCamera
 
 from labd.errors import LabError
-from labd.sim.camera import release
+from labd.gl import release
 
 SCENE = "scene"  # the third-person view
 FIRST = ""  # the model's first camera, whatever its name (a worker's video of any task)

@@ -8,24 +8,20 @@ so identical renders give identical bytes. Each camera keeps dm_control's ``Came
 ``physics.render`` does: a live 640x480 camera's frame costs about a third less.
 
 After each frame the GL context is released from the thread that rendered
-(``release``): dm_control's EGL contexts stay current on the thread that last used them,
-and one freed on another thread (a simulation that was never closed, collected later by
-whichever thread the garbage collector runs on) fails with ``EGL_BAD_ACCESS``.
+(``labd.gl.release``).
 """
 
 from __future__ import annotations
 
 import math
-import sys
-import threading
 from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 import simplejpeg
-from dm_control._render import base as gl_base
 from dm_control.mujoco import engine
 
+from labd.gl import release
 from labd.sim.base import Stamp
 
 
@@ -101,25 +97,3 @@ class Camera:
         cx, cy = self.center()
         z = optical[:, 2:3]
         return np.hstack([f * optical[:, 0:1] / z + cx, f * optical[:, 1:2] / z + cy])
-
-
-def release(physics: Any) -> None:
-    """Make ``physics``'s GL context current on no thread, if this thread holds it (after
-    rendering), so that any thread may free it later. EGL only: other backends' contexts
-    are left as dm_control keeps them."""
-    contexts = getattr(physics, "_contexts", None)
-    if contexts is None:
-        return
-    context = contexts.gl
-    thread = threading.current_thread()
-    if type(context).__name__ != "EGLContext":
-        return
-    if gl_base._CURRENT_THREAD_FOR_CONTEXT.get(id(context)) is not thread:
-        return
-    renderer = sys.modules[type(context).__module__]  # dm_control's egl_renderer, loaded
-    egl = renderer.EGL
-    egl.eglMakeCurrent(
-        renderer.EGL_DISPLAY, egl.EGL_NO_SURFACE, egl.EGL_NO_SURFACE, egl.EGL_NO_CONTEXT
-    )
-    del gl_base._CURRENT_THREAD_FOR_CONTEXT[id(context)]
-    del gl_base._CURRENT_CONTEXT_FOR_THREAD[thread]
