@@ -21,9 +21,9 @@ def release(physics: Any) -> None:
     if contexts is None:
         return
     context = contexts.gl
-    thread = threading.current_thread()
     if type(context).__name__ != "EGLContext":
         return
+    thread = threading.current_thread()
     # dm_control's modules, loaded by now (importing them here could pick the backend
     # before MUJOCO_GL is set: labd.sim sets its default)
     gl_base = sys.modules["dm_control._render.base"]
