@@ -184,6 +184,7 @@ def replay(
         protected_prefixes=("/protected",),
         # a live robot's episode has no time limit: it ends at its goal, or by a reset
         time_limit=math.inf if manifest.get("live") else None,
+        blind=manifest.get("blind") is True,  # a held-out episode's /lab/episode, as it ran
     )
     try:
         check_manifest(manifest, station)

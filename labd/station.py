@@ -33,6 +33,7 @@ class Station:
         protected_prefixes: tuple[str, ...],
         node_name: str = "/robot",
         time_limit: float | None = None,
+        blind: bool = False,
     ) -> None:
         self.name = name
         self.graph = Graph(types, name=name)
@@ -44,6 +45,7 @@ class Station:
             live=live,
             node_name=node_name,
             time_limit=time_limit,
+            blind=blind,
         )
         self.rosapi = Rosapi(self.graph, protected_prefixes)
 

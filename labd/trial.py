@@ -93,6 +93,7 @@ class LabHost:
         realtime: bool,
         out: Path,
         interfaces: Mapping[str, str] | None = None,
+        blind: bool = False,
     ) -> LabTrial:
         types = self.types
         if interfaces:
@@ -101,7 +102,9 @@ class LabHost:
             except InterfaceError as err:
                 raise TrialError(f"the repository's interfaces: {err}") from None
         try:
-            return LabTrial(self, task, values, seed, realtime=realtime, out=out, types=types)
+            return LabTrial(
+                self, task, values, seed, realtime=realtime, out=out, types=types, blind=blind
+            )
         except LabError as err:
             raise TrialError(f"the task {task} could not be built: {err}") from None
 
@@ -211,6 +214,7 @@ class LabTrial:
         realtime: bool,
         out: Path,
         types: TypeRegistry | None = None,
+        blind: bool = False,
     ) -> None:
         self.realtime = realtime
         self.out = out
@@ -224,6 +228,7 @@ class LabTrial:
             live=realtime,
             protected_prefixes=host.config.protected_prefixes,
             time_limit=limit,
+            blind=blind,
         )
         self.robot = self.station.robot
         self.robot.on_tick = self._tick

@@ -9,14 +9,23 @@ on the same task version and suite version.
 An **evaluation** is one commit run on every episode of one suite: its episodes are
 ordinary trials (pinned, sandboxed, filed, replayed and signed as any), and the
 evaluation says what they add up to (``Evaluation``): how many succeeded, the success
-rate with its 95 % Wilson interval, the mean reward with its bootstrap interval
-(``repository.stats``), whether every episode's replay verified, and the lab's signature
-over the statement of its episodes. Its status follows its episodes: ``queued`` until
-one starts, ``running``, then ``finished`` when all have, or ``cancelled`` (whatever
-finished before is kept, and the score is marked ``partial``).
+rate over the suite's episodes with its 95 % Wilson interval, the mean reward with its
+bootstrap interval (``repository.stats``), whether every episode's replay verified, and
+the lab's signature over the statement of its episodes. Its status follows its episodes:
+``queued`` until one starts, ``running``, then ``finished`` when all have, or
+``cancelled``. Every episode counts: one cancelled, or broken by the lab rather than by
+the controller (``lab_fault``), makes the evaluation ``partial``, and a partial score is
+never ranked.
 
-A held-out suite's seeds and records are the operator's alone until the operator retires
-that suite version; the submitter sees each episode's outcome and reward.
+A held-out suite's episodes are blind and private until the operator retires that suite
+version: the controller is told no seed, and everyone but the operator sees the
+evaluation's aggregate alone (``Evaluation.hidden``): no per-episode rows, timings,
+records or logs, and no progress while it runs. Its signed statement commits to the
+episodes by a digest (``episodes_sha256``) that anyone can check once they are public.
+
+The leaderboard (``leaderboard``) ranks each commit by its first evaluation of the suite
+version that the lab did not break, never by its best: reruns verify, they never replace
+a row, and an evaluation its submitter cancelled stands as the commit's row, unranked.
 """
 
 from __future__ import annotations
@@ -24,6 +33,7 @@ from __future__ import annotations
 import datetime as dt
 import hashlib
 import hmac
+import json
 import re
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
@@ -34,9 +44,12 @@ from pydantic import BaseModel, ConfigDict, Field
 from repository.stats import Interval, bootstrap_mean, mcnemar_exact, paired_difference, wilson
 from repository.trial import MAX_SEED, Outcome, Status, Value
 
-EVALUATION = "labd.evaluation/1"  # what an evaluation's signed statement says it is
+EVALUATION = "labd.evaluation/2"  # what an evaluation's signed statement says it is
 SUITE_NAME = re.compile(r"[a-z][a-z0-9-]{0,31}", re.ASCII)
 MAX_EPISODES = 1000
+# Why an evaluation is partial (``Evaluation.partial_cause``)
+CANCELLED = "cancelled"  # it, or an episode of it, was cancelled
+LAB_BROKE = "lab"  # the lab broke an episode (``lab_fault``): not the controller's error
 
 
 @dataclass(frozen=True)
@@ -145,27 +158,37 @@ class EpisodeRow(BaseModel):
     reproduced: bool | None = Field(
         default=None, description="reruns: an identical data digest to the original episode's"
     )
+    lab_fault: bool = Field(default=False, description="an error of the lab's making")
 
 
 class Score(BaseModel):
-    """What an evaluation's episodes add up to (finished episodes only)."""
+    """What an evaluation's episodes add up to.
+
+    The counts are None where the caller may not follow a held-out evaluation episode by
+    episode (``Evaluation.hidden``, while it runs); the rate is over the suite's
+    episodes, known once every episode has ended."""
 
     model_config = ConfigDict(frozen=True)
 
     episodes: int
-    done: int = Field(description="episodes finished (any outcome)")
-    running: int
-    queued: int
-    successes: int
-    errors: int
-    success_rate: float | None = Field(description="successes over finished episodes")
+    done: int | None = Field(description="episodes finished (any outcome)")
+    running: int | None
+    queued: int | None
+    successes: int | None
+    errors: int | None
+    success_rate: float | None = Field(
+        description="successes over the suite's episodes (a cancelled or unfinished one is no"
+        " success), once every episode has ended"
+    )
     success_interval: tuple[float, float] | None = Field(description="95 % Wilson interval")
     mean_reward: float | None
     reward_interval: tuple[float, float] | None = Field(
         description="95 % percentile bootstrap over episodes"
     )
-    verified: bool = Field(description="every episode finished and its replay verified")
-    compute_seconds: float
+    verified: bool = Field(description="every episode finished and the lab's replay verified it")
+    compute_seconds: float | None = Field(
+        description="the episodes' wall time added up; None for a hidden evaluation"
+    )
 
 
 class Evaluation(Score):
@@ -187,7 +210,19 @@ class Evaluation(Score):
     submitter: str
     rerun_of: int | None
     status: Status
-    partial: bool = Field(description="cancelled before every episode finished")
+    partial: bool = Field(
+        description="an episode was cancelled, or broken by the lab: not every episode counted,"
+        " so the score is never ranked"
+    )
+    partial_cause: str | None = Field(
+        default=None, description=f"'{CANCELLED}' or '{LAB_BROKE}' (the lab broke an episode)"
+    )
+    partial_reason: str | None = Field(default=None, description="why it is partial, in words")
+    hidden: bool = Field(
+        default=False,
+        description="a held-out suite not yet retired: its episodes (rows, timings, records,"
+        " logs) are the operator's; everyone else sees the aggregate once it has ended",
+    )
     created: dt.datetime
     finished: dt.datetime | None
     rows: list[EpisodeRow]
@@ -201,11 +236,17 @@ class Evaluation(Score):
 
 
 def score(rows: Sequence[EpisodeRow], *, seed: int) -> Score:
-    """What ``rows`` add up to; the reward interval's resampling is seeded with ``seed``."""
+    """What ``rows`` add up to; the reward interval's resampling is seeded with ``seed``.
+
+    The success rate and its interval are over every episode of the suite, once every
+    one has ended: a cancelled episode, or one the lab broke, is no success (such an
+    evaluation is partial, and never ranked, but its rate never rises by an episode
+    left out)."""
     finished = [r for r in rows if r.status is Status.FINISHED]
     successes = sum(r.outcome is Outcome.SUCCESS for r in finished)
     rewards = [r.reward for r in finished if r.reward is not None]
-    interval = wilson(successes, len(finished)) if finished else None
+    ended = bool(rows) and all(r.status.ended for r in rows)
+    interval = wilson(successes, len(rows)) if ended else None
     spread = bootstrap_mean(rewards, seed=seed)
     return Score(
         episodes=len(rows),
@@ -214,7 +255,7 @@ def score(rows: Sequence[EpisodeRow], *, seed: int) -> Score:
         queued=sum(r.status is Status.QUEUED for r in rows),
         successes=successes,
         errors=sum(r.outcome is Outcome.ERROR for r in finished),
-        success_rate=successes / len(finished) if finished else None,
+        success_rate=successes / len(rows) if ended else None,
         success_interval=_pair(interval),
         mean_reward=sum(rewards) / len(rewards) if rewards else None,
         reward_interval=_pair(spread),
@@ -240,21 +281,107 @@ def reproduced(rows: Sequence[EpisodeRow]) -> str:
 
 
 def status_of(rows: Sequence[EpisodeRow], cancel_requested: bool) -> Status:
-    """An evaluation's status from its episodes'."""
+    """An evaluation's status from its episodes': ``cancelled`` once every episode has
+    ended if it, or any episode of it, was cancelled."""
     if rows and all(r.status is Status.QUEUED for r in rows) and not cancel_requested:
         return Status.QUEUED
     if any(not r.status.ended for r in rows):
         return Status.RUNNING
-    if cancel_requested and any(r.status is Status.CANCELLED for r in rows):
+    if cancel_requested or any(r.status is Status.CANCELLED for r in rows):
         return Status.CANCELLED
     return Status.FINISHED
 
 
+def partiality(rows: Sequence[EpisodeRow], cancel_requested: bool) -> tuple[str, str] | None:
+    """Why an ended evaluation did not count every episode: its cause (``CANCELLED`` or
+    ``LAB_BROKE``) and the reason in words; None if it did, or has not ended."""
+    if any(not r.status.ended for r in rows):
+        return None
+    if cancel_requested:
+        return CANCELLED, "cancelled by its submitter"
+    cancelled = [r.episode for r in rows if r.status is Status.CANCELLED]
+    if cancelled:
+        return CANCELLED, f"{_episodes(len(cancelled))} cancelled ({_listed(cancelled)})"
+    broken = [r.episode for r in rows if r.lab_fault]
+    if broken:
+        return LAB_BROKE, (
+            f"the lab broke {_episodes(len(broken))} ({_listed(broken)}), not the controller"
+        )
+    return None
+
+
+def _listed(episodes: Sequence[int]) -> str:
+    if len(episodes) == 1:
+        return f"episode {episodes[0]}"
+    more = ", ..." if len(episodes) > 10 else ""
+    return "episodes " + ", ".join(str(e) for e in episodes[:10]) + more
+
+
+def hide(evaluation: Evaluation) -> Evaluation:
+    """A held-out evaluation as everyone but the operator sees it before its suite
+    version is retired: its aggregate alone, once every episode has ended; while it
+    runs, its status but no progress (each episode's end, seen as it happens, would time
+    it); never its rows, their timings or its compute time."""
+    ended = evaluation.status.ended
+    counts: dict[str, Any] = {
+        name: getattr(evaluation, name) if ended else None
+        for name in ("done", "running", "queued", "successes", "errors")
+    }
+    if ended:
+        counts.update(running=0, queued=0)
+    return evaluation.model_copy(
+        update={
+            **counts,
+            "mean_reward": evaluation.mean_reward if ended else None,
+            "reward_interval": evaluation.reward_interval if ended else None,
+            "compute_seconds": None,
+            "rows": [],
+            "hidden": True,
+            # which episodes: theirs to know once the suite version is retired
+            "partial_reason": _counted(evaluation.partial_reason),
+            "reproduced": _counted(evaluation.reproduced),
+        }
+    )
+
+
+def _counted(said: str | None) -> str | None:
+    """A verdict without the episodes it names ("diverged: 18 of 20 episodes identical;
+    episodes 3, 9 differ" -> its first part)."""
+    if said is None:
+        return None
+    return said.split(" (")[0].split(";")[0]
+
+
+def episodes_sha256(rows: Sequence[EpisodeRow]) -> str:
+    """The digest a held-out evaluation's statement commits to its episodes by: sha256
+    of their canonical JSON (``{episode, trial, seed, status, outcome, reward,
+    data_digest}`` each, in the suite's order, keys sorted, no spaces). Anyone can
+    recompute it from the rows once the suite version is retired; nobody can recover
+    the rows from it (each data digest is 256 bits no one has seen)."""
+    listed = [
+        {
+            "episode": r.episode,
+            "trial": r.trial,
+            "seed": r.seed,
+            "status": r.status.value,
+            "outcome": r.outcome.value if r.outcome else None,
+            "reward": r.reward,
+            "data_digest": r.data_digest,
+        }
+        for r in rows
+    ]
+    text = json.dumps(listed, sort_keys=True, separators=(",", ":"))
+    return hashlib.sha256(text.encode()).hexdigest()
+
+
 def statement(evaluation: Evaluation, finished: float) -> dict[str, Any]:
     """What the lab vouches for when every episode of an evaluation has ended: the
-    commit, the suite and its version, and each episode's trial, data digest, outcome
-    and reward (a held-out suite's seeds left out: the signature is public)."""
-    return {
+    commit, the suite and its version, whether it is partial, its successes over its
+    episodes, and its episodes: listed (trial, seed, outcome, reward, data digest) for a
+    public suite; for a held-out one, only committed to by ``episodes_sha256`` (the
+    signature is public, the episodes are not). ``evaluation`` is the whole record,
+    rows and seeds included."""
+    said: dict[str, Any] = {
         "schema": EVALUATION,
         "evaluation": evaluation.id,
         "repository": evaluation.repository,
@@ -265,21 +392,27 @@ def statement(evaluation: Evaluation, finished: float) -> dict[str, Any]:
         "suite_version": evaluation.suite_version,
         "held_out": evaluation.held_out,
         "status": evaluation.status.value,
-        "episodes": [
+        "partial": evaluation.partial,
+        "episodes": evaluation.episodes,
+        "successes": evaluation.successes,
+        "success_rate": evaluation.success_rate,
+        "episodes_sha256": episodes_sha256(evaluation.rows),
+        "finished": dt.datetime.fromtimestamp(finished, dt.UTC).isoformat(),
+    }
+    if not evaluation.held_out:
+        said["rows"] = [
             {
                 "episode": r.episode,
                 "trial": r.trial,
-                **({} if evaluation.held_out else {"seed": r.seed}),
+                "seed": r.seed,
                 "status": r.status.value,
                 "outcome": r.outcome.value if r.outcome else None,
                 "reward": r.reward,
                 "data_digest": r.data_digest,
             }
             for r in evaluation.rows
-        ],
-        "success_rate": evaluation.score.success_rate,
-        "finished": dt.datetime.fromtimestamp(finished, dt.UTC).isoformat(),
-    }
+        ]
+    return said
 
 
 class Pairs(BaseModel):
@@ -388,56 +521,107 @@ def _episodes(n: int) -> str:
 
 
 class LeaderRow(BaseModel):
-    """A commit's best evaluation on a suite: a row of the task's leaderboard."""
+    """A commit's row on a suite's leaderboard: its first evaluation of the suite version
+    that the lab did not break (``leaderboard``)."""
 
     model_config = ConfigDict(frozen=True)
 
-    rank: int
+    rank: int | None = Field(description="None: listed, not ranked (see note)")
     evaluation: int
     repository: str
     commit: str
-    submitter: str
+    submitter: str = Field(description="who submitted that evaluation (never a rerunner)")
     episodes: int
     success_rate: float
     success_interval: tuple[float, float]
     mean_reward: float | None
     reward_interval: tuple[float, float] | None
-    verified: bool
-    tie: bool = Field(description="its success interval overlaps the row above's")
+    verified: bool = Field(description="the lab's own replay verified every episode")
+    reproducible: bool | None = Field(
+        default=None,
+        description="its reruns: all reproduced it bit for bit (true), one diverged (false),"
+        " none yet (null)",
+    )
+    tie: bool = Field(description="its success interval overlaps the ranked row above's")
+    note: str | None = Field(default=None, description="why it is unranked, or marked")
 
 
 def leaderboard(evaluations: Sequence[Evaluation]) -> list[LeaderRow]:
-    """Finished, complete evaluations ranked by success rate then mean reward, each
-    commit's best one only."""
-    best: dict[str, Evaluation] = {}
-    for e in evaluations:
-        if e.status is not Status.FINISHED or e.partial or e.score.success_rate is None:
-            continue
-        if e.commit not in best or _rank_key(e) < _rank_key(best[e.commit]):
-            best[e.commit] = e
+    """Each commit's row: its first evaluation (by submission) of ``evaluations`` that
+    is not a rerun and that the lab did not break, never its best. Verified rows are
+    ranked by success rate then mean reward; rows not (yet) verified follow, unranked.
+
+    A commit whose first evaluation still runs has no row yet; one whose first
+    evaluation its submitter cancelled has none at all (cancelling and resubmitting buys
+    nothing). Reruns never replace a row: a rerun that diverged marks it not
+    reproducible."""
+    originals: dict[str, list[Evaluation]] = {}
+    reruns: dict[int, list[Evaluation]] = {}
+    for e in sorted(evaluations, key=lambda e: e.id):
+        if e.rerun_of is None:
+            originals.setdefault(e.commit, []).append(e)
+        else:
+            reruns.setdefault(e.rerun_of, []).append(e)
+    chosen = [c for c in (_first(found) for found in originals.values()) if c is not None]
+    ranked = sorted((e for e in chosen if e.verified), key=_rank_key)
+    apart = sorted((e for e in chosen if not e.verified), key=_rank_key)
     rows: list[LeaderRow] = []
-    for e in sorted(best.values(), key=_rank_key):
-        s = e.score
-        assert s.success_rate is not None and s.success_interval is not None
+    for e in ranked:
         above = rows[-1] if rows else None
-        rows.append(
-            LeaderRow(
-                rank=len(rows) + 1,
-                evaluation=e.id,
-                repository=e.repository,
-                commit=e.commit,
-                submitter=e.submitter,
-                episodes=s.episodes,
-                success_rate=s.success_rate,
-                success_interval=s.success_interval,
-                mean_reward=s.mean_reward,
-                reward_interval=s.reward_interval,
-                verified=s.verified,
-                tie=above is not None
-                and Interval(*above.success_interval).overlaps(Interval(*s.success_interval)),
-            )
-        )
+        rows.append(_row(e, reruns.get(e.id, []), len(rows) + 1, above, None))
+    for e in apart:
+        rows.append(_row(e, reruns.get(e.id, []), None, None, "not ranked: " + _unverified(e)))
     return rows
+
+
+def _first(found: Sequence[Evaluation]) -> Evaluation | None:
+    """A commit's evaluation that stands as its row, if any yet."""
+    for e in found:
+        if not e.status.ended:
+            return None  # the first one that counts is still running
+        if e.partial_cause == LAB_BROKE:
+            continue  # not the controller's doing: the next one counts
+        if e.partial or e.success_rate is None:
+            return None  # cancelled: the commit is off this suite version's board
+        return e
+    return None
+
+
+def _row(
+    e: Evaluation,
+    reruns: Sequence[Evaluation],
+    rank: int | None,
+    above: LeaderRow | None,
+    note: str | None,
+) -> LeaderRow:
+    assert e.success_rate is not None and e.success_interval is not None
+    ended = [r for r in reruns if r.status.ended and r.reproduced]
+    diverged = [r for r in ended if not (r.reproduced or "").startswith("reproduced")]
+    reproducible = None if not ended else not diverged
+    if diverged:
+        marked = f"not reproducible: rerun {diverged[0].id} diverged"
+        note = f"{note}; {marked}" if note else marked
+    return LeaderRow(
+        rank=rank,
+        evaluation=e.id,
+        repository=e.repository,
+        commit=e.commit,
+        submitter=e.submitter,
+        episodes=e.episodes,
+        success_rate=e.success_rate,
+        success_interval=e.success_interval,
+        mean_reward=e.mean_reward,
+        reward_interval=e.reward_interval,
+        verified=e.verified,
+        reproducible=reproducible,
+        tie=above is not None
+        and Interval(*above.success_interval).overlaps(Interval(*e.success_interval)),
+        note=note,
+    )
+
+
+def _unverified(e: Evaluation) -> str:
+    return "its episodes' replays are not all verified yet (the lab replays every record)"
 
 
 def _rank_key(e: Evaluation) -> tuple[float, float, int]:

@@ -20,7 +20,15 @@ import sqlalchemy as sa
 from sqlalchemy.engine import Connection
 
 from repository.errors import ArchiveError, RecordNotFound
-from repository.evaluation import EpisodeRow, Evaluation, reproduced, score, status_of
+from repository.evaluation import (
+    EpisodeRow,
+    Evaluation,
+    hide,
+    partiality,
+    reproduced,
+    score,
+    status_of,
+)
 from repository.index import Index, spellings
 from repository.tables import derived, episodes, evaluations, retired_suites, trials
 from repository.trial import Outcome, Status, Value
@@ -113,8 +121,9 @@ class Evaluations:
         return evaluation_id
 
     def get(self, evaluation_id: int, *, reveal: bool = False) -> Evaluation:
-        """One evaluation (RecordNotFound); a held-out suite's seeds only with ``reveal``
-        (the operator's) or once the suite version is retired."""
+        """One evaluation (RecordNotFound). A held-out suite's, before its version is
+        retired, is its aggregate alone (``repository.evaluation.hide``) unless
+        ``reveal`` (the operator, and the lab itself when it signs or reruns it)."""
         with self.index.engine.connect() as db:
             row = db.execute(sa.select(evaluations).where(E.id == evaluation_id)).one_or_none()
             if row is None:
@@ -143,6 +152,44 @@ class Evaluations:
         with self.index.engine.connect() as db:
             rows = db.execute(sa.select(evaluations).where(*conditions).order_by(E.id)).all()
             return self._build(db, rows, reveal=False)
+
+    def held_out_used(
+        self,
+        db: Connection,
+        submitter: str,
+        *,
+        commit: str,
+        task: str,
+        suite: tuple[str, int],
+        since: float,
+    ) -> tuple[int, int]:
+        """How many held-out evaluations ``submitter`` has: of ``commit`` on ``task``'s
+        ``suite`` (name, version; those the lab broke not counted, since they were not the
+        submitter's doing), and of any held-out suite since ``since``. Read in the
+        transaction ``db`` that holds the submitter's lock, so two submissions at once
+        cannot both take the last one."""
+        broke = (
+            sa.select(episodes.c.evaluation_id)
+            .join(trials, trials.c.id == episodes.c.trial_id)
+            .where(trials.c.lab_fault)
+        )
+        mine = [E.submitter == submitter, E.held_out]
+        of_commit = db.execute(
+            sa.select(sa.func.count())
+            .select_from(evaluations)
+            .where(
+                *mine,
+                E.commit == commit,
+                E.task == task,
+                E.suite == suite[0],
+                E.suite_version == suite[1],
+                E.id.not_in(broke),
+            )
+        ).scalar_one()
+        lately = db.execute(
+            sa.select(sa.func.count()).select_from(evaluations).where(*mine, E.created >= since)
+        ).scalar_one()
+        return int(of_commit), int(lately)
 
     def of_trial(self, trial_id: int) -> int | None:
         """The evaluation the trial is an episode of, if any."""
@@ -240,6 +287,7 @@ class Evaluations:
                 t.wall_seconds,
                 t.finished,
                 t.reproduced,
+                t.lab_fault,
             )
             .join(trials, trials.c.id == episodes.c.trial_id)
             .where(episodes.c.evaluation_id.in_(ids))
@@ -247,13 +295,14 @@ class Evaluations:
         ).all()
         verdicts = self._verdicts(db, [f.id for f in found])
         by_evaluation: dict[int, list[tuple[EpisodeRow, float | None]]] = {i: [] for i in ids}
+        hidden = {f.evaluation_id for f in found if f.hidden}
         for f in found:
             by_evaluation[f.evaluation_id].append(
                 (
                     EpisodeRow(
                         episode=f.episode,
                         trial=f.id,
-                        seed=None if f.hidden and not reveal else f.seed,
+                        seed=f.seed,
                         status=Status(f.status),
                         outcome=Outcome(f.outcome) if f.outcome else None,
                         reward=f.reward,
@@ -261,11 +310,13 @@ class Evaluations:
                         verified=verdicts.get(f.id),
                         compute_seconds=f.wall_seconds,
                         reproduced=f.reproduced,
+                        lab_fault=f.lab_fault,
                     ),
                     f.finished,
                 )
             )
-        return [_evaluation(r, by_evaluation[r.id]) for r in rows]
+        built = [_evaluation(r, by_evaluation[r.id]) for r in rows]
+        return [hide(e) if e.id in hidden and not reveal else e for e in built]
 
     def _verdicts(self, db: Connection, trial_ids: Iterable[int]) -> dict[int, bool | None]:
         ids = list(trial_ids)
@@ -286,6 +337,7 @@ def _evaluation(row: Any, found: list[tuple[EpisodeRow, float | None]]) -> Evalu
     finished = row.finished
     if finished is None and ended and status.ended:
         finished = max(ended)
+    partial = partiality(rows, row.cancel_requested)
     return Evaluation(
         **dict(score(rows, seed=row.id)),
         id=row.id,
@@ -301,7 +353,9 @@ def _evaluation(row: Any, found: list[tuple[EpisodeRow, float | None]]) -> Evalu
         submitter=row.submitter,
         rerun_of=row.rerun_of,
         status=status,
-        partial=status is Status.CANCELLED,
+        partial=partial is not None,
+        partial_cause=partial[0] if partial else None,
+        partial_reason=partial[1] if partial else None,
         created=moment(row.created),
         finished=moment(finished) if finished is not None else None,
         rows=rows,

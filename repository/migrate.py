@@ -1,5 +1,9 @@
 """Upgrading an archive's index in place, from an older schema to this labd's.
 
+Schema 3 says of each trial whether its error was the lab's fault (``lab_fault``: its
+worker lost, its storage failed), so that an evaluation with such an episode is partial
+rather than scored as the controller's error; trials filed before say it was not.
+
 Schema 2 also keeps the reward metric as a column (``reward``), to sort and rank by, and
 the lab's signature of each record filed from then on (``signature``; records filed
 before have none), and the archived records a trial learns from, pinned when it was
@@ -74,10 +78,17 @@ def upgrade(engine: Engine) -> Upgrade:
     with engine.begin() as db:
         if found < 2:
             _from_1(db, result)
+        if found < 3:
+            _from_2(db)
         db.execute(sa.update(meta).where(meta.c.key == "schema").values(value=str(SCHEMA_VERSION)))
     metadata.create_all(engine)  # indexes added since
     log.info("%s", result)
     return result
+
+
+def _from_2(db: Connection) -> None:
+    """Schema 2 → 3: add ``lab_fault`` (false for every trial filed before)."""
+    db.execute(sa.text("ALTER TABLE trials ADD COLUMN lab_fault BOOLEAN NOT NULL DEFAULT FALSE"))
 
 
 def _from_1(db: Connection, result: Upgrade) -> None:

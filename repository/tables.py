@@ -103,6 +103,8 @@ trials = sa.Table(
     sa.Column("status", sa.String(16), nullable=False),
     sa.Column("outcome", sa.String(16)),  # finished trials only
     sa.Column("reason", sa.Text, nullable=False),
+    # an error of the lab's making, not the controller's (schema 3)
+    sa.Column("lab_fault", sa.Boolean, nullable=False, default=False, server_default=sa.false()),
     sa.Column("created", sa.Float, nullable=False),
     sa.Column("started", sa.Float),
     sa.Column("finished", sa.Float),

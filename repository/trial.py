@@ -130,11 +130,18 @@ class Ending(BaseModel):
     status: Status
     outcome: Outcome | None = None
     reason: str
+    lab_fault: bool = Field(
+        default=False,
+        description="an error of the lab's making (its worker lost, its storage failed),"
+        " not of the controller's: an evaluation with such an episode is partial",
+    )
 
     @model_validator(mode="after")
     def _consistent(self) -> Self:
         if self.status is Status.FINISHED and self.outcome is None:
             raise ValueError("a finished trial has an outcome")
+        if self.lab_fault and self.outcome is not Outcome.ERROR:
+            raise ValueError("only an error is the lab's fault")
         if self.status is Status.CANCELLED and self.outcome is not None:
             raise ValueError("a cancelled trial has no outcome")
         if not self.status.ended:
@@ -152,6 +159,11 @@ class Ending(BaseModel):
     @classmethod
     def error(cls, reason: str) -> Self:
         return cls(status=Status.FINISHED, outcome=Outcome.ERROR, reason=reason)
+
+    @classmethod
+    def lab_error(cls, reason: str) -> Self:
+        """An error the lab made, not the controller (``lab_fault``)."""
+        return cls(status=Status.FINISHED, outcome=Outcome.ERROR, reason=reason, lab_fault=True)
 
     @classmethod
     def cancelled(cls, reason: str) -> Self:
@@ -203,6 +215,7 @@ class Trial(BaseModel):
     status: Status
     outcome: Outcome | None
     reason: str
+    lab_fault: bool = False  # an error of the lab's making (Ending.lab_fault)
     created: dt.datetime
     started: dt.datetime | None
     finished: dt.datetime | None
@@ -260,3 +273,8 @@ class Claim(BaseModel):
     rerun_of: int | None
     attempt: int
     data: list[PinnedRecord] | None = None
+    blind: bool = Field(
+        default=False,
+        description="an episode of a held-out suite (or a rerun of one): its controller is"
+        " told nothing of the seed, neither in its environment nor on /lab/episode",
+    )

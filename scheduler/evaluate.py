@@ -11,24 +11,68 @@ queue and the operator.
 When an episode ends, its evaluation is looked at (``settle``): once the last has ended
 the lab signs the evaluation's statement (``repository.evaluation.statement``).
 Cancelling an evaluation cancels its episodes still queued and stops those running; the
-ones that finished are kept, and its score is marked partial. A rerun reruns every
-episode (the same commit, seeds and pinned data) as a new evaluation, whose verdict says
-how many episodes reproduced bit for bit.
+ones that finished are kept, and its score is marked partial (an episode is never
+cancelled alone). A rerun reruns every episode (the same commit, seeds and pinned data)
+as a new evaluation under the rerunner's name, whose verdict says how many episodes
+reproduced bit for bit.
+
+A held-out suite is scored, not probed: each user has a budget of evaluations of it
+(``HeldOutBudget``: so many per commit and suite version, so many a day), rerunning
+included, checked in the transaction that queues them.
 """
 
 from __future__ import annotations
 
 import logging
+from dataclasses import dataclass
+
+from sqlalchemy.engine import Connection
 
 from repository.evaluation import Evaluation, EvaluationRequest, Suite, statement
 from repository.evaluation_index import Evaluations
 from repository.index import User
 from repository.signing import Keyring
-from scheduler.errors import InvalidRequest, NotYours
-from scheduler.queue import Queue
+from scheduler.errors import InvalidRequest, NotYours, OverBudget
+from scheduler.queue import DAY, Queue
 from scheduler.submit import Submissions
 
 log = logging.getLogger("scheduler.evaluate")
+
+
+@dataclass(frozen=True)
+class HeldOutBudget:
+    """How many evaluations of held-out suites a user may have: ``per_commit`` of one
+    commit on one suite version (those the lab broke not counted), ``per_day`` in all
+    over the last 24 hours. The leaderboard counts a commit's first evaluation anyway;
+    the budget bounds what anyone can learn of the hidden episodes from aggregates."""
+
+    per_commit: int = 1
+    per_day: int = 5
+
+    def check(
+        self,
+        evaluations: Evaluations,
+        db: Connection,
+        user: User,
+        *,
+        commit: str,
+        task: str,
+        suite: tuple[str, int],
+        now: float,
+    ) -> None:
+        """``OverBudget`` if one more would take ``user`` past either limit."""
+        of_commit, lately = evaluations.held_out_used(
+            db, user.name, commit=commit, task=task, suite=suite, since=now - DAY
+        )
+        if of_commit >= self.per_commit:
+            raise OverBudget(
+                f"commit {commit[:12]} of {user.name}",
+                of_commit,
+                self.per_commit,
+                f"on {task} suite {suite[0]} version {suite[1]}",
+            )
+        if lately >= self.per_day:
+            raise OverBudget(user.name, lately, self.per_day, "in the last 24 hours")
 
 
 class Evaluator:
@@ -40,7 +84,9 @@ class Evaluator:
         evaluations: Evaluations,
         secret: bytes,
         keyring: Keyring | None,
+        budget: HeldOutBudget | None = None,
     ) -> None:
+        self.budget = budget or HeldOutBudget()
         self.submissions = submissions
         self.queue: Queue = submissions.queue
         self.host = submissions.host
@@ -79,10 +125,20 @@ class Evaluator:
         seeds = suite.seeds_with(self.secret, prepared.task)
         task_version = self.host.task_version(prepared.task)
         resolved = prepared.resolved
-        evaluation_id = self.queue.submit_many(
-            user,
-            seeds,
-            lambda db, ids: self.evaluations.add(
+
+        def add(db: Connection, ids: list[int]) -> int:
+            if suite.held_out:
+                where = (suite.name, suite.version)
+                self.budget.check(
+                    self.evaluations,
+                    db,
+                    user,
+                    commit=resolved.commit,
+                    task=prepared.task,
+                    suite=where,
+                    now=self.queue.clock(),
+                )
+            return self.evaluations.add(
                 db,
                 task=prepared.task,
                 task_version=task_version,
@@ -96,7 +152,12 @@ class Evaluator:
                 submitter=user.name,
                 seeds=seeds,
                 trial_ids=ids,
-            ),
+            )
+
+        evaluation_id = self.queue.submit_many(
+            user,
+            seeds,
+            add,
             repository=resolved.repository,
             ref=request.ref,
             commit=resolved.commit,
@@ -124,23 +185,37 @@ class Evaluator:
             raise NotYours(evaluation_id, evaluation.submitter, "cancel", what="evaluation")
         self.evaluations.request_cancel(evaluation_id)
         for trial_id in self.evaluations.trials(evaluation_id):
-            self.queue.cancel(trial_id, user)
+            self.queue.cancel(trial_id, user, with_evaluation=True)
         self.settle_evaluation(evaluation_id)  # if nothing was left to end
         return self.evaluations.get(evaluation_id)
 
     def rerun(self, user: User, evaluation_id: int) -> int:
         """Rerun every episode of an evaluation (of its original, for a rerun's rerun) as
-        a new evaluation; its id."""
+        a new evaluation of ``user``'s (a held-out one within their budget); its id. The
+        original's row on the leaderboard stays its submitter's."""
         old = self.evaluations.get(evaluation_id, reveal=True)
         if old.rerun_of is not None:
             old = self.evaluations.get(old.rerun_of, reveal=True)
         first = self.queue.index.trial(old.rows[0].trial)
         seeds = [r.seed for r in old.rows if r.seed is not None]  # revealed: every one
         assert len(seeds) == len(old.rows)
-        new_id = self.queue.submit_many(
-            user,
-            seeds,
-            lambda db, ids: self.evaluations.add(
+        hidden = old.held_out and (old.suite, old.suite_version) not in self.evaluations.retired(
+            old.task
+        )
+
+        def add(db: Connection, ids: list[int]) -> int:
+            if hidden:
+                where = (old.suite, old.suite_version)
+                self.budget.check(
+                    self.evaluations,
+                    db,
+                    user,
+                    commit=old.commit,
+                    task=old.task,
+                    suite=where,
+                    now=self.queue.clock(),
+                )
+            return self.evaluations.add(
                 db,
                 task=old.task,
                 task_version=old.task_version,
@@ -155,7 +230,12 @@ class Evaluator:
                 seeds=seeds,
                 trial_ids=ids,
                 rerun_of=old.id,
-            ),
+            )
+
+        new_id = self.queue.submit_many(
+            user,
+            seeds,
+            add,
             repository=old.repository,
             ref=old.commit,
             commit=old.commit,
@@ -175,7 +255,7 @@ class Evaluator:
             self.settle_evaluation(evaluation_id)
 
     def settle_evaluation(self, evaluation_id: int) -> None:
-        evaluation = self.evaluations.get(evaluation_id)
+        evaluation = self.evaluations.get(evaluation_id, reveal=True)  # signed whole
         if not evaluation.status.ended or evaluation.signature is not None:
             return
         finished = self.queue.clock()

@@ -121,6 +121,7 @@ class TrialHost(Protocol):
         realtime: bool,
         out: Path,
         interfaces: Mapping[str, str] | None = None,
+        blind: bool = False,
     ) -> TrialLab:
         """Build the lab side of a trial recording into ``out`` (``TrialError``).
 

@@ -33,6 +33,7 @@ def build(
     model_sha256: str,
     data: Sequence[PinnedRecord] = (),
     node_packages_sha256: str | None = None,
+    blind: bool = False,
 ) -> dict[str, Any]:
     manifest: dict[str, Any] = {
         "schema": SCHEMA,
@@ -62,6 +63,8 @@ def build(
         manifest["controller"]["node_packages_sha256"] = node_packages_sha256
     if data:  # the records it learns from; without, earlier manifests keep their digests
         manifest["data"] = [record.manifest_entry() for record in data]
+    if blind:  # a held-out episode: the controller was told no seed (likewise, only then)
+        manifest["blind"] = True
     return manifest
 
 

@@ -30,12 +30,13 @@ from typing import Any, TypeVar
 import sqlalchemy as sa
 from sqlalchemy.engine import Connection
 
-from repository.index import Derived, Index, User, reward_of, to_trial
+from repository.index import Derived, Index, User, blind, reward_of, to_trial
 from repository.signing import Keyring, record_statement
+from repository.tables import episodes
 from repository.tables import trials as T
 from repository.trial import Claim, Filing, Kind, Outcome, PinnedRecord, Status, Trial
 from scheduler.canary import Health
-from scheduler.errors import FilingRefused, NotYours, QuotaExceeded
+from scheduler.errors import EpisodeOfEvaluation, FilingRefused, NotYours, QuotaExceeded
 from scheduler.states import Cancel
 
 log = logging.getLogger("scheduler.queue")
@@ -175,14 +176,22 @@ class Queue:
         for trial_id in trial_ids:
             _call(self.on_ended, trial_id)
 
-    def cancel(self, trial_id: int, user: User) -> Cancel:
+    def cancel(self, trial_id: int, user: User, *, with_evaluation: bool = False) -> Cancel:
         """Cancel a queued trial now, or ask the worker of a running one to stop.
 
         Says what it did: ``cancelled`` (it was queued), ``stopping`` (it runs, and stops
         at its worker's next heartbeat) or ``ended`` (it had ended: nothing to do). Only
-        the submitter may cancel (``NotYours``); ``RecordNotFound`` if there is no such
-        trial.
+        the submitter may cancel (``NotYours``), and an evaluation's episode only with
+        its evaluation (``EpisodeOfEvaluation``, before anything about it is read);
+        ``RecordNotFound`` if there is no such trial.
         """
+        if not with_evaluation:
+            with self.index.engine.connect() as db:
+                evaluation = db.execute(
+                    sa.select(episodes.c.evaluation_id).where(episodes.c.trial_id == trial_id)
+                ).scalar()
+            if evaluation is not None:
+                raise EpisodeOfEvaluation(trial_id, evaluation)
         trial = self.index.trial(trial_id)
         if trial.submitter != user.name:
             raise NotYours(trial_id, trial.submitter, "cancel")
@@ -247,6 +256,10 @@ class Queue:
                 if taken != 1:
                     continue
                 row = db.execute(sa.select(T).where(T.c.id == chosen)).one()
+                original = row.rerun_of if row.rerun_of is not None else row.id
+                unseen = db.execute(
+                    sa.select(sa.or_(blind(sa.literal(row.id)), blind(sa.literal(original))))
+                ).scalar()
             log.info("worker %s claimed trial %d (attempt %d)", worker, chosen, row.attempts)
             return Claim(
                 id=row.id,
@@ -258,6 +271,7 @@ class Queue:
                 rerun_of=row.rerun_of,
                 attempt=row.attempts,
                 data=row.data,
+                blind=bool(unseen),
             )
         return None
 
@@ -446,6 +460,7 @@ class Queue:
                         "status": Status.FINISHED.value,
                         "outcome": Outcome.ERROR.value,
                         "reason": f"its worker was lost {attempts} times; the lab gave up",
+                        "lab_fault": True,
                     }
                 else:
                     values = {"status": QUEUED, "reason": f"requeued: worker {worker} was lost"}

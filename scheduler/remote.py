@@ -25,8 +25,10 @@ from scheduler.client import ApiClient, version
 from scheduler.errors import ApiRefused, FilingRefused, RemoteError
 from scheduler.states import State
 
-PROTOCOL = 3  # 1: labd 0.1 (status succeeded/failed); 2: status and outcome apart;
-# 3: the lab holds a filing to its record (422 if not borne out), no metrics without one
+PROTOCOL = 4  # 1: labd 0.1 (status succeeded/failed); 2: status and outcome apart;
+# 3: the lab holds a filing to its record (422 if not borne out), no metrics without one;
+# 4: claims say ``blind`` (held-out episodes: the controller learns no seed), replay
+# verdicts are the lab's own (a remote worker files none)
 PROTOCOL_HEADER = "X-Labd-Worker-Protocol"
 VERSION_HEADER = "X-Labd-Version"
 

@@ -75,6 +75,9 @@ class TrialSpec:
     params: Mapping[str, Any] = field(default_factory=dict)
     seed: int = 0
     data: tuple[PinnedRecord, ...] = ()  # the archived records it learns from, pinned
+    # A held-out episode: the controller is told nothing of the seed (no LAB_SEED, and
+    # /lab/episode says 0); the manifest says so, and its replay and reruns run blind too.
+    blind: bool = False
 
 
 @dataclass(frozen=True)
@@ -237,7 +240,7 @@ async def run_trial(
         reason = storage_failure(err, "the trial's result could not be written")
         log.error("trial of %s: %s", spec.source, reason)
         if result.outcome is not Outcome.ERROR:
-            result.ending = Ending.error(reason)
+            result.ending = Ending.lab_error(reason)
     return result
 
 
@@ -397,6 +400,7 @@ class _Trial:
             realtime=prepared.config.realtime,
             out=out,
             interfaces=prepared.config.interface_files,
+            blind=prepared.spec.blind,
         )
         self.launched: float | None = None  # loop time the sandbox was started
         self.first_step: float | None = None
@@ -416,6 +420,7 @@ class _Trial:
             node_packages_sha256=p.node_packages_sha,
             model_sha256=lab.model_sha256,
             data=p.spec.data,
+            blind=p.spec.blind,
         )
         digest = manifest_digest(manifest)
         socket_dir = self.work / "bridge"
@@ -461,16 +466,14 @@ class _Trial:
                 failed = failed or storage_failure(err, "the trial's files could not be written")
             if failed is not None:
                 log.error("trial in %s: %s", self.out, failed)
-                result.ending = Ending.error(failed)
+                result.ending = Ending.lab_error(failed)
         return result
 
     def _job(self, socket: Path) -> Job:
         p = self.prepared
-        env = {
-            "LAB_TASK": p.task,
-            "LAB_SEED": str(p.spec.seed),
-            "LAB_PARAMS": json.dumps(p.values, sort_keys=True),
-        }
+        env = {"LAB_TASK": p.task, "LAB_PARAMS": json.dumps(p.values, sort_keys=True)}
+        if not p.spec.blind:  # a held-out episode's seed never reaches its controller
+            env["LAB_SEED"] = str(p.spec.seed)
         return Job(
             command=p.config.command,
             code=self.work / "code",

@@ -188,6 +188,7 @@ class Worker:
             params=claim.params,
             seed=claim.seed,
             data=tuple(claim.data or ()),
+            blind=claim.blind,
         )
         self.log.info("trial %d: %s@%s %s", claim.id, claim.repository, claim.commit[:12], spec)
         progress = Progress()
@@ -218,7 +219,9 @@ class Worker:
             ending = Ending.error(stuck[0]) if stuck else Ending.cancelled("cancelled while it ran")
         except Exception as err:
             self.log.exception("trial %d: the lab failed while running it", claim.id)
-            ending = Ending.error(f"the lab failed while running the trial ({_name(err)}: {err})")
+            ending = Ending.lab_error(
+                f"the lab failed while running the trial ({_name(err)}: {err})"
+            )
         except BaseException:
             await _stopped(beat)
             raise
@@ -362,10 +365,12 @@ class Worker:
                     record[stream] = self.store.put_file(path)
         except OSError as err:
             self.log.exception("trial %d: the record could not be stored", claim.id)
-            return Filing.error(storage_failure(err, "the archive could not store the record"))
+            return Filing.lab_error(
+                storage_failure(err, "the archive could not store the record")
+            )
         except (ArchiveError, QueueError) as err:
             self.log.exception("trial %d: the record could not be stored", claim.id)
-            return Filing.error(f"the archive could not store the trial's record: {err}")
+            return Filing.lab_error(f"the archive could not store the trial's record: {err}")
         if claim.rerun_of is not None and result is not None and result.status is Status.FINISHED:
             record.update(self._compare(claim.rerun_of, result))
         return Filing(**record)

@@ -345,12 +345,15 @@ def rerun(trial_id: Id, request: Request, service: Lab, app: App, user: Writer) 
     return _created(service, new_id, request)
 
 
-@router.post("/api/trials/{trial_id}/cancel", tags=["trials"], responses=responses(401, 403, 404))
+@router.post(
+    "/api/trials/{trial_id}/cancel", tags=["trials"], responses=responses(401, 403, 404, 409)
+)
 def cancel(trial_id: Id, request: Request, service: Lab, user: Writer) -> CancelView:
     """Cancel a queued trial, or stop a running one (its worker ends it shortly).
 
     ``done`` says which: ``cancelled``, ``stopping``, or ``ended`` when the trial had
-    ended already and nothing was done; ``trial`` is the trial after the call.
+    ended already and nothing was done; ``trial`` is the trial after the call. An
+    evaluation's episode is cancelled only with its evaluation (409).
     """
     done = service.queue.cancel(trial_id, user)
     return CancelView(

@@ -41,9 +41,11 @@ from repository.errors import (
 )
 from scheduler.errors import (
     Busy,
+    EpisodeOfEvaluation,
     FilingRefused,
     InvalidRequest,
     NotYours,
+    OverBudget,
     QuotaExceeded,
     RepositoryError,
     TooLarge,
@@ -118,6 +120,8 @@ STATUS: dict[type[Exception], int] = {
     IndexLost: 503,  # the index's files changed under the lab: writes wait for a restart
     ArchiveError: 422,
     NotYours: 403,
+    EpisodeOfEvaluation: 409,  # cancelled only with its evaluation
+    OverBudget: 429,  # a held-out suite's budget of evaluations
     FilingRefused: 422,
     NotYourReservation: 403,
     SlotTaken: 409,
@@ -138,10 +142,16 @@ MEANING = {
     403: "the user may not do this, or may not see it (a held-out episode; or a signed-in"
     " page's request lacks its CSRF token)",
     404: "no such trial, commit, task, reservation, record or file",
-    409: "a conflict: the slot is booked already, or the client's version is not the lab's",
+    409: (
+        "a conflict: the slot is booked already, the client's version is not the lab's, or"
+        " an evaluation's episode is cancelled with its evaluation only"
+    ),
     413: "too large: a body over its route's limit (1 MiB for JSON), or a repository",
     422: "the request names something wrong (the message says what)",
-    429: "over a limit the operator set, or too many failed attempts (see Retry-After)",
+    429: (
+        "over a limit the operator set (a daily limit, a held-out suite's budget), or too"
+        " many failed attempts (see Retry-After)"
+    ),
     500: "the lab is at fault (the message says what)",
     503: (
         "the lab cannot take it now: it has all the submissions or exports it takes in hand"

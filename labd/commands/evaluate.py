@@ -24,7 +24,7 @@ from typing import Any
 from labd.api.models import EvaluationPage, EvaluationView
 from labd.commands.common import ExitCode, emit, fail, server_options
 from repository.errors import ArchiveError
-from repository.trial import Outcome, Status
+from repository.trial import Status
 from scheduler.client import ApiClient
 from scheduler.errors import RemoteError
 
@@ -126,13 +126,18 @@ def _follow(client: ApiClient, evaluation: EvaluationView) -> EvaluationView:
 
 
 def _replaying(e: EvaluationView) -> int:
-    """Episodes with a record whose replay has no verdict yet."""
+    """Episodes with a record whose replay has no verdict yet (a hidden evaluation's
+    rows are not shown: all of them until it is verified)."""
+    if e.hidden:
+        return 0 if e.verified else e.episodes
     return sum(r.data_digest is not None and r.verified is None for r in e.rows)
 
 
 def _code(evaluation: EvaluationView, min_success: float) -> int:
     if evaluation.status is Status.CANCELLED:
         return ExitCode.CANCELLED
+    if evaluation.partial:  # the lab broke an episode: no score to gate on
+        return ExitCode.ERROR
     rate = evaluation.score.success_rate
     return ExitCode.SUCCESS if rate is not None and rate >= min_success else ExitCode.FAIL
 
@@ -149,6 +154,8 @@ def _progress(e: EvaluationView) -> str:
     s = e.score
     if e.status.ended and (left := _replaying(e)):
         return f"evaluation {e.id}: {e.status}; replaying {_episodes(left)}{VERIFYING}"
+    if s.done is None or s.successes is None:  # held out: no progress until it has ended
+        return f"evaluation {e.id}: {e.status} (held out: its score is shown when it has ended)"
     so_far = f"; {s.successes} of {s.done} succeeded ({s.successes / s.done:.0%})" if s.done else ""
     return (
         f"evaluation {e.id}: {s.done}/{s.episodes} done, {s.running} running,"
@@ -166,27 +173,32 @@ def _percent(value: float) -> str:
 
 def _lines(e: EvaluationView) -> Iterator[str]:
     s = e.score
-    partial = " (partial: cancelled)" if e.partial else ""
+    partial = f" (partial: {e.partial_reason})" if e.partial else ""
     yield (
         f"evaluation {e.id}: {e.repository}@{e.commit[:12]} on {e.task} suite {e.suite}"
         f" version {e.suite_version}: {e.status}{partial}"
     )
     if s.success_rate is not None and s.success_interval is not None:
         low, high = s.success_interval
-        counts = {o: sum(r.outcome is o for r in e.rows) for o in Outcome}
+        done, successes, errors = s.done or 0, s.successes or 0, s.errors or 0
+        unfinished = f", {s.episodes - done} cancelled" if done < s.episodes else ""
         yield (
             f"  success rate {_percent(s.success_rate)} (95 % interval {_percent(low)} to"
-            f" {_percent(high)}) over {s.done} episodes: {counts[Outcome.SUCCESS]} success,"
-            f" {counts[Outcome.FAIL]} fail, {counts[Outcome.ERROR]} error"
+            f" {_percent(high)}) over {s.episodes} episodes: {successes} success,"
+            f" {done - successes - errors} fail, {errors} error{unfinished}"
         )
+    elif s.done is None:
+        yield "  held out: its score is shown when every episode has ended"
     else:
-        yield f"  no episode finished yet ({s.queued} queued, {s.running} running)"
+        yield f"  {s.done} of {s.episodes} episodes ended ({s.queued} queued, {s.running} running)"
     if s.mean_reward is not None and s.reward_interval is not None:
         low, high = s.reward_interval
         yield f"  mean reward {s.mean_reward:.4g} (95 % interval {low:.4g} to {high:.4g})"
     unverified = [r.episode for r in e.rows if not r.verified]
     if s.verified:
-        yield "  verified: every episode's replay reproduced its record"
+        yield "  verified: the lab's replay of every episode reproduced its record"
+    elif e.status.ended and e.hidden:
+        yield "  not verified: not every episode's replay verified (yet)"
     elif e.status.ended:
         yield f"  not verified: {_episodes(len(unverified))} without a verified replay"
     if e.reproduced:
@@ -247,9 +259,11 @@ def _list(client: ApiClient, args: argparse.Namespace) -> int:
         for e in page.evaluations:
             s = e.score
             score = (
-                f"{_percent(s.success_rate)} of {s.done}"
+                f"{_percent(s.success_rate)} of {s.episodes}"
                 if s.success_rate is not None
-                else "no episode finished"
+                else f"{s.done} of {s.episodes} ended"
+                if s.done is not None
+                else "held out, running"
             )
             yield (
                 f"{e.id:>6}  {e.task} {e.suite}@{e.suite_version}  {e.commit[:12]}  "

@@ -73,8 +73,12 @@ class Robot:
         node_name: str = "/robot",
         wall_clock: Callable[[], float] = time.monotonic,
         time_limit: float | None = None,
+        blind: bool = False,
     ) -> None:
         self.graph = graph
+        # A held-out episode's: /lab/episode says seed 0, so nothing the lab publishes
+        # tells the controller which episode it runs (only what the task observes).
+        self.blind = blind
         self.wall_clock = wall_clock  # live watchdogs only; trials never read it
         self.task = task
         self.live = live
@@ -218,7 +222,7 @@ class Robot:
             data = {
                 "header": {"stamp": stamp, "frame_id": ""},
                 "task": sim.spec.name,
-                "seed": sim.seed,
+                "seed": 0 if self.blind else sim.seed,
                 "tick": sim.tick,
                 "status": sim.status.value,
                 "reason": sim.reason,

@@ -75,16 +75,19 @@ def plural(n: int, word: str) -> str:
 
 
 def rate_words(score: Score, ended: bool) -> str:
-    """The success rate with its interval, and of how many episodes: "70 % (48 % to 85 %,
-    95 % Wilson) of 20 episodes", the interval's ends joined by an en dash."""
-    if score.success_rate is None or score.success_interval is None:
-        return "no episode has finished yet"
-    low, high = score.success_interval
-    words = f"{percent(score.success_rate)} ({percent(low)}{DASH}{percent(high)}, 95 % Wilson)"
-    if score.done == score.episodes:
+    """The success rate over the suite's episodes with its interval, once every episode
+    has ended: "70 % (48 % to 85 %, 95 % Wilson) of 20 episodes", the interval's ends
+    joined by an en dash; before, how far it is (a held-out one: not even that)."""
+    if score.success_rate is not None and score.success_interval is not None:
+        low, high = score.success_interval
+        words = f"{percent(score.success_rate)} ({percent(low)}{DASH}{percent(high)}, 95 % Wilson)"
         return f"{words} of {plural(score.episodes, 'episode')}"
-    finished = "finished" if ended else "finished so far"
-    return f"{words} of the {score.done} {finished} ({score.episodes} in all)"
+    if score.done is None or score.successes is None:
+        return "held out: the score is shown once every episode has ended"
+    so_far = "ended" if ended else "ended so far"
+    return (
+        f"{score.done} of {plural(score.episodes, 'episode')} {so_far}, {score.successes} succeeded"
+    )
 
 
 def reward_words(score: Score) -> str:
@@ -97,11 +100,14 @@ def reward_words(score: Score) -> str:
     return f"{words} ({rounded(low, 3)} to {rounded(high, 3)}, 95 % bootstrap)"
 
 
-def replay_words(rows: Sequence[EpisodeRow], verified: bool) -> str:
-    """Whether every episode's replay came back identical, or what is missing."""
-    n = len(rows)
+def replay_words(rows: Sequence[EpisodeRow], verified: bool, episodes: int) -> str:
+    """Whether every episode's replay (the lab's own) came back identical, or what is
+    missing (of a held-out evaluation, whose rows are not shown: not which)."""
+    n = episodes
     if verified:
         return f"✓ verified: all {plural(n, 'episode')} replayed identically"
+    if len(rows) < n:
+        return "not verified: not every episode's replay verified (yet)"
     same = sum(r.verified is True for r in rows)
     diverged = [r.episode for r in rows if r.verified is False]
     cancelled = sum(r.status is Status.CANCELLED for r in rows)
@@ -119,7 +125,9 @@ def replay_words(rows: Sequence[EpisodeRow], verified: bool) -> str:
     return "not verified: " + "; ".join(parts)
 
 
-def duration(seconds: float) -> str:
+def duration(seconds: float | None) -> str:
+    if seconds is None:
+        return "held out"
     if seconds < 120:
         return f"{rounded(seconds, 1)} s"
     return f"{rounded(seconds / 60, 1)} min"
@@ -144,21 +152,21 @@ def signed_words(e: Evaluation) -> str:
     return "signed by the lab when every episode has ended"
 
 
-def partial_words(score: Score) -> str:
+def partial_words(e: Evaluation) -> str:
     return (
-        f"partial: cancelled with {score.done} of {plural(score.episodes, 'episode')}"
-        " finished; the score counts those only, and the leaderboard leaves it out"
+        f"partial: {e.partial_reason}; not every episode counted, so the leaderboard leaves it out"
     )
 
 
 @dataclass(frozen=True)
 class Cell:
-    """An episode in the page's grid: a link to its trial, unless held out."""
+    """An episode in the page's grid: a link to its trial (a held-out evaluation's page
+    has no grid until its suite version is retired)."""
 
     episode: int
     state: str
     title: str
-    link: str | None
+    link: str
 
 
 @dataclass(frozen=True)
@@ -181,23 +189,22 @@ class Said:
             rate=rate_words(e.score, e.status.ended),
             reward=reward_words(e.score),
             verified=e.score.verified,
-            replays=replay_words(e.rows, e.score.verified),
+            replays=replay_words(e.rows, e.score.verified, e.episodes),
             compute=duration(e.score.compute_seconds),
             counts={s: counted[s] for s in STATES},
             signed=signed_words(e),
-            partial=partial_words(e.score),
+            partial=partial_words(e),
         )
 
 
 def cells(e: Evaluation) -> list[Cell]:
-    """The episodes' cells; a held-out episode (its seed not shown) links nowhere, its
-    trial's page being the operator's."""
+    """The episodes' cells, each linked to its trial (a hidden evaluation has none)."""
     return [
         Cell(
             episode=r.episode,
             state=state(r),
             title=cell_title(r),
-            link=f"/trials/{r.trial}" if r.seed is not None else None,
+            link=f"/trials/{r.trial}",
         )
         for r in e.rows
     ]
@@ -215,7 +222,7 @@ def evaluation(request: Request, evaluation_id: Id, service: Lab, viewer: Viewer
             "cells": cells(e),
             "states": STATES,
             "poll_ms": POLL_MS,
-            "held": e.held_out and any(r.seed is None for r in e.rows),
+            "held": e.hidden,
         },
         user=viewer,
     )
@@ -298,6 +305,7 @@ class Standing:
 
 
 def standing(row: LeaderRow) -> Standing:
+    """A leaderboard row in words (an unranked one keeps its numbers, and its note)."""
     low, high = row.success_interval
     reward = "-" if row.mean_reward is None else rounded(row.mean_reward, 3)
     spread = ""

@@ -20,14 +20,16 @@ const percent = (fraction) => `${Math.floor(100 * fraction + 0.5)} %`;
 const plural = (n, word) => (n === 1 ? `${n} ${word}` : `${n} ${word}s`);
 
 function rateWords(score, ended) {
-  if (score.success_rate === null || score.success_interval === null) {
-    return "no episode has finished yet";
+  if (score.success_rate !== null && score.success_interval !== null) {
+    const [low, high] = score.success_interval;
+    const words = `${percent(score.success_rate)} (${percent(low)}–${percent(high)}, 95 % Wilson)`;
+    return `${words} of ${plural(score.episodes, "episode")}`;
   }
-  const [low, high] = score.success_interval;
-  const words = `${percent(score.success_rate)} (${percent(low)}–${percent(high)}, 95 % Wilson)`;
-  if (score.done === score.episodes) return `${words} of ${plural(score.episodes, "episode")}`;
-  const finished = ended ? "finished" : "finished so far";
-  return `${words} of the ${score.done} ${finished} (${score.episodes} in all)`;
+  if (score.done === null || score.successes === null) {
+    return "held out: the score is shown once every episode has ended";
+  }
+  const soFar = ended ? "ended" : "ended so far";
+  return `${score.done} of ${plural(score.episodes, "episode")} ${soFar}, ${score.successes} succeeded`;
 }
 
 function rewardWords(score) {
@@ -38,9 +40,10 @@ function rewardWords(score) {
   return `${words} (${rounded(low, 3)} to ${rounded(high, 3)}, 95 % bootstrap)`;
 }
 
-function replayWords(rows, verified) {
-  const n = rows.length;
+function replayWords(rows, verified, episodes) {
+  const n = episodes;
   if (verified) return `✓ verified: all ${plural(n, "episode")} replayed identically`;
+  if (rows.length < n) return "not verified: not every episode's replay verified (yet)";
   const same = rows.filter((r) => r.verified === true).length;
   const diverged = rows.filter((r) => r.verified === false).map((r) => r.episode);
   const cancelled = rows.filter((r) => r.status === "cancelled").length;
@@ -57,7 +60,10 @@ function replayWords(rows, verified) {
   return `not verified: ${parts.join("; ")}`;
 }
 
-const duration = (s) => (s < 120 ? `${rounded(s, 1)} s` : `${rounded(s / 60, 1)} min`);
+function duration(s) {
+  if (s === null) return "held out";
+  return s < 120 ? `${rounded(s, 1)} s` : `${rounded(s / 60, 1)} min`;
+}
 const stateOf = (row) => row.outcome || row.status;
 
 function cellTitle(row) {
@@ -92,11 +98,11 @@ function show(e) {
   $("rate").textContent = rateWords(score, ended);
   $("reward").textContent = rewardWords(score);
   const verified = $("verified");
-  verified.textContent = replayWords(e.rows, score.verified);
+  verified.textContent = replayWords(e.rows, score.verified, score.episodes);
   verified.className = score.verified ? "reproduced" : "muted";
   const partial = $("partial");
-  partial.textContent = `partial: cancelled with ${score.done} of ${plural(score.episodes, "episode")}`
-    + " finished; the score counts those only, and the leaderboard leaves it out";
+  partial.textContent = `partial: ${e.partial_reason}; not every episode counted, so the`
+    + " leaderboard leaves it out";
   partial.hidden = !e.partial;
   const reproduced = $("reproduced");
   if (reproduced && e.reproduced) {
