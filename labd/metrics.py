@@ -37,7 +37,7 @@ from prometheus_client.registry import Collector
 from labd import __version__
 from labd.health import STATES, workers
 from repository.errors import ArchiveError, IndexLost
-from repository.index import Derived
+from repository.index import Derived, hidden
 from repository.tables import episodes, evaluations, trials
 from repository.trial import Filing, Kind, Outcome, Status
 from repository.well_known import REPLAY
@@ -86,7 +86,9 @@ class LabMetrics:
         self.verdicts[_verdict(verdict)] += 1
 
     def _filed(self, trial_id: int, filing: Filing) -> None:
-        if filing.wall_seconds is not None:
+        # a held-out episode's time is not shown, here either (they are its submitter's
+        # only channel from the sandbox: docs/evaluations.md)
+        if filing.wall_seconds is not None and not self.service.index.is_hidden(trial_id):
             self.wall.observe(filing.wall_seconds)
 
     def _derived(self, trial_id: int, item: Derived) -> None:
@@ -206,13 +208,14 @@ def _from_index(service: Service) -> list[Metric]:
     T, E = trials.c, evaluations.c
     now = service.index.clock()
     with service.index.engine.connect() as db:
+        shown = ~hidden(T.id)  # held-out episodes: counted when their suite is retired
         by_state = db.execute(
-            sa.select(T.kind, T.status, T.outcome, sa.func.count()).group_by(
-                T.kind, T.status, T.outcome
-            )
+            sa.select(T.kind, T.status, T.outcome, sa.func.count())
+            .where(shown)
+            .group_by(T.kind, T.status, T.outcome)
         ).all()
         waiting, oldest = db.execute(
-            sa.select(sa.func.count(), sa.func.min(T.created)).where(T.status == QUEUED)
+            sa.select(sa.func.count(), sa.func.min(T.created)).where(T.status == QUEUED, shown)
         ).one()
         reruns = db.execute(
             sa.select(T.reproduced, sa.func.count())

@@ -159,6 +159,11 @@ sa.Index("ix_trials_created", trials.c.created)
 sa.Index("ix_trials_rerun_of", trials.c.rerun_of)
 # Claiming: the oldest queued trial of each submitter, public ones first.
 sa.Index("ix_trials_queue", trials.c.status, trials.c.public, trials.c.submitter, trials.c.id)
+# Serving a blob: the trials (and derived artifacts) that hold it, whose readers may read it.
+sa.Index("ix_trials_mcap", trials.c.mcap)
+sa.Index("ix_trials_stdout", trials.c.stdout)
+sa.Index("ix_trials_stderr", trials.c.stderr)
+sa.Index("ix_derived_digest", derived.c.digest)
 
 # Evaluations (``repository.evaluation``): one commit on one suite of a task; each of its
 # episodes is a trial of ``trials``. ``hidden`` marks the trials of a held-out suite

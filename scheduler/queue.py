@@ -30,7 +30,7 @@ from typing import Any, TypeVar
 import sqlalchemy as sa
 from sqlalchemy.engine import Connection
 
-from repository.index import Derived, Index, User, blind, reward_of, to_trial
+from repository.index import Derived, Index, User, blind, hidden, reward_of, to_trial
 from repository.signing import Keyring, record_statement
 from repository.tables import episodes
 from repository.tables import trials as T
@@ -495,27 +495,33 @@ class Queue:
         self.seen[health.worker] = self.clock()
         self.health[health.worker] = health
 
-    def running(self) -> list[Trial]:
-        """The trials running now, oldest first: who runs them and since when."""
+    def running(self, *, public: bool = False) -> list[Trial]:
+        """The trials running now, oldest first: who runs them and since when.
+        ``public``: as everyone may see them, without held-out episodes (when each starts
+        and ends would time it)."""
+        query = sa.select(T).where(T.c.status == RUNNING, *_shown(public)).order_by(T.c.id)
         with self.index.engine.connect() as db:
-            rows = db.execute(sa.select(T).where(T.c.status == RUNNING).order_by(T.c.id)).all()
+            rows = db.execute(query).all()
         return [to_trial(r) for r in rows]
 
-    def queued(self) -> int:
-        """How many trials wait for a worker."""
-        with self.index.engine.connect() as db:
-            count = db.execute(
-                sa.select(sa.func.count()).select_from(T).where(T.c.status == QUEUED)
-            ).scalar_one()
-        return int(count)
-
-    def queued_before(self, trial_id: int) -> int:
-        """How many trials submitted before ``trial_id`` still wait for a worker."""
+    def queued(self, *, public: bool = False) -> int:
+        """How many trials wait for a worker (``public``: held-out episodes left out)."""
         with self.index.engine.connect() as db:
             count = db.execute(
                 sa.select(sa.func.count())
                 .select_from(T)
-                .where(T.c.status == QUEUED, T.c.id < trial_id)
+                .where(T.c.status == QUEUED, *_shown(public))
+            ).scalar_one()
+        return int(count)
+
+    def queued_before(self, trial_id: int) -> int:
+        """How many trials submitted before ``trial_id`` still wait for a worker, held-out
+        episodes left out (this is shown to everyone)."""
+        with self.index.engine.connect() as db:
+            count = db.execute(
+                sa.select(sa.func.count())
+                .select_from(T)
+                .where(T.c.status == QUEUED, T.c.id < trial_id, *_shown(True))
             ).scalar_one()
         return int(count)
 
@@ -550,6 +556,11 @@ def _call(hooks: Sequence[Callable[..., None]], trial_id: int, *more: Any) -> No
             call(trial_id, *more)
         except Exception:  # a hook's bug must not undo the filing that called it
             log.exception("trial %d: after it was filed or ended, %s failed", trial_id, call)
+
+
+def _shown(public: bool) -> list[sa.ColumnElement[bool]]:
+    """The condition that leaves held-out episodes out of what everyone sees."""
+    return [~hidden(T.c.id)] if public else []
 
 
 def _lock_user(db: Connection, name: str) -> bool:

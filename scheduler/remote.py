@@ -44,14 +44,18 @@ class RemoteLab:
             headers={PROTOCOL_HEADER: str(PROTOCOL), VERSION_HEADER: version()},
         )
         self.server = self.api.server
+        self.replays = False  # whether the lab takes this worker's replays (``hello``)
 
     def close(self) -> None:
         self.api.close()
 
     def hello(self) -> str:
         """Check the token and that the lab speaks this worker protocol; the lab's version
-        (``ApiRefused`` with the lab's explanation if not)."""
+        (``ApiRefused`` with the lab's explanation if not). ``replays`` says after it
+        whether the lab takes this worker's replay verdicts (only from its own workers:
+        it replays what others file itself)."""
         reply = self.api.request("GET", "/api/workers/hello").json()
+        self.replays = reply.get("replays") is True
         return str(reply["version"])
 
     # -- Jobs -------------------------------------------------------------------------

@@ -169,7 +169,7 @@ def status(service: Lab) -> LabStatus:
     now = time.time()
     local = {w.config.name: w.current for w in service.workers}
     running = []
-    for trial in service.queue.running():
+    for trial in service.queue.running(public=True):  # held-out episodes: never timed here
         here = local.get(trial.worker or "")
         started = trial.started.timestamp() if trial.started else None
         running.append(
@@ -185,7 +185,7 @@ def status(service: Lab) -> LabStatus:
         )
     return LabStatus(
         version=__version__,
-        queued=service.queue.queued(),
+        queued=service.queue.queued(public=True),
         running=running,
         local_workers=len(service.workers),
         workers=[

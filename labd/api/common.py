@@ -113,6 +113,22 @@ def _writer(
 Writer = Annotated[User, Depends(_writer)]
 
 
+def _reader(
+    request: Request,
+    service: Lab,
+    credentials: Annotated[HTTPAuthorizationCredentials | None, Depends(bearer)],
+    cookie: Annotated[str | None, Depends(session_cookie)],
+) -> User | None:
+    """Who reads: the token's or the signed-in session's user, or None for anyone."""
+    token = credentials.credentials if credentials is not None else None
+    if token is None and not cookie:
+        return None
+    return identify(service, request.method, token, cookie, "")
+
+
+Reader = Annotated[User | None, Depends(_reader)]
+
+
 def blob_response(
     service: Service, digest: str, media_type: str, filename: str | None
 ) -> StreamingResponse:

@@ -31,9 +31,10 @@ from fastapi.responses import StreamingResponse
 from pydantic import BaseModel
 
 from labd import __version__
-from labd.api.common import Lab, Writer, blob_response
+from labd.api.common import Lab, Reader, Writer, blob_response
 from labd.api.errors import ApiError, Conflict, Forbidden, responses
 from labd.api.models import Digest, Id
+from labd.workers import LOCAL_WORKERS
 from repository.index import Derived, User
 from repository.trial import Claim, Trial
 from repository.units import GiB, MiB
@@ -93,12 +94,20 @@ class Hello(BaseModel):
     version: str  # the lab's labd
     protocol: int  # the worker protocol it speaks
     worker: str  # the user the token belongs to
+    replays: bool  # whether the lab takes this worker's replay verdicts (its own workers')
+
+
+def _own(user: User) -> bool:
+    """The lab's own worker processes (``labd.workers``), whose replays it takes; of a
+    worker elsewhere, the lab replays what it files itself (``labd.replays``)."""
+    return user.name == LOCAL_WORKERS
 
 
 @router.get("/api/workers/hello")
 def hello(user: WorkerUser) -> Hello:
-    """A worker checks its token and version before it claims anything."""
-    return Hello(version=__version__, protocol=PROTOCOL, worker=user.name)
+    """A worker checks its token and version before it claims anything, and learns
+    whether to replay what it files (only the lab's own workers do)."""
+    return Hello(version=__version__, protocol=PROTOCOL, worker=user.name, replays=_own(user))
 
 
 def _named(user: User, name: str) -> str:
@@ -147,6 +156,12 @@ def derived(trial_id: Id, body: DeriveBody, service: Lab, user: WorkerUser) -> F
     if item.name not in WORKER_MADE:
         made = ", ".join(sorted(WORKER_MADE))
         raise ApiError(422, f"item.name: a worker files {made}, not {item.name!r}")
+    if item.name == REPLAY and not _own(user):
+        raise ApiError(
+            422,
+            f"item.name: {REPLAY} is the lab's own word: it replays what {user.name} filed"
+            " itself (a worker elsewhere files no replay verdict)",
+        )
     if not service.store.exists(item.digest):
         raise ApiError(422, f"item.digest: upload {item.digest} first")
     if service.store.size(item.digest) != item.size:
@@ -233,8 +248,14 @@ blobs = APIRouter(tags=["data"])
 @blobs.get(
     "/api/blobs/{digest}",
     response_class=StreamingResponse,
-    responses={200: {"content": {"application/octet-stream": {}}}, **responses(404, 500)},
+    responses={200: {"content": {"application/octet-stream": {}}}, **responses(401, 404, 500)},
 )
-def get_blob(digest: Digest, service: Lab) -> StreamingResponse:
-    """A blob of the archive (records and logs are public), checked before it is sent."""
+def get_blob(digest: Digest, service: Lab, reader: Reader) -> StreamingResponse:
+    """A blob of the archive, checked before it is sent: the record, a log or a derived
+    artifact of a trial the caller may read (a held-out episode's are nobody's but the
+    operator's until its suite is retired), or what a trial a worker holds needs. Any
+    other digest is not found, whether or not the store has it."""
+    worker = reader.name if reader is not None and reader.worker else None
+    if not service.index.blob_readable(digest, worker):  # before the store is asked
+        raise ApiError(404, f"{digest}: no record, log or artifact you may read has this digest")
     return blob_response(service, digest, "application/octet-stream", None)

@@ -55,7 +55,7 @@ WITHOUT_OUTCOME = tuple(s for s in Status if s is not Status.FINISHED)
 def home(request: Request, service: Lab, app: App, viewer: Viewer) -> HTMLResponse:
     tasks = [registry.get(name) for name in registry.names()]
     recent = service.index.find(Filters(), limit=10).items
-    running = service.queue.running()
+    running = service.queue.running(public=True)
     return page(
         request,
         "home.html",
@@ -64,7 +64,7 @@ def home(request: Request, service: Lab, app: App, viewer: Viewer) -> HTMLRespon
             "site": app.site,
             "recent": recent,
             "running": running,
-            "queued": service.queue.queued(),
+            "queued": service.queue.queued(public=True),
             "unwell": [h for h in service.queue.health.values() if h.state is State.OUT],
             "now": dt.datetime.now(dt.UTC),
         },

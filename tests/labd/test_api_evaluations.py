@@ -12,8 +12,10 @@ import json
 
 import pytest
 
+from repository.index import Derived
 from repository.signing import Signature, verify
 from repository.trial import Filing
+from repository.well_known import REPLAY
 from tests.labd.test_api import api, auth, repo, service, token  # noqa: F401 (fixtures)
 
 DEV = 20  # the maze's dev suite
@@ -49,6 +51,14 @@ def file_episodes(service, outcomes: dict[int, tuple[str, float]]) -> None:
         assert service.queue.finish(claim.id, "w", filing)
 
 
+def verify_episodes(service, trial_ids) -> None:
+    """File a replay verdict that says "verified" beside each trial, as the lab's own
+    replay would (the lab's verdicts are blobs of its store)."""
+    digest = service.store.put_bytes(json.dumps({"verified": True}).encode())
+    for trial_id in trial_ids:
+        service.index.put_derived(trial_id, Derived(REPLAY, digest, 18, "application/json"))
+
+
 async def test_an_evaluation_queues_every_episode_and_is_scored_and_signed(
     api, service, token, repo
 ):
@@ -73,7 +83,7 @@ async def test_an_evaluation_queues_every_episode_and_is_scored_and_signed(
     file_episodes(service, {t: ("success", 1.0) for t in ids[:14]})
     half = (await api.get(f"/api/evaluations/{evaluation['id']}")).json()
     assert half["status"] == "running" and half["signature"] is None
-    assert (half["done"], half["success_rate"]) == (14, 1.0)
+    assert (half["done"], half["successes"], half["success_rate"]) == (14, 14, None)
     file_episodes(service, {t: ("fail", 0.0) for t in ids[14:]})
     done = (await api.get(f"/api/evaluations/{evaluation['id']}")).json()
     score = done
@@ -87,9 +97,10 @@ async def test_an_evaluation_queues_every_episode_and_is_scored_and_signed(
     signature = done["signature"]
     verify(Signature.from_json(signature), keys)
     said = signature["statement"]
-    assert said["schema"] == "labd.evaluation/1" and said["commit"] == evaluation["commit"]
-    assert [e["outcome"] for e in said["episodes"]] == ["success"] * 14 + ["fail"] * 6
-    assert [e["seed"] for e in said["episodes"]] == list(range(DEV))
+    assert said["schema"] == "labd.evaluation/2" and said["commit"] == evaluation["commit"]
+    assert [e["outcome"] for e in said["rows"]] == ["success"] * 14 + ["fail"] * 6
+    assert [e["seed"] for e in said["rows"]] == list(range(DEV))
+    assert (said["episodes"], said["successes"], said["partial"]) == (DEV, 14, False)
 
 
 async def test_the_daily_limit_counts_episodes_and_a_refusal_leaves_nothing(api, service, repo):
@@ -121,16 +132,16 @@ async def test_bad_evaluations_are_refused_and_leave_nothing(api, token, repo, b
 async def test_a_held_out_suite_keeps_its_seeds_and_records_until_it_is_retired(
     api, service, token, repo
 ):
-    """The test suite's seeds come from the lab's secret: the API shows outcomes but
-    never seeds, its trials answer 403 and stay out of the lists, until the operator
-    retires the suite version; a retired suite takes no new evaluation."""
+    """The test suite's seeds come from the lab's secret: the API shows its aggregate
+    alone, never an episode, its trials answer 403 and stay out of the lists, until the
+    operator retires the suite version; a retired suite takes no new evaluation."""
     token = service.index.add_user("dave", max_daily=500)
     reply = await evaluate(api, token, repo, suite="test")
     assert reply.status_code == 201, reply.text
     evaluation = reply.json()
-    assert evaluation["held_out"] and evaluation["episodes"] == 50
-    assert {r["seed"] for r in evaluation["rows"]} == {None}
-    trial = evaluation["rows"][0]["trial"]
+    assert evaluation["held_out"] and evaluation["episodes"] == 50 and evaluation["hidden"]
+    assert evaluation["rows"] == [] and evaluation["queued"] is None
+    trial = service.evaluations.get(evaluation["id"], reveal=True).rows[0].trial
     hidden = await api.get(f"/api/trials/{trial}")
     assert hidden.status_code == 403 and "held-out suite" in hidden.json()["error"]
     assert (await api.get(f"/api/trials/{trial}/data.mcap")).status_code == 403
@@ -158,26 +169,33 @@ async def test_a_held_out_suite_keeps_its_seeds_and_records_until_it_is_retired(
 
 
 async def test_cancel_keeps_what_finished_and_leaves_the_leaderboard(api, service, token, repo):
-    """A cancelled evaluation keeps its finished episodes, is marked partial and is
-    not ranked; two finished ones are compared episode by episode and ranked."""
+    """A cancelled evaluation keeps its finished episodes, is marked partial, counts
+    its unfinished ones as no success, and is not ranked (nor is its commit, by a later
+    evaluation); two finished ones are compared episode by episode and ranked once the
+    lab has verified them."""
     token = service.index.add_user("erin", max_daily=500)
-    a = (await evaluate(api, token, repo)).json()
+    a = (await evaluate(api, token, repo, ref="v1")).json()
     file_episodes(service, {r["trial"]: ("success", 1.0) for r in a["rows"][:3]})
     cancelled = await api.post(f"/api/evaluations/{a['id']}/cancel", headers=auth(token))
     assert cancelled.status_code == 200, cancelled.text
     c = cancelled.json()
     assert c["status"] == "cancelled" and c["partial"]
-    assert (c["done"], c["successes"]) == (3, 3)
-    assert c["signature"]["statement"]["status"] == "cancelled"
+    assert c["partial_reason"] == "cancelled by its submitter"
+    assert (c["done"], c["successes"], c["success_rate"]) == (3, 3, 3 / DEV)
+    said = c["signature"]["statement"]
+    assert (said["status"], said["partial"], said["successes"]) == ("cancelled", True, 3)
 
     b = (await evaluate(api, token, repo)).json()
-    d = (await evaluate(api, token, repo, ref="v1")).json()
+    d = (await evaluate(api, token, repo, ref="v1")).json()  # a's commit: a stays its row
     ids_b, ids_d = [r["trial"] for r in b["rows"]], [r["trial"] for r in d["rows"]]
     file_episodes(service, {t: ("success" if n < 18 else "fail", 1.0) for n, t in enumerate(ids_b)})
     file_episodes(service, {t: ("success" if n < 8 else "fail", 0.5) for n, t in enumerate(ids_d)})
     board = (await api.get("/api/tasks/icreate-maze/leaderboard?suite=dev")).json()
-    assert [r["evaluation"] for r in board["rows"]] == [b["id"], d["id"]]  # not the partial one
-    assert [r["tie"] for r in board["rows"]] == [False, False]
+    assert [(r["evaluation"], r["rank"]) for r in board["rows"]] == [(b["id"], None)]
+    assert board["rows"][0]["note"].startswith("not ranked: its episodes' replays")
+    verify_episodes(service, ids_b)
+    board = (await api.get("/api/tasks/icreate-maze/leaderboard?suite=dev")).json()
+    assert [(r["evaluation"], r["rank"], r["tie"]) for r in board["rows"]] == [(b["id"], 1, False)]
     compared = (await api.get(f"/api/evaluations/compare?a={b['id']}&b={d['id']}")).json()
     assert compared["pairs"] == {"both": 8, "only_a": 10, "only_b": 0, "neither": 2}
     assert compared["p_value"] == pytest.approx(2 / 1024)

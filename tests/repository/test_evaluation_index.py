@@ -75,7 +75,7 @@ def test_evaluations_are_kept_with_their_episodes_and_found(index):
         2.0,
         True,
     )
-    assert (again.score.done, again.score.success_rate) == (1, 1.0)
+    assert (again.score.done, again.score.successes, again.score.success_rate) == (1, 1, None)
     assert evaluations.of_trial(first) == dev and evaluations.trials(dev) == [
         r.trial for r in read.rows
     ]
@@ -93,8 +93,9 @@ def test_a_held_out_suites_trials_are_the_operators_until_it_is_retired(index):
     evaluations = Evaluations(index, lambda _digest: None)
     public = add(index, evaluations, held_out=False, seeds=[0])
     held = add(index, evaluations, held_out=True, seeds=[123456789, 987654321])
-    hidden = evaluations.get(held).rows[0].trial
-    assert [r.seed for r in evaluations.get(held).rows] == [None, None]
+    hidden = evaluations.get(held, reveal=True).rows[0].trial
+    seen = evaluations.get(held)  # as its submitter and everyone see it: no episode at all
+    assert (seen.hidden, seen.rows, seen.done, seen.compute_seconds) == (True, [], None, None)
     assert [r.seed for r in evaluations.get(held, reveal=True).rows] == [123456789, 987654321]
     with pytest.raises(HeldOut, match="held-out suite"):
         index.readable(hidden)

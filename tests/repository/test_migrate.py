@@ -12,6 +12,7 @@ from repository.migrate import schema_of, upgrade
 from repository.trial import Kind, Outcome, PinnedRecord, Status
 
 NEW_COLUMNS = {"kind", "outcome", "reward", "signature", "data"}
+SCHEMA_3_COLUMNS = {"lab_fault"}
 
 
 def schema_1(url: str) -> None:
@@ -27,7 +28,7 @@ def schema_1(url: str) -> None:
             "ix_trials_reward",
         ):
             db.execute(sa.text(f"DROP INDEX {index}"))
-        for column in sorted(NEW_COLUMNS):
+        for column in sorted(NEW_COLUMNS | SCHEMA_3_COLUMNS):
             db.execute(sa.text(f"ALTER TABLE trials DROP COLUMN {column}"))
     trials = sa.Table("trials", sa.MetaData(), autoload_with=engine)
     base = {
@@ -62,7 +63,7 @@ def test_an_old_index_is_refused_with_the_command_that_upgrades_it(database_url)
     schema_1(database_url)
     with pytest.raises(SchemaMismatch, match="labd migrate") as caught:
         Index.open(database_url)
-    assert (caught.value.found, caught.value.expected) == (1, 2)
+    assert (caught.value.found, caught.value.expected) == (1, 3)
     engine = connect(database_url)
     assert schema_of(engine) == 1
     columns = {c["name"] for c in sa.inspect(engine).get_columns("trials")}
@@ -75,13 +76,13 @@ def test_the_upgrade_keeps_every_row_and_reads_each_status_anew(database_url):
     schema_1(database_url)
     engine = connect(database_url)
     done = upgrade(engine)
-    assert (done.before, done.after) == (1, 2)
+    assert (done.before, done.after) == (1, 3)
     assert done.changed == {
         "succeeded -> success": 1,
         "succeeded -> fail": 2,
         "failed -> error": 1,
     }
-    assert "upgraded the index from schema 1 to 2" in str(done)
+    assert "upgraded the index from schema 1 to 3" in str(done)
     assert upgrade(engine).changed == {}  # a second run does nothing
     engine.dispose()
     index = Index.open(database_url)
@@ -111,6 +112,46 @@ def test_the_upgrade_keeps_every_row_and_reads_each_status_anew(database_url):
     assert rewards == [1.0, None, None, None, None, None]
     assert all(t.kind.value == "trial" for t in got)
     assert all(t.data is None for t in got)  # nothing was pinned before schema 2
+    assert not any(t.lab_fault for t in got)  # no error was said to be the lab's before 3
+
+
+def test_a_schema_2_index_upgrades_to_say_whose_fault_an_error_was(database_url):
+    """Schema 2 -> 3 adds lab_fault, false for every trial filed before, and keeps the rest."""
+    engine = connect(database_url)
+    current.metadata.create_all(engine)
+    base = {
+        "repository": "https://example.org/r.git",
+        "commit": "a" * 40,
+        "task": "icreate-maze",
+        "params": {},
+        "seed": 0,
+        "submitter": "alice",
+        "public": True,
+        "created": 1.0,
+        "attempts": 1,
+        "cancel_requested": False,
+        "kind": "trial",
+        "status": "finished",
+        "outcome": "error",
+        "reason": "its worker was lost 3 times; the lab gave up",
+    }
+    with engine.begin() as db:
+        db.execute(sa.text("ALTER TABLE trials DROP COLUMN lab_fault"))
+        db.execute(sa.insert(current.meta).values(key="schema", value="2"))
+    trials = sa.Table("trials", sa.MetaData(), autoload_with=engine)
+    with engine.begin() as db:
+        db.execute(sa.insert(trials), [base])
+    with pytest.raises(SchemaMismatch, match="labd migrate"):
+        Index.open(database_url)
+    done = upgrade(engine)
+    assert (done.before, done.after, done.changed) == (2, 3, {})
+    engine.dispose()
+    index = Index.open(database_url)
+    try:
+        trial = index.trial(1)
+    finally:
+        index.close()
+    assert (trial.outcome, trial.lab_fault, trial.reason) == (Outcome.ERROR, False, base["reason"])
 
 
 def test_an_upgraded_index_keeps_the_data_a_trial_pins(database_url):
