@@ -43,9 +43,9 @@ class DataLock:
     @classmethod
     def take(cls, data: Path) -> DataLock:
         """Hold ``data``'s lock, or raise ``FolderInUse`` naming the lab that holds it."""
-        data.mkdir(parents=True, exist_ok=True)
+        data.mkdir(mode=0o700, parents=True, exist_ok=True)  # the lab's user's alone
         path = data / NAME
-        fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_CLOEXEC, 0o644)
+        fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_CLOEXEC, 0o600)
         try:
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except BlockingIOError:

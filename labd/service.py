@@ -134,7 +134,9 @@ class Service:
     ) -> None:
         self.config = config
         self.host = LabHost(types)
-        config.data.mkdir(parents=True, exist_ok=True)
+        # the lab's user's alone (its index, keys); a sandbox reaches what it needs below
+        # it through its mounts (sandbox.views), never through the folder's mode
+        config.data.mkdir(mode=0o700, parents=True, exist_ok=True)
         self.cache = (config.cache or config.data / "cache").resolve()
         self.index = Index.open(config.database_url, clock=clock)
         self.store = BlobStore(config.blobs_url, dict(config.blob_options) or None)

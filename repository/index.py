@@ -16,11 +16,12 @@ from __future__ import annotations
 
 import hashlib
 import math
+import os
 import re
 import secrets
 import time
 from collections.abc import Collection, Iterator, Mapping, Sequence
-from contextlib import contextmanager
+from contextlib import contextmanager, suppress
 from dataclasses import dataclass
 from enum import StrEnum
 from pathlib import Path
@@ -134,10 +135,21 @@ class Filters:
 def connect(url: str, **engine_options: Any) -> Engine:
     """An engine for ``url`` (``sqlite:///path`` or ``postgresql+psycopg://...``)."""
     if url.startswith("sqlite"):
+        private_file(sa.make_url(url).database)
         engine = sa.create_engine(url, connect_args={"timeout": 30}, **engine_options)
         sa.event.listen(engine, "connect", _sqlite_pragmas)
         return engine
     return sa.create_engine(url, pool_pre_ping=True, **engine_options)
+
+
+def private_file(path: str | None) -> None:
+    """Make the SQLite file at ``path`` empty and readable by its owner only (0600) if
+    there is none yet: SQLite would make it 0644, and it holds password and token hashes
+    and held-out seeds; its WAL and shared-memory files take the file's mode."""
+    if not path or path == ":memory:" or path.startswith("file:"):
+        return
+    with suppress(OSError):  # there already, or no folder: SQLite says which
+        os.close(os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_CLOEXEC, 0o600))
 
 
 def _sqlite_pragmas(dbapi_connection: Any, _record: Any) -> None:

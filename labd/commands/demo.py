@@ -108,6 +108,7 @@ def main(args: argparse.Namespace) -> int:
         return int(ExitCode.USAGE)
     # stopped with SIGTERM (a service manager, `kill`): stop the lab it started too
     signal.signal(signal.SIGTERM, _stop)
+    args.data.mkdir(mode=0o700, parents=True, exist_ok=True)  # the lab's user's alone
     folder = (args.data / "demo").resolve()
     folder.mkdir(parents=True, exist_ok=True)
     repos = {name: make_repository(name, folder / name) for name in EXAMPLES}
@@ -213,7 +214,7 @@ def make_repository(name: str, path: Path) -> Path:
 def demo_token(data: Path, folder: Path) -> str:
     """The demo user's token: the saved one if the archive still knows it, or a new one."""
     saved = folder / "token"
-    data.mkdir(parents=True, exist_ok=True)
+    data.mkdir(mode=0o700, parents=True, exist_ok=True)
     index = Index.open(ServiceConfig(data=data).database_url)
     try:
         if saved.exists() and index.user_by_token(saved.read_text().strip()):

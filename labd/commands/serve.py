@@ -24,7 +24,7 @@ from pathlib import Path
 from typing import Any
 from urllib.parse import urlsplit
 
-from labd import __version__
+from labd import __version__, privacy
 from labd.commands import fetching
 from labd.commands.common import assignment, fail, param_option
 from labd.config import BridgeConfig, DriveLimits, HttpConfig, RobotConfig
@@ -575,6 +575,9 @@ def main(args: argparse.Namespace) -> int:
 async def serve(config: LabConfig) -> None:
     """Run the lab until SIGINT or SIGTERM; the data folder is its own meanwhile."""
     lock = DataLock.take(config.service.data) if config.service is not None else None
+    if config.service is not None:  # one line per private path others may read
+        for wide in privacy.wider(*privacy.lab_paths(config.service)):
+            log.warning("%s", wide)
     try:
         await _serve(config, lock)
     finally:

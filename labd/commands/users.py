@@ -119,7 +119,7 @@ def main(args: argparse.Namespace) -> int:
             " elsewhere: give its --config, or its --data and --database)",
             file=sys.stderr,
         )
-    args.data.mkdir(parents=True, exist_ok=True)
+    args.data.mkdir(mode=0o700, parents=True, exist_ok=True)
     try:
         index = Index.open(database_url(args.data, args.database))
         try:
