@@ -3,7 +3,17 @@
 A backup folder holds ``index.sqlite`` (every row of the index, in this labd's schema),
 ``blobs/`` (a blob store: the blobs those rows name) and, written last, ``backup.json``
 (``Manifest``: the labd and schema versions, when, the rows per table, the sha256 of
-the index file). A folder without its manifest is a backup that did not finish.
+the index file and of each key file), signed with the lab's key. A folder without its
+manifest is a backup that did not finish.
+
+A backup holds the lab's signing key and secrets, and a restore puts what it holds into a
+lab, so neither trusts a folder it did not make, nor a link in one (``repository.nofollow``
+says how they are reached): ``check_earlier`` lets a backup write only into a folder of
+its user's that is empty or holds an earlier backup of this lab (its manifest signed by
+this lab's key), and ``open_backup`` refuses a backup holding any link, a manifest the
+backup's own signing key (or, pinned, one of the keys given) did not sign, an index
+whose sha256 is not the one signed; ``checked_index`` then holds a private copy of the
+index to the lab's signature of each row (``repository.signed_rows``).
 
 Taken while the lab runs, it is consistent because of the order of its steps and the
 archive's own rule that a blob is stored before any row names it:
@@ -32,36 +42,46 @@ import datetime as dt
 import hashlib
 import json
 import os
-import shutil
+import stat
 import tempfile
-from collections.abc import Callable, Iterator
-from dataclasses import asdict, dataclass, field
+from collections.abc import Callable, Iterator, Mapping
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
 import sqlalchemy as sa
+from cryptography.hazmat.primitives import serialization
+from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PrivateKey, Ed25519PublicKey
 from sqlalchemy.engine import Connection, Engine
 from sqlalchemy.pool import NullPool
 
+from repository import nofollow, signed_rows
 from repository.blobs import CHUNK_SIZE, BlobStore
+from repository.digests import canonical_json
 from repository.errors import (
     ArchiveError,
     BackupDamaged,
     BackupError,
+    BackupForged,
     BlobCorrupt,
     BlobNotFound,
     TargetNotEmpty,
+    UnsafeFolder,
 )
 from repository.index import SCHEMA_VERSION
 from repository.migrate import schema_of, upgrade
+from repository.signing import SIGNING, Keyring, Signature, SignatureError, key_id, verify
 from repository.tables import derived, meta, metadata, trials
 from repository.units import MiB
 from repository.well_known import REPLAY, SUMMARY
 
-FORMAT = "labd.backup/1"  # what a manifest says it is
+FORMAT = "labd.backup/2"  # what a manifest says it is: /2 is signed by the lab's key
+UNSIGNED = "labd.backup/1"  # an older labd's manifest, which nothing signed
 INDEX_FILE = "index.sqlite"
 MANIFEST_FILE = "backup.json"
 BLOBS = "blobs"
+KEYS = "keys"
+GIT = "git"
 KEPT_DERIVED = frozenset({SUMMARY, REPLAY})  # the others (video, exports) are made again
 BATCH = 1000  # rows read and written at a time
 
@@ -89,7 +109,7 @@ TABLES = _copy_metadata()
 
 @dataclass(frozen=True)
 class Manifest:
-    """What ``backup.json`` says of a finished backup."""
+    """What ``backup.json`` says of a finished backup, and the lab's signature of it."""
 
     labd: str  # the version that made it
     schema: int  # of its index
@@ -100,17 +120,31 @@ class Manifest:
     blob_bytes: int
     keys: list[str] = field(default_factory=list)  # files of keys/
     git: list[str] = field(default_factory=list)  # hosted repositories, USER/NAME
+    key_sha256: dict[str, str] = field(default_factory=dict)  # each file of keys/
     format: str = FORMAT
+    signature: dict[str, Any] | None = None  # the lab's, over every other field
 
     @property
     def trials(self) -> int:
         return self.rows.get(trials.name, 0)
 
+    def fields(self) -> dict[str, Any]:
+        """Every field but the signature: what the lab signs."""
+        found = asdict(self)
+        del found["signature"]
+        return found
+
+    def signed(self, keyring: Keyring) -> Manifest:
+        """The manifest with the signature of ``keyring``'s current key."""
+        return replace(self, signature=keyring.sign(self.fields()).to_json())
+
     def write(self, folder: Path) -> Path:
-        """Write it as ``folder/backup.json``, whole or not at all (a renamed file)."""
+        """Write it as ``folder/backup.json`` (0600), whole or not at all (a renamed file)."""
         path = folder / MANIFEST_FILE
         tmp = folder / f".{MANIFEST_FILE}.{os.getpid()}"
-        with tmp.open("w") as out:
+        tmp.unlink(missing_ok=True)
+        fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_NOFOLLOW, nofollow.FILE)
+        with os.fdopen(fd, "w") as out:
             json.dump(asdict(self), out, indent=2, sort_keys=True)
             out.write("\n")
             out.flush()
@@ -121,33 +155,76 @@ class Manifest:
 
     @classmethod
     def read(cls, folder: Path) -> Manifest:
-        """The manifest of the backup in ``folder``: BackupDamaged if it has none, or one
-        that is not a labd backup's; BackupError if it was made by a newer labd."""
+        """The manifest of the backup in ``folder`` (read not through a link):
+        BackupDamaged if it has none, or one that is not a labd backup's, or an older
+        labd's that nothing signed."""
         path = folder / MANIFEST_FILE
         if not folder.is_dir():
             raise BackupError(f"{folder} is not a folder")
-        if not path.is_file():
+        if not path.is_file() or path.is_symlink():
             raise BackupDamaged(
                 str(folder), f"no {MANIFEST_FILE} (a backup that did not finish, or no backup)"
             )
         try:
-            data = json.loads(path.read_text())
+            data = json.loads(nofollow.read_bytes(path))
+            if data.get("format") == UNSIGNED:
+                raise BackupDamaged(
+                    str(folder),
+                    f"its {MANIFEST_FILE} is an older labd's ({UNSIGNED}), which the lab did not"
+                    " sign, so nothing says the backup is as the lab made it: back the lab up"
+                    " again with this labd",
+                )
             if data.get("format") != FORMAT:
                 raise BackupDamaged(str(folder), f"{MANIFEST_FILE} is not a {FORMAT} manifest")
             fields = {f: data[f] for f in cls.__dataclass_fields__ if f in data}
             found = cls(**fields)
             int(found.schema)
-        except (ValueError, TypeError, AttributeError, UnicodeDecodeError) as err:
+        except (ValueError, TypeError, AttributeError, UnicodeDecodeError, OSError) as err:
             raise BackupDamaged(str(folder), f"{MANIFEST_FILE} cannot be read ({err})") from None
         return found
+
+    def verify(self, folder: Path, keys: Mapping[str, Ed25519PublicKey], by: str | None) -> None:
+        """BackupForged unless the lab signed this manifest, as it is, with one of
+        ``keys`` (with ``by``: with that key, the backup's signing key)."""
+        if not self.signature:
+            raise BackupForged(str(folder), f"{MANIFEST_FILE} carries no signature of the lab's")
+        try:
+            signature = Signature.from_json(self.signature)
+        except SignatureError as err:
+            raise BackupForged(str(folder), f"the signature of {MANIFEST_FILE}: {err}") from None
+        if by is not None and signature.key != by:
+            raise BackupForged(
+                str(folder),
+                f"{MANIFEST_FILE} is not signed by the lab's key ({by}, keys/{SIGNING}) but by"
+                f" {signature.key}",
+            )
+        try:
+            verify(signature, keys)
+        except SignatureError as err:
+            raise BackupForged(
+                str(folder), f"the signature of {MANIFEST_FILE} does not hold: {err}"
+            ) from None
+        signed = {k: v for k, v in signature.statement.items() if k != "key"}
+        ours = self.fields()
+        changed = sorted(
+            k
+            for k in set(signed) | set(ours)
+            if canonical_json(signed.get(k)) != canonical_json(ours.get(k))
+        )
+        if changed:
+            raise BackupForged(
+                str(folder),
+                f"{MANIFEST_FILE} says other than the lab's signature of it ({', '.join(changed)}"
+                " changed since the backup was made)",
+            )
 
     def check(self, folder: Path) -> None:
         """Refuse a backup whose index file is not the one the manifest names, or whose
         schema this labd cannot read."""
         index = folder / INDEX_FILE
-        if not index.is_file():
+        if not index.is_file() or index.is_symlink():
             raise BackupDamaged(str(folder), f"no {INDEX_FILE}")
-        actual = file_sha256(index)
+        actual = nofollow.sha256(index)
         if actual != self.index_sha256:
             raise BackupDamaged(
                 str(folder),
@@ -206,6 +283,9 @@ def snapshot(url: str, path: Path) -> Snapshot:
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(f".{path.name}.part")
     tmp.unlink(missing_ok=True)
+    # made 0600 before SQLite opens it (its journal takes the file's mode): it holds
+    # password and token hashes, and held-out seeds
+    os.close(os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_NOFOLLOW, nofollow.FILE))
     out = sa.create_engine(sqlite_url(tmp), poolclass=NullPool)
     rows: dict[str, int] = {}
     try:
@@ -499,22 +579,160 @@ def check_empty(engine: Engine) -> None:
         raise TargetNotEmpty(f"the index at {_shown(str(engine.url))}", holds)
 
 
-@contextlib.contextmanager
-def readable_index(backup: Path, manifest: Manifest) -> Iterator[Path]:
-    """The backup's index in this labd's schema: the file itself, or (an older schema)
-    an upgraded copy in a scratch folder, removed afterwards."""
-    index = backup / INDEX_FILE
-    if manifest.schema == SCHEMA_VERSION:
-        yield index
+# -- trusting a folder -----------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class KeyFiles:
+    """A keys folder (a lab's, or a backup's): each file's bytes, the id of its signing
+    key and every public key by id, read without following a link."""
+
+    files: dict[str, bytes]
+    signing: str | None
+    public: dict[str, Ed25519PublicKey]
+
+    @classmethod
+    def read(cls, folder: Path) -> KeyFiles:
+        """The keys in ``folder`` (none if there is no such folder); BackupError if a
+        file of it is not what its name says."""
+        files: dict[str, bytes] = {}
+        if folder.is_dir() and not folder.is_symlink():
+            for path in sorted(folder.iterdir()):
+                if path.name.startswith(".") or not stat.S_ISREG(path.lstat().st_mode):
+                    continue
+                files[path.name] = nofollow.read_bytes(path)
+        signing = None
+        public: dict[str, Ed25519PublicKey] = {}
+        try:
+            if SIGNING in files:
+                private = serialization.load_pem_private_key(files[SIGNING], password=None)
+                if not isinstance(private, Ed25519PrivateKey):
+                    raise ValueError(f"{SIGNING} is not an Ed25519 private key")
+                signing = key_id(private.public_key())
+            for name, data in files.items():
+                if name.startswith("ed25519-") and name.endswith(".pub.pem"):
+                    key = serialization.load_pem_public_key(data)
+                    if not isinstance(key, Ed25519PublicKey):
+                        raise ValueError(f"{name} is not an Ed25519 public key")
+                    public[key_id(key)] = key
+        except (ValueError, TypeError) as err:
+            raise BackupError(f"{folder}: {err}") from None
+        return cls(files, signing, public)
+
+
+def check_earlier(folder: Path, keys: Mapping[str, Ed25519PublicKey]) -> None:
+    """UnsafeFolder unless a backup may write into ``folder``, which exists: this user's,
+    no one else may write to it, holding no link, and either empty or an earlier backup of
+    the lab whose public keys are ``keys`` (its manifest signed by one of them)."""
+    st = folder.lstat()
+    if st.st_uid != os.geteuid():
+        raise UnsafeFolder(
+            str(folder),
+            f"belongs to uid {st.st_uid}, not to this user (uid {os.geteuid()}): another user"
+            " may have prepared it; give a new folder",
+        )
+    if st.st_mode & 0o022:
+        raise UnsafeFolder(
+            str(folder),
+            f"is {stat.S_IMODE(st.st_mode):04o}: other users may write to it; give a new"
+            f" folder (or chmod 700 {folder})",
+        )
+    if not any(folder.iterdir()):
         return
-    with tempfile.TemporaryDirectory(prefix="labd-restore-") as scratch:
-        copy = Path(scratch) / INDEX_FILE
-        shutil.copyfile(index, copy)
+    if found := nofollow.links(folder):
+        raise UnsafeFolder(
+            str(found[0]),
+            "is a link (a backup labd made holds none; someone planted it): give a new folder",
+        )
+    try:
+        manifest = Manifest.read(folder)
+        manifest.verify(folder, keys, None)
+    except BackupError as err:
+        why = err.reason if isinstance(err, BackupDamaged) else str(err)
+        raise UnsafeFolder(
+            str(folder),
+            f"holds other files than an earlier backup of this lab ({why}); give a new or"
+            " empty folder, or an earlier backup's",
+        ) from None
+
+
+@dataclass(frozen=True)
+class Opened:
+    """A backup checked as a whole: no link in it, its manifest signed by its own signing
+    key (and that key among the ones given, if any), its index the one signed."""
+
+    folder: Path
+    manifest: Manifest
+    keys: KeyFiles
+    trusted: dict[str, Ed25519PublicKey]  # what its signatures are held to
+
+
+def open_backup(folder: Path, given: Mapping[str, Ed25519PublicKey] | None = None) -> Opened:
+    """Check the backup in ``folder`` before anything of it is used: BackupForged if it
+    holds a link, if its manifest's signature does not hold or is not by the backup's
+    signing key (which, with ``given``, must be one of them), or a key file is not the
+    one it signed; BackupDamaged if it did not finish or its index changed; BackupError
+    for a newer schema."""
+    if not folder.is_dir():
+        raise BackupError(f"{folder} is not a folder")
+    if found := nofollow.links(folder):
+        listed = ", ".join(str(p) for p in found[: signed_rows.SAID])
+        more = len(found) - signed_rows.SAID
+        raise BackupForged(
+            str(folder),
+            f"it holds links, which labd never puts in a backup: {listed}"
+            + (f" and {more} more" if more > 0 else ""),
+        )
+    manifest = Manifest.read(folder)
+    keys = KeyFiles.read(folder / KEYS)
+    if keys.signing is None or keys.signing not in keys.public:
+        raise BackupForged(
+            str(folder), f"keys/ holds no {SIGNING} with its public key (the lab's signing key)"
+        )
+    if given is not None and keys.signing not in given:
+        raise BackupForged(
+            str(folder),
+            f"its signing key {keys.signing} (keys/{SIGNING}) is not among the keys given"
+            f" ({', '.join(sorted(given)) or 'none'}): not the lab's backup, or its keys"
+            " were replaced",
+        )
+    trusted = dict(given) if given is not None else keys.public
+    manifest.verify(folder, trusted, keys.signing)
+    for name, data in sorted(keys.files.items()):
+        expected = manifest.key_sha256.get(name)
+        if expected != f"sha256:{hashlib.sha256(data).hexdigest()}":
+            raise BackupForged(str(folder), f"keys/{name} is not the file the lab signed")
+    if missing := sorted(set(manifest.key_sha256) - set(keys.files)):
+        raise BackupDamaged(str(folder), f"keys/{missing[0]} is missing")
+    manifest.check(folder)
+    return Opened(folder, manifest, keys, trusted)
+
+
+@contextlib.contextmanager
+def checked_index(opened: Opened, scratch: Path) -> Iterator[Path]:
+    """A private copy of the backup's index under ``scratch`` (removed afterwards), in
+    this labd's schema, every row of it borne out by the lab's signatures: BackupForged
+    naming the rows that are not, or if the file changed since ``open_backup``."""
+    with tempfile.TemporaryDirectory(prefix=".restore-", dir=scratch) as folder:
+        copy = Path(folder) / INDEX_FILE
+        digest = nofollow.copy_file(opened.folder / INDEX_FILE, copy)
+        if digest != opened.manifest.index_sha256:
+            raise BackupForged(
+                str(opened.folder), f"{INDEX_FILE} changed while it was being restored"
+            )
         engine = sa.create_engine(sqlite_url(copy), poolclass=NullPool)
         try:
-            upgrade(engine)
+            if opened.manifest.schema != SCHEMA_VERSION:
+                upgrade(engine)
+            with engine.connect() as db:
+                problems = signed_rows.check(db, opened.trusted)
         finally:
             engine.dispose()
+        if problems:
+            raise BackupForged(
+                str(opened.folder),
+                "its index says other than the lab's signatures: " + signed_rows.summary(problems),
+            )
         yield copy
 
 

@@ -14,6 +14,8 @@ ArchiveError                 the archive could not do what was asked
 ├── ExportError              a record could not be exported (format, content)
 ├── BackupError              a backup could not be made or restored (repository.backup)
 │   ├── BackupDamaged        a backup is incomplete or its files were changed
+│   │   └── BackupForged     it says other than the lab's signatures, or holds a link
+│   ├── UnsafeFolder         a backup's folder others could have prepared or may reach
 │   └── TargetNotEmpty       a restore's target already holds an archive
 ├── AccountError             an account could not be made or changed (name, password)
 │   └── BadCredentials       a wrong user name or password
@@ -127,6 +129,27 @@ class BackupDamaged(BackupError):
         self.folder = folder
         self.reason = reason
         super().__init__(f"{folder} is not a whole backup: {reason}")
+
+
+class BackupForged(BackupDamaged):
+    """A backup that is not as the lab made it: its manifest or an index row says other
+    than the lab's signature of it, or it holds a link (which labd never makes)."""
+
+    def __init__(self, folder: str, reason: str) -> None:
+        self.folder = folder
+        self.reason = reason
+        BackupError.__init__(self, f"{folder} is not the lab's backup as it made it: {reason}")
+
+
+class UnsafeFolder(BackupError):
+    """A folder ``labd backup`` will not write into, or through: one reached through a
+    link another user could have made, one others may write to, one holding files that
+    are not an earlier backup of this lab's."""
+
+    def __init__(self, path: str, reason: str) -> None:
+        self.path = path
+        self.reason = reason
+        super().__init__(f"{path}: {reason}")
 
 
 class TargetNotEmpty(BackupError):

@@ -2,7 +2,8 @@
 elsewhere.
 
     labd backup DEST [--data DIR] [--database URL] [--blobs URL] [--blobs-option K=V] [--json]
-    labd restore SRC --data DIR [--database URL] [--blobs URL] [--blobs-option K=V] [--json]
+    labd restore SRC --data DIR [--key FILE] [--database URL] [--blobs URL]
+                 [--blobs-option K=V] [--json]
 
 A backup folder holds the index (``index.sqlite``, whatever database the lab runs on),
 the blobs its rows name (``blobs/``), the lab's keys (``keys/``: the signing key, every
@@ -15,12 +16,22 @@ then each repository under its lock, whose commits only ever add. A second backu
 the same folder copies only the blobs it lacks.
 
 The manifest is removed when a backup starts and written only once everything else is
-on disk, so a backup that failed (a full disk, an unreadable blob: one line, exit 3)
-never looks finished, and ``labd restore`` refuses it. ``labd restore`` also refuses a
-target that holds an archive already, a backup whose index file changed, and one of a
-newer schema; an older one is upgraded as ``labd migrate`` would. It copies the blobs,
-keys and repositories first and the rows last, in one transaction, so a restore that
-failed can be run again. Stop the target lab while it runs.
+on disk, signed with the lab's key, so a backup that failed (a full disk, an unreadable
+blob: one line, exit 3) never looks finished, and ``labd restore`` refuses it. ``labd
+restore`` also refuses a target that holds an archive already, a backup whose index
+file changed, and one of a newer schema; an older one is upgraded as ``labd migrate``
+would. It copies the blobs, keys and repositories first and the rows last, in one
+transaction, so a restore that failed can be run again. Stop the target lab while it
+runs.
+
+Both often run as root, so neither trusts a folder or a link it did not make
+(``repository.nofollow``): a backup writes only into a folder of its user's that it made,
+or that is empty, or that holds an earlier backup of this lab (its manifest signed by the
+lab's key), reached through no link another user could have made, holding none, and makes
+it private (0700 folders, files for their owner alone). A restore refuses a backup that
+holds any link, whose manifest its own signing key did not sign (or, with ``--key``, whose
+signing key is not among the lab's public keys given), or whose index rows say other than
+the lab's signature of each (``repository.signed_rows``).
 """
 
 from __future__ import annotations
@@ -46,13 +57,20 @@ from labd.config import DATA
 from labd.hosted import HostedRepos
 from labd.service import ServiceConfig
 from repository import backup as store
+from repository import nofollow
 from repository.blobs import BlobStore
-from repository.errors import ArchiveError, BackupDamaged, BackupError, TargetNotEmpty
+from repository.errors import (
+    ArchiveError,
+    BackupDamaged,
+    BackupError,
+    BackupForged,
+    TargetNotEmpty,
+)
 from repository.index import SCHEMA_VERSION, connect
-from repository.signing import SIGNING
+from repository.signing import SIGNING, KeyFileError, Keyring, load_keys
 
-KEYS = "keys"
-GIT = "git"
+KEYS = store.KEYS
+GIT = store.GIT
 PROGRESS_EVERY = 2.0  # seconds between progress lines on stderr
 UNFINISHED = {  # what a failure leaves, as its message ends
     "backup": "the backup is not finished (no backup.json)",
@@ -105,6 +123,13 @@ def add_backup_parser(commands: Any) -> None:
 def add_restore_parser(commands: Any) -> None:
     p = commands.add_parser("restore", help="bring a backup up as a new lab")
     p.add_argument("src", type=Path, metavar="SRC", help="a folder labd backup made")
+    p.add_argument(
+        "--key",
+        type=Path,
+        metavar="FILE",
+        help="the lab's public keys (what its /api/keys answers, or one PEM key): the"
+        " backup's signing key must be one of them, and every signature is held to them",
+    )
     _where(p, "the new lab's data folder, for its keys and repositories (no default)", None)
 
 
@@ -140,20 +165,19 @@ def main(args: argparse.Namespace) -> int:
 def backup(args: argparse.Namespace) -> dict[str, Any]:
     """Make or refresh the backup in ``args.dest``; its summary."""
     config = _config(args)
-    dest: Path = args.dest
     if args.database is None and not (config.data / "index.sqlite").exists():
         raise Failed(
             f"no lab in {config.data} (no index.sqlite); give --data or --database",
             ExitCode.USAGE,
         )
-    if dest.resolve() == config.data.resolve():
-        raise Failed("DEST is the lab's own data folder; give another folder", ExitCode.USAGE)
-    if dest.exists() and any(dest.iterdir()) and not _looks_like_backup(dest):
+    lab_keys = store.KeyFiles.read(config.data / KEYS)
+    if lab_keys.signing is None:
         raise Failed(
-            f"{dest} holds other files; give a new or empty folder, or an earlier backup's",
+            f"no signing key in {config.data / KEYS}: a backup is signed with the lab's key"
+            " (labd serve makes it); give the lab's --data",
             ExitCode.USAGE,
         )
-    dest.mkdir(parents=True, exist_ok=True)
+    dest = _dest(args.dest, config.data, lab_keys)
     (dest / store.MANIFEST_FILE).unlink(missing_ok=True)  # unfinished from here on
 
     shot = store.snapshot(config.database_url, dest / store.INDEX_FILE)
@@ -170,6 +194,7 @@ def backup(args: argparse.Namespace) -> dict[str, Any]:
             " repair the store (a rerun's record heals its blob), then back up again",
             ExitCode.ERROR,
         )
+    nofollow.make_private(dest)  # the blobs (0444 in a store), the repositories' files
     os.sync()  # every file of the backup on disk before the manifest says it is whole
     manifest = store.Manifest(
         labd=__version__,
@@ -181,7 +206,10 @@ def backup(args: argparse.Namespace) -> dict[str, Any]:
         blob_bytes=copied.total_bytes,
         keys=keys,
         git=repos,
+        key_sha256={n: store.file_sha256(dest / KEYS / n) for n in keys},
     )
+    # signed with the signing key as the backup holds it (a rotation meanwhile: the new one)
+    manifest = manifest.signed(Keyring(dest / KEYS))
     manifest.write(dest)
     return {
         "backup": str(dest),
@@ -191,8 +219,17 @@ def backup(args: argparse.Namespace) -> dict[str, Any]:
     }
 
 
-def _looks_like_backup(folder: Path) -> bool:
-    return any((folder / name).exists() for name in (store.MANIFEST_FILE, store.INDEX_FILE))
+def _dest(given: Path, data: Path, lab_keys: store.KeyFiles) -> Path:
+    """DEST, reached through no link another user could have made (``UnsafeFolder``
+    otherwise): made now (0700), or one of this user's that is empty or holds an earlier
+    backup of this lab, holding no link; made private either way."""
+    if given.absolute() == data.absolute() or (given.exists() and given.samefile(data)):
+        raise Failed("DEST is the lab's own data folder; give another folder", ExitCode.USAGE)
+    dest, made = nofollow.reach(given, create=True)
+    if not made:
+        store.check_earlier(dest, lab_keys.public)
+    nofollow.make_private(dest)
+    return dest
 
 
 def _copy_keys(source: Path, dest: Path) -> list[str]:
@@ -236,14 +273,15 @@ def restore(args: argparse.Namespace) -> dict[str, Any]:
     if running is not None:
         where = running.get("http", f"pid {running.get('pid', '?')}")
         raise Failed(f"a lab serves {config.data} ({where}): stop it, then restore", ExitCode.USAGE)
-    src: Path = args.src
-    manifest = store.Manifest.read(src)
-    manifest.check(src)
-    if config.data.resolve() == src.resolve():
+    src = Path(os.path.realpath(args.src))  # SRC as the operator named it; no link inside
+    if config.data.resolve() == src:
         raise Failed("--data is the backup's own folder; give the new lab's", ExitCode.USAGE)
-    config.data.mkdir(parents=True, exist_ok=True)
-    engine = connect(config.database_url)
-    try:
+    opened = store.open_backup(src, _given_keys(args.key))
+    manifest = opened.manifest
+    config.data.mkdir(mode=0o700, parents=True, exist_ok=True)
+    # every row held to the lab's signatures (in a private copy) before the target is
+    # opened: a forged backup leaves the new lab as it was
+    with store.checked_index(opened, config.data) as index, _engine(config) as engine:
         store.check_empty(engine)
         hosted = HostedRepos(config.data / GIT)
         if held := [f"{u}/{n}" for u in hosted.users() for n in hosted.names(u)]:
@@ -251,24 +289,23 @@ def restore(args: argparse.Namespace) -> dict[str, Any]:
             raise TargetNotEmpty(str(config.data / GIT), f"hosted repositories ({listed})")
         progress = Progress("restore")
         target = BlobStore(config.blobs_url, dict(config.blob_options) or None)
-        with store.readable_index(src, manifest) as index:
-            backed_up = BlobStore(str(src / store.BLOBS))
-            copied, unreadable = _copy_blobs(index, backed_up, target, progress)
-            if unreadable:
-                raise Failed(
-                    f"{unreadable} in the backup {src}; nothing was restored into the index",
-                    ExitCode.ERROR,
-                )
-            keys = _restore_keys(src / KEYS, config.data / KEYS)
-            # the repositories wait beside DATA/git until the rows are in, so a restore
-            # that failed leaves DATA/git empty and can be run again
-            staged = config.data / f".{GIT}.restore"
-            shutil.rmtree(staged, ignore_errors=True)
-            repos = _copy_git(HostedRepos(src / GIT), staged)
-            rows = store.restore_index(index, engine)
-            _move_git(staged, config.data / GIT, repos)
-    finally:
-        engine.dispose()
+        backed_up = BlobStore(str(src / store.BLOBS))
+        copied, unreadable = _copy_blobs(index, backed_up, target, progress)
+        if unreadable:
+            raise Failed(
+                f"{unreadable} in the backup {src}; nothing was restored into the index",
+                ExitCode.ERROR,
+            )
+        keys = _restore_keys(opened.keys, config.data / KEYS)
+        # the repositories wait beside DATA/git until the rows are in, so a restore
+        # that failed leaves DATA/git empty and can be run again
+        staged = config.data / f".{GIT}.restore"
+        shutil.rmtree(staged, ignore_errors=True)
+        repos = _copy_git(HostedRepos(src / GIT), staged)
+        if found := nofollow.links(staged) if staged.exists() else []:
+            raise BackupForged(str(src), f"a link appeared in git/ ({found[0]})")
+        rows = store.restore_index(index, engine)
+        _move_git(staged, config.data / GIT, repos)
     return {
         "restored": str(src),
         "data": str(config.data),
@@ -281,19 +318,43 @@ def restore(args: argparse.Namespace) -> dict[str, Any]:
         "copied": {"blobs": copied.copied, "bytes": copied.bytes, "present": copied.present},
         "keys": keys,
         "git": repos,
+        "signed_by": opened.keys.signing,
     }
 
 
-def _restore_keys(source: Path, dest: Path) -> list[str]:
-    """The backup's keys into the lab's key folder, each file whole (renamed into place);
-    a file of the same name is replaced, other public keys stay."""
+@contextlib.contextmanager
+def _engine(config: ServiceConfig) -> Iterator[sa.Engine]:
+    """The target's index, disposed of at the end."""
+    engine = connect(config.database_url)
+    try:
+        yield engine
+    finally:
+        engine.dispose()
+
+
+def _given_keys(path: Path | None) -> dict[str, Any] | None:
+    """The lab's public keys from ``--key`` (as ``labd verify`` reads them), or None."""
+    if path is None:
+        return None
+    try:
+        return dict(load_keys(path.read_bytes(), str(path)))
+    except (OSError, KeyFileError) as err:
+        raise Failed(f"--key: {err}", ExitCode.USAGE) from None
+
+
+def _restore_keys(keys: store.KeyFiles, dest: Path) -> list[str]:
+    """The backup's keys (as read and checked) into the lab's key folder, each file whole
+    (0600, renamed into place); a file of the same name is replaced, other public keys
+    stay."""
     dest.mkdir(mode=0o700, parents=True, exist_ok=True)
-    names = sorted(p.name for p in source.iterdir() if p.is_file()) if source.is_dir() else []
-    for name in names:
+    for name, data in sorted(keys.files.items()):
         tmp = dest / f".{name}.restore"
-        shutil.copy2(source / name, tmp)
+        tmp.unlink(missing_ok=True)
+        flags = os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_NOFOLLOW | os.O_CLOEXEC
+        with os.fdopen(os.open(tmp, flags, nofollow.FILE), "wb") as out:
+            out.write(data)
         tmp.replace(dest / name)
-    return names
+    return sorted(keys.files)
 
 
 def _copy_git(backup: HostedRepos, root: Path) -> list[str]:
@@ -443,6 +504,8 @@ def _said(command: str, data: dict[str, Any]) -> list[str]:
         f" into {data['database']}{upgraded}",
         f"  blobs: {blobs} into {data['blobs_url']}",
         f"  keys: {len(data['keys'])} file(s); hosted repositories: {len(data['git'])}",
+        f"  every signature checked; the backup was signed by {data['signed_by']}: the lab's"
+        " key, if its /api/keys lists it (--key FILE checks that too)",
         f"  start it: labd serve --data {data['data']}"
         + (f" --database {data['database']}" if not data["database"].startswith("sqlite") else ""),
     ]

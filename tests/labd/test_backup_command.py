@@ -35,13 +35,13 @@ def labd(capsys: pytest.CaptureFixture[str], *argv: str) -> tuple[int, str, str]
 
 @pytest.fixture
 def lab(tmp_path: Path) -> tuple[Path, dict[str, str]]:
-    """A lab's data folder: its index and blobs (``fill``), keys, a hosted repository."""
+    """A lab's data folder: its index and blobs (``fill``, its filed trial signed with
+    the lab's key), keys, a hosted repository."""
     data = tmp_path / "lab"
     data.mkdir()
     index = Index.open(backup.sqlite_url(data / "index.sqlite"))
-    blobs = fill(index, BlobStore(str(data / "blobs")))
+    blobs = fill(index, BlobStore(str(data / "blobs")), Keyring(data / "keys"))
     index.close()
-    Keyring(data / "keys")
     load_secret(data / "keys" / "reservations.secret")
     blobs["head"] = HostedRepos(data / "git").commit(
         "alice", "robot", {"lab.toml": b"[controller]\n"}, "first", author="alice", when=WHEN
@@ -189,7 +189,7 @@ def test_blobs_in_a_bucket_are_backed_up_and_restored_into_a_bucket(
     option = f"endpoint_url={s3.url}"
     index = Index.open(backup.sqlite_url(data / "index.sqlite"))
     bucket = BlobStore("s3://lab-archive/records", {"endpoint_url": s3.url})
-    blobs = fill(index, bucket)
+    blobs = fill(index, bucket, Keyring(data / "keys"))
     index.close()
     dest = tmp_path / "backup"
     code, out, err = labd(capsys, "backup", str(dest), "--data", str(data),

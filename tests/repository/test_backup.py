@@ -3,6 +3,7 @@ restore that brings back every row, on SQLite and PostgreSQL, or refuses."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from pathlib import Path
 from typing import Any
@@ -10,11 +11,12 @@ from typing import Any
 import pytest
 import sqlalchemy as sa
 
-from repository import backup
+from repository import backup, signed_rows
 from repository.blobs import BlobStore
-from repository.errors import BackupDamaged, BackupError, TargetNotEmpty
+from repository.errors import BackupDamaged, BackupError, BackupForged, TargetNotEmpty
 from repository.index import SCHEMA_VERSION, Derived, Filters, Index
 from repository.migrate import schema_of
+from repository.signing import Keyring, record_statement
 from repository.tables import (
     derived,
     episodes,
@@ -29,10 +31,12 @@ from tests.repository.test_migrate import schema_1
 COMMIT = "c0ffee" + "0" * 34
 
 
-def fill(index: Index, store: BlobStore) -> dict[str, str]:
+def fill(index: Index, store: BlobStore, keyring: Keyring | None = None) -> dict[str, str]:
     """An archive with a row in every kind of table: users and a token, trials (one a
     rerun, one with a record, logs and derived artifacts), an evaluation with its episode,
-    a reservation; its blobs in ``store``. The blobs, by what they are."""
+    a reservation; its blobs in ``store``. The blobs, by what they are. With a
+    ``keyring``, the filed trial is signed as the lab signs it; without, its signature is
+    a stand-in (the index keeps whatever JSON it is given)."""
     index.add_user("alice")
     first = _trial(index)
     rerun = _trial(index, rerun_of=first)
@@ -47,6 +51,7 @@ def fill(index: Index, store: BlobStore) -> dict[str, str]:
         first,
         status="finished",
         outcome="success",
+        finished=1_700_000_100.0,
         mcap=blobs["mcap"],
         mcap_size=8000,
         stdout=blobs["stdout"],
@@ -54,6 +59,8 @@ def fill(index: Index, store: BlobStore) -> dict[str, str]:
         signature={"statement": {"trial": first}, "key": "ed25519:00", "signature": "x"},
     )
     index.update(rerun, metrics=sa.JSON.NULL)  # a JSON null, kept apart from SQL NULL
+    if keyring is not None:
+        sign_filed(index, keyring)
     for name, what in ((SUMMARY, "summary"), (REPLAY, "replay"), (VIDEO, "video")):
         size = store.size(blobs[what])
         index.put_derived(first, Derived(name, blobs[what], size, "application/octet-stream"))
@@ -90,6 +97,32 @@ def fill(index: Index, store: BlobStore) -> dict[str, str]:
             )
         )
     return blobs
+
+
+def sign_filed(index: Index, keyring: Keyring) -> None:
+    """Sign each trial that has an outcome as the lab signs a filed record
+    (``scheduler.queue``): its row as it stands."""
+    with index.begin() as db:
+        for row in db.execute(sa.select(trials).where(trials.c.outcome.is_not(None))).all():
+            statement = record_statement(
+                trial=row.id,
+                kind=row.kind,
+                repository=row.repository,
+                commit=row.commit,
+                task=row.task,
+                seed=row.seed,
+                status=row.status,
+                outcome=row.outcome,
+                manifest_digest=row.manifest_digest,
+                data_digest=row.data_digest,
+                digest_topics=row.digest_topics,
+                mcap=row.mcap,
+                mcap_size=row.mcap_size,
+                metrics=row.metrics,
+                finished=row.finished,
+            )
+            signed = keyring.sign(statement).to_json()
+            db.execute(sa.update(trials).where(trials.c.id == row.id).values(signature=signed))
 
 
 def _trial(index: Index, rerun_of: int | None = None) -> int:
@@ -266,7 +299,13 @@ def test_a_blob_of_the_wrong_size_in_the_backup_is_copied_again(source, tmp_path
     assert dest.read_bytes(blobs["mcap"]) == b"a record" * 1000
 
 
-def _manifest(folder: Path, schema: int = SCHEMA_VERSION) -> backup.Manifest:
+def _manifest(
+    folder: Path, schema: int = SCHEMA_VERSION, keyring: Keyring | None = None
+) -> backup.Manifest:
+    """A manifest of the index in ``folder``, written there; signed by ``keyring`` (the
+    backup's own, in ``folder/keys``, unless given)."""
+    keyring = keyring or Keyring(folder / backup.KEYS)
+    keys = sorted(p.name for p in keyring.folder.iterdir())
     manifest = backup.Manifest(
         labd="0.2.0",
         schema=schema,
@@ -275,14 +314,17 @@ def _manifest(folder: Path, schema: int = SCHEMA_VERSION) -> backup.Manifest:
         rows={"trials": 2},
         blobs=4,
         blob_bytes=8000,
-    )
+        keys=keys,
+        key_sha256={n: backup.file_sha256(keyring.folder / n) for n in keys},
+    ).signed(keyring)
     manifest.write(folder)
     return manifest
 
 
 def test_a_backup_without_its_manifest_changed_or_newer_is_refused(source, tmp_path):
     """No manifest (a backup that did not finish), an index file that changed since, a
-    schema newer than this labd's: each refused, saying which."""
+    schema newer than this labd's, an older labd's unsigned manifest: each refused,
+    saying which."""
     url, _store, _blobs = source
     folder = tmp_path / "b"
     backup.snapshot(url, folder / backup.INDEX_FILE)
@@ -302,22 +344,53 @@ def test_a_backup_without_its_manifest_changed_or_newer_is_refused(source, tmp_p
     with pytest.raises(BackupError, match=f"schema {SCHEMA_VERSION + 1}, newer than"):
         newer.check(folder)
     (folder / backup.MANIFEST_FILE).write_text('{"format": "something else"}')
-    with pytest.raises(BackupDamaged, match=r"not a labd\.backup/1 manifest"):
+    with pytest.raises(BackupDamaged, match=r"not a labd\.backup/2 manifest"):
+        backup.Manifest.read(folder)
+    (folder / backup.MANIFEST_FILE).write_text('{"format": "labd.backup/1"}')
+    with pytest.raises(BackupDamaged, match=r"an older labd's \(labd\.backup/1\), which the lab"):
         backup.Manifest.read(folder)
 
 
+def test_a_manifest_is_held_to_the_labs_signature(source, tmp_path):
+    """A manifest checks with the key that signed it; one with a field changed names the
+    field; one signed by another key than the one named, or by none, is refused."""
+    url, _store, _blobs = source
+    folder = tmp_path / "b"
+    backup.snapshot(url, folder / backup.INDEX_FILE)
+    lab = Keyring(folder / backup.KEYS)
+    manifest = _manifest(folder, keyring=lab)
+    keys = backup.KeyFiles.read(folder / backup.KEYS)
+    assert keys.signing == lab.current and set(keys.public) == {lab.current}
+    manifest.verify(folder, keys.public, lab.current)
+    edited = dataclasses.replace(manifest, blobs=5)
+    with pytest.raises(BackupForged, match=r"other than the lab's signature of it \(blobs changed"):
+        edited.verify(folder, keys.public, lab.current)
+    other = Keyring(tmp_path / "other")
+    with pytest.raises(BackupForged, match=r"not signed by the lab's key .* but by ed25519:"):
+        manifest.signed(other).verify(folder, keys.public, lab.current)
+    with pytest.raises(BackupForged, match=r"which is not among the keys given"):
+        manifest.signed(other).verify(folder, keys.public, None)
+    with pytest.raises(BackupForged, match=r"carries no signature"):
+        dataclasses.replace(manifest, signature=None).verify(folder, keys.public, None)
+
+
 def test_a_backup_of_an_older_schema_is_upgraded_as_it_is_restored(tmp_path, database_url):
-    """A backup whose index has schema 1 (labd 0.1) is upgraded in a scratch copy and
-    restored with its statuses split; the backup's own file is left as it was."""
+    """A backup whose index has schema 1 (labd 0.1, before records were signed) is
+    upgraded in a private copy and restored with its statuses split; the backup's own
+    file is left as it was."""
     folder = tmp_path / "old"
     folder.mkdir()
     schema_1(backup.sqlite_url(folder / backup.INDEX_FILE))
-    manifest = _manifest(folder, schema=1)
+    _manifest(folder, schema=1)
     before = (folder / backup.INDEX_FILE).read_bytes()
     engine = sa.create_engine(database_url)
-    with backup.readable_index(folder, manifest) as index:
-        assert index != folder / backup.INDEX_FILE
+    opened = backup.open_backup(folder)
+    scratch = tmp_path / "scratch"
+    scratch.mkdir()
+    with backup.checked_index(opened, scratch) as index:
+        assert index.parent.parent == scratch
         counts = backup.restore_index(index, engine)
+    assert list(scratch.iterdir()) == []
     assert counts[trials.name] == 6
     assert schema_of(engine) == SCHEMA_VERSION
     with engine.connect() as db:
@@ -332,3 +405,64 @@ def test_no_index_there_is_said(tmp_path):
     with pytest.raises(BackupError, match="holds no labd index"):
         backup.snapshot(f"sqlite:///{tmp_path / 'empty.sqlite'}", tmp_path / "b.sqlite")
     assert not (tmp_path / "b.sqlite").exists()
+
+
+def test_every_row_is_held_to_its_signature(tmp_path):
+    """A trial or an evaluation whose row says other than the lab signed is named, with
+    what differs; a row signed for another trial is refused; a filed record without a
+    signature is refused unless it finished before the first signed one (an older
+    labd's); unsigned errors and queued trials are taken as they are."""
+    lab = Keyring(tmp_path / "keys")
+    index = Index.open(f"sqlite:///{tmp_path / 'index.sqlite'}")
+    fill(index, BlobStore(str(tmp_path / "blobs")), lab)
+    with index.begin() as db:
+        evaluation = db.execute(sa.select(evaluations)).one()
+        said = {
+            "schema": "labd.evaluation/2",
+            "evaluation": evaluation.id,
+            "repository": evaluation.repository,
+            "commit": evaluation.commit,
+            "task": evaluation.task,
+            "suite": evaluation.suite,
+            "suite_version": evaluation.suite_version,
+            "rows": [{"episode": 0, "trial": 1, "status": "finished", "outcome": "success"}],
+        }
+        signed = lab.sign(said).to_json()
+        db.execute(sa.update(evaluations).values(signature=signed))
+    keys = {lab.current: lab.public_keys()[lab.current]}
+
+    def problems() -> list[str]:
+        with index.engine.connect() as db:
+            return signed_rows.check(db, keys)
+
+    assert problems() == []
+    index.update(1, outcome="fail", metrics={"success": True, "reward": 9.0})
+    assert problems() == [
+        "trial 1: its metrics is {'success': True, 'reward': 9.0}, the lab signed"
+        " {'success': True, 'reward': 1.5}",
+        "trial 1: its outcome is 'fail', the lab signed 'success'",
+        "evaluation 1: its episode trial 1 has the outcome 'fail', the lab signed 'success'",
+    ]
+    index.update(1, outcome="success", metrics={"success": True, "reward": 1.5})
+    assert problems() == []
+
+    second = _trial(index)  # a record filed after the first signed one, unsigned
+    index.update(second, status="finished", outcome="success", finished=1_700_000_200.0)
+    assert problems() == [
+        "trial 3: a filed record (success) without the lab's signature, filed after the"
+        " lab signed its records"
+    ]
+    index.update(second, finished=1_700_000_000.0)  # before it: an older labd's
+    assert problems() == []
+    index.update(second, outcome="error", finished=1_700_000_200.0)  # a lost lease
+    assert problems() == []
+
+    first = index.trial(1).signature
+    index.update(second, outcome="success", signature=first)  # trial 1's, copied
+    assert "trial 3: its trial is 3, the lab signed 1" in problems()
+    other = Keyring(tmp_path / "other")
+    index.update(second, signature=other.sign({"schema": "labd.record/2", "trial": 3}).to_json())
+    assert problems()[0].startswith(
+        f"trial 3: its signature does not check (signed with key {other.current}"
+    )
+    index.close()
