@@ -223,7 +223,7 @@ def _from_index(service: Service) -> list[Metric]:
             .group_by(T.reproduced)
         ).all()
         done = db.execute(
-            sa.select(sa.func.count()).where(E.finished.is_not(None), sa.not_(E.cancel_requested))
+            sa.select(sa.func.count()).where(E.finished.is_not(None), ~_with_cancelled())
         ).scalar_one()
         open_ = db.execute(_evaluation_statuses()).all()
     counted: Counter[tuple[str, str, str]] = Counter()
@@ -265,7 +265,7 @@ def _from_index(service: Service) -> list[Metric]:
 def _evaluation_statuses() -> sa.Select[tuple[Any, int]]:
     """Evaluations not known to be finished, counted by status: the status of each from
     its episodes' (``repository.evaluation.status_of``), in the database, so only the
-    counts come back. A finished evaluation that no one cancelled is counted apart."""
+    counts come back. An ended evaluation with no episode cancelled is counted apart."""
     T, E, ep = trials.c, evaluations.c, episodes.c
 
     def count_of(condition: sa.ColumnElement[bool]) -> sa.ColumnElement[int]:
@@ -284,14 +284,22 @@ def _evaluation_statuses() -> sa.Select[tuple[Any, int]]:
                 trials, T.id == ep.trial_id
             )
         )
-        .where(sa.or_(E.finished.is_(None), E.cancel_requested))
+        .where(sa.or_(E.finished.is_(None), _with_cancelled()))
         .group_by(E.id, E.cancel_requested)
         .subquery()
     )
     status = sa.case(
         (sa.and_(each.c.total > 0, each.c.queued == each.c.total, sa.not_(each.c.cancel)), QUEUED),
         (each.c.open > 0, RUNNING),
-        (sa.and_(each.c.cancel, each.c.cancelled > 0), CANCELLED),
+        (each.c.cancelled > 0, CANCELLED),
         else_=FINISHED,
     )
     return sa.select(status, sa.func.count()).select_from(each).group_by(status)
+
+
+def _with_cancelled() -> sa.Exists:
+    """Whether an evaluation has an episode cancelled (it is then ``cancelled``)."""
+    ep, t = episodes.alias("cancelled_episode"), trials.alias("cancelled_trial")
+    return sa.exists().where(
+        ep.c.evaluation_id == evaluations.c.id, t.c.id == ep.c.trial_id, t.c.status == CANCELLED
+    )

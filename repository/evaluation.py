@@ -282,12 +282,13 @@ def reproduced(rows: Sequence[EpisodeRow]) -> str:
 
 def status_of(rows: Sequence[EpisodeRow], cancel_requested: bool) -> Status:
     """An evaluation's status from its episodes': ``cancelled`` once every episode has
-    ended if it, or any episode of it, was cancelled."""
+    ended if any of them was cancelled (a cancel that came after every episode had
+    ended cancelled nothing: the evaluation is finished, and whole)."""
     if rows and all(r.status is Status.QUEUED for r in rows) and not cancel_requested:
         return Status.QUEUED
     if any(not r.status.ended for r in rows):
         return Status.RUNNING
-    if cancel_requested or any(r.status is Status.CANCELLED for r in rows):
+    if any(r.status is Status.CANCELLED for r in rows):
         return Status.CANCELLED
     return Status.FINISHED
 
@@ -297,9 +298,9 @@ def partiality(rows: Sequence[EpisodeRow], cancel_requested: bool) -> tuple[str,
     ``LAB_BROKE``) and the reason in words; None if it did, or has not ended."""
     if any(not r.status.ended for r in rows):
         return None
-    if cancel_requested:
-        return CANCELLED, "cancelled by its submitter"
     cancelled = [r.episode for r in rows if r.status is Status.CANCELLED]
+    if cancelled and cancel_requested:
+        return CANCELLED, f"cancelled by its submitter ({_episodes(len(cancelled))} unfinished)"
     if cancelled:
         return CANCELLED, f"{_episodes(len(cancelled))} cancelled ({_listed(cancelled)})"
     broken = [r.episode for r in rows if r.lab_fault]

@@ -334,7 +334,12 @@ async def test_a_worker_of_another_version_is_refused_naming_both(api, service):
     assert other.status_code == 409 and "labd 0.1.0" in other.json()["error"]
     same = {**auth(token), PROTOCOL_HEADER: str(PROTOCOL), VERSION_HEADER: __version__}
     hello = await api.get("/api/workers/hello", headers=same)
-    assert hello.json() == {"version": __version__, "protocol": PROTOCOL, "worker": "farm"}
+    assert hello.json() == {
+        "version": __version__,
+        "protocol": PROTOCOL,
+        "worker": "farm",
+        "replays": False,  # a worker elsewhere: the lab replays what it files
+    }
     assert (
         await api.post("/api/workers/claim", json={"worker": "w1"}, headers=same)
     ).status_code == 204

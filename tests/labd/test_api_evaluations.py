@@ -180,7 +180,7 @@ async def test_cancel_keeps_what_finished_and_leaves_the_leaderboard(api, servic
     assert cancelled.status_code == 200, cancelled.text
     c = cancelled.json()
     assert c["status"] == "cancelled" and c["partial"]
-    assert c["partial_reason"] == "cancelled by its submitter"
+    assert c["partial_reason"] == "cancelled by its submitter (17 episodes unfinished)"
     assert (c["done"], c["successes"], c["success_rate"]) == (3, 3, 3 / DEV)
     said = c["signature"]["statement"]
     assert (said["status"], said["partial"], said["successes"]) == ("cancelled", True, 3)

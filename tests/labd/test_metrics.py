@@ -358,6 +358,8 @@ async def test_the_blob_stores_errors_are_counted(service):
     """A damaged blob read (its download refused) counts as ``corrupt``, a write the disk
     refuses as ``write``; a blob that is not there counts as nothing."""
     digest = service.store.put_bytes(b"the record's bytes")
+    held = service.index.add_trial(**ASKED, seed=0, public=True)  # a record anyone may read
+    service.index.update(held, status="finished", outcome="success", mcap=digest)
     path = Path(service.store.path(digest))
     path.chmod(0o644)
     path.write_bytes(b"the record's bytez")

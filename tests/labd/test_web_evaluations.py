@@ -21,7 +21,7 @@ from labd.web import Site, create_app
 from labd.web.evaluations import DASH, percent, rounded
 from tests.helpers.githttp import GitRepo
 from tests.labd.test_api import auth, repo, service, token  # noqa: F401 (fixtures)
-from tests.labd.test_api_evaluations import evaluate, file_episodes
+from tests.labd.test_api_evaluations import evaluate, file_episodes, verify_episodes
 from tests.labd.test_web import csrf_of
 
 
@@ -86,8 +86,9 @@ def trials(evaluation) -> list[int]:
 async def test_an_evaluation_page_says_its_score_and_links_every_episode(
     web, service, writer, repo
 ):
-    """Part-way, the page says the rate of the episodes finished so far and counts the
-    running and queued; finished, it says "70 % (48 % to 85 %, 95 % Wilson) of 20 episodes",
+    """Part-way, the page says how many episodes have ended and succeeded so far (the
+    rate is over the whole suite, so it waits for its end) and counts the running and
+    queued; finished, it says "70 % (48 % to 85 %, 95 % Wilson) of 20 episodes",
     the mean reward with its interval, what is missing for it to be verified, and each
     episode is a cell coloured by outcome linking to its trial, its seed in its title."""
     e = await made(web, writer, repo)
@@ -98,9 +99,7 @@ async def test_an_evaluation_page_says_its_score_and_links_every_episode(
     assert claim is not None and claim.id == ids[3]
     running = Elements((await web.get(f"/evaluations/{e['id']}")).text)
     assert running.by_id("status")["text"] == "running"
-    assert running.by_id("rate")["text"] == (
-        f"100 % (44 %{DASH}100 %, 95 % Wilson) of the 3 finished so far (20 in all)"
-    )
+    assert running.by_id("rate")["text"] == "3 of 20 episodes ended so far, 3 succeeded"
     counts = {c["data-count"]: c["text"] for c in running.having("data-count")}
     assert counts == {
         "success": "3",
@@ -142,26 +141,34 @@ async def test_an_evaluation_page_says_its_score_and_links_every_episode(
     assert episode["text"] == f"An episode of evaluation #{e['id']} (seed 15)."
 
 
-async def test_a_held_out_evaluation_shows_outcomes_but_no_seed_or_link(web, service, writer, repo):
-    """A held-out suite's episodes are cells without links (their trials answer 403)
-    and the page names no seed, until the suite version is retired."""
+async def test_a_held_out_evaluation_shows_its_aggregate_alone(web, service, writer, repo):
+    """A held-out evaluation's page shows no episode (no cells, counts, links, seeds or
+    compute time) and, while it runs, no progress; once it has ended, its score; its
+    episodes appear when the suite version is retired."""
     e = await made(web, writer, repo, suite="test")
-    file_episodes(service, {t: ("success", 1.0) for t in trials(e)[:2]})
+    whole = [r.trial for r in service.evaluations.get(e["id"], reveal=True).rows]
+    file_episodes(service, {t: ("success", 1.0) for t in whole[:2]})
     seeds = [r.seed for r in service.evaluations.get(e["id"], reveal=True).rows]
     reply = await web.get(f"/evaluations/{e['id']}")
     page = Elements(reply.text)
-    cells = page.having("data-episode")
-    assert len(cells) == 50 and {c["tag"] for c in cells} == {"span"}
-    assert [c["class"] for c in cells[:3]] == ["cell success", "cell success", "cell queued"]
-    assert cells[0]["title"] == "episode 0: success, reward 1"
-    assert not any(f"/trials/{t}" in reply.text for t in trials(e))
+    assert page.having("data-episode") == [] and page.having("data-count") == []
+    assert page.by_id("rate")["text"] == (
+        "held out: the score is shown once every episode has ended"
+    )
+    assert page.by_id("compute")["text"] == "held out"
+    assert not any(f"/trials/{t}" in reply.text for t in whole)
     assert not any(str(s) in reply.text for s in seeds)
     assert "(held out)" in page.by_id("summary")["text"]
+    rest = {t: ("success" if n < 30 else "fail", 1.0) for n, t in enumerate(whole) if n >= 2}
+    file_episodes(service, rest)
+    ended = Elements((await web.get(f"/evaluations/{e['id']}")).text)
+    assert ended.by_id("rate")["text"].startswith("60 % (")
+    assert ended.having("data-episode") == []
 
     service.evaluations.retire("icreate-maze", "test", 1)
     retired = Elements((await web.get(f"/evaluations/{e['id']}")).text)
     cells = retired.having("data-episode")
-    assert cells[0]["href"] == f"/trials/{trials(e)[0]}"
+    assert cells[0]["href"] == f"/trials/{whole[0]}"
     assert cells[0]["title"] == f"episode 0, seed {seeds[0]}: success, reward 1"
 
 
@@ -261,7 +268,16 @@ async def test_the_task_page_ranks_evaluations_with_their_ties(web, service, wri
     assert reply.status_code == 200
     page = Elements(reply.text)
     rows = [r for r in page.found if r["tag"] == "tr" and "data-evaluation" in r]
+    unranked = [r["text"] for r in rows]
     assert [int(r["data-evaluation"]) for r in rows] == [second["id"], third["id"], first["id"]]
+    assert all("not ranked: its episodes' replays" in text for text in unranked)
+    for e in (first, second, third):  # the lab's replays verify them: now they are ranked
+        verify_episodes(service, trials(e))
+    reply = await web.get("/tasks/icreate-maze")
+    page = Elements(reply.text)
+    rows = [r for r in page.found if r["tag"] == "tr" and "data-evaluation" in r]
+    assert [int(r["data-evaluation"]) for r in rows] == [second["id"], third["id"], first["id"]]
+    assert [r.get("class") for r in rows] == [None, None, None]
     ties = [e for e in page.found if e.get("class") == "tie"]
     assert [t["text"] for t in ties] == ["≈"] and "overlaps the row above" in ties[0]["title"]
     assert "≈" in rows[1]["text"] and "≈" not in rows[0]["text"] + rows[2]["text"]
