@@ -26,9 +26,10 @@ from repository.trial import Filing
 from repository.well_known import LOGS, REPLAY
 from scheduler.remote import PROTOCOL, PROTOCOL_HEADER
 from scheduler.runner import TrialSpec, run_trial
+from tests.fakes import verify_episodes
 from tests.helpers.githttp import GitRepo
 from tests.labd.test_api import api, auth, repo, service, token  # noqa: F401 (fixtures)
-from tests.labd.test_api_evaluations import evaluate, verify_episodes
+from tests.labd.test_api_evaluations import evaluate
 
 SEED = 6_150_431_977_200_413_321  # a held-out-like seed: 63 bits
 # Prints every seed it can find, then steps until the episode ends (its time limit).

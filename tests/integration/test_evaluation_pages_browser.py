@@ -15,6 +15,7 @@ import pytest
 from repository.evaluation import EvaluationRequest, compare
 from repository.trial import Filing
 from scheduler.fetch import FetchPolicy
+from tests.fakes import verify_episodes
 from tests.helpers.githttp import GitRepo
 from tests.helpers.labs import ServerThread, lab_config, running
 from tests.integration.browser import Watched, browser, watched
@@ -119,7 +120,7 @@ def test_an_evaluation_page_follows_its_episodes_then_compares(lab, repo, watche
     }
     assert page.locator("#status").inner_text().lower() == "running"
     assert page.locator("[data-episode='6']").get_attribute("class") == "cell running"
-    assert page.locator("#rate").inner_text().endswith("of the 6 finished so far (20 in all)")
+    assert page.locator("#rate").inner_text() == "6 of 20 episodes ended so far, 6 succeeded"
     shot(watched, "evaluation-running")
 
     finish(lab, trials[6], OUTCOMES[6], 6 / 16)
@@ -159,6 +160,7 @@ def test_an_evaluation_page_follows_its_episodes_then_compares(lab, repo, watche
     assert page.locator("#only-b").inner_text() == "4"
     shot(watched, "compare")
 
+    verify_episodes(service, trials + later)  # as the lab's replays would: now they rank
     page.click("h1 a")  # the task
     page.wait_for_url("**/tasks/icreate-maze")
     ranked = page.eval_on_selector_all(

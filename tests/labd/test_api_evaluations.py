@@ -12,10 +12,9 @@ import json
 
 import pytest
 
-from repository.index import Derived
 from repository.signing import Signature, verify
 from repository.trial import Filing
-from repository.well_known import REPLAY
+from tests.fakes import verify_episodes
 from tests.labd.test_api import api, auth, repo, service, token  # noqa: F401 (fixtures)
 
 DEV = 20  # the maze's dev suite
@@ -49,14 +48,6 @@ def file_episodes(service, outcomes: dict[int, tuple[str, float]]) -> None:
             metrics={"reward": reward},
         )
         assert service.queue.finish(claim.id, "w", filing)
-
-
-def verify_episodes(service, trial_ids) -> None:
-    """File a replay verdict that says "verified" beside each trial, as the lab's own
-    replay would (the lab's verdicts are blobs of its store)."""
-    digest = service.store.put_bytes(json.dumps({"verified": True}).encode())
-    for trial_id in trial_ids:
-        service.index.put_derived(trial_id, Derived(REPLAY, digest, 18, "application/json"))
 
 
 async def test_an_evaluation_queues_every_episode_and_is_scored_and_signed(

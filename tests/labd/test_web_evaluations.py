@@ -19,9 +19,10 @@ from markupsafe import escape
 
 from labd.web import Site, create_app
 from labd.web.evaluations import DASH, percent, rounded
+from tests.fakes import verify_episodes
 from tests.helpers.githttp import GitRepo
 from tests.labd.test_api import auth, repo, service, token  # noqa: F401 (fixtures)
-from tests.labd.test_api_evaluations import evaluate, file_episodes, verify_episodes
+from tests.labd.test_api_evaluations import evaluate, file_episodes
 from tests.labd.test_web import csrf_of
 
 
