@@ -31,6 +31,7 @@ import sqlalchemy as sa
 
 from labd.workers import LOCAL_WORKERS
 from repository.errors import IndexLost
+from repository.masking import mask_text
 from repository.tables import meta
 from scheduler.states import State
 
@@ -144,4 +145,5 @@ def _workers(service: Service) -> Check:
 
 def _first_line(err: BaseException) -> str:
     text = str(err).strip().splitlines()
-    return f"{type(err).__name__}: {text[0] if text else ''}"[:300]
+    # an object store's error may quote its endpoint's URL, credentials and all
+    return mask_text(f"{type(err).__name__}: {text[0] if text else ''}")[:300]

@@ -41,6 +41,7 @@ import fsspec  # type: ignore[import-untyped]
 from fsspec.implementations.local import LocalFileSystem  # type: ignore[import-untyped]
 
 from repository.errors import BlobCorrupt, BlobError, BlobNotFound
+from repository.masking import mask_url
 from repository.units import MiB
 
 ALGORITHM = "sha256"
@@ -87,7 +88,7 @@ class BlobStore:
         self.errors: collections.Counter[str] = collections.Counter()
 
     def __repr__(self) -> str:
-        return f"BlobStore({self.url!r})"
+        return f"BlobStore({mask_url(self.url)!r})"  # logs show it: no credential
 
     def path(self, digest: str) -> str:
         """Where the blob named ``digest`` lives, in the store's filesystem."""

@@ -37,6 +37,7 @@ from repository.errors import (
     RecordNotFound,
     SchemaMismatch,
 )
+from repository.masking import mask_url
 from repository.tables import (
     derived,
     episodes,
@@ -202,7 +203,7 @@ class Index:
             index.create()
         except sa.exc.OperationalError as err:
             index.close()
-            where = index.engine.url.render_as_string(hide_password=True)
+            where = mask_url(index.engine.url.render_as_string(hide_password=True))
             reason = str(err.orig or err).strip().splitlines()[0]
             raise IndexUnreachable(where, reason) from None
         except BaseException:

@@ -20,6 +20,7 @@ from typing import Any, TypeVar
 import httpx
 from pydantic import BaseModel, ValidationError
 
+from repository.masking import mask_url
 from repository.units import MiB
 from scheduler.errors import ApiRefused, LabUnreachable, RemoteError
 
@@ -92,8 +93,8 @@ class ApiClient:
             return model.model_validate_json(response.content)
         except ValidationError as err:
             raise RemoteError(
-                f"the lab at {self.server} answered {response.request.url.path} with a body"
-                f" this labd {version()} does not understand; are both the same version?"
+                f"the lab at {mask_url(self.server)} answered {response.request.url.path} with a"
+                f" body this labd {version()} does not understand; are both the same version?"
                 f" ({err.error_count()} problems, the first: {err.errors()[0]['msg']})"
             ) from None
 
@@ -105,7 +106,8 @@ class ApiClient:
             except httpx.ConnectError as err:  # nothing reached the lab: safe to retry
                 if attempt == self.connect_attempts:
                     raise LabUnreachable(self.server, str(err) or type(err).__name__) from None
-                log.debug("cannot reach %s (%s); again in %.2f s", self.server, err, pause)
+                shown = mask_url(self.server)
+                log.debug("cannot reach %s (%s); again in %.2f s", shown, err, pause)
                 self.sleep(pause)
                 pause *= 2
             except httpx.HTTPError as err:
@@ -137,7 +139,7 @@ class ApiClient:
             partial.rename(dest)
         except httpx.HTTPError as err:
             raise RemoteError(
-                f"the download of {path} from {self.server} broke off: {err}"
+                f"the download of {path} from {mask_url(self.server)} broke off: {err}"
             ) from None
         finally:
             partial.unlink(missing_ok=True)

@@ -4,6 +4,7 @@ TrialError                      a trial could not be prepared or run
 ├── RepositoryError             the repository could not be read, fetched or resolved
 │   ├── SchemeNotAllowed        its kind of URL is not one this lab accepts
 │   ├── Unreachable             no such host or path, refused, or it needs a credential
+│   ├── HostNotAllowed          its host is a loopback, private or other non-public address
 │   ├── RefNotFound             the ref is no branch, tag or commit of it
 │   ├── TooLarge                it is over the lab's size limit
 │   │   └── CheckoutTooLarge    a commit's files add up to more than the lab checks out
@@ -26,14 +27,16 @@ QueueError                      a queue operation was refused
     ├── LabUnreachable          no lab answered at that address
     └── ApiRefused              the lab answered with an error (its status and words)
 
-Each says what a person can do about it. None carries a credential: the URLs in them
-are the ones the lab records, which never hold one.
+Each says what a person can do about it. None shows a credential: the URLs in their
+messages are masked (``repository.masking``: passwords, query values), and a fetch's
+network failure is said in the same words whatever git said (``Unreachable``).
 """
 
 from __future__ import annotations
 
 from collections.abc import Collection, Iterable, Sequence
 
+from repository.masking import mask_text, mask_url
 from repository.units import MiB
 
 
@@ -45,7 +48,7 @@ class RepositoryError(TrialError):
     def __init__(self, source: str, reason: str, *, message: str | None = None) -> None:
         self.source = source
         self.reason = reason
-        super().__init__(message or f"{source}: {reason}")
+        super().__init__(message or f"{mask_url(source)}: {reason}")
 
 
 class SchemeNotAllowed(RepositoryError):
@@ -66,9 +69,18 @@ class SchemeNotAllowed(RepositoryError):
 
 
 class Unreachable(RepositoryError):
-    """Fetching failed: no such host or repository, refused, or authentication needed."""
+    """Fetching failed: no such host or repository, refused, or authentication needed.
 
-    def __init__(self, source: str, detail: str, *, auth: bool = False) -> None:
+    Every network failure is said in the same words: git's own (``detail``, for the
+    lab's log) tell a closed port from an HTTP, a TLS or a WebSocket one, and quoted to
+    the submitter they would map the ports the lab reaches. ``auth``: the server asked
+    for a credential the lab does not have. ``local``: a folder on the lab's machine
+    (allowed by its operator), whose ``detail`` is said.
+    """
+
+    def __init__(
+        self, source: str, detail: str, *, auth: bool = False, local: bool = False
+    ) -> None:
         self.detail = detail
         self.auth = auth
         if auth:
@@ -78,7 +90,28 @@ class Unreachable(RepositoryError):
             )
         else:
             hint = "check the URL, and that the repository exists and is public"
-        super().__init__(source, f"could not be fetched ({detail}); {hint}")
+        what = "the repository could not be fetched"
+        if local:  # a folder of the lab's machine, which its operator opened to submitters
+            what = f"could not be fetched ({detail})"
+        super().__init__(source, f"{what}; {hint}")
+
+
+class HostNotAllowed(RepositoryError):
+    """The repository's host is, or its name resolves to, an address that is not public
+    (loopback, link-local, private, unspecified, multicast, reserved): refused before any
+    connection, unless the operator allows private hosts. ``kind`` is the address's;
+    ``name``: the host is a name that resolves to it."""
+
+    def __init__(self, source: str, host: str, kind: str, *, name: bool = False) -> None:
+        self.host = host
+        self.kind = kind
+        what = "resolves to" if name else "is"
+        super().__init__(
+            source,
+            f"its host {host} {what} a {kind} address, and this lab fetches only from public"
+            " ones; give the repository's public URL (a lab's operator allows private hosts"
+            " with --allow-private-hosts)",
+        )
 
 
 class RefNotFound(RepositoryError):
@@ -86,16 +119,17 @@ class RefNotFound(RepositoryError):
 
     def __init__(self, source: str, ref: str | None, *, ambiguous: bool = False) -> None:
         self.ref = ref
+        shown = mask_url(source)
         if ref is None:
             reason = "has no commits on its default branch; push one, or name a branch or tag"
             message = None
         elif ambiguous:
             reason = f"{ref!r} is the start of more than one commit; give more of its digits"
-            message = f"{ref!r} is the start of more than one commit of {source}; give more digits"
+            message = f"{ref!r} is the start of more than one commit of {shown}; give more digits"
         else:
             reason = f"{ref!r} is not a branch, tag or commit of it"
             message = (
-                f"{ref!r} is not a branch, tag or commit of {source}; check the name, and"
+                f"{ref!r} is not a branch, tag or commit of {shown}; check the name, and"
                 " that it has been pushed"
             )
         super().__init__(source, reason, message=message)
@@ -162,7 +196,7 @@ class SubmoduleNotAllowed(RepositoryError):
 
     def __init__(self, source: str, path: str, url: str, allowed: Iterable[str]) -> None:
         self.path = path
-        self.url = url
+        self.url = mask_url(url)
         self.allowed = tuple(allowed)
         if self.allowed:
             where = "follows submodules only from " + ", ".join(self.allowed)
@@ -170,7 +204,7 @@ class SubmoduleNotAllowed(RepositoryError):
             where = "follows no submodules"
         super().__init__(
             source,
-            f"submodule {path!r} ({url}) is not allowed here; this lab {where}. Copy that"
+            f"submodule {path!r} ({self.url}) is not allowed here; this lab {where}. Copy that"
             " code into the repository instead, or ask the lab's operator",
         )
 
@@ -302,8 +336,8 @@ class LabUnreachable(RemoteError):
         self.server = server
         self.detail = detail
         super().__init__(
-            f"cannot reach the lab at {server} ({detail}); is `labd serve` running there?"
-            " Give its address with --server URL or LABD_SERVER"
+            f"cannot reach the lab at {mask_url(server)} ({mask_text(detail)}); is `labd serve`"
+            " running there? Give its address with --server URL or LABD_SERVER"
         )
 
 

@@ -25,6 +25,11 @@ the allowed protocols (``protocol.allow``), so a redirect to another scheme fail
 Local paths and ``file://`` URLs (``file``) are off unless the operator allows them: a
 submitter would otherwise reach the lab's host. Even then the lab's own folders
 (``lab_folders``: its mirrors, keys, records...) are refused, whatever path leads there.
+Hosts are public ones only unless the operator allows private ones (``private_hosts``):
+every address a host's name resolves to is checked, and git connects to the one checked,
+following no redirect (``scheduler.hosts``); the lab's own repositories (``hosted``) are
+fetched wherever the lab serves them. A repository's URL takes no user name, password,
+query or fragment: the lab records it, and shows it to anyone who reads the archive.
 Fetching a repository and its submodules runs under one deadline (waiting for another
 fetch of the same mirror included) and a size watch: git and everything it started are
 killed past either.
@@ -38,7 +43,9 @@ repository is never public. The operator's own git configuration (credential hel
 URL rewrites) is not read unless ``user_config`` is set, as for ``labd run``.
 
 Errors are scheduler.errors.RepositoryError and its subclasses SchemeNotAllowed,
-Unreachable, RefNotFound, TooLarge, FetchTimeout and SubmoduleNotAllowed.
+HostNotAllowed, Unreachable, RefNotFound, TooLarge, FetchTimeout and SubmoduleNotAllowed.
+Every network failure of git is one ``Unreachable``, in the same words whatever git said:
+git's words tell a closed port from an HTTP, TLS or WebSocket one, so they go to the log.
 (``max_checkout_bytes`` and ``max_checkout_files`` are for scheduler.source, which
 expands commits.)
 """
@@ -66,6 +73,7 @@ from urllib.parse import unquote, urljoin, urlsplit
 
 import git
 
+from repository.masking import mask_text, mask_url
 from repository.units import MiB
 from scheduler.errors import (
     FetchTimeout,
@@ -76,6 +84,7 @@ from scheduler.errors import (
     TooLarge,
     Unreachable,
 )
+from scheduler.hosts import Pinned, endpoint, pin
 
 log = logging.getLogger("scheduler.fetch")
 DEFAULT_SCHEMES = frozenset({"https", "ssh", "git"})  # file (local paths): the operator's call
@@ -132,7 +141,9 @@ class FetchPolicy:
     taken as a repository even when local paths are allowed.
     ``hosted``: URL prefixes of the repositories the lab hosts itself (the playground's,
     ``http://LAB/git/``), fetched whatever ``schemes`` says of their scheme: they are the
-    lab's own, served read-only by git's smart HTTP.
+    lab's own, served read-only by git's smart HTTP, so at whatever address it has.
+    ``private_hosts``: hosts at addresses that are not public (loopback, the lab's own
+    network...) are fetched from too; otherwise refused before any connection.
     """
 
     schemes: frozenset[str] = DEFAULT_SCHEMES
@@ -146,6 +157,7 @@ class FetchPolicy:
     user_config: bool = False  # read ~/.gitconfig (helpers, rewrites): one's own machine only
     lab_folders: tuple[Path, ...] = ()
     hosted: tuple[str, ...] = ()
+    private_hosts: bool = False  # fetch from loopback, link-local and private addresses too
 
     def credential_for(self, location: Location) -> Credential | None:
         """The credential for this URL: the one with the longest matching prefix."""
@@ -161,8 +173,9 @@ class FetchPolicy:
         return found
 
 
-# labd run on one's own machine: any scheme, any submodule, one's own git configuration.
-PREFLIGHT = FetchPolicy(schemes=ALL_SCHEMES, submodules=("",), user_config=True)
+# labd run on one's own machine: any scheme, any submodule, any host, one's own git
+# configuration (whoever runs it reaches that machine's network already).
+PREFLIGHT = FetchPolicy(schemes=ALL_SCHEMES, submodules=("",), user_config=True, private_hosts=True)
 
 
 @dataclass(frozen=True)
@@ -251,12 +264,18 @@ def locate(repository: str, policy: FetchPolicy) -> Location:
             raise RepositoryError(url, "is not a valid URL") from None
         if password is not None or (user is not None and scheme in ("http", "https")):
             raise RepositoryError(
-                _redact(url),
+                url,
                 "has a user name or password in it; give the URL without them (the lab's"
                 " operator sets up access to private repositories)",
             )
         if scheme not in policy.schemes and not _hosted(url, policy):
             raise SchemeNotAllowed(url, scheme, policy.schemes)
+        if "?" in url or "#" in url:
+            raise RepositoryError(
+                url,
+                "has a query or fragment in it; give the repository's URL without them (the"
+                " lab records it, and shows it to anyone)",
+            )
         if scheme == "file" and parts.netloc in ("", "localhost"):
             # file:///home/me/ctl is the folder /home/me/ctl: one repository, one name
             return _local(url, Path(unquote(parts.path)), policy)
@@ -298,7 +317,7 @@ def _check_folder(location: Location) -> None:
         return
     path = Path(location.url)
     if not path.is_dir():
-        raise Unreachable(str(path), "no such folder on the lab's machine")
+        raise Unreachable(str(path), "no such folder on the lab's machine", local=True)
     try:
         git.Repo(path).close()
     except git.InvalidGitRepositoryError:
@@ -319,9 +338,15 @@ def mirror_path(cache: Path, url: str) -> Path:
 
 
 def git_environment(
-    location: Location, policy: FetchPolicy, credential: Credential | None
+    location: Location,
+    policy: FetchPolicy,
+    credential: Credential | None,
+    pinned: Pinned | None = None,
 ) -> dict[str, str]:
-    """The environment of one fetching git process: the policy as git configuration."""
+    """The environment of one fetching git process: the policy as git configuration.
+
+    ``pinned``: the checked address git connects to for the host's name (curl and ssh
+    are told it; a git:// URL carries it, ``fetch_url``), redirects not followed."""
     env = {k: v for k, v in os.environ.items() if not k.startswith("GIT_")}
     env |= {"GIT_TERMINAL_PROMPT": "0", "GIT_ASKPASS": "true", "GIT_CONFIG_NOSYSTEM": "1"}
     if not policy.user_config:
@@ -340,6 +365,14 @@ def git_environment(
         ("submodule.recurse", "false"),
     ]
     ssh = ["ssh", "-o", "BatchMode=yes"]
+    if pinned is not None:
+        config.append(("http.followRedirects", "false"))  # not to an address unchecked
+    if pinned is not None and pinned.name:
+        where = f"{pinned.host}:{pinned.port}"
+        config.append(("http.curloptResolve", f"{where}:{pinned.bracketed}"))
+        # the host key is still the name's (known_hosts says [name]:port off port 22)
+        alias = pinned.host if pinned.port == 22 else f"[{pinned.host}]:{pinned.port}"
+        ssh += ["-o", f"HostName={pinned.address}", "-o", f"HostKeyAlias={alias}"]
     if credential is not None and location.scheme in ("https", "http") and credential.token:
         # Keyed by this repository's URL: sent to it and below it, not after a redirect.
         config.append((f"http.{location.url}.extraHeader", f"Authorization: {_basic(credential)}"))
@@ -407,6 +440,7 @@ def _fetch(
     """Clone or update ``mirror``; whether that worked without a credential."""
     if location.scheme == "file":
         _check_folder(location)
+    pinned = check_host(location, policy)
     credential = policy.credential_for(location)
     attempts: list[Credential | None] = [None]
     if credential is not None:
@@ -415,11 +449,15 @@ def _fetch(
     started = time.monotonic()
     for attempt in attempts:
         try:
-            _fetch_once(location, mirror, policy, attempt, deadline=deadline, refspecs=refspecs)
+            _fetch_once(
+                location, mirror, policy, attempt, pinned, deadline=deadline, refspecs=refspecs
+            )
         except _GitFailed as failed:
             if attempt is attempts[-1]:
-                detail = _scrub(_reason(failed.stderr), policy)
+                detail = mask_text(_scrub(_reason(failed.stderr), policy))
                 auth = bool(AUTH_FAILED.search(failed.stderr))
+                # git's words for the operator only: told to the submitter, they map ports
+                log.info("%s could not be fetched: %s", mask_url(location.url), detail)
                 raise Unreachable(location.url, detail, auth=auth) from None
             continue
         how = (
@@ -427,7 +465,7 @@ def _fetch(
             if attempt is None
             else f"with the credential for {attempt.prefix}"
         )
-        log.info("%s fetched %s in %.2f s", location.url, how, time.monotonic() - started)
+        log.info("%s fetched %s in %.2f s", mask_url(location.url), how, time.monotonic() - started)
         return attempt is None and location.scheme != "ssh"
     raise AssertionError("unreachable: the last attempt returns or raises")
 
@@ -437,16 +475,18 @@ def _fetch_once(
     mirror: Path,
     policy: FetchPolicy,
     credential: Credential | None,
+    pinned: Pinned | None,
     *,
     deadline: float,
     refspecs: tuple[str, ...],
 ) -> None:
-    env = git_environment(location, policy, credential)
+    env = git_environment(location, policy, credential, pinned)
+    url = fetch_url(location, pinned)
     if mirror.is_dir():
         command = ["-C", str(mirror), "fetch", "--quiet", "--no-write-fetch-head"]
         if not refspecs:
             command.append("--prune")
-        command += ["--", location.url, *(refspecs or BRANCHES_AND_TAGS)]
+        command += ["--", url, *(refspecs or BRANCHES_AND_TAGS)]
         try:
             _run(command, env, mirror, deadline=deadline, policy=policy, source=location.url)
         except BaseException:
@@ -459,7 +499,7 @@ def _fetch_once(
     partial = mirror.with_name(mirror.name + ".partial")
     shutil.rmtree(partial, ignore_errors=True)
     try:
-        command = ["clone", "--bare", "--quiet", "--no-local", "--", location.url, str(partial)]
+        command = ["clone", "--bare", "--quiet", "--no-local", "--", url, str(partial)]
         _run(command, env, partial, deadline=deadline, policy=policy, source=location.url)
         size = _size(partial)
         if size > policy.max_bytes:
@@ -467,6 +507,30 @@ def _fetch_once(
         partial.rename(mirror)
     finally:
         shutil.rmtree(partial, ignore_errors=True)
+
+
+def check_host(location: Location, policy: FetchPolicy) -> Pinned | None:
+    """The checked address git is to connect to (``scheduler.hosts``); None when there is
+    nothing to check: a local repository, one of the lab's own, or a lab that allows
+    private hosts. ``HostNotAllowed`` (or ``Unreachable``) before any connection."""
+    if policy.private_hosts or _hosted(location.url, policy):
+        return None
+    found = endpoint(location.url, location.scheme)
+    if found is None:
+        return None
+    return pin(location.url, *found)
+
+
+def fetch_url(location: Location, pinned: Pinned | None) -> str:
+    """The URL git is given: the recorded one, except that git's own protocol (which
+    has no option to pin a name's address) is given the checked address instead."""
+    if pinned is None or not pinned.name or location.scheme != "git":
+        return location.url
+    parts = urlsplit(location.url)
+    user = parts.netloc.rpartition("@")[0]
+    netloc = f"{user}@" if user else ""
+    netloc += pinned.bracketed + (f":{parts.port}" if parts.port else "")
+    return parts._replace(netloc=netloc).geturl()
 
 
 class _GitFailed(Exception):
@@ -582,7 +646,7 @@ def _gitmodules(
     for path, sha in sorted(gitlinks.items()):
         url = _join(location, wanted[path])
         if not any(url.startswith(prefix) for prefix in policy.submodules):
-            raise SubmoduleNotAllowed(location.url, path, _redact(url), policy.submodules)
+            raise SubmoduleNotAllowed(location.url, path, url, policy.submodules)
         found.append((path, url, sha))
     return found
 
@@ -661,9 +725,3 @@ def _scrub(text: str, policy: FetchPolicy) -> str:
     for secret in policy.secrets():
         text = text.replace(secret, "***")
     return text
-
-
-def _redact(url: str) -> str:
-    """A URL for messages: a password, or an http(s) user name (it may be a token), hidden."""
-    url = re.sub(r"^([A-Za-z][A-Za-z0-9+.-]*://)[^/@:]*:[^/@]*@", r"\1***@", url)
-    return re.sub(r"^(https?://)[^/@]*@", r"\1***@", url, flags=re.IGNORECASE)

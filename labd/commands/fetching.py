@@ -29,6 +29,13 @@ def add_options(group: Any) -> None:
         " reaches this machine's folders (default: refused; the lab's own are always refused)",
     )
     group.add_argument(
+        "--allow-private-hosts",
+        action="store_true",
+        help="fetch from hosts at loopback, link-local and private addresses too: whoever"
+        " may submit then reaches this machine's ports and its network (default: refused;"
+        " the lab's own repositories are always fetched)",
+    )
+    group.add_argument(
         "--max-repo-mb",
         type=int,
         default=DEFAULTS.max_bytes // MiB,
@@ -80,6 +87,8 @@ def argv(args: argparse.Namespace) -> list[str]:
         out += ["--allow-scheme", scheme]
     if args.allow_local_repos:
         out.append("--allow-local-repos")
+    if args.allow_private_hosts:
+        out.append("--allow-private-hosts")
     out += ["--max-repo-mb", str(args.max_repo_mb), "--max-checkout-mb", str(args.max_checkout_mb)]
     out += ["--fetch-timeout", f"{args.fetch_timeout:g}"]
     for flag, items in (
@@ -125,6 +134,7 @@ def policy(args: argparse.Namespace, command: str) -> FetchPolicy:
         max_checkout_bytes=args.max_checkout_mb * MiB,
         timeout=args.fetch_timeout,
         submodules=tuple(args.submodule_allow),
+        private_hosts=args.allow_private_hosts,
     )
 
 

@@ -35,6 +35,7 @@ from labd.service import ServiceConfig
 from labd.sim import registry
 from labd.videos import MODES
 from repository.errors import ArchiveError, SchemaMismatch
+from repository.masking import mask_url
 from repository.reservations import MAX_HORIZON, MAX_SLOT, Rules
 from repository.units import KiB, MiB
 from scheduler.data import DataPolicy
@@ -611,7 +612,8 @@ async def _serve(config: LabConfig, lock: DataLock | None) -> None:
         print(f"HTTP API on {lab.http.url()}/api (OpenAPI: {lab.http.url()}/openapi.json)")
         if lab.robots:
             print(f"  the robots' pages: {lab.http.url()}/robots", flush=True)
-        print(f"  archive: {lab.service.config.database_url}, blobs {lab.service.store.url}")
+        archive = mask_url(lab.service.config.database_url)
+        print(f"  archive: {archive}, blobs {mask_url(lab.service.store.url)}", flush=True)
         print(f"  workers: {len(lab.service.workers)}", flush=True)
         print(
             f"  records are signed with {lab.service.keyring.current}"

@@ -35,7 +35,8 @@ from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
-from urllib.parse import urlsplit, urlunsplit
+
+from repository.masking import MASK, SCHEME, mask_option, mask_url
 
 DEFAULT_FILE = Path("labd.toml")
 ENV_FILE = "LABD_CONFIG"
@@ -313,30 +314,30 @@ def _one(action: argparse.Action, value: Any, where: str, base: Path) -> Any:
 
 
 def masked(key: str, value: Any) -> Any:
-    """A value as ``labd config show`` prints it: passwords in URLs, tokens and secrets
-    (by their setting's or pair's name) replaced by ``***``; ``NAME=VALUE`` pairs as text."""
+    """A value as ``labd config show`` prints it (``repository.masking``): a setting named
+    for a secret (``--git-token``) masked whole; a ``NAME=VALUE`` pair's value masked
+    whole when its name suggests a secret, as a URL when it is one; a URL's password,
+    query and fragment values masked. ``NAME=VALUE`` pairs are shown as text."""
     if value is None or isinstance(value, bool | int | float):
         return value
-    if isinstance(value, tuple) and len(value) == 2 and all(isinstance(v, str) for v in value):
-        value = "=".join(value)
-    elif isinstance(value, list | tuple):
+    if isinstance(value, list | tuple) and not _pair(value):
         return [masked(key, item) for item in value]
-    text = str(value)
     if any(word in key.lower() for word in SECRET_WORDS):
-        return "***"
-    name, sep, _ = text.partition("=")
-    if sep and "://" not in name and any(w in name.lower() for w in (*SECRET_WORDS, "key")):
-        return f"{name}=***"
-    return _hide_password(text)
+        return MASK
+    if _pair(value):
+        name, item = value
+        return f"{name}={mask_option(name, item)}"
+    text = str(value)
+    if SCHEME.match(text) is None:
+        name, sep, item = text.partition("=")
+        if sep:
+            return f"{name}={mask_option(name, item)}"
+    return mask_url(text)
 
 
-def _hide_password(text: str) -> str:
-    parts = urlsplit(text)
-    if not parts.scheme or parts.password is None:
-        return text
-    host = parts.netloc.rpartition("@")[2]
-    user = parts.username or ""
-    return urlunsplit(parts._replace(netloc=f"{user}:***@{host}"))
+def _pair(value: Any) -> bool:
+    """Whether ``value`` is a parsed ``NAME=VALUE`` option (``assignment``'s pair)."""
+    return isinstance(value, tuple) and len(value) == 2 and all(isinstance(v, str) for v in value)
 
 
 def add_parser(commands: Any) -> None:

@@ -26,6 +26,7 @@ from labd.commands.common import fail, json_option
 from labd.config import DATA
 from labd.errors import LabError
 from labd.trial import LabHost, client_library
+from repository.masking import mask_url
 from sandbox.api import SandboxError
 from scheduler.client import DEFAULT_SERVER
 from scheduler.errors import RemoteError
@@ -136,7 +137,8 @@ def main(args: argparse.Namespace) -> int:
         )
         for n in range(args.workers)
     ]
-    print(f"labd worker: {len(workers)} worker(s) on {backend.name} for {args.server}", flush=True)
+    where = mask_url(args.server)
+    print(f"labd worker: {len(workers)} worker(s) on {backend.name} for {where}", flush=True)
     try:
         asyncio.run(_run(workers))
     finally:

@@ -7,12 +7,14 @@ import fcntl
 import os
 import socket
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import pytest
 
 from scheduler.errors import (
     FetchTimeout,
+    HostNotAllowed,
     RefNotFound,
     RepositoryError,
     SchemeNotAllowed,
@@ -24,16 +26,20 @@ from scheduler.fetch import (
     Credential,
     FetchPolicy,
     Location,
+    fetch_url,
     git_environment,
     mirror_path,
     resolve,
 )
+from scheduler.hosts import Pinned
 from scheduler.source import checkout
 from tests.helpers.githttp import GitHttpServer, GitRepo
 
 TOKEN = "tok-3f9a2c71d0"
 SCHEMES = frozenset({"https", "http", "ssh", "git", "file"})
-POLICY = FetchPolicy(schemes=SCHEMES)
+# The git servers of these tests are on 127.0.0.1: private hosts allowed, but where the
+# test is about them (test_hosts_that_are_not_public_are_refused_before_any_connection).
+POLICY = FetchPolicy(schemes=SCHEMES, private_hosts=True)
 MiB = 1024 * 1024
 
 
@@ -127,14 +133,22 @@ def test_a_pinned_commit_still_runs_after_its_branch_is_force_moved(robot, serve
 
 @pytest.mark.integration
 def test_unreachable_repositories_say_so_and_leave_nothing(server, cache, tmp_path):
-    """A missing repository, a refused connection and a missing folder are Unreachable."""
-    with pytest.raises(Unreachable, match=r"could not be fetched \(.*\); check the URL"):
-        resolve(server.url("nothing-here"), None, cache, POLICY)
+    """A missing repository, a refused connection and a missing folder are Unreachable;
+    the network failures in the same words, git's own left out (they go to the log)."""
     with socket.socket() as probe:
         probe.bind(("127.0.0.1", 0))
         port = probe.getsockname()[1]
-    with pytest.raises(Unreachable, match=r"(?i)connect"):
-        resolve(f"http://127.0.0.1:{port}/robot", None, cache, POLICY)
+    said = set()
+    for url in (server.url("nothing-here"), f"http://127.0.0.1:{port}/nothing-here"):
+        with pytest.raises(
+            Unreachable, match=r"the repository could not be fetched; check the URL"
+        ):
+            resolve(url, None, cache, POLICY)
+        with pytest.raises(Unreachable) as caught:
+            resolve(url, None, cache, POLICY)
+        assert caught.value.detail and caught.value.detail not in str(caught.value)
+        said.add(str(caught.value).replace(url, "URL"))
+    assert len(said) == 1, said
     with pytest.raises(Unreachable, match="no such folder"):
         resolve(str(tmp_path / "nowhere"), None, cache, POLICY)
     assert mirrors(cache) == []
@@ -229,7 +243,7 @@ def test_waiting_for_another_fetch_of_the_mirror_counts_against_the_deadline(rob
 @pytest.mark.integration
 def test_a_submission_resolves_within_the_resolve_timeout(server, cache):
     """``resolve`` (a submitter waits) stops at ``resolve_timeout`` when it is the shorter."""
-    policy = FetchPolicy(schemes=SCHEMES, timeout=300, resolve_timeout=0.5)
+    policy = FetchPolicy(schemes=SCHEMES, timeout=300, resolve_timeout=0.5, private_hosts=True)
     started = time.monotonic()
     with pytest.raises(FetchTimeout, match=r"limit of 0\.5 s"):
         resolve(server.stalled_url(), None, cache, policy)
@@ -268,7 +282,7 @@ def test_an_update_over_the_size_limit_keeps_the_old_mirror_usable(tmp_path, cac
 @pytest.mark.integration
 def test_a_server_that_stalls_hits_the_time_limit(server, cache):
     """A fetch that gets no answer is stopped at the time limit, and leaves nothing."""
-    policy = FetchPolicy(schemes=SCHEMES, timeout=0.5)
+    policy = FetchPolicy(schemes=SCHEMES, timeout=0.5, private_hosts=True)
     started = time.monotonic()
     with pytest.raises(FetchTimeout, match=r"took longer than this lab's limit of 0\.5 s"):
         resolve(server.stalled_url(), None, cache, policy)
@@ -297,12 +311,15 @@ def test_a_private_repository_needs_the_lab_token_which_stays_out_of_everything(
     wrong = FetchPolicy(
         schemes=SCHEMES,
         credentials=(Credential(server.url(""), token="not-" + TOKEN, username="bot"),),
+        private_hosts=True,
     )
     with pytest.raises(Unreachable, match="no credential") as caught:
         resolve(url, None, cache, wrong)
     assert "not-" + TOKEN not in str(caught.value)
     policy = FetchPolicy(
-        schemes=SCHEMES, credentials=(Credential(server.url(""), token=TOKEN, username="bot"),)
+        schemes=SCHEMES,
+        credentials=(Credential(server.url(""), token=TOKEN, username="bot"),),
+        private_hosts=True,
     )
     resolved = resolve(url, "main", cache, policy)
     assert resolved.commit == secret.rev() and not resolved.public
@@ -331,10 +348,12 @@ def test_submodules_are_followed_only_from_the_allow_list(served, server, cache,
         " lab follows no submodules",
     ):
         resolve(url, None, cache, POLICY)
-    elsewhere = FetchPolicy(schemes=SCHEMES, submodules=("https://example.org/",))
+    elsewhere = FetchPolicy(
+        schemes=SCHEMES, submodules=("https://example.org/",), private_hosts=True
+    )
     with pytest.raises(SubmoduleNotAllowed, match=r"only from https://example\.org/\. Copy"):
         resolve(url, None, cache, elsewhere)
-    allowed = FetchPolicy(schemes=SCHEMES, submodules=(server.url(""),))
+    allowed = FetchPolicy(schemes=SCHEMES, submodules=(server.url(""),), private_hosts=True)
     resolved = resolve(url, None, cache, allowed)
     assert resolved.commit == robot.rev() and resolved.public
     lib.commit({"lib.py": "VALUE = 8\n"})  # the submodule's pin, not its branch, is run
@@ -414,3 +433,64 @@ def test_the_labs_own_repositories_are_fetched_over_http_and_nothing_else_is(ser
     ):
         with pytest.raises(SchemeNotAllowed, match="scheme 'http' is not allowed"):
             resolve(url, None, cache, policy)
+
+
+@pytest.mark.integration
+def test_hosts_that_are_not_public_are_refused_before_any_connection(robot, server, cache):
+    """By default a repository on a loopback host, by address or by a name that resolves
+    to one, is refused naming the flag that allows it, and git never connects; the lab's
+    own repositories (above) are the exception."""
+    policy = FetchPolicy(schemes=SCHEMES)
+    port = server.port
+    for url, said in (
+        (server.url("robot"), "is a loopback address"),
+        (f"http://localhost:{port}/robot", "resolves to a loopback address"),
+        (f"http://127.1:{port}/robot", "is a loopback address"),
+        (f"http://[::ffff:127.0.0.1]:{port}/robot", "is a loopback address"),
+        (f"git://127.0.0.1:{port}/robot", "is a loopback address"),
+        (f"ssh://git@127.0.0.1:{port}/robot", "is a loopback address"),
+        ("git@127.0.0.1:robot", "is a loopback address"),
+        ("https://10.1.2.3/robot.git", "is a private address"),
+        ("https://169.254.169.254/robot.git", "is a link-local address"),
+    ):
+        with pytest.raises(HostNotAllowed, match=said) as caught:
+            resolve(url, None, cache, policy)
+        assert "--allow-private-hosts" in str(caught.value)
+    assert server.requests == [] and mirrors(cache) == []
+    assert resolve(server.url("robot"), None, cache, replace(policy, private_hosts=True)).public
+
+
+def config_of(env: dict[str, str]) -> dict[str, str]:
+    return {
+        env[f"GIT_CONFIG_KEY_{i}"]: env[f"GIT_CONFIG_VALUE_{i}"]
+        for i in range(int(env["GIT_CONFIG_COUNT"]))
+    }
+
+
+def test_git_connects_to_the_address_that_was_checked_and_follows_no_redirect():
+    """A checked name is pinned to its address for curl and ssh, and a git:// URL is
+    given with the address; no redirect is followed; nothing is pinned for an address."""
+    policy = FetchPolicy()
+    https = Location("https://git.example.org/team/robot.git", "https")
+    pinned = Pinned("git.example.org", 443, "198.51.100.7", name=True)
+    config = config_of(git_environment(https, policy, None, pinned))
+    assert config["http.curloptResolve"] == "git.example.org:443:198.51.100.7"
+    assert config["http.followRedirects"] == "false"
+    six = Pinned("git.example.org", 8443, "2001:db8::7", name=True)
+    config = config_of(git_environment(https, policy, None, six))
+    assert config["http.curloptResolve"] == "git.example.org:8443:[2001:db8::7]"
+    ssh = Location("ssh://git@git.example.org:2222/team/robot.git", "ssh")
+    env = git_environment(ssh, policy, None, Pinned("git.example.org", 2222, "198.51.100.7", True))
+    assert (
+        "-o HostName=198.51.100.7 -o 'HostKeyAlias=[git.example.org]:2222'"
+        in (env["GIT_SSH_COMMAND"])
+    )
+    daemon = Location("git://git.example.org:9419/robot.git", "git")
+    assert fetch_url(daemon, Pinned("git.example.org", 9419, "198.51.100.7", True)) == (
+        "git://198.51.100.7:9419/robot.git"
+    )
+    assert fetch_url(https, pinned) == https.url  # curl is told instead: TLS names the host
+    literal = Pinned("198.51.100.7", 443, "198.51.100.7", name=False)
+    config = config_of(git_environment(https, policy, None, literal))
+    assert "http.curloptResolve" not in config and config["http.followRedirects"] == "false"
+    assert "http.followRedirects" not in config_of(git_environment(https, policy, None))
