@@ -186,7 +186,7 @@ evaluations = sa.Table(
     sa.Column("created", sa.Float, nullable=False),
     sa.Column("cancel_requested", sa.Boolean, nullable=False),
     sa.Column("finished", sa.Float),  # when its last episode ended
-    sa.Column("signature", sa.JSON),  # the lab's, over its episodes (labd.evaluation/1)
+    sa.Column("signature", sa.JSON),  # the lab's, over its episodes (labd.evaluation/2)
 )
 episodes = sa.Table(
     "evaluation_episodes",

@@ -3,8 +3,9 @@
 An evaluation is one commit on every episode of one suite of a task
 (``repository.evaluation``); its episodes are trials like any other. Reading is public;
 submitting, cancelling and rerunning need a token or a signed-in session. A held-out
-suite's seeds stay the operator's: the API never shows them before the suite version is
-retired, nor its episodes' records (their trials answer 403).
+suite's episodes stay the operator's until the suite version is retired: the API shows
+such an evaluation's aggregate once it has ended, never an episode's seed, outcome, time
+or record (their trials answer 403, their blobs 404).
 """
 
 from __future__ import annotations
@@ -36,7 +37,8 @@ router = APIRouter(tags=["evaluations"])
 
 
 class Leaderboard(BaseModel):
-    """A suite's leaderboard: each commit's best complete evaluation, best first."""
+    """A suite's leaderboard: each commit's first evaluation of it, verified ones ranked
+    best first, then the rest unranked (``repository.evaluation.leaderboard``)."""
 
     task: str
     suite: str
@@ -164,9 +166,10 @@ def task_leaderboard(
     service: Lab,
     suite: Annotated[str, Query(max_length=32, description="a suite of the task")] = "dev",
 ) -> Leaderboard:
-    """The suite's leaderboard, as this lab runs it now: each commit's best complete
-    evaluation of the current suite version, by success rate then mean reward, each
-    with its intervals; single trials are not on it."""
+    """The suite's leaderboard, as this lab runs it now: each commit's first evaluation
+    of the current suite version (never its best; none if its submitter cancelled it),
+    ranked by success rate then mean reward once the lab's replays verified every
+    episode, each with its intervals; single trials are not on it."""
     spec = registry.get(name)
     current = spec.suite(suite)
     if current is None:

@@ -43,7 +43,7 @@ def test_an_evaluation_of_the_dev_suite_from_the_command_line(make_lab, tmp_path
         "evaluation 1: finished; replaying 1 episode to verify them",
         "evaluation 1: finished; replaying 2 episodes to verify them",
     ), gate.stderr
-    assert evaluation["signature"]["statement"]["schema"] == "labd.evaluation/1"
+    assert evaluation["signature"]["statement"]["schema"] == "labd.evaluation/2"
 
     # --wait waits for the replays too (up to 2 minutes): none diverged. In one CI run
     # of six, one episode's verdict never came (cause not found yet), so a missing one
