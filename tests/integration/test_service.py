@@ -26,6 +26,7 @@ from mcap.reader import make_reader
 from moto.server import ThreadedMotoServer
 
 from scheduler.remote import PROTOCOL, PROTOCOL_HEADER
+from tests.faults.conftest import wait_for
 from tests.helpers.githttp import GitHttpServer, GitRepo
 
 pytestmark = pytest.mark.integration
@@ -289,7 +290,11 @@ def test_public_and_private_repositories_over_smart_http(make_lab, tmp_path):
         token_file = tmp_path / "token"
         token_file.write_text(token + "\n")
         lab = make_lab(
-            "--allow-scheme", "http", "--git-token", f"{git_server.url('secret-bot')}={token_file}"
+            "--allow-scheme",
+            "http",
+            "--git-token",
+            f"{git_server.url('secret-bot')}={token_file}",
+            "--allow-private-hosts",  # the git server is on loopback
         )
         shown = {}
         for name, repo in (("open-bot", public), ("secret-bot", private)):
@@ -344,6 +349,15 @@ def test_a_worker_on_another_machine(make_lab, tmp_path, cache):
     assert done["outcome"] == "success", output
     assert done["worker"].startswith("w1@")
     assert "reproduced" in text, output
+    # "verified" is the lab's word: the worker replays nothing, the lab replays its record
+    replay = f"{lab.server}/api/trials/{first['id']}/replay"
+    verdict = wait_for(
+        "the lab's replay",
+        lambda: (r := httpx.get(replay, timeout=30)).status_code == 200 and r.json(),
+        120,
+    )
+    assert verdict["verified"] is True, verdict
+    assert "replay" not in output, output
 
 
 def test_cancel_a_running_trial(lab, tmp_path):
