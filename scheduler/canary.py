@@ -87,6 +87,7 @@ class Canaries:
             task=reference.task,
             params=reference.params,
             seed=reference.seed,
+            blind=(reference.manifest or {}).get("blind") is True,  # as the reference ran
         )
         folder = Path(tempfile.mkdtemp(prefix="labd-canary-", dir=worker.config.work))
         try:
