@@ -3,7 +3,9 @@
 ``backend()`` builds (or reuses) the controller runtime and returns the backend to run
 jobs with: Docker wherever an engine answers, else bubblewrap, or the one named. The
 interface is in ``api.py``; the runtime both backends share in ``runtime.py``; the first
-process of every job in ``launcher.py``. Imports no other package of the lab.
+process of every job in ``launcher.py``; the build steps (pip, npm) in ``install.py``, and
+the proxy that is their only way to the registry in ``proxy.py``. Imports no other
+package of the lab.
 """
 
 from __future__ import annotations

@@ -25,6 +25,7 @@ from typing import Protocol
 # takes it from repository.units.
 MiB = 1 << 20
 BRIDGE_PORT = 9090  # inside the sandbox: ws://127.0.0.1:9090
+PROXY_PORT = 3128  # inside a build step's sandbox: the lab's proxy to the registry
 
 
 class SandboxError(Exception):
@@ -124,16 +125,18 @@ class Backend(Protocol):
         ...
 
     async def install(self, requirements: Path, target: Path) -> None:
-        """pip-install ``requirements`` into ``target``, in the sandbox, online.
+        """pip-install ``requirements`` into ``target``, in the sandbox.
 
-        Only wheels are accepted (no code of the repository's runs at install time);
-        InstallError says why it failed.
+        Only wheels are accepted (no code of the repository's runs at install time). The
+        sandbox has no network of its own: pip reaches the configured package index
+        alone, through the lab's proxy (``install.py``). InstallError says why it failed.
         """
         ...
 
     async def install_node(self, package: Path, lock: Path, target: Path) -> None:
         """``npm ci`` of ``package`` (package.json) and ``lock`` (package-lock.json)
-        into ``target``, in the sandbox, online, with no install scripts run.
+        into ``target``, in the sandbox, with no install scripts run, reaching the
+        configured registry alone (through the lab's proxy, as ``install()`` does).
 
         ``target/node_modules`` is then what a job mounts as its ``node_modules``;
         InstallError says why it failed.

@@ -2,14 +2,15 @@
 
 ``bwrap`` runs as a host uid leased to the job alone (64100 and up), unprivileged: it
 makes a user namespace where the job is uid 64000 (as under Docker), and new mount, pid,
-network, ipc, uts and cgroup namespaces (``--unshare-all``: only a loopback network;
-``--share-net`` for ``install()`` alone). Inside:
+network, ipc, uts and cgroup namespaces (``--unshare-all``): every job, the build steps
+included, has only a loopback network of its own, never the host's. Inside:
 
     /              the runtime, read-only          /code         the job's code, read-only
     /scratch       a tmpfs of limits.scratch       /mnt/python/N the job's python_paths
     /mnt/data      the job's data, read-only (LAB_DATA_DIR)
     /proc, /dev    the namespace's own (/dev read-only but a small /dev/shm)
-    /run/labd/bridge.sock                          the bridge's unix socket
+    /run/labd/bridge.sock                          a controller's: the bridge's unix socket
+    /run/labd/proxy.sock                           a build step's: the lab's registry proxy
 
 The launcher is pid 1 (``--as-pid-1``), so when it ends the kernel ends every process of
 the job; ``--die-with-parent`` ends it with the lab. bwrap starts under ``prlimit``, which
@@ -44,8 +45,9 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from . import runtime as rt
-from .api import BackendUnavailable, Job, Limits, MiB, SandboxError
+from .api import BackendUnavailable, Exit, Job, Limits, MiB, SandboxError
 from .cgroups import JobCgroup
+from .install import Step, npm_step, pip_step, run_step, stage_node_package, stage_requirements
 from .jobs import (
     JobLog,
     Plan,
@@ -53,13 +55,8 @@ from .jobs import (
     Supervised,
     chown_tree,
     drain_within,
-    install_failure,
-    install_plan,
     job_plan,
-    node_install_plan,
     open_socket,
-    stage_node_package,
-    stage_requirements,
     start_whole,
     wait_or_stop,
 )
@@ -144,12 +141,7 @@ def kill_uid(uid: int, timeout: float = 5.0) -> None:
 
 def sources(rootfs: Path, plan: Plan) -> list[Path]:
     """Every host path bwrap mounts for ``plan``, the runtime ``rootfs`` first."""
-    paths = [rootfs, *(m.source for m in plan.mounts)]
-    if plan.bridge_socket is not None:
-        paths.append(plan.bridge_socket)
-    if plan.network and os.path.exists("/etc/resolv.conf"):
-        paths.append(Path(os.path.realpath("/etc/resolv.conf")))
-    return paths
+    return [rootfs, *(m.source for m in plan.mounts), *(host for host, _ in plan.sockets())]
 
 
 @dataclass(frozen=True)
@@ -206,36 +198,31 @@ class BwrapBackend:
         staging = Path(tempfile.mkdtemp(prefix="install-", dir=self.state))
         try:
             staged = stage_requirements(requirements, staging)
-        except BaseException:
-            shutil.rmtree(staging, ignore_errors=True)
-            raise
-        target.mkdir(parents=True, exist_ok=True)
-        lease = self._lease()
-        try:
-            chown_tree(target, lease.uid)
-            run = await self._start(install_plan(self.runtime, staged, target), lease)
-            ended = await wait_or_stop(run)  # a preparing deadline stops pip too
+            target.mkdir(parents=True, exist_ok=True)
+            step = await asyncio.to_thread(pip_step, self.runtime, staged, target)
+            await self._install(step, target)
         finally:
-            chown_tree(target, os.geteuid())
-            lease.release()
             shutil.rmtree(staging, ignore_errors=True)
-        if ended.code != 0:
-            raise install_failure(ended)
 
     async def install_node(self, package: Path, lock: Path, target: Path) -> None:
         target.mkdir(parents=True, exist_ok=True)
         stage_node_package(package, lock, target)
-        plan = node_install_plan(self.runtime, target)
+        await self._install(await asyncio.to_thread(npm_step, self.runtime, target), target)
+
+    async def _install(self, step: Step, target: Path) -> None:
+        """Run a build step as a leased uid that owns ``target`` while it runs."""
         lease = self._lease()
+
+        async def run(plan: Plan) -> Exit:
+            # a preparing deadline stops the installer too
+            return await wait_or_stop(await self._start(plan, lease))
+
         try:
             chown_tree(target, lease.uid)
-            run = await self._start(plan, lease)
-            ended = await wait_or_stop(run)  # a preparing deadline stops npm too
+            await run_step(step, run)
         finally:
             chown_tree(target, os.geteuid())
             lease.release()
-        if ended.code != 0:
-            raise install_failure(ended, "npm")
 
     def _lease(self) -> UidLease:
         return self.uids.lease() if self.uids is not None else UidLease(os.getuid(), -1)
@@ -251,8 +238,8 @@ class BwrapBackend:
         run = BwrapRun(job_id, plan, lease, own_lease)
         try:
             run.views = await asyncio.to_thread(self._views, plan, lease.uid)
-            if plan.bridge_socket is not None:
-                open_socket(plan.bridge_socket)
+            for path, _ in plan.sockets():
+                open_socket(path)
             await run.launch(self.bwrap, self.prlimit, self.runtime.root, self.privileged)
         except BaseException:
             await run.abandon()
@@ -446,8 +433,6 @@ def bwrap_argv(
     limits = plan.limits
     uid = str(rt.SANDBOX_UID)
     argv = [bwrap, "--unshare-all", "--unshare-user", "--disable-userns"]
-    if plan.network:
-        argv.append("--share-net")
     argv += ["--die-with-parent", "--as-pid-1", "--new-session", "--hostname", "sandbox"]
     argv += ["--uid", uid, "--gid", uid, "--ro-bind", where(rootfs), "/"]
     argv += ["--proc", "/proc", "--dev", "/dev"]
@@ -461,17 +446,11 @@ def bwrap_argv(
         argv += ["--bind" if mount.writable else "--ro-bind", where(mount.source), mount.target]
     if under_mnt:
         argv += ["--remount-ro", rt.MNT]
-    if plan.bridge_socket is not None:
+    if sockets := plan.sockets():
         argv += ["--tmpfs", "/run", "--dir", rt.RUN_DIR]
-        argv += ["--ro-bind", where(plan.bridge_socket), rt.BRIDGE_SOCKET, "--remount-ro", "/run"]
-    if plan.network:  # the runtime's /etc and the host's resolv.conf, for pip alone
-        argv += ["--tmpfs", "/etc"]
-        for name in sorted(os.listdir(rootfs / "etc")):
-            argv += ["--ro-bind", where(rootfs / "etc" / name), f"/etc/{name}"]
-        if os.path.exists("/etc/resolv.conf"):
-            resolv = Path(os.path.realpath("/etc/resolv.conf"))
-            argv += ["--ro-bind", where(resolv), "/etc/resolv.conf"]
-        argv += ["--remount-ro", "/etc"]
+        for socket, inside in sockets:
+            argv += ["--ro-bind", where(socket), inside]
+        argv += ["--remount-ro", "/run"]
     argv += ["--chdir", "/"]
     if info_fd is not None:
         argv += ["--info-fd", str(info_fd)]

@@ -3,13 +3,15 @@
 The image is the runtime's root filesystem, imported once (``docker import`` of a tar of
 it) and tagged ``labd-runtime:DIGEST`` by the runtime's digest; nothing is pulled. A
 job's container has the launcher as pid 1, runs as uid 64000 with no capabilities and no
-new privileges, a read-only root, no network (``install()``: the default bridge), and:
+new privileges, a read-only root, no network (``network_mode="none"``, the build steps
+included: they reach the registry through the lab's proxy alone), and:
 
     /code          the job's code, bind-mounted read-only
     /mnt/python/N  the job's python_paths, read-only
     /mnt/data      the job's data folder, read-only (LAB_DATA_DIR)
     /scratch       a tmpfs of limits.scratch (and /dev/shm of at most 64 MiB)
-    /run/labd/bridge.sock  the bridge's unix socket
+    /run/labd/bridge.sock  a controller's: the bridge's unix socket
+    /run/labd/proxy.sock   a build step's: the lab's registry proxy (``install.py``)
 
 with ``mem_limit`` = ``memswap_limit``, ``pids_limit``, ``nano_cpus`` and ulimits for open
 files, CPU seconds and file size. Its output is streamed through an attach made before
@@ -44,19 +46,15 @@ from docker.models.containers import Container
 from docker.types import CancellableStream, LogConfig, Mount, Ulimit
 
 from . import runtime as rt
-from .api import BackendUnavailable, Job, MiB, SandboxError
+from .api import BackendUnavailable, Exit, Job, MiB, SandboxError
+from .install import Step, npm_step, pip_step, run_step, stage_node_package, stage_requirements
 from .jobs import (
     JobLog,
     Plan,
     Supervised,
     chown_tree,
-    install_failure,
-    install_plan,
     job_plan,
-    node_install_plan,
     open_socket,
-    stage_node_package,
-    stage_requirements,
     start_whole,
     wait_or_stop,
 )
@@ -114,39 +112,36 @@ class DockerBackend:
         staging = Path(tempfile.mkdtemp(prefix="labd-install-"))
         try:
             staged = stage_requirements(requirements, staging)
-        except BaseException:
-            shutil.rmtree(staging, ignore_errors=True)
-            raise
-        target.mkdir(parents=True, exist_ok=True)
-        try:
-            chown_tree(target, rt.SANDBOX_UID)
-            run = await self._start(install_plan(self.runtime, staged, target))
-            ended = await wait_or_stop(run)  # a preparing deadline stops pip too
+            target.mkdir(parents=True, exist_ok=True)
+            step = await asyncio.to_thread(pip_step, self.runtime, staged, target)
+            await self._install(step, target)
         finally:
-            chown_tree(target, os.geteuid())
             shutil.rmtree(staging, ignore_errors=True)
-        if ended.code != 0:
-            raise install_failure(ended)
 
     async def install_node(self, package: Path, lock: Path, target: Path) -> None:
         target.mkdir(parents=True, exist_ok=True)
         stage_node_package(package, lock, target)
-        plan = node_install_plan(self.runtime, target)
+        await self._install(await asyncio.to_thread(npm_step, self.runtime, target), target)
+
+    async def _install(self, step: Step, target: Path) -> None:
+        """Run a build step as the sandbox's uid, which owns ``target`` while it runs."""
+
+        async def run(plan: Plan) -> Exit:
+            # a preparing deadline stops the installer too
+            return await wait_or_stop(await self._start(plan))
+
         try:
             chown_tree(target, rt.SANDBOX_UID)
-            run = await self._start(plan)
-            ended = await wait_or_stop(run)  # a preparing deadline stops npm too
+            await run_step(step, run)
         finally:
             chown_tree(target, os.geteuid())
-        if ended.code != 0:
-            raise install_failure(ended, "npm")
 
     async def _start(self, plan: Plan) -> DockerRun:
         return await start_whole(self._launch(plan))
 
     async def _launch(self, plan: Plan) -> DockerRun:
-        if plan.bridge_socket is not None:
-            open_socket(plan.bridge_socket)
+        for path, _ in plan.sockets():
+            open_socket(path)
         run = DockerRun(self, f"docker-{uuid.uuid4().hex[:12]}", plan)
         try:
             await run.launch()
@@ -167,8 +162,8 @@ class DockerBackend:
             Mount(m.target, str(m.source), type="bind", read_only=not m.writable)
             for m in plan.mounts
         ]
-        if plan.bridge_socket is not None:
-            mounts.append(Mount(rt.BRIDGE_SOCKET, str(plan.bridge_socket), type="bind"))
+        for path, inside in plan.sockets():
+            mounts.append(Mount(inside, str(path), type="bind"))
         uid = str(rt.SANDBOX_UID)
         scratch = f"rw,exec,nosuid,nodev,size={limits.scratch},uid={uid},gid={uid}"
         return {
@@ -178,7 +173,7 @@ class DockerBackend:
             "working_dir": "/",
             "hostname": "sandbox",
             "environment": dict(plan.env),
-            "network_mode": "bridge" if plan.network else "none",
+            "network_mode": "none",
             "read_only": True,
             "mounts": mounts,
             # Owned by the sandbox's uid, as bwrap's is (Docker copies the image's mode).

@@ -1,7 +1,9 @@
 """What every backend does the same way: the launch plan, bounded output, supervision.
 
 A ``Plan`` is a job as a backend runs it: the launcher's argv and environment, what to
-mount where, and whether the network is there (only ``install()`` has it). ``Supervised``
+mount where, and the unix sockets bound under ``/run/labd`` (the trial's bridge for a
+controller, the lab's registry proxy for a build step, ``install.py``). No plan has a
+network of its own: every sandbox has only its own loopback. ``Supervised``
 is the shared half of a running job: it enforces the wall and output limits, carries
 out ``stop()``, and turns a backend's raw exit status into an ``Exit``; the backend
 supplies how its sandbox ends, is signalled, and is cleaned up.
@@ -12,7 +14,6 @@ from __future__ import annotations
 import abc
 import asyncio
 import contextlib
-import errno
 import logging
 import os
 import signal
@@ -24,36 +25,10 @@ from pathlib import Path
 from typing import Any, TypeVar
 
 from . import runtime as rt
-from .api import BRIDGE_PORT, Exit, InstallError, Job, Limits, MiB, SandboxError
+from .api import BRIDGE_PORT, Exit, Job, Limits, SandboxError
 
 KEEP = 64 * 1024  # bytes kept of the beginning and of the end of each stream
 
-# install(): pip with wheels only; the network is there, the repository's code is not.
-INSTALL_LIMITS = Limits(
-    cpus=2.0,
-    cpu_seconds=1800,
-    memory=2048 * MiB,
-    processes=256,
-    open_files=1024,
-    output=8 * MiB,
-    wall=900.0,
-    scratch=2048 * MiB,
-)
-CERTIFICATES = f"{rt.MNT}/ca-certificates.crt"  # install(): the host's trusted authorities
-# Options a requirements file may not use: they would build from source or run code.
-_FORBIDDEN_OPTIONS = ("-e", "--editable", "--no-binary", "--use-pep517", "--no-build-isolation")
-# Host settings pip inside the sandbox is told about (index mirrors, proxies).
-_PROXIES = ("HTTP_PROXY", "HTTPS_PROXY", "NO_PROXY", "http_proxy", "https_proxy", "no_proxy")
-_PIP_PASSTHROUGH = (
-    "PIP_INDEX_URL",
-    "PIP_EXTRA_INDEX_URL",
-    "PIP_TRUSTED_HOST",
-    "PIP_DEFAULT_TIMEOUT",
-    *_PROXIES,
-)
-# ... and npm inside the sandbox (a registry of its own, proxies).
-_NPM_PASSTHROUGH = ("NPM_CONFIG_REGISTRY", "npm_config_registry", *_PROXIES)
-_NPM_NOISE = ("code ", "errno ", "syscall ", "A complete log", "Log files were not written")
 NODE_COMMANDS = frozenset({"node", "nodejs", "npm", "npx"})
 
 
@@ -73,9 +48,14 @@ class Plan:
     argv: tuple[str, ...]  # the launcher's command line
     env: Mapping[str, str]
     mounts: tuple[Mount, ...]  # besides the runtime as / and the scratch tmpfs
-    bridge_socket: Path | None
+    bridge_socket: Path | None  # a controller's: the trial's bridge
     limits: Limits
-    network: bool = False  # only install() has it
+    proxy_socket: Path | None = None  # a build step's: the lab's proxy to the registry
+
+    def sockets(self) -> list[tuple[Path, str]]:
+        """The host's unix sockets the sandbox is given, and where it finds each."""
+        found = [(self.bridge_socket, rt.BRIDGE_SOCKET), (self.proxy_socket, rt.PROXY_SOCKET)]
+        return [(host, inside) for host, inside in found if host is not None]
 
 
 def environment(
@@ -110,12 +90,14 @@ def environment(
 
 
 def launcher_argv(
-    runtime: rt.Runtime, command: Sequence[str], bridge: bool, cwd: str
+    runtime: rt.Runtime, command: Sequence[str], cwd: str, relay: tuple[str, int] | None
 ) -> tuple[str, ...]:
+    """The launcher's command line; ``relay`` (a unix socket inside, a port) makes it relay
+    ``127.0.0.1:port`` to that socket (the bridge, or a build step's proxy)."""
     argv = [runtime.python, "-I", "-S", rt.LAUNCHER, "--cwd", cwd]
     argv += ["--mkdir", rt.HOME, "--mkdir", rt.TMPDIR]
-    if bridge:
-        argv += ["--bridge", rt.BRIDGE_SOCKET, "--port", str(BRIDGE_PORT)]
+    if relay is not None:
+        argv += ["--bridge", relay[0], "--port", str(relay[1])]
     return (*argv, "--", *command)
 
 
@@ -144,167 +126,14 @@ def job_plan(runtime: rt.Runtime, job: Job) -> Plan:
         if not mount.source.is_dir():
             raise SandboxError(f"{mount.source} is not a folder")
     return Plan(
-        argv=launcher_argv(runtime, job.command, bridge, rt.CODE),
+        argv=launcher_argv(
+            runtime, job.command, rt.CODE, (rt.BRIDGE_SOCKET, BRIDGE_PORT) if bridge else None
+        ),
         env=env,
         mounts=tuple(mounts),
         bridge_socket=job.bridge_socket.resolve() if job.bridge_socket else None,
         limits=job.limits,
     )
-
-
-def install_plan(runtime: rt.Runtime, staged_requirements: Path, target: Path) -> Plan:
-    """The plan of ``pip install`` of a staged requirements file into ``target``, online."""
-    command = [
-        "python",
-        "-m",
-        "pip",
-        "install",
-        "--no-input",
-        "--disable-pip-version-check",
-        "--no-cache-dir",
-        "--progress-bar",
-        "off",
-        "--no-warn-script-location",
-        "--only-binary=:all:",
-        "--upgrade",
-        "--target",
-        rt.TARGET,
-        "-r",
-        f"{rt.REQUIREMENTS_DIR}/{staged_requirements.name}",
-    ]
-    env = environment(runtime, bridge=False, python_paths=0, extra={})
-    env["PYTHONPATH"] = rt.PIP_PATH  # pip, and nothing of the runtime's packages
-    env["PIP_ONLY_BINARY"] = ":all:"
-    env.update({k: v for k, v in os.environ.items() if k in _PIP_PASSTHROUGH})
-    mounts = [
-        Mount(staged_requirements.parent, rt.REQUIREMENTS_DIR),
-        Mount(target, rt.TARGET, writable=True),
-    ]
-    return _online_plan(runtime, command, rt.SCRATCH, env, mounts, certificates_variable="PIP_CERT")
-
-
-def node_install_plan(runtime: rt.Runtime, target: Path) -> Plan:
-    """The plan of ``npm ci`` in ``target`` (package.json and its lock staged there), online.
-
-    Install scripts are not run (``--ignore-scripts``): no code of the repository's
-    packages runs at install time; dev dependencies are left out.
-    """
-    if runtime.node is None:
-        raise InstallError(
-            f"this lab's sandbox has no Node.js (the lab's host needs node {rt.NODE_MAJOR}"
-            " or later, with npm)"
-        )
-    command = [
-        runtime.node,
-        rt.NPM_CLI,
-        "ci",
-        "--ignore-scripts",
-        "--omit=dev",
-        "--no-audit",
-        "--no-fund",
-        "--no-update-notifier",
-        "--loglevel=error",
-    ]
-    env = environment(runtime, bridge=False, python_paths=0, extra={})
-    env.update({k: v for k, v in os.environ.items() if k in _NPM_PASSTHROUGH})
-    mounts = [Mount(target, rt.TARGET, writable=True)]
-    return _online_plan(
-        runtime, command, rt.TARGET, env, mounts, certificates_variable="NODE_EXTRA_CA_CERTS"
-    )
-
-
-def _online_plan(
-    runtime: rt.Runtime,
-    command: Sequence[str],
-    cwd: str,
-    env: dict[str, str],
-    mounts: list[Mount],
-    *,
-    certificates_variable: str,
-) -> Plan:
-    """An install step's plan: the network, the install limits, and the host's trusted
-    authorities (a proxy of its own may need them) named by ``certificates_variable``."""
-    authorities = host_certificates()
-    if authorities is not None:
-        mounts.append(Mount(authorities, CERTIFICATES))
-        env[certificates_variable] = CERTIFICATES
-    return Plan(
-        argv=launcher_argv(runtime, command, bridge=False, cwd=cwd),
-        env=env,
-        mounts=tuple(mounts),
-        bridge_socket=None,
-        limits=INSTALL_LIMITS,
-        network=True,
-    )
-
-
-def stage_node_package(package: Path, lock: Path, target: Path) -> None:
-    """Copy a repository's package.json and package-lock.json into ``target`` for
-    ``npm ci``: each read only if it is itself a regular file (never through a link)."""
-    for source, name in ((package, "package.json"), (lock, "package-lock.json")):
-        data = _read_regular(source, name)
-        (target / name).write_bytes(data)
-        (target / name).chmod(0o644)
-
-
-def _read_regular(path: Path, what: str) -> bytes:
-    try:
-        fd = os.open(path, os.O_RDONLY | os.O_NOFOLLOW | os.O_NONBLOCK | os.O_CLOEXEC)
-    except OSError as err:
-        reason = "it is a symbolic link" if err.errno == errno.ELOOP else err.strerror
-        raise InstallError(f"{what} cannot be read: {reason}") from None
-    with os.fdopen(fd, "rb") as f:
-        if not stat.S_ISREG(os.fstat(f.fileno()).st_mode):
-            raise InstallError(f"{what} is not a regular file")
-        return f.read()
-
-
-def host_certificates() -> Path | None:
-    """The certificate authorities the host's pip trusts, if it names or has a bundle."""
-    for name in ("PIP_CERT", "REQUESTS_CA_BUNDLE", "SSL_CERT_FILE"):
-        if os.environ.get(name) and Path(os.environ[name]).is_file():
-            return Path(os.environ[name]).resolve()
-    bundle = Path("/etc/ssl/certs/ca-certificates.crt")
-    return bundle.resolve() if bundle.is_file() else None
-
-
-def check_requirements(text: str) -> None:
-    """Refuse requirements that would build or run code at install time.
-
-    ``--only-binary`` covers what pip finds in an index, not direct references (VCS
-    URLs, archives, local paths), which pip would build: only wheels may be named so.
-    """
-    for raw in text.splitlines():
-        line = raw.split(" #", 1)[0].strip()
-        for option in _FORBIDDEN_OPTIONS:
-            if line == option or line.startswith((option + " ", option + "=")):
-                raise InstallError(f"{option} is not allowed in requirements: {raw.strip()}")
-        if not line or line.startswith("-"):
-            continue
-        reference = line.split("@", 1)[1] if "@" in line else line
-        reference = reference.split(";", 1)[0].split("#", 1)[0].strip()
-        direct = "://" in reference or reference.startswith((".", "/", "~", "file:"))
-        if direct and not reference.endswith(".whl"):
-            raise InstallError(f"only wheels may be named by URL or path: {raw.strip()}")
-
-
-def stage_requirements(requirements: Path, staging: Path) -> Path:
-    """Check a requirements file and copy it into ``staging`` for the install step.
-
-    ``requirements`` is read only if it is itself a regular file (``O_NOFOLLOW``: a
-    symbolic link is refused, never read through), as UTF-8 text; the copy is what the
-    sandbox sees, so it is the file that was checked.
-    """
-    data = _read_regular(requirements, "the requirements file")
-    try:
-        check_requirements(data.decode("utf-8"))
-    except UnicodeDecodeError:
-        raise InstallError("the requirements file is not UTF-8 text") from None
-    staged = staging / "requirements.txt"
-    staged.write_bytes(data)
-    staging.chmod(0o755)
-    staged.chmod(0o644)
-    return staged
 
 
 S = TypeVar("S", bound="Supervised")
@@ -338,33 +167,6 @@ async def wait_or_stop(run: Supervised) -> Exit:
     except asyncio.CancelledError:
         await run.stop(grace=0.5)
         raise
-
-
-def install_failure(ended: Exit, tool: str = "pip") -> InstallError:
-    """The InstallError of a failed pip (or npm) run, with the end of its output."""
-    log = (ended.stdout + b"\n" + ended.stderr).decode("utf-8", "replace").strip()
-    tail = "\n".join(log.splitlines()[-40:])
-    if ended.wall_exceeded:
-        reason = f"{tool} ran out of time"
-    elif ended.out_of_memory:
-        reason = f"{tool} ran out of memory"
-    elif tool == "npm":
-        reason = _npm_reason(log) or f"npm exited with {ended.code}"
-    else:
-        errors = [line for line in log.splitlines() if line.startswith("ERROR:")]
-        reason = errors[-1].removeprefix("ERROR: ") if errors else f"pip exited with {ended.code}"
-    return InstallError(reason, tail)
-
-
-def _npm_reason(log: str) -> str:
-    """npm's own reason in one line: its first ``npm error`` line but the codes."""
-    for line in log.splitlines():
-        for prefix in ("npm error", "npm ERR!"):
-            if line.startswith(prefix):
-                text = line.removeprefix(prefix).strip().removeprefix("notarget ")
-                if text and not text.startswith(_NPM_NOISE):
-                    return text[:300]
-    return ""
 
 
 class Stream:
@@ -421,7 +223,7 @@ def chown_tree(root: Path, uid: int) -> None:
 
 
 def open_socket(path: Path) -> None:
-    """Let the sandbox's uid connect to the bridge socket: others may read and write it.
+    """Let the sandbox's uid connect to a socket it is given: others may read and write it.
 
     Only the job that mounts it can see it; on the host the lab runs as root.
     """

@@ -2,13 +2,15 @@
 
 Both backends start it as pid 1 of the job's own pid and network namespaces:
 
-    python -I -S /opt/labd/launcher.py [--bridge SOCKET] [--cwd DIR] [--mkdir DIR]... -- CMD...
+    python -I -S /opt/labd/launcher.py [--bridge SOCKET [--port N]] [--cwd DIR]
+                                       [--mkdir DIR]... -- CMD...
 
-1. With ``--bridge``, it listens on 127.0.0.1:9090 (the only address there is) and relays
-   every connection, byte for byte, to the host's unix socket mounted at SOCKET. The relay
-   is a pair of asyncio protocols that write what they read at once (no buffering of
-   their own; TCP_NODELAY is asyncio's default), so a lockstep controller pays two local
-   socket hops per message.
+1. With ``--bridge``, it listens on 127.0.0.1:N (9090 by default; the only address there
+   is) and relays every connection, byte for byte, to the host's unix socket mounted at
+   SOCKET: a controller's to the trial's bridge, a build step's (port 3128) to the lab's
+   proxy to the registry. The relay is a pair of asyncio protocols that write what they
+   read at once (no buffering of their own; TCP_NODELAY is asyncio's default), so a
+   lockstep controller pays two local socket hops per message.
 2. It runs CMD in its own session with the working directory DIR, its environment passed
    on as is (the backend composes it), and standard streams inherited.
 3. It forwards SIGTERM, SIGINT and SIGHUP to CMD's process group, reaps every orphan (it
@@ -112,7 +114,7 @@ class _Inbound(_Side):
                 lambda: _Side(self.relays), self.relays.bridge
             )
         except OSError as err:
-            sys.stderr.write(f"labd-launcher: cannot reach the bridge: {err}\n")
+            sys.stderr.write(f"labd-launcher: cannot reach {self.relays.bridge}: {err}\n")
             self.transport.abort()
             return
         self.peer, outbound.peer = outbound, self

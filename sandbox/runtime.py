@@ -91,6 +91,7 @@ HOME = f"{SCRATCH}/home"
 TMPDIR = f"{SCRATCH}/tmp"  # noqa: S108 - inside the sandbox: its own scratch tmpfs
 RUN_DIR = "/run/labd"
 BRIDGE_SOCKET = f"{RUN_DIR}/bridge.sock"
+PROXY_SOCKET = f"{RUN_DIR}/proxy.sock"  # a build step's way to the registry (proxy.py)
 MNT = "/mnt"
 PYTHON_PATHS = f"{MNT}/python"  # the job's python_paths: /mnt/python/0, /mnt/python/1, ...
 REQUIREMENTS_DIR = f"{MNT}/requirements"  # install(): the requirements file, read-only

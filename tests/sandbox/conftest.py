@@ -1,4 +1,5 @@
-"""Fixtures for the sandbox tests: the session's runtime, a bridge, controllers to run.
+"""Fixtures for the sandbox tests: the session's runtime, a bridge, controllers to run,
+a proxy standing in for the host's own.
 
 The runtime and both backends are the ones every test shares (tests/conftest.py): built
 once into pytest's cache folder (a minute when cold). The folders the sandboxes mount live
@@ -9,6 +10,7 @@ lab's data folder.
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import os
 import shutil
 import tempfile
@@ -179,3 +181,52 @@ async def wait_for(queue: asyncio.Queue[str], expected: str, timeout: float = 30
         message = await asyncio.wait_for(queue.get(), deadline - time.monotonic())
         if message == expected:
             return
+
+
+@dataclass
+class Upstream:
+    """The host's own proxy: records each request head, then does what it asks (a tunnel
+    for CONNECT, the request forwarded as it is otherwise)."""
+
+    heads: list[bytes] = field(default_factory=list)
+    refuse: bool = False
+    server: asyncio.Server | None = None
+
+    @property
+    def port(self) -> int:
+        assert self.server is not None
+        return int(self.server.sockets[0].getsockname()[1])
+
+    async def handle(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        head = await reader.readuntil(b"\r\n\r\n")
+        self.heads.append(head)
+        if self.refuse:
+            writer.write(b"HTTP/1.1 407 Proxy Authentication Required\r\n\r\n")
+            writer.close()
+            return
+        method, target, _ = head.split(b"\r\n", 1)[0].decode().split(" ")
+        hostport = target if method == "CONNECT" else target.split("/")[2]
+        host, port = hostport.rsplit(":", 1)
+        far_reader, far_writer = await asyncio.open_connection(host, int(port))
+        if method == "CONNECT":
+            writer.write(b"HTTP/1.1 200 Connection established\r\n\r\n")
+        else:
+            far_writer.write(head)
+
+        async def pump(source: asyncio.StreamReader, sink: asyncio.StreamWriter) -> None:
+            with contextlib.suppress(OSError):
+                while data := await source.read(1 << 16):
+                    sink.write(data)
+                    await sink.drain()
+            sink.close()
+
+        await asyncio.gather(pump(reader, far_writer), pump(far_reader, writer))
+
+
+@pytest.fixture
+async def upstream() -> AsyncIterator[Upstream]:
+    """A proxy standing in for the one the lab's host may have to go through."""
+    made = Upstream()
+    made.server = await asyncio.start_server(made.handle, "127.0.0.1", 0)
+    yield made
+    made.server.close()

@@ -11,14 +11,8 @@ import sandbox
 from sandbox.api import Backend, InstallError, Job, SandboxError
 from sandbox.bwrap import BwrapBackend
 from sandbox.docker import DockerBackend
-from sandbox.jobs import (
-    KEEP,
-    Stream,
-    check_requirements,
-    decode_status,
-    job_plan,
-    node_install_plan,
-)
+from sandbox.install import check_requirements, npm_step
+from sandbox.jobs import KEEP, Stream, decode_status, job_plan
 from sandbox.runtime import Runtime, build_runtime, tree_digest
 
 pytestmark = pytest.mark.timeout(600)
@@ -73,7 +67,7 @@ def test_node_commands_without_node_in_the_runtime_say_so(tmp_path: Path) -> Non
     with pytest.raises(SandboxError, match=r"this lab's sandbox has no Node\.js"):
         job_plan(runtime, job)
     with pytest.raises(InstallError, match=r"this lab's sandbox has no Node\.js"):
-        node_install_plan(runtime, tmp_path)
+        npm_step(runtime, tmp_path)
 
 
 @pytest.mark.integration
