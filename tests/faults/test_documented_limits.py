@@ -138,6 +138,8 @@ ROWS: list[tuple[str, str, Callable[[], object], object]] = [
      lambda: (FetchPolicy().resolve_timeout, serve_fetch().resolve_timeout), (60, 60)),
     ("service.md", "| `--allow-local-repos` | off |",
      lambda: ("file" in FetchPolicy().schemes, "file" in serve_fetch().schemes), (False, False)),
+    ("service.md", "| `--allow-private-hosts` | off |",
+     lambda: (FetchPolicy().private_hosts, serve_fetch().private_hosts), (False, False)),
     ("service.md", "8 at once, 64 more waiting their turn",
      lambda: (SERVICE.submit_threads, SERVICE.submit_waiting), (8, 64)),
     ("service.md", "(`--lease`, 30 s)", lambda: QUEUE.lease, 30),
