@@ -110,7 +110,7 @@ class Step:
 async def run_step(step: Step, run: Callable[[Plan], Awaitable[Exit]]) -> None:
     """Serve ``step``'s proxy, run its plan with ``run`` (a backend's start and wait), end
     the proxy, and raise the step's InstallError if the installer failed."""
-    folder = Path(tempfile.mkdtemp(prefix="labd-proxy-"))
+    folder = Path(tempfile.mkdtemp(prefix="labd-proxy-", dir=_socket_parent()))
     try:
         folder.chmod(0o711)  # the sandbox's uid reaches the socket; nobody lists the folder
         upstream = urllib.request.getproxies_environment()
@@ -122,6 +122,13 @@ async def run_step(step: Step, run: Callable[[Plan], Awaitable[Exit]]) -> None:
         shutil.rmtree(folder, ignore_errors=True)
     if ended.code != 0:
         raise step.failure(ended, proxy.refused)
+
+
+def _socket_parent() -> str:
+    """Where the proxy's socket folder goes: the temporary folder, unless its path is too
+    long for a unix socket's (107 bytes, the folder's name and the socket's included)."""
+    parent = tempfile.gettempdir()
+    return parent if len(parent.encode()) <= 64 else "/tmp"  # noqa: S108 - a private folder
 
 
 def pip_step(runtime: rt.Runtime, staged_requirements: Path, target: Path) -> Step:

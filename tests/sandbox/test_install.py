@@ -3,15 +3,25 @@ from; npm packages; and what each step may reach (the configured registry alone)
 
 from __future__ import annotations
 
+import asyncio
 import json
 import os
+import tempfile
 from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
 
-from sandbox.api import Backend, InstallError
-from sandbox.install import PROXY_URL, npm_default_registry, npm_step, pip_defaults, pip_step
+from sandbox.api import Backend, Exit, InstallError
+from sandbox.install import (
+    PROXY_URL,
+    npm_default_registry,
+    npm_step,
+    pip_defaults,
+    pip_step,
+    run_step,
+)
+from sandbox.jobs import Plan
 from sandbox.proxy import Destination
 from sandbox.runtime import NPM_CLI, PIP_PATH, Runtime
 from tests.faults.slow import PackageIndex
@@ -202,3 +212,32 @@ def test_npm_is_given_its_configured_registry_and_nothing_else(
     assert step.allowed == {Destination("npm.example", 8443)}
     assert step.env["npm_config_registry"] == "https://npm.example:8443/"
     assert step.env["npm_config_proxy"] == step.env["npm_config_https_proxy"] == PROXY_URL
+
+
+async def test_a_step_is_served_its_proxy_while_it_runs_and_told_what_it_was_refused(
+    runtime: Runtime, workdir: Path, monkeypatch: pytest.MonkeyPatch, tmp_path: Path
+) -> None:
+    """The step's proxy listens (even where the temporary folder's path is too long for a
+    socket) while the step runs and is gone after; a step that failed after a refusal
+    fails naming what it could not reach."""
+    long = tmp_path / ("x" * 80)
+    long.mkdir()
+    monkeypatch.setattr(tempfile, "tempdir", str(long))
+    step = npm_step(runtime, workdir)
+    seen: list[Path] = []
+
+    async def run(plan: Plan) -> Exit:
+        assert plan.proxy_socket is not None and plan.proxy_socket.is_socket()
+        seen.append(plan.proxy_socket)
+        reader, writer = await asyncio.open_unix_connection(str(plan.proxy_socket))
+        writer.write(b"CONNECT 127.0.0.1:22 HTTP/1.1\r\n\r\n")
+        assert (await reader.read()).startswith(b"HTTP/1.1 403 Forbidden\r\n")
+        writer.close()
+        return Exit(code=1, stderr=b"npm error 403 Forbidden - GET https://127.0.0.1:22/x\n")
+
+    with pytest.raises(InstallError) as raised:
+        await run_step(step, run)
+    assert raised.value.reason == (
+        "npm could not reach 127.0.0.1:22: the build step reaches only the configured registry"
+    )
+    assert not seen[0].exists() and not seen[0].parent.exists()
