@@ -37,6 +37,7 @@ LAYERS = [
         "labd.service",
         "labd.authorizer",
         "labd.videos",
+        "labd.replays",
         "labd.workers",
         "labd.hosted",
         "labd.playground",
