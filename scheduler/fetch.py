@@ -368,8 +368,7 @@ def git_environment(
     if pinned is not None:
         config.append(("http.followRedirects", "false"))  # not to an address unchecked
     if pinned is not None and pinned.name:
-        where = f"{pinned.host}:{pinned.port}"
-        config.append(("http.curloptResolve", f"{where}:{pinned.bracketed}"))
+        config.append(("http.curloptResolve", pinned.resolve))
         # the host key is still the name's (known_hosts says [name]:port off port 22)
         alias = pinned.host if pinned.port == 22 else f"[{pinned.host}]:{pinned.port}"
         ssh += ["-o", f"HostName={pinned.address}", "-o", f"HostKeyAlias={alias}"]
@@ -518,7 +517,11 @@ def check_host(location: Location, policy: FetchPolicy) -> Pinned | None:
     found = endpoint(location.url, location.scheme)
     if found is None:
         return None
-    return pin(location.url, *found)
+    try:
+        return pin(location.url, *found)
+    except Unreachable as err:  # the resolver's words, like git's, for the log only
+        log.info("%s could not be fetched: %s", mask_url(location.url), err.detail)
+        raise
 
 
 def fetch_url(location: Location, pinned: Pinned | None) -> str:

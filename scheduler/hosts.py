@@ -42,18 +42,30 @@ NAT64 = ipaddress.IPv6Network("64:ff9b::/96")  # RFC 6052: the last 32 bits are 
 
 @dataclass(frozen=True)
 class Pinned:
-    """The address git connects to for ``host:port``, checked to be public. ``name``:
-    the host is a name (its address is pinned), not an address given in the URL."""
+    """The addresses git connects to for ``host:port``, each checked to be public, the
+    first first. ``name``: the host is a name (its addresses are pinned), not an
+    address given in the URL; ``host`` is then as the resolver takes it (IDNA)."""
 
     host: str
     port: int
-    address: str
+    addresses: tuple[str, ...]
     name: bool
 
     @property
+    def address(self) -> str:
+        """The first address: the one where only one can be given (ssh, git://)."""
+        return self.addresses[0]
+
+    @property
     def bracketed(self) -> str:
-        """The address as a URL or curl writes it (an IPv6 one in brackets)."""
-        return f"[{self.address}]" if ":" in self.address else self.address
+        """The first address as a URL writes it (an IPv6 one in brackets)."""
+        return _bracketed(self.address)
+
+    @property
+    def resolve(self) -> str:
+        """curl's ``HOST:PORT:ADDRESS[,ADDRESS]``: every address, so that curl may fall
+        back from one it cannot reach (IPv6 on a machine without a route) to the next."""
+        return f"{self.host}:{self.port}:{','.join(map(_bracketed, self.addresses))}"
 
 
 def kind(address: Address) -> str | None:
@@ -124,8 +136,9 @@ def pin(source: str, host: str, port: int, lookup: Lookup | None = None) -> Pinn
         found = kind(given)
         if found is not None:
             raise HostNotAllowed(source, host, found)
-        return Pinned(host, port, str(given), name=False)
+        return Pinned(host, port, (str(given),), name=False)
     try:
+        host = host.encode("idna").decode("ascii")  # as the resolver, and curl, take it
         addresses = (lookup or resolve_name)(host, port)
     except (OSError, UnicodeError) as err:
         raise Unreachable(source, f"{host} does not resolve: {err}") from None
@@ -136,7 +149,11 @@ def pin(source: str, host: str, port: int, lookup: Lookup | None = None) -> Pinn
         found = kind(address)
         if found is not None:
             raise HostNotAllowed(source, host, found, name=True)
-    return Pinned(host, port, str(checked[0]), name=True)
+    return Pinned(host, port, tuple(map(str, checked)), name=True)
+
+
+def _bracketed(address: str) -> str:
+    return f"[{address}]" if ":" in address else address
 
 
 def resolve_name(host: str, port: int) -> list[str]:

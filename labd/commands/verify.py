@@ -33,6 +33,7 @@ from labd.commands.common import ExitCode, emit, fail, json_option
 from labd.config import DATA
 from labd.trial import LabHost
 from repository.errors import ArchiveError
+from repository.masking import mask_url
 from repository.signing import (
     EXPORT,
     RECORDS,
@@ -238,7 +239,7 @@ def _keys(args: argparse.Namespace) -> dict[str, Ed25519PublicKey]:
     if args.server:
         with ApiClient(args.server) as client:
             answer = client.request("GET", "/api/keys")
-        return load_keys(answer.content, f"{args.server}/api/keys")
+        return load_keys(answer.content, mask_url(f"{args.server}/api/keys"))
     raise ValueError(
         "give the lab's keys: --key FILE (from its /api/keys), or --server URL (or $LABD_SERVER)"
     )

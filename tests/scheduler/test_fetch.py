@@ -472,25 +472,48 @@ def test_git_connects_to_the_address_that_was_checked_and_follows_no_redirect():
     given with the address; no redirect is followed; nothing is pinned for an address."""
     policy = FetchPolicy()
     https = Location("https://git.example.org/team/robot.git", "https")
-    pinned = Pinned("git.example.org", 443, "198.51.100.7", name=True)
+    pinned = Pinned("git.example.org", 443, ("198.51.100.7",), name=True)
     config = config_of(git_environment(https, policy, None, pinned))
     assert config["http.curloptResolve"] == "git.example.org:443:198.51.100.7"
     assert config["http.followRedirects"] == "false"
-    six = Pinned("git.example.org", 8443, "2001:db8::7", name=True)
+    six = Pinned("git.example.org", 8443, ("2001:db8::7",), name=True)
     config = config_of(git_environment(https, policy, None, six))
     assert config["http.curloptResolve"] == "git.example.org:8443:[2001:db8::7]"
     ssh = Location("ssh://git@git.example.org:2222/team/robot.git", "ssh")
-    env = git_environment(ssh, policy, None, Pinned("git.example.org", 2222, "198.51.100.7", True))
+    env = git_environment(
+        ssh, policy, None, Pinned("git.example.org", 2222, ("198.51.100.7",), True)
+    )
     assert (
         "-o HostName=198.51.100.7 -o 'HostKeyAlias=[git.example.org]:2222'"
         in (env["GIT_SSH_COMMAND"])
     )
     daemon = Location("git://git.example.org:9419/robot.git", "git")
-    assert fetch_url(daemon, Pinned("git.example.org", 9419, "198.51.100.7", True)) == (
+    assert fetch_url(daemon, Pinned("git.example.org", 9419, ("198.51.100.7",), True)) == (
         "git://198.51.100.7:9419/robot.git"
     )
     assert fetch_url(https, pinned) == https.url  # curl is told instead: TLS names the host
-    literal = Pinned("198.51.100.7", 443, "198.51.100.7", name=False)
+    literal = Pinned("198.51.100.7", 443, ("198.51.100.7",), name=False)
     config = config_of(git_environment(https, policy, None, literal))
     assert "http.curloptResolve" not in config and config["http.followRedirects"] == "false"
     assert "http.followRedirects" not in config_of(git_environment(https, policy, None))
+
+
+@pytest.mark.integration
+def test_git_fetches_from_the_pinned_address_not_from_its_own_lookup(
+    robot, server, cache, monkeypatch
+):
+    """Git connects where the check looked, whatever the system's resolver says when
+    git asks: a name no resolver knows is fetched from its pinned address, and a name
+    that resolved to a public address for the check but resolves to loopback for git (a
+    DNS rebinding) never reaches the loopback server."""
+    policy = FetchPolicy(schemes=SCHEMES, timeout=5)
+    pinned = Pinned("robot.invalid", server.port, ("127.0.0.1",), name=True)
+    monkeypatch.setattr("scheduler.fetch.pin", lambda source, host, port: pinned)
+    found = resolve(f"http://robot.invalid:{server.port}/robot", None, cache, policy)
+    assert found.commit == robot.rev()
+    monkeypatch.undo()
+    server.requests.clear()
+    monkeypatch.setattr("scheduler.hosts.resolve_name", lambda host, port: ["9.9.9.9"])
+    with pytest.raises((Unreachable, FetchTimeout)):
+        resolve(f"http://localhost:{server.port}/robot", None, cache, policy)
+    assert server.requests == []

@@ -77,7 +77,8 @@ def test_a_name_is_refused_when_any_of_its_addresses_is_not_public():
         )
 
     pinned = pin("https://public/r.git", "public", 443, lookup)
-    assert (pinned.address, pinned.name) == ("9.9.9.9", True)
+    assert (pinned.addresses, pinned.name) == (("9.9.9.9", "2620:fe::fe"), True)
+    assert pinned.resolve == "public:443:9.9.9.9,[2620:fe::fe]"
     with pytest.raises(HostNotAllowed, match="its host mixed resolves to a loopback address"):
         pin("https://mixed/r.git", "mixed", 443, lookup)
     with pytest.raises(Unreachable, match="the repository could not be fetched"):
