@@ -137,7 +137,7 @@ def test_a_repository_url_with_a_token_in_its_query_is_refused_unechoed(tmp_path
         for url in urls:
             with pytest.raises(RepositoryError) as caught:
                 resolve(url, None, tmp_path / "cache", policy)
-            assert "has a query or fragment in it" in str(caught.value)
             assert leaked(str(caught.value)) == [], str(caught.value)
+            assert "has a query or fragment in it" in str(caught.value)
         assert server.requests == []
     assert leaked(caplog.text) == []
