@@ -32,9 +32,10 @@ from labd.graph.types import TypeRegistry
 from labd.hosted import HostedRepos
 from labd.live import Demonstration
 from labd.metrics import LabMetrics
+from labd.replays import LabReplays
 from labd.trial import LabHost, client_library
 from labd.videos import Videos
-from labd.workers import WorkerProcesses
+from labd.workers import LOCAL_WORKERS, WorkerProcesses
 from repository.accounts import Accounts
 from repository.blobs import BlobStore
 from repository.errors import ArchiveError
@@ -45,7 +46,7 @@ from repository.signing import Keyring
 from repository.trial import Ending, Filing, Kind
 from repository.well_known import RECORD_FILE, REPLAY
 from scheduler.data import DataPolicy, LocalArchive
-from scheduler.evaluate import Evaluator
+from scheduler.evaluate import Evaluator, HeldOutBudget
 from scheduler.fetch import FetchPolicy
 from scheduler.filing import FilingCheck
 from scheduler.queue import Queue, QueueConfig
@@ -83,6 +84,7 @@ class ServiceConfig:
     # where people and workers reach the HTTP port (the playground's repositories are
     # recorded under it); None: the address the lab listens on
     public_url: str | None = None
+    held_out: HeldOutBudget = field(default_factory=HeldOutBudget)  # evaluations of held-out suites
 
     @property
     def database_url(self) -> str:
@@ -181,6 +183,7 @@ class Service:
             self.evaluations,
             load_secret(keys / "suites.secret"),  # held-out suites' seeds derive from it
             self.keyring,
+            config.held_out,
         )
         self.videos = Videos(
             self.index,
@@ -190,6 +193,7 @@ class Service:
             background=config.videos == "background",
             busy=lambda: bool(self.queue.queued() or self.queue.running_workers()),
         )
+        self.name = f"{host_prefix()}{os.getpid()}"
         self.workers: list[Worker] = []
         self.ended_workers: set[str] = set()  # the workers whose loop ended (labd.health)
         self.processes: WorkerProcesses | None = None
@@ -206,13 +210,24 @@ class Service:
         self.git_url: str | None = None  # the hosted repositories' URL, once serving_at says
         self._tasks: list[asyncio.Task[None]] = []
         self._stop = asyncio.Event()
-        self.name = f"{host_prefix()}{os.getpid()}"
         self.metrics = LabMetrics(self)  # GET /metrics
+        # "verified" is the lab's own word: it replays what workers elsewhere filed (its
+        # own workers, here and in its worker processes, replay what they file)
+        self.replays = LabReplays(
+            self.index,
+            self.store,
+            self.host,
+            (config.data / "work").resolve(),
+            (f"{self.name}/", f"{LOCAL_WORKERS}@"),
+            on_verdict=self.metrics.replayed,
+        )
+        self.queue.on_filed.append(self.replays.wake)
 
     async def start(self) -> None:
         """Start rendering videos; requeue what a killed predecessor left running; start
         the workers."""
         self._tasks.append(asyncio.create_task(self.videos.run(self._stop), name="videos"))
+        self._tasks.append(asyncio.create_task(self.replays.run(self._stop), name="replays"))
         if self.config.workers <= 0:
             return
         released = await asyncio.to_thread(self._release_dead_workers)

@@ -41,6 +41,7 @@ from repository.masking import mask_url
 from repository.tables import (
     derived,
     episodes,
+    evaluations,
     meta,
     metadata,
     tokens,
@@ -52,7 +53,8 @@ from repository.units import moment
 from repository.wal import IndexFiles
 from repository.well_known import REPLAY
 
-SCHEMA_VERSION = 2  # 1: labd 0.1 (status succeeded/failed); 2: status and outcome apart
+SCHEMA_VERSION = 3  # 1: labd 0.1 (status succeeded/failed); 2: status and outcome apart;
+# 3: trials say whether an error was the lab's fault (lab_fault)
 # A user name: ASCII letters and digits, then also '.', '-' or '_' (so never ".", ".."
 # or a name that looks like another in other scripts); unique without case.
 NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]{0,63}", re.ASCII)
@@ -397,6 +399,43 @@ class Index:
         with self.begin() as own:
             return _inserted_id(own.execute(sa.insert(trials).values(values)))
 
+    def blob_readable(self, digest: str, worker: str | None = None) -> bool:
+        """Whether a blob may be served: it is the record, a log or a derived artifact of
+        a trial anyone may read (not a hidden held-out episode), or, for the worker
+        account ``worker``, what a trial it holds needs (its pinned records, its rerun
+        original's record). A blob no trial holds (an upload not yet filed, a guess) is
+        nobody's to read."""
+        t = trials.c
+        held = sa.or_(t.mcap == digest, t.stdout == digest, t.stderr == digest)
+        with self.engine.connect() as db:
+            public = db.execute(
+                sa.select(
+                    sa.or_(
+                        sa.exists().where(held, ~hidden(t.id)),
+                        sa.exists().where(derived.c.digest == digest, ~hidden(derived.c.trial_id)),
+                    )
+                )
+            ).scalar()
+            if public or worker is None:
+                return bool(public)
+            held_by = db.execute(
+                sa.select(t.data, t.rerun_of).where(
+                    t.status == Status.RUNNING.value,
+                    t.worker.startswith(f"{worker}@", autoescape=True),
+                )
+            ).all()
+            if any(digest == r.get("mcap") for row in held_by for r in row.data or ()):
+                return True
+            originals = [row.rerun_of for row in held_by if row.rerun_of is not None]
+            return bool(originals) and bool(
+                db.execute(sa.select(sa.exists().where(t.id.in_(originals), held))).scalar()
+            )
+
+    def is_hidden(self, trial_id: int) -> bool:
+        """Whether the trial is an episode of a held-out suite not yet retired."""
+        with self.engine.connect() as db:
+            return bool(db.execute(sa.select(hidden(sa.literal(trial_id)))).scalar())
+
     def readable(self, trial_id: int) -> Trial:
         """A trial anyone may read: ``HeldOut`` if it is an episode of a held-out suite
         not yet retired (``trial`` is the lab's own read, which sees every trial)."""
@@ -584,6 +623,30 @@ class Index:
             found = db.execute(query).scalar()
         return None if found is None else int(found)
 
+    def unreplayed(self, trusted: Sequence[str], skip: Collection[int] = ()) -> int | None:
+        """The oldest finished trial with a record but no replay verdict, run by a worker
+        whose name starts with none of ``trusted`` (the lab's own, which replay what they
+        file themselves), leaving out ``skip``; None if there is none."""
+        replayed = sa.select(derived.c.trial_id).where(derived.c.name == REPLAY)
+        t = trials.c
+        query = (
+            sa.select(t.id)
+            .where(
+                t.status == Status.FINISHED.value,
+                t.mcap.is_not(None),
+                t.worker.is_not(None),
+                *(~t.worker.startswith(prefix, autoescape=True) for prefix in trusted),
+                t.id.not_in(replayed),
+            )
+            .order_by(t.id)
+            .limit(1)
+        )
+        if skip:
+            query = query.where(t.id.not_in(list(skip)))
+        with self.engine.connect() as db:
+            found = db.execute(query).scalar()
+        return None if found is None else int(found)
+
     def bulk_insert(self, rows: Sequence[Mapping[str, Any]]) -> None:
         """Insert finished records as they are (benchmarks, imports)."""
         with self.begin() as db:
@@ -618,6 +681,16 @@ def commit_condition(commit: str) -> sa.ColumnElement[bool]:
 def hidden(trial_id: sa.ColumnElement[int]) -> sa.Exists:
     """Whether the trial is an episode of a held-out suite not yet retired."""
     return sa.exists().where(episodes.c.trial_id == trial_id, episodes.c.hidden)
+
+
+def blind(trial_id: sa.ColumnElement[int]) -> sa.Exists:
+    """Whether the trial is an episode of a held-out suite, retired or not: its
+    controller runs blind (told no seed), and so does every rerun of it, so that the
+    rerun's data can equal the original's."""
+    held_out = sa.select(evaluations.c.id).where(evaluations.c.held_out)
+    return sa.exists().where(
+        episodes.c.trial_id == trial_id, episodes.c.evaluation_id.in_(held_out)
+    )
 
 
 def to_trial(row: Any) -> Trial:

@@ -22,6 +22,8 @@ QueueError                      a queue operation was refused
 ├── QuotaExceeded               a submitter is over a limit the operator set
 ├── Busy                        the lab has as many submissions in hand as it takes
 ├── NotYours                    a trial may be changed only by its submitter
+├── EpisodeOfEvaluation         an evaluation's episode is cancelled with its evaluation only
+├── OverBudget                  a held-out suite takes only so many evaluations a commit, a day
 ├── FilingRefused               a worker's filing says what its record does not hold
 └── RemoteError                 talking to a lab's HTTP API went wrong
     ├── LabUnreachable          no lab answered at that address
@@ -297,6 +299,34 @@ class NotYours(QueueError):
         self.owner = owner
         self.action = action
         super().__init__(f"{what} {trial_id} is {owner}'s; only they may {action} it")
+
+
+class EpisodeOfEvaluation(QueueError):
+    """An episode of an evaluation is cancelled with its evaluation, never alone: an
+    evaluation counts every episode, so cancelling the ones it would fail buys nothing."""
+
+    def __init__(self, trial_id: int, evaluation_id: int) -> None:
+        self.trial_id = trial_id
+        self.evaluation_id = evaluation_id
+        super().__init__(
+            f"trial {trial_id} is an episode of evaluation {evaluation_id}: an evaluation"
+            f" counts every episode, so cancel the whole evaluation"
+            f" (POST /api/evaluations/{evaluation_id}/cancel), which makes it partial"
+        )
+
+
+class OverBudget(QueueError):
+    """A held-out suite takes only so many evaluations of one commit, and of one user a
+    day, so that nobody can probe its episodes evaluation by evaluation."""
+
+    def __init__(self, what: str, used: int, limit: int, when: str) -> None:
+        self.used = used
+        self.limit = limit
+        super().__init__(
+            f"{what} has used {used} of its {limit} held-out evaluation"
+            f"{'' if limit == 1 else 's'} {when} (the operator's budget: a held-out suite is"
+            " scored, not probed); evaluate on the public dev suite instead"
+        )
 
 
 class FilingRefused(QueueError):

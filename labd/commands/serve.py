@@ -39,6 +39,7 @@ from repository.masking import mask_url
 from repository.reservations import MAX_HORIZON, MAX_SLOT, Rules
 from repository.units import KiB, MiB
 from scheduler.data import DataPolicy
+from scheduler.evaluate import HeldOutBudget
 from scheduler.queue import QueueConfig
 from scheduler.runner import RunOptions
 
@@ -301,6 +302,22 @@ def add_parser(commands: Any) -> None:
         help="seconds between a worker's canary reruns (default: %(default)g)",
     )
     group.add_argument(
+        "--held-out-per-commit",
+        type=int,
+        default=SERVICE.held_out.per_commit,
+        metavar="N",
+        help="evaluations of a held-out suite version one user may have of one commit"
+        " (reruns included; those the lab broke not counted; default: %(default)s)",
+    )
+    group.add_argument(
+        "--held-out-per-day",
+        type=int,
+        default=SERVICE.held_out.per_day,
+        metavar="N",
+        help="evaluations of held-out suites one user may submit in 24 hours"
+        " (default: %(default)s)",
+    )
+    group.add_argument(
         "--no-service", action="store_true", help="no HTTP API, no archive, no workers"
     )
     add_reservation_options(serve)
@@ -488,6 +505,8 @@ def service_config(args: argparse.Namespace) -> ServiceConfig | None:
     if args.resolve_timeout <= 0:
         raise Refused(f"--resolve-timeout {args.resolve_timeout:g}: give more than 0 seconds")
     fetch = replace(fetching.policy(args, "labd serve"), resolve_timeout=args.resolve_timeout)
+    if args.held_out_per_commit < 1 or args.held_out_per_day < 1:
+        raise Refused("--held-out-per-commit and --held-out-per-day: give 1 or more")
     return ServiceConfig(
         data=args.data,
         database=args.database,
@@ -509,6 +528,7 @@ def service_config(args: argparse.Namespace) -> ServiceConfig | None:
         worker_processes=args.worker_processes,
         worker_options=tuple(fetching.argv(args)),
         public_url=public_url(args.public_url),
+        held_out=HeldOutBudget(args.held_out_per_commit, args.held_out_per_day),
     )
 
 

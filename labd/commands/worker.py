@@ -131,6 +131,8 @@ def main(args: argparse.Namespace) -> int:
                 heartbeat=args.heartbeat,
                 poll=args.poll,
                 options=RunOptions(fetch=policy),
+                # the lab replays what a worker elsewhere files; its own workers replay here
+                replay=DEFAULTS.replay if lab.replays else 0.0,
                 canaries=tuple(args.canary),
                 canary_every=args.canary_every,
             ),
