@@ -46,7 +46,7 @@ LAYERS = [
     },
     {"labd.api"},
     {"labd.web"},
-    {"labd.lab"},
+    {"labd.lab", "labd.privacy"},
     {"labd.commands", "labd.cli", "labd.__main__"},
 ]
 SIBLINGS = {"labd.sim", "labd.bridge", "labd.recorder"}  # on the graph, apart
