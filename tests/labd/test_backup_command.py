@@ -52,17 +52,22 @@ def lab(tmp_path: Path) -> tuple[Path, dict[str, str]]:
 def test_keys_and_repositories_come_back_as_they_were(lab, tmp_path, capsys):
     """The signing key stays the lab's alone (0600, in a 0700 folder) in the backup and
     the restored lab; the secrets and the public key are the same bytes; the hosted
-    repository has the same head."""
+    repository has the same head; the backup checks against the lab's public keys as
+    its /api/keys gives them (``--key``)."""
     data, blobs = lab
     dest, restored = tmp_path / "backup", tmp_path / "restored"
     code, out, err = labd(capsys, "backup", str(dest), "--data", str(data))
     assert code == 0, err
     assert out.startswith("backed up 2 trial(s) (the index as of ")
     assert "the backup holds the lab's signing key: keep it private" in out
-    code, out, err = labd(capsys, "restore", str(dest), "--data", str(restored), "--json")
+    lab_keys = tmp_path / "lab-keys.json"
+    lab_keys.write_text(json.dumps({"keys": Keyring(data / "keys").public_keys()}))
+    code, out, err = labd(capsys, "restore", str(dest), "--data", str(restored), "--json",
+                          "--key", str(lab_keys))  # fmt: skip
     assert code == 0, err
     summary = json.loads(out)
     assert summary["trials"] == 2 and summary["git"] == ["alice/robot"]
+    assert summary["signed_by"] == Keyring(data / "keys").current
     for keys in (dest / "keys", restored / "keys"):
         assert stat.S_IMODE(keys.stat().st_mode) == 0o700
         assert stat.S_IMODE((keys / SIGNING).stat().st_mode) == 0o600
