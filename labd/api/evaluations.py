@@ -117,10 +117,25 @@ def compare_evaluations(
     b: Annotated[Id, Query(description="evaluation B")],
 ) -> Comparison:
     """Two evaluations of one suite version, paired by episode: how often only one
-    succeeded, McNemar's exact p-value, and the paired reward difference."""
-    first, second = service.evaluations.get(a), service.evaluations.get(b)
+    succeeded, McNemar's exact p-value, and the paired reward difference (of a held-out
+    suite's, once both have ended: counts, never which episodes)."""
+    return paired(service, a, b)
+
+
+def paired(service: Lab, a: int, b: int) -> Comparison:
+    """Evaluations ``a`` and ``b`` compared (``ApiError`` 422 if they do not pair).
+
+    Held-out evaluations are compared on their whole rows, which the comparison turns
+    into counts alone; but only once both have ended, since counts that move as
+    episodes end would time them."""
+    shown = [service.evaluations.get(a), service.evaluations.get(b)]
+    if any(e.hidden and not e.status.ended for e in shown):
+        raise ApiError(
+            422, "a held-out evaluation is compared once it has ended: its episodes are not shown"
+        )
+    whole = [service.evaluations.get(e.id, reveal=True) if e.hidden else e for e in shown]
     try:
-        return compare(first, second)
+        return compare(whole[0], whole[1])
     except ValueError as err:
         raise ApiError(422, str(err)) from None
 

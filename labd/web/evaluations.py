@@ -33,6 +33,7 @@ from fastapi.responses import HTMLResponse, RedirectResponse
 
 from labd.api.common import Lab
 from labd.api.errors import ApiError
+from labd.api.evaluations import paired
 from labd.api.models import Id, task_view
 from labd.api.state import App
 from labd.web.problems import PageRoute
@@ -44,7 +45,6 @@ from repository.evaluation import (
     LeaderRow,
     Score,
     SuiteInfo,
-    compare,
     leaderboard,
 )
 from repository.evaluation_index import EvaluationFilters
@@ -268,8 +268,8 @@ def comparison(
         else:
             second = service.evaluations.get(b)
             try:
-                compared = compare(first, second)
-            except ValueError as err:
+                compared = paired(service, a, b)
+            except ApiError as err:
                 raise ApiError(422, str(err), title="These two do not compare") from None
             context.update(b=second, said_b=Said.of(second), compared=compared)
             if compared.reward_difference is not None:

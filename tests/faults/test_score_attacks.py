@@ -118,6 +118,8 @@ async def test_a_held_out_evaluation_tells_its_submitter_the_aggregate_alone(
     cancel = await api.post(f"/api/trials/{ids[1]}/cancel", headers=auth(token))
     assert cancel.status_code == 409 and f"evaluation {evaluation['id']}" in cancel.json()["error"]
     service.queue.release_worker("w")
+    early = await api.get(f"/api/evaluations/compare?a={evaluation['id']}&b={evaluation['id']}")
+    assert early.status_code == 422 and "once it has ended" in early.json()["error"]
     _claim_and_file(
         service, "w", {t: "success" if n % 2 else "fail" for n, t in enumerate(ids)}, b"seed 3\n"
     )
@@ -136,6 +138,10 @@ async def test_a_held_out_evaluation_tells_its_submitter_the_aggregate_alone(
     assert "rows" not in said and said["episodes_sha256"]
     listed = (await api.get("/api/evaluations", params={"suite": "test"})).json()
     assert listed["evaluations"][0]["rows"] == []
+    compared = (
+        await api.get(f"/api/evaluations/compare?a={evaluation['id']}&b={evaluation['id']}")
+    ).json()  # counts of its whole rows, never which episodes
+    assert (compared["paired"], compared["pairs"]["both"]) == (50, 25)
 
 
 async def test_cancelling_the_episodes_it_would_fail_buys_nothing(api, service, token, repo):
