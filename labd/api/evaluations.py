@@ -129,15 +129,18 @@ def paired(service: Lab, a: int, b: int) -> Comparison:
     into counts alone; but only once both have ended, since counts that move as
     episodes end would time them."""
     shown = [service.evaluations.get(a), service.evaluations.get(b)]
-    if any(e.hidden and not e.status.ended for e in shown):
+    try:
+        compared = compare(shown[0], shown[1])  # of one suite version, or a ValueError
+    except ValueError as err:
+        raise ApiError(422, str(err)) from None
+    if not any(e.hidden for e in shown):
+        return compared
+    if not all(e.status.ended for e in shown):
         raise ApiError(
             422, "a held-out evaluation is compared once it has ended: its episodes are not shown"
         )
     whole = [service.evaluations.get(e.id, reveal=True) if e.hidden else e for e in shown]
-    try:
-        return compare(whole[0], whole[1])
-    except ValueError as err:
-        raise ApiError(422, str(err)) from None
+    return compare(whole[0], whole[1])
 
 
 @router.get("/api/evaluations/{evaluation_id}", responses=responses(404, 422))
