@@ -57,6 +57,7 @@ from labd.config import DATA
 from labd.hosted import HostedRepos
 from labd.service import ServiceConfig
 from repository import backup as store
+from repository import backup_trust as trust
 from repository import nofollow
 from repository.blobs import BlobStore
 from repository.errors import (
@@ -170,7 +171,7 @@ def backup(args: argparse.Namespace) -> dict[str, Any]:
             f"no lab in {config.data} (no index.sqlite); give --data or --database",
             ExitCode.USAGE,
         )
-    lab_keys = store.KeyFiles.read(config.data / KEYS)
+    lab_keys = trust.KeyFiles.read(config.data / KEYS)
     if lab_keys.signing is None:
         raise Failed(
             f"no signing key in {config.data / KEYS}: a backup is signed with the lab's key"
@@ -186,7 +187,7 @@ def backup(args: argparse.Namespace) -> dict[str, Any]:
     copied, unreadable = _copy_blobs(
         dest / store.INDEX_FILE, source, BlobStore(str(dest / store.BLOBS)), progress
     )
-    keys = _replace(dest / KEYS, lambda new: _copy_keys(config.data / KEYS, new), private=True)
+    keys = _replace(dest / KEYS, lambda new: _copy_keys(config.data / KEYS, new))
     repos = _replace(dest / GIT, lambda new: HostedRepos(config.data / GIT).copy_all(new))
     if unreadable:
         raise Failed(
@@ -219,7 +220,7 @@ def backup(args: argparse.Namespace) -> dict[str, Any]:
     }
 
 
-def _dest(given: Path, data: Path, lab_keys: store.KeyFiles) -> Path:
+def _dest(given: Path, data: Path, lab_keys: trust.KeyFiles) -> Path:
     """DEST, reached through no link another user could have made (``UnsafeFolder``
     otherwise): made now (0700), or one of this user's that is empty or holds an earlier
     backup of this lab, holding no link; made private either way."""
@@ -227,7 +228,7 @@ def _dest(given: Path, data: Path, lab_keys: store.KeyFiles) -> Path:
         raise Failed("DEST is the lab's own data folder; give another folder", ExitCode.USAGE)
     dest, made = nofollow.reach(given, create=True)
     if not made:
-        store.check_earlier(dest, lab_keys.public)
+        trust.check_earlier(dest, lab_keys.public)
     nofollow.make_private(dest)
     return dest
 
@@ -244,15 +245,13 @@ def _copy_keys(source: Path, dest: Path) -> list[str]:
     return names
 
 
-def _replace(
-    folder: Path, fill: Callable[[Path], list[str]], *, private: bool = False
-) -> list[str]:
-    """Fill a new folder beside ``folder``, then put it in ``folder``'s place."""
+def _replace(folder: Path, fill: Callable[[Path], list[str]]) -> list[str]:
+    """Fill a new folder (0700) beside ``folder``, then put it in ``folder``'s place."""
     new = folder.with_name(f".{folder.name}.new")
     old = folder.with_name(f".{folder.name}.old")
     for leftover in (new, old):
         shutil.rmtree(leftover, ignore_errors=True)
-    new.mkdir(mode=0o700 if private else 0o777)
+    new.mkdir(mode=nofollow.FOLDER)
     made = fill(new)
     if folder.exists():
         folder.rename(old)
@@ -276,12 +275,12 @@ def restore(args: argparse.Namespace) -> dict[str, Any]:
     src = Path(os.path.realpath(args.src))  # SRC as the operator named it; no link inside
     if config.data.resolve() == src:
         raise Failed("--data is the backup's own folder; give the new lab's", ExitCode.USAGE)
-    opened = store.open_backup(src, _given_keys(args.key))
+    opened = trust.open_backup(src, _given_keys(args.key))
     manifest = opened.manifest
     config.data.mkdir(mode=0o700, parents=True, exist_ok=True)
     # every row held to the lab's signatures (in a private copy) before the target is
     # opened: a forged backup leaves the new lab as it was
-    with store.checked_index(opened, config.data) as index, _engine(config) as engine:
+    with trust.checked_index(opened, config.data) as index, _engine(config) as engine:
         store.check_empty(engine)
         hosted = HostedRepos(config.data / GIT)
         if held := [f"{u}/{n}" for u in hosted.users() for n in hosted.names(u)]:
@@ -342,7 +341,7 @@ def _given_keys(path: Path | None) -> dict[str, Any] | None:
         raise Failed(f"--key: {err}", ExitCode.USAGE) from None
 
 
-def _restore_keys(keys: store.KeyFiles, dest: Path) -> list[str]:
+def _restore_keys(keys: trust.KeyFiles, dest: Path) -> list[str]:
     """The backup's keys (as read and checked) into the lab's key folder, each file whole
     (0600, renamed into place); a file of the same name is replaced, other public keys
     stay."""

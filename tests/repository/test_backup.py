@@ -11,7 +11,7 @@ from typing import Any
 import pytest
 import sqlalchemy as sa
 
-from repository import backup, signed_rows
+from repository import backup, backup_trust, signed_rows
 from repository.blobs import BlobStore
 from repository.errors import BackupDamaged, BackupError, BackupForged, TargetNotEmpty
 from repository.index import SCHEMA_VERSION, Derived, Filters, Index
@@ -359,7 +359,7 @@ def test_a_manifest_is_held_to_the_labs_signature(source, tmp_path):
     backup.snapshot(url, folder / backup.INDEX_FILE)
     lab = Keyring(folder / backup.KEYS)
     manifest = _manifest(folder, keyring=lab)
-    keys = backup.KeyFiles.read(folder / backup.KEYS)
+    keys = backup_trust.KeyFiles.read(folder / backup.KEYS)
     assert keys.signing == lab.current and set(keys.public) == {lab.current}
     manifest.verify(folder, keys.public, lab.current)
     edited = dataclasses.replace(manifest, blobs=5)
@@ -384,10 +384,10 @@ def test_a_backup_of_an_older_schema_is_upgraded_as_it_is_restored(tmp_path, dat
     _manifest(folder, schema=1)
     before = (folder / backup.INDEX_FILE).read_bytes()
     engine = sa.create_engine(database_url)
-    opened = backup.open_backup(folder)
+    opened = backup_trust.open_backup(folder)
     scratch = tmp_path / "scratch"
     scratch.mkdir()
-    with backup.checked_index(opened, scratch) as index:
+    with backup_trust.checked_index(opened, scratch) as index:
         assert index.parent.parent == scratch
         counts = backup.restore_index(index, engine)
     assert list(scratch.iterdir()) == []
