@@ -60,6 +60,7 @@ from repository.errors import (
     TargetNotEmpty,
 )
 from repository.index import SCHEMA_VERSION
+from repository.masking import mask_url
 from repository.migrate import schema_of, upgrade
 from repository.signing import SIGNING, Keyring, Signature, SignatureError, verify
 from repository.tables import derived, meta, metadata, trials
@@ -382,11 +383,11 @@ def _json_value(text: str | None) -> Any:
 
 
 def _shown(url: str) -> str:
-    """A database URL as a message may show it: without its password."""
+    """A database URL as a message may show it: without its password or query values."""
     try:
-        return sa.make_url(url).render_as_string(hide_password=True)
+        return mask_url(sa.make_url(url).render_as_string(hide_password=True))
     except sa.exc.ArgumentError:
-        return url
+        return mask_url(url)
 
 
 # -- blobs -----------------------------------------------------------------------------------

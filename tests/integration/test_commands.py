@@ -13,7 +13,7 @@ from pathlib import Path
 
 import pytest
 
-from repository.index import connect
+from repository.index import SCHEMA_VERSION, connect
 from repository.migrate import schema_of
 from tests.helpers.labs import shared_cache
 from tests.helpers.sandboxes import make_backend
@@ -175,7 +175,7 @@ def test_an_old_archive_is_refused_until_migrated(tmp_path):
         "failed -> error": 1,
     }
     engine = connect(url)
-    assert schema_of(engine) == 2
+    assert schema_of(engine) == SCHEMA_VERSION
     engine.dispose()
 
 
