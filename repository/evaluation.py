@@ -160,6 +160,18 @@ class EpisodeRow(BaseModel):
     )
     lab_fault: bool = Field(default=False, description="an error of the lab's making")
 
+    def stated(self) -> dict[str, Any]:
+        """What a signed statement says of the episode (``statement``)."""
+        return {
+            "episode": self.episode,
+            "trial": self.trial,
+            "seed": self.seed,
+            "status": self.status.value,
+            "outcome": self.outcome.value if self.outcome else None,
+            "reward": self.reward,
+            "data_digest": self.data_digest,
+        }
+
 
 class Score(BaseModel):
     """What an evaluation's episodes add up to.
@@ -359,18 +371,7 @@ def episodes_sha256(rows: Sequence[EpisodeRow]) -> str:
     data_digest}`` each, in the suite's order, keys sorted, no spaces). Anyone can
     recompute it from the rows once the suite version is retired; nobody can recover
     the rows from it (each data digest is 256 bits no one has seen)."""
-    listed = [
-        {
-            "episode": r.episode,
-            "trial": r.trial,
-            "seed": r.seed,
-            "status": r.status.value,
-            "outcome": r.outcome.value if r.outcome else None,
-            "reward": r.reward,
-            "data_digest": r.data_digest,
-        }
-        for r in rows
-    ]
+    listed = [r.stated() for r in rows]
     text = json.dumps(listed, sort_keys=True, separators=(",", ":"))
     return hashlib.sha256(text.encode()).hexdigest()
 
@@ -401,18 +402,7 @@ def statement(evaluation: Evaluation, finished: float) -> dict[str, Any]:
         "finished": dt.datetime.fromtimestamp(finished, dt.UTC).isoformat(),
     }
     if not evaluation.held_out:
-        said["rows"] = [
-            {
-                "episode": r.episode,
-                "trial": r.trial,
-                "seed": r.seed,
-                "status": r.status.value,
-                "outcome": r.outcome.value if r.outcome else None,
-                "reward": r.reward,
-                "data_digest": r.data_digest,
-            }
-            for r in evaluation.rows
-        ]
+        said["rows"] = [r.stated() for r in evaluation.rows]
     return said
 
 

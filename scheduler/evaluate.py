@@ -128,16 +128,7 @@ class Evaluator:
 
         def add(db: Connection, ids: list[int]) -> int:
             if suite.held_out:
-                where = (suite.name, suite.version)
-                self.budget.check(
-                    self.evaluations,
-                    db,
-                    user,
-                    commit=resolved.commit,
-                    task=prepared.task,
-                    suite=where,
-                    now=self.queue.clock(),
-                )
+                self._spend(db, user, resolved.commit, prepared.task, (suite.name, suite.version))
             return self.evaluations.add(
                 db,
                 task=prepared.task,
@@ -177,6 +168,21 @@ class Evaluator:
         )
         return evaluation_id
 
+    def _spend(
+        self, db: Connection, user: User, commit: str, task: str, suite: tuple[str, int]
+    ) -> None:
+        """Take one held-out evaluation of ``commit`` on ``task``'s suite (name, version)
+        from ``user``'s budget (``OverBudget``), in the transaction that queues it."""
+        self.budget.check(
+            self.evaluations,
+            db,
+            user,
+            commit=commit,
+            task=task,
+            suite=suite,
+            now=self.queue.clock(),
+        )
+
     def cancel(self, user: User, evaluation_id: int) -> Evaluation:
         """Cancel the episodes still queued and stop those running (``NotYours`` unless
         ``user`` submitted it); the evaluation after."""
@@ -205,16 +211,7 @@ class Evaluator:
 
         def add(db: Connection, ids: list[int]) -> int:
             if hidden:
-                where = (old.suite, old.suite_version)
-                self.budget.check(
-                    self.evaluations,
-                    db,
-                    user,
-                    commit=old.commit,
-                    task=old.task,
-                    suite=where,
-                    now=self.queue.clock(),
-                )
+                self._spend(db, user, old.commit, old.task, (old.suite, old.suite_version))
             return self.evaluations.add(
                 db,
                 task=old.task,
