@@ -138,12 +138,17 @@ def test_preparing_past_its_deadline_is_an_error(
 
     async def run() -> Any:
         out = tmp_path / "out"
+        # children from before (helper processes other tests in this process started)
+        # are not the installer's
+        before = {p.pid for p in psutil.Process().children(recursive=True)}
         trial = asyncio.create_task(
             run_trial(spec, backend=backend, host=host, out=out, cache=cache, options=options)
         )
         asked = asyncio.create_task(asyncio.to_thread(index.asked.wait, 60))
         await asyncio.wait({trial, asked}, return_when=asyncio.FIRST_COMPLETED)
-        installer = psutil.Process().children(recursive=True)  # pip, waiting for the index
+        installer = [  # pip, waiting for the index, and its sandbox
+            p for p in psutil.Process().children(recursive=True) if p.pid not in before
+        ]
         assert index.asked.is_set() and installer, "pip never asked the index"
         ended = await trial
         # While the lab goes on (this loop still runs), the installer is gone.

@@ -171,7 +171,7 @@ class StuckHost(LabHost):
         super().__init__()
         self.hang_finish = hang_finish
 
-    def open(self, task, values, seed, *, realtime, out, interfaces=None):
+    def open(self, task, values, seed, *, realtime, out, interfaces=None, blind=False):
         return StuckLab(self.hang_finish)
 
 
