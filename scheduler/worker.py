@@ -365,9 +365,7 @@ class Worker:
                     record[stream] = self.store.put_file(path)
         except OSError as err:
             self.log.exception("trial %d: the record could not be stored", claim.id)
-            return Filing.lab_error(
-                storage_failure(err, "the archive could not store the record")
-            )
+            return Filing.lab_error(storage_failure(err, "the archive could not store the record"))
         except (ArchiveError, QueueError) as err:
             self.log.exception("trial %d: the record could not be stored", claim.id)
             return Filing.lab_error(f"the archive could not store the trial's record: {err}")
