@@ -402,7 +402,14 @@ class Worker:
             await self._summarize(trial_id, out / RECORD_FILE)
             await self._replay(trial_id, out / RECORD_FILE)
         finally:
-            await asyncio.to_thread(shutil.rmtree, out, True)
+            # removed even when the worker stops meanwhile (it cancels this task): a
+            # cancelled wait on the thread would leave the folder half removed, or whole
+            removal = asyncio.ensure_future(asyncio.to_thread(shutil.rmtree, out, True))
+            try:
+                await asyncio.shield(removal)
+            except asyncio.CancelledError:
+                await removal
+                raise
 
     async def _replay(self, trial_id: int, mcap: Path) -> None:
         """Replay the filed record and file the verdict beside it; never fails the filed
