@@ -10,6 +10,7 @@ either.
 
     SandboxError                 the sandbox could not do what was asked
     ├── BackendUnavailable       no Docker engine answers / no bwrap on this machine
+    │   └── NoSandbox            neither: each one's reason and what to install
     ├── RuntimeBuildError        the controller runtime could not be built
     └── InstallError             a repository's requirements could not be installed
 """
@@ -33,10 +34,34 @@ class SandboxError(Exception):
 
 
 class BackendUnavailable(SandboxError):
-    def __init__(self, backend: str, reason: str) -> None:
+    """``backend`` cannot run here: ``reason`` says why in a few words, ``hint`` (if any)
+    what to run on Debian to fix it."""
+
+    def __init__(self, backend: str, reason: str, hint: str = "") -> None:
         self.backend = backend
         self.reason = reason
-        super().__init__(f"the {backend} sandbox is not available: {reason}")
+        self.hint = hint
+        fix = f" (on Debian: {hint})" if hint else ""
+        super().__init__(f"the {backend} sandbox is not available: {reason}{fix}")
+
+
+class NoSandbox(BackendUnavailable):
+    """No backend can run here: the chooser tried each in turn. One message holds every
+    reason and every fix, since one fix is enough and only the reader can tell which."""
+
+    def __init__(self, tried: Sequence[BackendUnavailable]) -> None:
+        self.tried = tuple(tried)
+        reasons = ", and ".join(err.reason for err in self.tried)
+        hints = "; or ".join(err.hint for err in self.tried if err.hint)
+        fix = f" To fix it on Debian: {hints}." if hints else ""
+        SandboxError.__init__(
+            self,
+            f"no sandbox can run controllers here: {reasons}.{fix} The lab takes Docker"
+            " where an engine answers, else bubblewrap; --sandbox docker|bwrap names one.",
+        )
+        self.backend = ", ".join(err.backend for err in self.tried)
+        self.reason = reasons
+        self.hint = hints
 
 
 class RuntimeBuildError(SandboxError):

@@ -165,6 +165,18 @@ class Start:
         return cls(argv)
 
 
+def tools(bwrap: str = "bwrap") -> tuple[str, str]:
+    """Where ``bwrap`` and ``prlimit`` are; BackendUnavailable, saying what to install,
+    without them. It needs no runtime, so the chooser asks it before building one."""
+    found = shutil.which(bwrap)
+    if found is None:
+        raise BackendUnavailable("bwrap", f"no {bwrap} on PATH", "apt-get install bubblewrap")
+    prlimit = shutil.which("prlimit")
+    if prlimit is None:
+        raise BackendUnavailable("bwrap", "no prlimit on PATH", "apt-get install util-linux")
+    return found, prlimit
+
+
 class BwrapBackend:
     """Jobs in bubblewrap sandboxes."""
 
@@ -175,14 +187,7 @@ class BwrapBackend:
     ) -> None:
         self.runtime = runtime
         self.state = state
-        found = shutil.which(bwrap)
-        if found is None:
-            raise BackendUnavailable("bwrap", f"no {bwrap} on PATH")
-        self.bwrap = found
-        prlimit = shutil.which("prlimit")
-        if prlimit is None:
-            raise BackendUnavailable("bwrap", "no prlimit (util-linux) on PATH")
-        self.prlimit = prlimit
+        self.bwrap, self.prlimit = tools(bwrap)
         self.privileged = os.geteuid() == 0
         state.mkdir(parents=True, exist_ok=True)
         self.uids = UidPool(uid_locks) if self.privileged else None

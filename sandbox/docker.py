@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import errno
 import functools
 import logging
 import os
@@ -68,6 +69,7 @@ SHM = 64 * MiB
 KILLED = 128 + 9  # the exit status of a process ended by SIGKILL
 OOM_WAIT = 2.0  # seconds an unexplained SIGKILL waits for the engine to call it an OOM kill
 T = TypeVar("T")
+ENGINE_HINT = "apt-get install docker.io, then systemctl start docker"
 _ENGINE_ERRORS = (docker.errors.DockerException, requests.RequestException, OSError)
 
 
@@ -80,16 +82,7 @@ class DockerBackend:
         self, runtime: rt.Runtime, client: docker.DockerClient | None = None, max_jobs: int = 16
     ) -> None:
         self.runtime = runtime
-        where = os.environ.get("DOCKER_HOST", "unix:///var/run/docker.sock")
-        try:
-            if client is None:
-                _knock(where)
-            self.client = client or docker.from_env(timeout=120)
-            self.client.ping()
-        except _ENGINE_ERRORS as err:
-            raise BackendUnavailable(
-                "docker", f"no Docker engine answers at {where}: {err}"
-            ) from err
+        self.client = client or connect()
         # Two threads per job block on its container (its output, its end), one on calls.
         self.executor = ThreadPoolExecutor(2 * max_jobs + 2, thread_name_prefix="labd-docker")
         self.image = f"{IMAGE}:{runtime.digest}"
@@ -343,6 +336,42 @@ class DockerRun(Supervised):
         except _ENGINE_ERRORS as err:
             self.log.error("could not remove container %s: %s", self.container.short_id, err)
             raise
+
+
+def connect() -> docker.DockerClient:
+    """A client of the engine at ``DOCKER_HOST`` (else the local socket) that answered.
+
+    It needs no runtime, so the chooser asks it before building one. BackendUnavailable
+    says why not in a few words and what would make an engine answer.
+    """
+    where = os.environ.get("DOCKER_HOST", "unix:///var/run/docker.sock")
+    client: docker.DockerClient | None = None
+    try:
+        _knock(where)
+        client = docker.from_env(timeout=120)
+        client.ping()
+    except _ENGINE_ERRORS as err:
+        if client is not None:
+            client.close()
+        why, hint = _why(err)
+        reason = f"no Docker engine answers at {where} ({why})"
+        raise BackendUnavailable("docker", reason, hint) from err
+    return client
+
+
+def _why(err: BaseException) -> tuple[str, str]:
+    """Why no engine answered, in a few words (the operating system's reason, which the
+    SDK wraps three or four deep, else the SDK's first line), and what fixes that."""
+    cause: BaseException | None = err
+    while cause is not None:
+        if isinstance(cause, OSError) and cause.strerror:
+            if cause.errno in (errno.EACCES, errno.EPERM):
+                return "permission denied", "adduser $USER docker, then log in again"
+            if cause.errno == errno.ECONNREFUSED:
+                return "connection refused", "systemctl start docker"
+            return cause.strerror.lower(), ENGINE_HINT
+        cause = cause.__cause__ or cause.__context__
+    return (str(err).splitlines() or [type(err).__name__])[0][:160], ENGINE_HINT
 
 
 def _knock(where: str) -> None:
