@@ -75,7 +75,6 @@ from labd.sim.base import ObservationTopic, stamp_of
 from labd.sim.camera import Camera
 from labd.sim.registry import TaskSpec
 from labd.sim.simulation import Simulation
-from repository.trial import EpisodeStatus
 
 NAMESPACE = "labd"
 ENTRY_POINT = "labd.gym:LabEnv"
@@ -84,7 +83,6 @@ SEEDS = 2**63  # the lab's seeds: 0 .. 2**63 - 1
 # legacy RandomState with its seed, which refuses more than 32 bits).
 DRAWN = 2**32
 CAMERA_SIZE = (320, 240)  # a camera's width and height where a task has no such parameters
-ENDED = frozenset({EpisodeStatus.SUCCEEDED, EpisodeStatus.FAILED})
 
 log = logging.getLogger("labd.gym")
 
@@ -124,8 +122,10 @@ class LabEnv(gymnasium.Env[np.ndarray, np.ndarray]):
 
     ``info`` holds the lab's ``seed``, the ``tick``, the episode's ``status`` and
     ``reason`` (as ``/lab/episode`` says them) and the ``metrics`` a trial records.
-    ``terminated`` is the task succeeding or failing (a diverging physics fails);
-    ``truncated`` is the time limit (the ``time_limit`` parameter).
+    ``truncated`` is the time limit (the ``time_limit`` parameter) ending the episode,
+    whatever the task's verdict there (``Simulation.truncated``: a dm_control pack task
+    judges its return at its time limit, ``status`` succeeded or failed); ``terminated``
+    is any other end: the task succeeding or failing before it, a diverging physics.
     """
 
     # what gymnasium.make reads before making one; each instance narrows it to its task
@@ -221,8 +221,10 @@ class LabEnv(gymnasium.Env[np.ndarray, np.ndarray]):
         self._command(sim, vector)
         sim.step()
         self._observe(sim)
-        terminated = sim.status in ENDED
-        truncated = sim.status is EpisodeStatus.TRUNCATED
+        # Gymnasium's convention, dm_control's too (a last discount of 1): an episode its
+        # time limit ended is truncated, whatever its status, so an agent bootstraps there
+        truncated = sim.truncated
+        terminated = not sim.running and not truncated
         return self._observation(), sim.reward, terminated, truncated, self._info(sim)
 
     def render(self) -> np.ndarray | None:

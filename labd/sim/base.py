@@ -76,10 +76,16 @@ class ObservationTopic:
 
 @dataclass(frozen=True)
 class Outcome:
-    """How an episode ended."""
+    """How an episode ended.
+
+    ``truncated``: its time limit ended it, and the task judged it there (the dm_control
+    pack judges an episode's return at its end), so its ``status`` is the verdict while
+    the task itself would go on: Gymnasium's ``truncated``, not ``terminated``.
+    """
 
     status: EpisodeStatus  # SUCCEEDED, FAILED or TRUNCATED
     reason: str  # a sentence a person can act on
+    truncated: bool = False
 
 
 class LabTask(base.Task):  # type: ignore[misc]
@@ -118,7 +124,9 @@ class LabTask(base.Task):  # type: ignore[misc]
         raise NotImplementedError
 
     def outcome(self, physics: Any) -> Outcome | None:
-        """None while the episode runs; how it ended otherwise (time limits excepted)."""
+        """None while the episode runs; how it ended otherwise. At the time limit: None
+        (the episode is then ``TRUNCATED``), or the task's verdict there with
+        ``truncated=True``."""
         raise NotImplementedError
 
     def metrics(self, physics: Any) -> dict[str, bool | int | float]:

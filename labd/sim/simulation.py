@@ -51,6 +51,8 @@ class Simulation:
         self.task: LabTask = task_obj
         self.tick = 0
         self.diverged = False  # the physics blew up (a failure of the lab's model, not the task)
+        # the time limit ended the episode, whatever its status says (Gymnasium's truncated)
+        self.truncated = False
         self.status = EpisodeStatus.RUNNING
         self.reason = ""
         self.reward = 0.0  # of the last tick
@@ -91,8 +93,10 @@ class Simulation:
         if timestep.last():
             outcome = self.task.outcome(self.physics)
             if outcome is not None:
+                self.truncated = outcome.truncated
                 self._end(outcome.status, outcome.reason)
             else:
+                self.truncated = True
                 limit = self.tick * self.control_timestep
                 self._end(EpisodeStatus.TRUNCATED, f"the time limit of {limit:g} s was reached")
 

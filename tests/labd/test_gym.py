@@ -4,6 +4,7 @@ robot node steps them in a trial."""
 from __future__ import annotations
 
 import dataclasses
+import math
 import subprocess
 import sys
 from pathlib import Path
@@ -12,6 +13,7 @@ from typing import Any
 import gymnasium
 import numpy as np
 import pytest
+from dm_control import suite
 from gymnasium.utils.env_checker import check_env
 
 from labd.errors import EpisodeOverError
@@ -227,6 +229,66 @@ def test_the_episode_ends_terminated_or_truncated_and_then_refuses_steps():
     with pytest.raises(EpisodeOverError):
         env.step(np.zeros(2))
     env.close()
+
+
+BALANCE = "dmc-cartpole-balance"
+# A linear policy on the observation (controllers/examples/dmc-cartpole-balance): it
+# keeps the pole up for the whole episode, a return of about 1000.
+GAINS = np.array([0.2, 0.0, 4.0, 0.4, 0.6], dtype=np.float32)
+
+
+def balanced(env: LabEnv, seed: int) -> list[tuple[bool, bool, dict[str, Any]]]:
+    """The terminated and truncated flags and the info of every step of an episode
+    driven by ``GAINS``, to its end."""
+    observation, _ = env.reset(seed=seed)
+    steps = []
+    while True:
+        action = np.clip(GAINS @ observation, -1, 1).reshape(1)
+        observation, _, terminated, truncated, info = env.step(action)
+        steps.append((terminated, truncated, info))
+        if terminated or truncated:
+            return steps
+
+
+def test_a_dm_control_time_limit_truncates_whether_the_return_succeeded_or_not():
+    """A dmc episode is judged by its return at its time limit (/lab/episode says
+    succeeded or failed, as it always has), and Gymnasium is told it was truncated, not
+    terminated: the suite's episode would go on (dm_control's own last discount is 1 at
+    its time limit), so an agent bootstraps there. A whole episode that balances, and
+    one cut to 10 ticks that cannot reach the threshold."""
+    whole = LabEnv(BALANCE)
+    steps = balanced(whole, seed=0)
+    assert len(steps) == 1000 and not any(t or u for t, u, _ in steps[:-1])
+    terminated, truncated, info = steps[-1]
+    assert (terminated, truncated, info["status"]) == (False, True, "succeeded"), info["reason"]
+    whole.close()
+
+    short = LabEnv(BALANCE, {"time_limit": 0.1})
+    steps = balanced(short, seed=0)
+    terminated, truncated, info = steps[-1]
+    assert (len(steps), terminated, truncated, info["status"]) == (10, False, True, "failed")
+    with pytest.raises(EpisodeOverError):
+        short.step(np.zeros(1))
+    short.close()
+
+    # dm_control's own environment says the same of its time limit
+    env = suite.load("cartpole", "balance", task_kwargs={"random": 0, "time_limit": 0.1})
+    env.reset()
+    timesteps = [env.step(np.zeros(1)) for _ in range(10)]
+    assert timesteps[-1].last() and timesteps[-1].discount == 1.0
+
+
+def test_a_diverged_physics_terminates():
+    """A physics that blows up ends the episode for good (the lab fails it): terminated,
+    not truncated, on a dmc task as on the maze."""
+    for task, params in ((BALANCE, {}), ("icreate-maze", SMALL["icreate-maze"])):
+        env = LabEnv(task, params)
+        env.reset(seed=1)
+        env.simulation.physics.data.qvel[0] = math.nan
+        _, _, terminated, truncated, info = env.step(np.zeros(env.action_space.shape))
+        assert (terminated, truncated, info["status"]) == (True, False, "failed"), task
+        assert "diverged" in info["reason"]
+        env.close()
 
 
 def test_render_is_the_cameras_image():

@@ -25,7 +25,11 @@ The ROS side (docs/tasks.md, "The dm_control suite pack"):
   ``world``) and the suite's default camera (camera 0).
 - The episode ends where the suite's does (its step limit, or its own termination), or
   at the lab's ``time_limit`` if that is shorter: it succeeded if its return reached the
-  task's threshold (``Listing.threshold``), and failed otherwise.
+  task's threshold (``Listing.threshold``), and failed otherwise. Ended by its time
+  limit, it is also truncated (``Outcome.truncated``): the suite's task would go on, as
+  dm_control's last discount of 1 says, so Gymnasium is told ``truncated``, not
+  ``terminated``. ``/lab/episode`` keeps the verdict as its status, as every record of
+  the pack has it, so those records still replay and their reruns still reproduce.
 """
 
 from __future__ import annotations
@@ -324,9 +328,10 @@ class SuiteTask(LabTask):
 
     def outcome(self, physics: Any) -> Outcome | None:
         """None until the episode's last step; then success if the return reached the
-        threshold."""
+        threshold, truncated unless the suite's own termination ended it."""
         if not (self.terminated or self.steps >= self.step_limit):
             return None
+        truncated = not self.terminated
         threshold = self.listing.threshold
         ended = (
             f"the suite ended the episode at step {self.steps}"
@@ -337,6 +342,7 @@ class SuiteTask(LabTask):
             return Outcome(
                 EpisodeStatus.SUCCEEDED,
                 f"the return {self.total_reward:.1f} reached the threshold {threshold:g} {ended}",
+                truncated,
             )
         short = ""
         if not self.terminated and self.steps < self.listing.steps:
@@ -345,6 +351,7 @@ class SuiteTask(LabTask):
             EpisodeStatus.FAILED,
             f"the return {self.total_reward:.1f} fell short of the threshold {threshold:g} "
             f"{ended}{short}",
+            truncated,
         )
 
     def metrics(self, physics: Any) -> dict[str, bool | int | float]:
