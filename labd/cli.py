@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import difflib
 import faulthandler
 import importlib
 import io
@@ -69,7 +70,7 @@ COMMANDS = {
     "logs": Command("remote", "print a trial's controller output"),
     "download": Command("remote", "download a trial's MCAP record"),
     "rerun": Command("remote", "rerun a trial, or a commit's trials, to check them"),
-    "cancel": Command("remote", "cancel a queued or running trial"),
+    "cancel": Command("remote", "cancel a queued or running trial, or an evaluation"),
     "export": Command("export", "export trials for learning: a row per control tick, every camera"),
     "tasks": Command("remote", "the lab's tasks and their parameters"),
     "status": Command("remote", "the lab now: the queue and what workers run"),
@@ -98,13 +99,36 @@ COMMANDS = {
 
 
 class Parser(argparse.ArgumentParser):
-    """argparse's parser, whose usage errors are JSON when ``--json`` was asked for."""
+    """argparse's parser, whose usage errors are JSON when ``--json`` was asked for, which
+    suggests the nearest choice for a wrong one (``labd sumbit``: did you mean 'submit'?),
+    and whose commands report the words they do not take themselves, with their own
+    usage (argparse leaves them to ``labd``, which shows the list of commands)."""
 
     def error(self, message: str) -> NoReturn:
         if "--json" in sys.argv[1:]:
             print(json.dumps({"error": f"{self.prog}: {message}"}))
             sys.exit(2)
         super().error(message)
+
+    def _check_value(self, action: argparse.Action, value: Any) -> None:
+        choices = action.choices
+        if choices is not None and value not in choices:
+            names = [str(choice) for choice in choices]
+            near = difflib.get_close_matches(str(value), names, n=1)
+            if near:
+                listed = "`labd --help` lists them" if self.prog == "labd" else ", ".join(names)
+                raise argparse.ArgumentError(
+                    action, f"invalid choice: {value!r}, did you mean {near[0]!r}? ({listed})"
+                )
+        super()._check_value(action, value)
+
+    def parse_known_args(  # type: ignore[override]
+        self, args: Sequence[str] | None = None, namespace: argparse.Namespace | None = None
+    ) -> tuple[argparse.Namespace, list[str]]:
+        parsed, extra = super().parse_known_args(args, namespace)
+        if extra and self.prog != "labd":  # a command's: none is the next parser's to read
+            self.error(f"unrecognized arguments: {' '.join(extra)}")
+        return parsed, extra
 
 
 def build_parser(argv: Sequence[str] | None = None) -> argparse.ArgumentParser:

@@ -18,11 +18,14 @@ With ``--json`` every command prints one JSON value on stdout, errors included
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
+import re
 import sys
 from collections.abc import Callable, Iterable
 from enum import IntEnum
+from pathlib import Path
 from typing import Any
 
 from labd import config
@@ -43,8 +46,8 @@ class ExitCode(IntEnum):
 EPILOG = """exit codes: 0 success (a rerun: reproduced; an evaluation: at least
 --min-success); 1 fail (the trial ran to its end without achieving its task; an
 evaluation below --min-success); 2 usage (a wrong command line, a refused request, no lab);
-3 error (the trial broke); 4 cancelled; 5 a rerun diverged; 6 a record or export does not
-match its signature (verify)"""
+3 error (the trial broke; an evaluation partial, as the lab broke an episode); 4 cancelled;
+5 a rerun did not reproduce; 6 a record or export does not match its signature (verify)"""
 
 
 def exit_code(status: Status | str, outcome: Outcome | str | None) -> ExitCode:
@@ -78,6 +81,36 @@ def assignment(text: str) -> tuple[str, str]:
         return config.assignment(text)
     except ValueError as err:
         raise argparse.ArgumentTypeError(str(err)) from None
+
+
+# What the lab takes for a URL rather than a path, as git does (scheduler.fetch's rule,
+# copied so a client command need not import git; tests/labd/test_cli_repository_paths.py
+# holds the two to each other): scheme://, transport::, or scp's [user@]host:path.
+_SCHEME = re.compile(r"^([A-Za-z][A-Za-z0-9+.-]*)://")
+_TRANSPORT = re.compile(r"^([A-Za-z][A-Za-z0-9+.-]*)::")
+_SCP = re.compile(r"^(?:[^@/\s]+@)?(?:\[[0-9A-Fa-f:.]+\]|[\w.-]+):(?!//)")
+
+
+def is_url(text: str) -> bool:
+    """Whether a lab reads ``text`` as a repository's URL rather than a folder's path."""
+    return any(rule.match(text) for rule in (_SCHEME, _TRANSPORT, _SCP))
+
+
+def repository(text: str) -> str:
+    """An argparse type: a repository as the lab should read it. A URL as it is; a path
+    is the caller's, so it is made absolute here, in the caller's folder (``~`` the
+    caller's home, links followed, as the lab records a local repository), whether or
+    not it exists: a lab on this machine then finds it, and one elsewhere names the
+    whole path it did not find, never a folder of its own."""
+    if not text or is_url(text):
+        return text
+    path = Path(text)
+    with contextlib.suppress(RuntimeError):  # ~name of no user here: a folder's name then
+        path = path.expanduser()
+    return str(path.resolve())
+
+
+REPOSITORY_HELP = "a git URL, or a local repository's folder (a relative path is from this folder)"
 
 
 def param_option(

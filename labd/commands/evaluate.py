@@ -2,15 +2,21 @@
 
     labd evaluate REPO_URL [--ref REF] [--task TASK] [--suite dev] [--wait]
                   [--min-success RATE] [--json]
+    labd cancel --evaluation ID
     labd evaluations [--task T] [--suite S] [--repo URL] [--commit SHA] [--user U]
                      [--limit N] [--json]
 
 ``evaluate`` queues one trial per episode of the suite (``repository.evaluation``) and,
 with ``--wait``, prints its progress on stderr until every episode has ended, then the
-success rate with its 95 % interval. The exit code makes it a gate in a repository's
-own CI: 0 when the evaluation finished with a success rate of at least
-``--min-success`` (default 0), 1 below it, 4 when it was cancelled, and the usual codes
-for errors (``labd.commands.common``).
+success rate with its 95 % interval. ``--min-success`` makes it a gate in a repository's
+own CI, and waits as ``--wait`` does (saying so once on stderr): a gate that queued and
+exited 0 would pass having checked nothing. Its last line on stderr says how the gate
+went, and so does the exit code: 0 passed (a success rate of at least RATE), 1 failed
+(below it), 4 cancelled, 3 partial (the lab broke an episode, so the score is not the
+controller's), and the usual codes for errors (``labd.commands.common``). A held-out
+evaluation's score is shown only once it has ended: it is gated then, like any other.
+``labd cancel --evaluation ID`` (``cancel``) and ``labd rerun COMMIT --evaluations``
+(``rerun``) are here too.
 """
 
 from __future__ import annotations
@@ -22,7 +28,14 @@ from collections.abc import Iterator
 from typing import Any
 
 from labd.api.models import EvaluationPage, EvaluationView
-from labd.commands.common import ExitCode, emit, fail, server_options
+from labd.commands.common import (
+    REPOSITORY_HELP,
+    ExitCode,
+    emit,
+    fail,
+    repository,
+    server_options,
+)
 from repository.errors import ArchiveError
 from repository.trial import Status
 from scheduler.client import ApiClient
@@ -31,13 +44,14 @@ from scheduler.errors import RemoteError
 POLL = 2.0  # seconds between looks at a running evaluation
 REPLAYS = 120.0  # seconds to wait, after the last episode, for the replays' verdicts
 VERIFYING = " to verify them"
+GATE_WAITS = "labd evaluate: --min-success waits for every episode, as --wait does"
 
 
 def add_parser(commands: Any) -> None:
     p = commands.add_parser(
         "evaluate", help="score a commit on a task's suite of episodes, with its uncertainty"
     )
-    p.add_argument("repository", metavar="REPO_URL", help="a git URL, or a local repository")
+    p.add_argument("repository", metavar="REPO_URL", type=repository, help=REPOSITORY_HELP)
     p.add_argument("--ref", help="branch, tag or commit (default: the repository's HEAD)")
     p.add_argument("--task", help="the task (default: the one the repository's lab.toml names)")
     p.add_argument(
@@ -53,17 +67,18 @@ def add_parser(commands: Any) -> None:
     p.add_argument(
         "--min-success",
         type=rate,
-        default=0.0,
         metavar="RATE",
-        help="with --wait, exit 1 when the success rate is below RATE: a fraction (0.8)"
-        " or a percentage (80%%) (default: 0)",
+        help="a gate: wait (as --wait does), then exit 1 when the success rate is below RATE,"
+        " a fraction (0.8) or a percentage (80%%) (default: no gate)",
     )
     server_options(p, write=True)
 
     p = commands.add_parser("evaluations", help="list evaluations, newest first")
     p.add_argument("--task", help="only this task's (default: all)")
     p.add_argument("--suite", help="only this suite's (default: all)")
-    p.add_argument("--repo", help="only this repository URL's (default: all)")
+    p.add_argument(
+        "--repo", type=repository, help="only this repository URL's or folder's (default: all)"
+    )
     p.add_argument("--commit", help="only this commit's, its 40 digits (default: all)")
     p.add_argument("--user", help="only this submitter's (default: everyone's)")
     p.add_argument("--limit", type=int, default=20, help="how many (default: %(default)s)")
@@ -92,15 +107,25 @@ def main(args: argparse.Namespace) -> int:
 
 
 def _evaluate(client: ApiClient, args: argparse.Namespace) -> int:
+    """Queue the evaluation; with ``--wait`` or a gate, follow it to its end, then say
+    how the gate went in one line on stderr. A gate implies waiting: a score cannot be
+    checked before it exists, and a CI job that forgot ``--wait`` must not pass having
+    checked nothing."""
+    waits = args.wait or args.min_success is not None
+    if waits and not args.wait:
+        print(GATE_WAITS, file=sys.stderr, flush=True)
     body = {"repository": args.repository, "ref": args.ref, "task": args.task, "suite": args.suite}
     evaluation = client.post("/api/evaluations", EvaluationView, json=body)
     print(_queued(evaluation), file=sys.stderr, flush=True)
-    if args.wait:
-        evaluation = _follow(client, evaluation)
-    emit(args, evaluation.model_dump(mode="json"), lambda: _lines(evaluation))
-    if not args.wait:
+    if not waits:
+        emit(args, evaluation.model_dump(mode="json"), lambda: _lines(evaluation))
         return ExitCode.SUCCESS
-    return _code(evaluation, args.min_success)
+    evaluation = _follow(client, evaluation)
+    emit(args, evaluation.model_dump(mode="json"), lambda: _lines(evaluation))
+    code, said = gate(evaluation, args.min_success)
+    if said is not None:
+        print(said, file=sys.stderr, flush=True)
+    return code
 
 
 def _follow(client: ApiClient, evaluation: EvaluationView) -> EvaluationView:
@@ -133,13 +158,46 @@ def _replaying(e: EvaluationView) -> int:
     return sum(r.data_digest is not None and r.verified is None for r in e.rows)
 
 
-def _code(evaluation: EvaluationView, min_success: float) -> int:
-    if evaluation.status is Status.CANCELLED:
-        return ExitCode.CANCELLED
-    if evaluation.partial:  # the lab broke an episode: no score to gate on
-        return ExitCode.ERROR
-    rate = evaluation.score.success_rate
-    return ExitCode.SUCCESS if rate is not None and rate >= min_success else ExitCode.FAIL
+def gate(e: EvaluationView, min_success: float | None) -> tuple[ExitCode, str | None]:
+    """The exit code of an evaluation followed to its end, and the line that says why
+    (None for a whole evaluation when no gate was asked): passed, failed, or not checked,
+    since a cancelled or partial evaluation has no score to gate on. A held-out
+    evaluation is gated like any other, on the score it shows once it has ended."""
+    unchecked = "" if min_success is None else "gate not checked: "
+    if e.status is Status.CANCELLED:
+        return ExitCode.CANCELLED, f"{unchecked}evaluation {e.id} was {_cancelled(e)}"
+    if e.partial:  # the lab broke an episode: the score is not the controller's
+        return ExitCode.ERROR, (
+            f"{unchecked}evaluation {e.id} is partial: {e.partial_reason}; evaluate again"
+        )
+    s = e.score
+    held = ", held out" if e.held_out else ""
+    if s.success_rate is None:  # ended, yet no score shown: nothing to pass
+        return ExitCode.FAIL, f"{unchecked}evaluation {e.id}{held} shows no score"
+    if min_success is None:
+        return ExitCode.SUCCESS, None
+    rate, bound = _percents(s.success_rate, min_success)
+    over = f"(evaluation {e.id}{held}: {s.successes} of {s.episodes} episodes succeeded)"
+    if s.success_rate >= min_success:
+        return ExitCode.SUCCESS, f"gate passed: {rate} ≥ {bound} {over}"
+    return ExitCode.FAIL, f"gate failed: {rate} is below --min-success {bound} {over}"
+
+
+def _cancelled(e: EvaluationView) -> str:
+    """How a cancelled evaluation was cancelled, after its number: "cancelled by its
+    submitter (17 episodes unfinished)", or "cancelled: 2 episodes cancelled (4, 7)"."""
+    reason = e.partial_reason or "cancelled"
+    return reason if reason.startswith("cancelled") else f"cancelled: {reason}"
+
+
+def _percents(rate: float, bound: float) -> tuple[str, str]:
+    """Two rates as percentages with the fewest decimals that keep them apart (79.5 %
+    is below 80 %, never "80 % is below 80 %")."""
+    for digits in range(4):
+        a, b = f"{100 * rate:.{digits}f}", f"{100 * bound:.{digits}f}"
+        if (a == b) == (rate == bound):
+            break
+    return f"{a} %", f"{b} %"
 
 
 def _queued(e: EvaluationView) -> str:
@@ -238,6 +296,27 @@ def rerun(client: ApiClient, args: argparse.Namespace) -> int:
         return ExitCode.CANCELLED
     reproduced = all((e.reproduced or "").startswith("reproduced") for e in made)
     return ExitCode.SUCCESS if reproduced else ExitCode.DIVERGED
+
+
+def cancel(client: ApiClient, args: argparse.Namespace) -> int:
+    """``labd cancel --evaluation ID``: cancel its episodes still queued and stop those
+    running (what finished is kept, and the evaluation is partial); exit 2 if it had
+    already ended, as ``labd cancel TRIAL`` does."""
+    path = f"/api/evaluations/{args.trial}"
+    before = client.get(path, EvaluationView)
+    e = before if before.status.ended else client.post(f"{path}/cancel", EvaluationView)
+    if e.status is Status.CANCELLED and not before.status.ended:
+        said = [f"evaluation {e.id} {_cancelled(e)}", f"  {e.page}"]
+    elif not e.status.ended:
+        said = [
+            f"evaluation {e.id} is running: cancelling; the workers stop its running episodes"
+            " within seconds",
+            f"  follow it: {e.page}",
+        ]
+    else:
+        return fail(args, f"evaluation {e.id} had already ended ({e.status}); nothing to cancel")
+    emit(args, e.model_dump(mode="json"), lambda: said)
+    return ExitCode.SUCCESS
 
 
 def _list(client: ApiClient, args: argparse.Namespace) -> int:

@@ -8,7 +8,7 @@
     labd download TRIAL [-o FILE]
     labd rerun COMMIT|TRIAL [--all] [--wait]
     labd rerun COMMIT --evaluations [--all] [--wait]   (labd.commands.evaluate)
-    labd cancel TRIAL
+    labd cancel TRIAL | --evaluation ID                (an evaluation: labd.commands.evaluate)
     labd export TRIAL --format F | --task T ... --format F   (labd.commands.export)
     labd tasks
     labd status
@@ -16,11 +16,14 @@
 Each takes ``--server URL`` (default ``$LABD_SERVER`` or http://127.0.0.1:8080) and
 ``--json``; those that write take ``--token`` (default ``$LABD_TOKEN``). Errors from
 the server are printed as it words them. Exit codes are in ``labd.commands.common``.
+A repository given as a path is the caller's: made absolute here, before it is sent
+(``labd.commands.common.repository``).
 """
 
 from __future__ import annotations
 
 import argparse
+import re
 import sys
 import time
 from collections.abc import Callable, Iterator
@@ -39,11 +42,13 @@ from labd.api.models import (
 )
 from labd.commands import evaluate
 from labd.commands.common import (
+    REPOSITORY_HELP,
     ExitCode,
     emit,
     exit_code,
     fail,
     param_option,
+    repository,
     server_options,
     worst,
 )
@@ -52,13 +57,16 @@ from repository.errors import ArchiveError
 from repository.trial import Kind, Outcome, Status
 from repository.well_known import SIGNATURE_SIDECAR
 from scheduler.client import ApiClient
-from scheduler.errors import RemoteError
+from scheduler.errors import ApiRefused, RemoteError
 from scheduler.states import Cancel
+
+# the lab's refusal to cancel one episode alone (scheduler.errors.EpisodeOfEvaluation)
+EPISODE = re.compile(r"is an episode of evaluation (\d+)")
 
 
 def add_parser(commands: Any) -> None:
     p = commands.add_parser("submit", help="queue a trial of a repository at a ref")
-    p.add_argument("repository", metavar="REPO_URL", help="a git URL, or a local repository")
+    p.add_argument("repository", metavar="REPO_URL", type=repository, help=REPOSITORY_HELP)
     p.add_argument("--ref", help="branch, tag or commit (default: the repository's HEAD)")
     p.add_argument(
         "--task",
@@ -71,7 +79,9 @@ def add_parser(commands: Any) -> None:
     server_options(p, write=True)
 
     p = commands.add_parser("trials", help="list trials in the archive, newest first")
-    p.add_argument("--repo", help="only this repository URL (default: all)")
+    p.add_argument(
+        "--repo", type=repository, help="only this repository URL or folder (default: all)"
+    )
     p.add_argument("--commit", help="only this commit, or commits starting with these digits")
     p.add_argument("--task", help="only this task (default: all)")
     p.add_argument("--status", choices=[s.value for s in Status], help="only this status")
@@ -115,8 +125,16 @@ def add_parser(commands: Any) -> None:
     p.add_argument("--wait", action="store_true", help="wait and print the verdicts")
     server_options(p, write=True)
 
-    p = commands.add_parser("cancel", help="cancel a queued or running trial")
-    p.add_argument("trial", type=int, metavar="TRIAL", help="the trial's number")
+    p = commands.add_parser("cancel", help="cancel a queued or running trial, or an evaluation")
+    p.add_argument(
+        "trial", type=int, metavar="ID", help="the trial's number (--evaluation: the evaluation's)"
+    )
+    p.add_argument(
+        "--evaluation",
+        action="store_true",
+        help="ID is an evaluation's: cancel its episodes not yet ended; the finished ones are"
+        " kept and it is partial (default: ID is a trial's)",
+    )
     server_options(p, write=True)
 
     p = commands.add_parser("tasks", help="the lab's tasks and their parameters")
@@ -256,7 +274,15 @@ def _rerun_code(row: TrialDetail) -> ExitCode:
 
 
 def _cancel(client: ApiClient, args: argparse.Namespace) -> int:
-    answer = client.post(f"/api/trials/{args.trial}/cancel", CancelView)
+    if args.evaluation:
+        return evaluate.cancel(client, args)
+    try:
+        answer = client.post(f"/api/trials/{args.trial}/cancel", CancelView)
+    except ApiRefused as err:
+        episode = EPISODE.search(err.message) if err.status == 409 else None
+        if episode is None:
+            raise
+        return fail(args, f"{err.message}: labd cancel --evaluation {episode.group(1)}")
     row = answer.trial
     if answer.done is Cancel.CANCELLED:
         emit(args, _json(row), lambda: [f"trial {row.id} cancelled: {row.reason}"])
@@ -438,9 +464,14 @@ def _trial_lines(row: TrialDetail, full: bool = False) -> Iterator[str]:
 
 
 def _verdict_line(row: TrialDetail) -> str:
-    if row.verdict:
-        return f"trial {row.id} (rerun of {row.rerun_of}): {row.verdict}"
-    return f"trial {row.id} (rerun of {row.rerun_of}): {_state(row)}: {row.reason}"
+    """A rerun's verdict; one that did not reproduce says how the rerun ended, and why
+    (a rerun that broke made no record to compare: its reason is what to act on)."""
+    said = f"trial {row.id} (rerun of {row.rerun_of})"
+    if row.reproduced:
+        return f"{said}: {row.verdict}"
+    if row.verdict and row.outcome is not None:
+        return f"{said}: {row.verdict}; it ended {row.outcome.value.upper()}: {row.reason}"
+    return f"{said}: {_state(row)}: {row.reason}"
 
 
 def _table(page: TrialPage) -> Iterator[str]:

@@ -2,18 +2,24 @@
 
 from __future__ import annotations
 
+import json
+import os
 import re
 import signal
 import subprocess
 import sys
+from pathlib import Path
 
 import orjson
 import pytest
 from websockets.sync.client import connect
 
-from tests.helpers.labs import shared_cache
+from scheduler.fetch import FetchPolicy
+from tests.helpers.githttp import GitRepo
+from tests.helpers.labs import lab_config, running, shared_cache
 
 pytestmark = pytest.mark.integration
+LAB_TOML = '[controller]\ncommand = ["python", "c.py"]\ntask = "icreate-maze"\n'
 
 
 def test_serve_starts_answers_and_stops_on_sigterm(tmp_path, cache):
@@ -71,3 +77,38 @@ def test_tls_flags_go_together():
         timeout=30,
     )
     assert result.returncode != 0 and "--tls-cert and --tls-key go together" in result.stderr
+
+
+def test_a_relative_repository_path_is_the_caller_s(tmp_path):
+    """``labd submit maze`` and ``labd evaluate maze``, run in the user's folder, send the
+    folder the user means (not one under the lab's folder), and ``--repo maze`` lists what
+    they queued; a URL goes as it is."""
+    user = tmp_path / "user"
+    made = GitRepo.create(user / "maze", {"lab.toml": LAB_TOML, "c.py": "pass\n"}).path
+    fetch = FetchPolicy(schemes=frozenset({"file"}))
+    with running(lab_config(tmp_path / "data", robots=(), service={"fetch": fetch})) as lab:
+        assert not (Path.cwd() / "maze").exists()  # the lab's own folder has none
+        env = {
+            **os.environ,
+            "LABD_SERVER": lab.http_url(),
+            "LABD_TOKEN": lab.lab.service.index.add_user("alice", max_daily=500),
+        }
+
+        def labd(*args: str) -> subprocess.CompletedProcess[str]:
+            command = [sys.executable, "-m", "labd", *args, "--json"]
+            return subprocess.run(
+                command, cwd=user, env=env, capture_output=True, text=True, timeout=60, check=False
+            )
+
+        submitted = labd("submit", "maze")
+        assert submitted.returncode == 0, submitted.stdout + submitted.stderr
+        assert json.loads(submitted.stdout)["repository"] == str(made.resolve())
+        evaluated = labd("evaluate", "./maze/")
+        assert evaluated.returncode == 0, evaluated.stdout + evaluated.stderr
+        assert json.loads(evaluated.stdout)["repository"] == str(made.resolve())
+        listed = json.loads(labd("trials", "--repo", "maze", "--limit", "30").stdout)["trials"]
+        assert len(listed) == 21
+        listed = json.loads(labd("evaluations", "--repo", "maze").stdout)["evaluations"]
+        assert len(listed) == 1
+        url = labd("submit", GitRepo(made).url)
+        assert json.loads(url.stdout)["repository"] == str(made.resolve())

@@ -36,7 +36,10 @@ def test_an_evaluation_of_the_dev_suite_from_the_command_line(make_lab, tmp_path
     assert score["success_interval"][0] == 0.0 and 0.1 < score["success_interval"][1] < 0.2
     assert {r["outcome"] for r in evaluation["rows"]} == {"fail"}
     assert [r["seed"] for r in evaluation["rows"]] == list(range(20))
-    progress = gate.stderr.strip().splitlines()[1:]  # after the line that says it queued
+    *progress, said = gate.stderr.strip().splitlines()[1:]  # after the line that it queued
+    assert said == (
+        "gate failed: 0 % is below --min-success 50 % (evaluation 1: 0 of 20 episodes succeeded)"
+    )
     assert progress[0].startswith("evaluation 1: 0/20 done") or "running" in progress[0]
     assert progress[-1] in (  # the last: every episode done, or the replays of the last
         "evaluation 1: 20/20 done, 0 running, 0 queued; 0 of 20 succeeded (0%)",

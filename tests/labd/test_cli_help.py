@@ -1,10 +1,13 @@
-"""Every option of every ``labd`` command says what it does and, if it has one, its default."""
+"""Every option of every ``labd`` command says what it does and, if it has one, its default;
+a wrong command line is answered by the command it names, with the nearest right word."""
 
 from __future__ import annotations
 
 import argparse
 
-from labd.cli import build_parser
+import pytest
+
+from labd.cli import build_parser, main
 
 
 def options():
@@ -47,3 +50,22 @@ def test_the_check_sees_every_command():
     seen = {command for command, _, _ in options()}
     assert {"serve", "run", "submit", "trials", "users add", "migrate", "demo", "worker"} <= seen
     assert sum(1 for _ in options()) > 80
+
+
+def test_an_unknown_command_is_answered_with_the_nearest_one(capsys):
+    """``labd sumbit`` is a usage error (2) that suggests ``submit``."""
+    with pytest.raises(SystemExit) as exited:
+        main(["sumbit", "x"])
+    assert exited.value.code == 2
+    assert "did you mean 'submit'?" in capsys.readouterr().err
+
+
+def test_a_command_s_usage_error_shows_that_command_s_usage(capsys):
+    """An option a command does not take (``labd logs 2 --tail``) is reported by that
+    command, with its usage, not by ``labd`` with the list of commands."""
+    with pytest.raises(SystemExit) as exited:
+        main(["logs", "2", "--tail"])
+    assert exited.value.code == 2
+    err = capsys.readouterr().err
+    assert err.startswith("usage: labd logs "), err
+    assert err.rstrip().endswith("labd logs: error: unrecognized arguments: --tail"), err
