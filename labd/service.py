@@ -263,12 +263,17 @@ class Service:
     def serving_at(self, url: str) -> None:
         """The lab's HTTP port answers at ``url`` (known once it listens): its hosted
         repositories are at ``PUBLIC/git/`` (``public_url``, else ``url``), which this
-        lab's submissions and workers fetch like any repository, over git's HTTP."""
+        lab's submissions and workers fetch like any repository, over git's HTTP, from
+        ``url`` itself (the public name or port may not lead back here: a container's
+        port published under another number), except under TLS, whose certificate names
+        the public host."""
         self.git_url = f"{(self.config.public_url or url).rstrip('/')}/git"
-        self.fetch = replace(self.fetch, hosted=(f"{self.git_url}/",))
-        self.submissions.policy = replace(self.submissions.policy, hosted=self.fetch.hosted)
+        at = f"{self.git_url}/" if url.startswith("https:") else f"{url.rstrip('/')}/git/"
+        hosted = (f"{self.git_url}/",)
+        self.fetch = replace(self.fetch, hosted=hosted, hosted_at=at)
+        self.submissions.policy = replace(self.submissions.policy, hosted=hosted, hosted_at=at)
         if self.run_options.fetch is not None:
-            fetch = replace(self.run_options.fetch, hosted=self.fetch.hosted)
+            fetch = replace(self.run_options.fetch, hosted=hosted, hosted_at=at)
             self.run_options = replace(self.run_options, fetch=fetch)
 
     async def start_processes(self, server: str, env: dict[str, str] | None = None) -> None:

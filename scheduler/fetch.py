@@ -28,8 +28,11 @@ submitter would otherwise reach the lab's host. Even then the lab's own folders
 Hosts are public ones only unless the operator allows private ones (``private_hosts``):
 every address a host's name resolves to is checked, and git connects to the one checked,
 following no redirect (``scheduler.hosts``); the lab's own repositories (``hosted``) are
-fetched wherever the lab serves them. A repository's URL takes no user name, password,
-query or fragment: the lab records it, and shows it to anyone who reads the archive.
+fetched wherever the lab serves them: recorded under its public URL, from where this
+process reaches it (``hosted_at``: a worker's ``--server``, the lab's own port), so a
+record names the same repository whichever worker ran it. A repository's URL takes no
+user name, password, query or fragment: the lab records it, and shows it to anyone who
+reads the archive.
 Fetching a repository and its submodules runs under one deadline (waiting for another
 fetch of the same mirror included) and a size watch: git and everything it started are
 killed past either.
@@ -56,6 +59,7 @@ import base64
 import contextlib
 import fcntl
 import hashlib
+import ipaddress
 import logging
 import os
 import posixpath
@@ -142,6 +146,10 @@ class FetchPolicy:
     ``hosted``: URL prefixes of the repositories the lab hosts itself (the playground's,
     ``http://LAB/git/``), fetched whatever ``schemes`` says of their scheme: they are the
     lab's own, served read-only by git's smart HTTP, so at whatever address it has.
+    ``hosted_at``: the prefix they are fetched from, when that is not the one they are
+    recorded under (``PUBLIC/git/``, where people reach the lab): a worker fetches them
+    from its own ``--server``, whatever a lab's public URL says, so it never contacts
+    another host for them; the mirror and the record keep the recorded URL.
     ``private_hosts``: hosts at addresses that are not public (loopback, the lab's own
     network...) are fetched from too; otherwise refused before any connection.
     """
@@ -157,6 +165,7 @@ class FetchPolicy:
     user_config: bool = False  # read ~/.gitconfig (helpers, rewrites): one's own machine only
     lab_folders: tuple[Path, ...] = ()
     hosted: tuple[str, ...] = ()
+    hosted_at: str | None = None  # None: fetched where recorded
     private_hosts: bool = False  # fetch from loopback, link-local and private addresses too
 
     def credential_for(self, location: Location) -> Credential | None:
@@ -292,10 +301,18 @@ def locate(repository: str, policy: FetchPolicy) -> Location:
 def _hosted(url: str, policy: FetchPolicy) -> bool:
     """Whether ``url`` names one of the lab's own repositories: a hosted prefix, then
     ``USER/NAME.git`` and nothing more (no query, no ``..``)."""
-    return any(
-        url.startswith(prefix) and HOSTED_PATH.fullmatch(url[len(prefix) :]) is not None
-        for prefix in policy.hosted
-    )
+    return hosted_source(url, policy) is not None
+
+
+def hosted_source(url: str, policy: FetchPolicy) -> str | None:
+    """Where git fetches ``url`` from if it names one of the lab's own repositories
+    (``hosted_at`` + ``USER/NAME.git``, or ``url`` itself without ``hosted_at``); None
+    for any other URL."""
+    for prefix in policy.hosted:
+        rest = url[len(prefix) :]
+        if url.startswith(prefix) and HOSTED_PATH.fullmatch(rest) is not None:
+            return f"{policy.hosted_at}{rest}" if policy.hosted_at is not None else url
+    return None
 
 
 def _local(given: str, path: Path, policy: FetchPolicy) -> Location:
@@ -352,8 +369,10 @@ def git_environment(
     if not policy.user_config:
         env["GIT_CONFIG_GLOBAL"] = "/dev/null"
     schemes = set(policy.schemes)
-    if _hosted(location.url, policy):  # the lab's own repository, over its own HTTP port
-        schemes.add(location.scheme)
+    source = hosted_source(location.url, policy)
+    if source is not None:
+        # the lab's own repository, over its own HTTP port (wherever this process reaches it)
+        schemes |= {location.scheme, urlsplit(source).scheme}
     config = [
         ("core.hooksPath", "/dev/null"),
         ("protocol.allow", "never"),
@@ -364,6 +383,10 @@ def git_environment(
         ("fetch.recurseSubmodules", "false"),
         ("submodule.recurse", "false"),
     ]
+    if source is not None and _loopback(source):
+        # the lab on this machine, never through the environment's proxy (whose own
+        # loopback is not this one); empty, git sets no proxy for this URL
+        config.append((f"http.{source}.proxy", ""))
     ssh = ["ssh", "-o", "BatchMode=yes"]
     if pinned is not None:
         config.append(("http.followRedirects", "false"))  # not to an address unchecked
@@ -480,7 +503,7 @@ def _fetch_once(
     refspecs: tuple[str, ...],
 ) -> None:
     env = git_environment(location, policy, credential, pinned)
-    url = fetch_url(location, pinned)
+    url = hosted_source(location.url, policy) or fetch_url(location, pinned)
     if mirror.is_dir():
         command = ["-C", str(mirror), "fetch", "--quiet", "--no-write-fetch-head"]
         if not refspecs:
@@ -522,6 +545,17 @@ def check_host(location: Location, policy: FetchPolicy) -> Pinned | None:
     except Unreachable as err:  # the resolver's words, like git's, for the log only
         log.info("%s could not be fetched: %s", mask_url(location.url), err.detail)
         raise
+
+
+def _loopback(url: str) -> bool:
+    """Whether ``url``'s host is this machine's loopback (``localhost`` or an address)."""
+    host = urlsplit(url).hostname or ""
+    if host == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return False
 
 
 def fetch_url(location: Location, pinned: Pinned | None) -> str:

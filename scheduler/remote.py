@@ -28,7 +28,9 @@ from scheduler.states import State
 PROTOCOL = 4  # 1: labd 0.1 (status succeeded/failed); 2: status and outcome apart;
 # 3: the lab holds a filing to its record (422 if not borne out), no metrics without one;
 # 4: claims say ``blind`` (held-out episodes: the controller learns no seed), replay
-# verdicts are the lab's own (a remote worker files none)
+# verdicts are the lab's own (a remote worker files none). Still 4 with hello's ``git``
+# (the prefix the lab records its hosted repositories under): an addition a worker of 4
+# ignores, and without which a worker fetches only what is under its own --server
 PROTOCOL_HEADER = "X-Labd-Worker-Protocol"
 VERSION_HEADER = "X-Labd-Version"
 
@@ -45,6 +47,7 @@ class RemoteLab:
         )
         self.server = self.api.server
         self.replays = False  # whether the lab takes this worker's replays (``hello``)
+        self.git: str | None = None  # where the lab records its hosted repositories (``hello``)
 
     def close(self) -> None:
         self.api.close()
@@ -53,9 +56,12 @@ class RemoteLab:
         """Check the token and that the lab speaks this worker protocol; the lab's version
         (``ApiRefused`` with the lab's explanation if not). ``replays`` says after it
         whether the lab takes this worker's replay verdicts (only from its own workers:
-        it replays what others file itself)."""
+        it replays what others file itself), ``git`` the URL its hosted repositories are
+        recorded under (``PUBLIC/git``; None from a lab that does not say)."""
         reply = self.api.request("GET", "/api/workers/hello").json()
         self.replays = reply.get("replays") is True
+        git = reply.get("git")
+        self.git = git if isinstance(git, str) and git else None
         return str(reply["version"])
 
     # -- Jobs -------------------------------------------------------------------------

@@ -95,6 +95,9 @@ class Hello(BaseModel):
     protocol: int  # the worker protocol it speaks
     worker: str  # the user the token belongs to
     replays: bool  # whether the lab takes this worker's replay verdicts (its own workers')
+    # the prefix its hosted repositories are recorded under (PUBLIC/git), None before it
+    # serves: a worker fetches those from its own --server (its public URL may not lead there)
+    git: str | None = None
 
 
 def _own(user: User) -> bool:
@@ -104,10 +107,17 @@ def _own(user: User) -> bool:
 
 
 @router.get("/api/workers/hello")
-def hello(user: WorkerUser) -> Hello:
+def hello(user: WorkerUser, service: Lab) -> Hello:
     """A worker checks its token and version before it claims anything, and learns
-    whether to replay what it files (only the lab's own workers do)."""
-    return Hello(version=__version__, protocol=PROTOCOL, worker=user.name, replays=_own(user))
+    whether to replay what it files (only the lab's own workers do) and under which URL
+    the lab records its hosted repositories."""
+    return Hello(
+        version=__version__,
+        protocol=PROTOCOL,
+        worker=user.name,
+        replays=_own(user),
+        git=service.git_url,
+    )
 
 
 def _named(user: User, name: str) -> str:

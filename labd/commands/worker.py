@@ -30,6 +30,7 @@ from repository.masking import mask_url
 from sandbox.api import SandboxError
 from scheduler.client import DEFAULT_SERVER
 from scheduler.errors import RemoteError
+from scheduler.fetch import FetchPolicy
 from scheduler.remote import RemoteLab
 from scheduler.runner import RunOptions
 from scheduler.worker import Worker, WorkerConfig
@@ -101,8 +102,6 @@ def main(args: argparse.Namespace) -> int:
     if not args.token:
         return fail(args, "give a worker's token (--token or LABD_TOKEN)")
     policy = fetching.policy(args, "labd worker")
-    # the lab's own repositories (the playground's), over its HTTP port like its API
-    policy = replace(policy, hosted=(f"{args.server.rstrip('/')}/git/",))
     cache = (args.cache or args.data / "cache").resolve()
     work = (args.data / "work").resolve()
     work.mkdir(parents=True, exist_ok=True)
@@ -116,6 +115,7 @@ def main(args: argparse.Namespace) -> int:
     except RemoteError as err:
         lab.close()
         return fail(args, str(err))
+    policy = hosted(policy, args.server, lab.git)
     name = f"{socket.gethostname()}:{os.getpid()}"
     host = LabHost()
     workers = [
@@ -146,6 +146,17 @@ def main(args: argparse.Namespace) -> int:
     finally:
         lab.close()
     return 0
+
+
+def hosted(policy: FetchPolicy, server: str, public: str | None) -> FetchPolicy:
+    """``policy`` with the lab's own repositories (the playground's): recorded under
+    ``public`` (``PUBLIC/git``, as the lab's hello says) or under ``server``'s ``/git/``,
+    and fetched from ``server``'s, over its HTTP port like its API. A worker that reaches
+    the lab at another address than the public one (a compose network's ``lab:8080``)
+    runs them all the same, and whatever the lab says, fetches them from no other host."""
+    own = f"{server.rstrip('/')}/git/"
+    prefixes = [own] if public is None else [f"{public.rstrip('/')}/", own]
+    return replace(policy, hosted=tuple(dict.fromkeys(prefixes)), hosted_at=own)
 
 
 async def _run(workers: list[Worker]) -> None:

@@ -339,6 +339,7 @@ async def test_a_worker_of_another_version_is_refused_naming_both(api, service):
         "protocol": PROTOCOL,
         "worker": "farm",
         "replays": False,  # a worker elsewhere: the lab replays what it files
+        "git": None,  # a lab not listening yet has no hosted repositories' URL
     }
     assert (
         await api.post("/api/workers/claim", json={"worker": "w1"}, headers=same)
