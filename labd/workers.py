@@ -10,10 +10,11 @@ worker's.
 
 Each start of the service makes a worker token for the account ``LOCAL_WORKERS``
 (revoking that account's earlier tokens) and hands it to its children in their
-environment, never on a command line. A child that dies is started again after a pause
-(the lab's lease gives its trial to another worker); when the service stops, its
-children are asked to stop (SIGTERM: they hand their trials back to the queue) and
-killed if they have not within ``STOP_SECONDS``.
+environment, never on a command line. A child reaches the lab directly, never through a
+proxy the lab's environment names (``NO_PROXY``). A child that dies is started again
+after a pause (the lab's lease gives its trial to another worker); when the service
+stops, its children are asked to stop (SIGTERM: they hand their trials back to the
+queue) and killed if they have not within ``STOP_SECONDS``.
 """
 
 from __future__ import annotations
@@ -24,8 +25,9 @@ import logging
 import os
 import signal
 import sys
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from pathlib import Path
+from urllib.parse import urlsplit
 
 from repository.accounts import Accounts
 from repository.errors import RecordNotFound
@@ -34,6 +36,16 @@ log = logging.getLogger("labd.workers")
 LOCAL_WORKERS = "local-workers"  # the account the service's worker processes use
 STOP_SECONDS = 20.0
 RESTART_SECONDS = 5.0  # between a child's death and its next start
+
+
+def direct(server: str, environ: Mapping[str, str]) -> dict[str, str]:
+    """``NO_PROXY`` and ``no_proxy`` (``environ``'s, with ``server``'s host added): a
+    child calls the lab, and fetches its repositories, directly, whatever proxy the lab's
+    environment names for the world (httpx reads either variable, curl and so git both)."""
+    listed = [environ.get("NO_PROXY", ""), environ.get("no_proxy", ""), urlsplit(server).hostname]
+    hosts = [h.strip() for item in listed if item for h in item.split(",") if h.strip()]
+    joined = ",".join(dict.fromkeys(hosts))
+    return {"NO_PROXY": joined, "no_proxy": joined}
 
 
 class WorkerProcesses:
@@ -78,7 +90,7 @@ class WorkerProcesses:
         child takes what it runs from its command line."""
         token = await asyncio.to_thread(self.token)
         base = {k: v for k, v in os.environ.items() if not k.startswith("LABD_")}
-        environ = {**base, **(env or {}), "LABD_TOKEN": token}
+        environ = {**base, **(env or {}), "LABD_TOKEN": token, **direct(server, base)}
         for n in range(self.count):
             task = asyncio.create_task(self._keep(n, server, environ), name=f"worker process {n}")
             self._tasks.append(task)
