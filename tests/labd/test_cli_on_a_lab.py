@@ -184,6 +184,21 @@ def test_every_gate_outcome_says_itself_in_one_line(lab, repo, capsys, case, cod
     assert evaluate.gate(evaluation, 0.8) == (code, said)
 
 
+@pytest.mark.parametrize(
+    ("rate", "bound", "said"),
+    [
+        (0.85, 0.8, ("85 %", "80 %")),
+        (0.85, 0.849, ("85.0 %", "84.9 %")),
+        (0.8, 0.8, ("80 %", "80 %")),
+        (0.3, 1 / 3, ("30 %", "33 %")),
+        (0.3334, 1 / 3, ("33.34 %", "33.33 %")),
+    ],
+)
+def test_a_rate_and_its_gate_never_print_alike_unless_they_are(rate, bound, said):
+    """The gate's line never reads "80 % is below --min-success 80 %"."""
+    assert evaluate._percents(rate, bound) == said
+
+
 def test_waiting_without_a_gate_says_nothing_more_of_a_whole_evaluation(lab, repo, capsys):
     """``--wait`` alone gates nothing: a finished evaluation exits 0 with no gate line,
     while a cancelled one still says why it exits 4."""
