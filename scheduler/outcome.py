@@ -14,6 +14,7 @@ import signal
 from repository.trial import Ending
 from repository.units import MiB
 from sandbox.api import Exit, Limits
+from sandbox.runtime import CODE
 from scheduler.host import Episode
 
 _FRAME = re.compile(r'^\s*File "(?P<file>[^"]+)", line (?P<line>\d+)(?:, in (?P<where>.+))?$')
@@ -22,6 +23,8 @@ _NODE_FRAME = re.compile(
     r"^\s+at (?:(?P<where>.+?) \()?(?:file://)?(?P<file>/[^:()]+):(?P<line>\d+):\d+\)?$"
 )
 _NODE_EXIT = re.compile(r"^Node\.js v\d+")  # the last line Node prints of an uncaught error
+_PYTHON_TRACEBACK = "Traceback (most recent call last):"
+_INSTALLED = frozenset({"site-packages", "dist-packages", "node_modules"})
 
 
 def judge(exit_: Exit, episode: Episode, *, ended: bool, limits: Limits) -> Ending:
@@ -75,9 +78,15 @@ def episode_ending(episode: Episode) -> Ending:
 
 
 def crash_summary(stderr: bytes) -> str:
-    """The end of a crash's stderr: a Python traceback's last frame (file and line) and
-    its error, Node.js's uncaught error and its first frame in the controller's own
-    files, or else the last meaningful line."""
+    """The end of a crash's stderr: a Python traceback's error and its innermost frame
+    in the controller's own files (else its innermost frame), Node.js's uncaught error
+    and its first frame in the controller's own files (else outside Node itself), or
+    else the last meaningful line.
+
+    The controller's own frame, not the innermost: an error the client library (or
+    NumPy, or roslibpy) raised on the controller's behalf, such as the lab refusing an
+    ``/action``, is raised in the library's code, and the line to fix is the caller's.
+    """
     lines = [line.rstrip() for line in stderr.decode("utf-8", "replace").splitlines()]
     lines = [line for line in lines if line.strip()]
     if not lines:
@@ -85,17 +94,25 @@ def crash_summary(stderr: bytes) -> str:
     if _NODE_EXIT.match(lines[-1]):
         return _node_summary(lines[:-1])
     last = lines[-1].strip()[:300]
-    for line in reversed(lines):
-        match = _FRAME.match(line)
-        if match:
-            where = f", in {match['where']}" if match["where"] else ""
-            return f"{last} ({match['file']}, line {match['line']}{where})"
-    return last
+    # the last traceback: with chained exceptions, the one the controller died of
+    start = max((i for i, line in enumerate(lines) if line == _PYTHON_TRACEBACK), default=0)
+    frames = [match for match in map(_FRAME.match, lines[start:]) if match]
+    if not frames:
+        return last
+    match = next((m for m in reversed(frames) if _own(m["file"])), frames[-1])
+    where = f", in {match['where']}" if match["where"] else ""
+    return f"{last} ({match['file']}, line {match['line']}{where})"
+
+
+def _own(file: str) -> bool:
+    """Whether ``file`` is of the controller's own code: in its repository (the
+    sandbox's ``/code``), and not a package installed or vendored there."""
+    return file.startswith(CODE + "/") and _INSTALLED.isdisjoint(file.split("/"))
 
 
 def _node_summary(lines: list[str]) -> str:
     """Node's uncaught error: the line before its last stack, and the stack's first frame
-    outside Node itself."""
+    in the controller's own files, else its first outside Node itself."""
     end = max((i for i, line in enumerate(lines) if line.lstrip().startswith("at ")), default=-1)
     if end < 0:
         return lines[-1].strip()[:300] if lines else ""
@@ -103,12 +120,12 @@ def _node_summary(lines: list[str]) -> str:
     while start > 0 and lines[start - 1].lstrip().startswith("at "):
         start -= 1
     message = lines[start - 1].strip()[:300] if start > 0 else ""
-    for line in lines[start : end + 1]:
-        match = _NODE_FRAME.match(line)
-        if match:
-            where = f", in {match['where']}" if match["where"] else ""
-            return f"{message} ({match['file']}, line {match['line']}{where})"
-    return message
+    frames = [match for match in map(_NODE_FRAME.match, lines[start : end + 1]) if match]
+    if not frames:
+        return message
+    match = next((m for m in frames if _own(m["file"])), frames[0])
+    where = f", in {match['where']}" if match["where"] else ""
+    return f"{message} ({match['file']}, line {match['line']}{where})"
 
 
 def _signal_name(number: int | None) -> str:
