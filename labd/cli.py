@@ -116,7 +116,8 @@ class Parser(argparse.ArgumentParser):
             names = [str(choice) for choice in choices]
             near = difflib.get_close_matches(str(value), names, n=1)
             if near:
-                listed = "`labd --help` lists them" if self.prog == "labd" else ", ".join(names)
+                commands = isinstance(action, argparse._SubParsersAction) and self.prog == "labd"
+                listed = "`labd --help` lists them" if commands else ", ".join(names)
                 raise argparse.ArgumentError(
                     action, f"invalid choice: {value!r}, did you mean {near[0]!r}? ({listed})"
                 )

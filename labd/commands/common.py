@@ -96,7 +96,7 @@ def is_url(text: str) -> bool:
     return any(rule.match(text) for rule in (_SCHEME, _TRANSPORT, _SCP))
 
 
-def repository(text: str) -> str:
+def repository_arg(text: str) -> str:
     """An argparse type: a repository as the lab should read it. A URL as it is; a path
     is the caller's, so it is made absolute here, in the caller's folder (``~`` the
     caller's home, links followed, as the lab records a local repository), whether or

@@ -33,7 +33,7 @@ from labd.commands.common import (
     ExitCode,
     emit,
     fail,
-    repository,
+    repository_arg,
     server_options,
 )
 from repository.errors import ArchiveError
@@ -51,7 +51,7 @@ def add_parser(commands: Any) -> None:
     p = commands.add_parser(
         "evaluate", help="score a commit on a task's suite of episodes, with its uncertainty"
     )
-    p.add_argument("repository", metavar="REPO_URL", type=repository, help=REPOSITORY_HELP)
+    p.add_argument("repository", metavar="REPO_URL", type=repository_arg, help=REPOSITORY_HELP)
     p.add_argument("--ref", help="branch, tag or commit (default: the repository's HEAD)")
     p.add_argument("--task", help="the task (default: the one the repository's lab.toml names)")
     p.add_argument(
@@ -77,7 +77,7 @@ def add_parser(commands: Any) -> None:
     p.add_argument("--task", help="only this task's (default: all)")
     p.add_argument("--suite", help="only this suite's (default: all)")
     p.add_argument(
-        "--repo", type=repository, help="only this repository URL's or folder's (default: all)"
+        "--repo", type=repository_arg, help="only this repository URL's or folder's (default: all)"
     )
     p.add_argument("--commit", help="only this commit's, its 40 digits (default: all)")
     p.add_argument("--user", help="only this submitter's (default: everyone's)")

@@ -17,7 +17,7 @@ Each takes ``--server URL`` (default ``$LABD_SERVER`` or http://127.0.0.1:8080) 
 ``--json``; those that write take ``--token`` (default ``$LABD_TOKEN``). Errors from
 the server are printed as it words them. Exit codes are in ``labd.commands.common``.
 A repository given as a path is the caller's: made absolute here, before it is sent
-(``labd.commands.common.repository``).
+(``labd.commands.common.repository_arg``).
 """
 
 from __future__ import annotations
@@ -48,7 +48,7 @@ from labd.commands.common import (
     exit_code,
     fail,
     param_option,
-    repository,
+    repository_arg,
     server_options,
     worst,
 )
@@ -66,7 +66,7 @@ EPISODE = re.compile(r"is an episode of evaluation (\d+)")
 
 def add_parser(commands: Any) -> None:
     p = commands.add_parser("submit", help="queue a trial of a repository at a ref")
-    p.add_argument("repository", metavar="REPO_URL", type=repository, help=REPOSITORY_HELP)
+    p.add_argument("repository", metavar="REPO_URL", type=repository_arg, help=REPOSITORY_HELP)
     p.add_argument("--ref", help="branch, tag or commit (default: the repository's HEAD)")
     p.add_argument(
         "--task",
@@ -80,7 +80,7 @@ def add_parser(commands: Any) -> None:
 
     p = commands.add_parser("trials", help="list trials in the archive, newest first")
     p.add_argument(
-        "--repo", type=repository, help="only this repository URL or folder (default: all)"
+        "--repo", type=repository_arg, help="only this repository URL or folder (default: all)"
     )
     p.add_argument("--commit", help="only this commit, or commits starting with these digits")
     p.add_argument("--task", help="only this task (default: all)")

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-from labd.commands.common import is_url, repository
+from labd.commands.common import is_url, repository_arg
 from scheduler.fetch import SCHEME, SCP, TRANSPORT
 
 URLS = [
@@ -27,7 +27,7 @@ PATHS = ["maze", "./maze/", "../elsewhere/maze", "sub/dir:with-colon", "~/maze",
 
 @pytest.mark.parametrize("given", URLS)
 def test_a_url_goes_as_it_is(given):
-    assert repository(given) == given
+    assert repository_arg(given) == given
 
 
 @pytest.mark.parametrize("given", PATHS)
@@ -35,7 +35,7 @@ def test_a_path_is_made_absolute_in_the_caller_s_folder(given, tmp_path, monkeyp
     monkeypatch.chdir(tmp_path)
     monkeypatch.setenv("HOME", str(tmp_path / "home"))
     expected = Path(given).expanduser()
-    assert repository(given) == str((tmp_path / expected).resolve())
+    assert repository_arg(given) == str((tmp_path / expected).resolve())
 
 
 def test_a_path_through_a_link_is_the_folder_it_names(tmp_path, monkeypatch):
@@ -44,7 +44,7 @@ def test_a_path_through_a_link_is_the_folder_it_names(tmp_path, monkeypatch):
     (tmp_path / "real").mkdir()
     (tmp_path / "link").symlink_to(tmp_path / "real")
     monkeypatch.chdir(tmp_path)
-    assert repository("link") == str((tmp_path / "real").resolve())
+    assert repository_arg("link") == str((tmp_path / "real").resolve())
 
 
 @pytest.mark.parametrize("given", URLS + PATHS)
