@@ -41,7 +41,14 @@ from typing import Any
 
 from pydantic import BaseModel, ConfigDict, Field
 
-from repository.stats import Interval, bootstrap_mean, mcnemar_exact, paired_difference, wilson
+from repository.stats import (
+    MIN_BOOTSTRAP,
+    Interval,
+    mcnemar_exact,
+    mean_interval,
+    paired_difference,
+    wilson,
+)
 from repository.trial import MAX_SEED, Outcome, Status, Value
 
 EVALUATION = "labd.evaluation/2"  # what an evaluation's signed statement says it is
@@ -195,7 +202,8 @@ class Score(BaseModel):
     success_interval: tuple[float, float] | None = Field(description="95 % Wilson interval")
     mean_reward: float | None
     reward_interval: tuple[float, float] | None = Field(
-        description="95 % percentile bootstrap over episodes"
+        description="95 % percentile bootstrap over episodes; null with fewer than"
+        f" {MIN_BOOTSTRAP} rewards or all alike, where a bootstrap is no 95 % interval"
     )
     verified: bool = Field(description="every episode finished and the lab's replay verified it")
     compute_seconds: float | None = Field(
@@ -259,7 +267,7 @@ def score(rows: Sequence[EpisodeRow], *, seed: int) -> Score:
     rewards = [r.reward for r in finished if r.reward is not None]
     ended = bool(rows) and all(r.status.ended for r in rows)
     interval = wilson(successes, len(rows)) if ended else None
-    spread = bootstrap_mean(rewards, seed=seed)
+    spread = mean_interval(rewards, seed=seed)  # None where it would be degenerate
     return Score(
         episodes=len(rows),
         done=len(finished),

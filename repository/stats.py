@@ -6,7 +6,9 @@ estimates from a sample of episodes, each with its 95 % interval:
 - the success rate with Wilson's score interval (sound at 0 % and 100 % and for few
   episodes, where the normal approximation's interval leaves [0, 1] or has no width);
 - the mean reward with a percentile bootstrap interval over episodes, from a seeded
-  generator, so the same episodes always give the same interval.
+  generator, so the same episodes always give the same interval; or none
+  (``mean_interval``) where a bootstrap cannot be a 95 % interval: under
+  ``MIN_BOOTSTRAP`` episodes, or rewards all alike.
 
 Two evaluations of the same suite are paired by episode (the same seed, so the same
 maze or table). Whether A succeeds more often than B is McNemar's exact test: only the
@@ -19,12 +21,29 @@ evaluations (``repository.evaluation``'s models, the ``labd`` command) loads non
 
 from __future__ import annotations
 
+import itertools
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 
 Z95 = 1.959963984540054  # the standard normal's 97.5th percentile
 RESAMPLES = 2000  # bootstrap resamples: the interval's ends move by well under 1 % of its width
+LEVEL = 0.95  # every interval here is a 95 % one
+
+
+def range_coverage(n: int) -> float:
+    """The chance that ``n`` independent draws of a continuous distribution straddle its
+    median: each falls below it with probability 1/2, so 1 - P(all below) - P(all above)
+    = 1 - 2 (1/2)^n."""
+    return 1 - 2 * 0.5**n
+
+
+# The fewest values whose percentile bootstrap interval can be a 95 % one (6). Every
+# resample's mean lies within the values' range, so the interval does too, and the range
+# holds the median only with probability range_coverage(n): 93.75 % for 5 values, 96.9 %
+# for 6. The median is the mean of a symmetric distribution, the most favourable case:
+# below 6 values no percentile interval covers the mean 95 % of the time (2 values: half).
+MIN_BOOTSTRAP = next(n for n in itertools.count(1) if range_coverage(n) >= LEVEL)
 
 
 @dataclass(frozen=True)
@@ -70,6 +89,19 @@ def bootstrap_mean(
     picks = np.random.default_rng(seed).integers(0, len(data), size=(resamples, len(data)))
     low, high = np.quantile(data[picks].mean(axis=1), [0.025, 0.975])
     return Interval(float(low), float(high))
+
+
+def mean_interval(
+    values: Sequence[float], *, seed: int = 0, resamples: int = RESAMPLES
+) -> Interval | None:
+    """The 95 % interval of the mean of ``values``, the percentile bootstrap
+    (``bootstrap_mean``), where there is one; None for fewer than ``MIN_BOOTSTRAP``
+    values (it cannot be a 95 % interval) or values all alike (every resample is the
+    same: a zero-width interval would claim a certainty no sample gives; twenty
+    episodes of reward 0 say little of a rare one that earns 1000)."""
+    if len(values) < MIN_BOOTSTRAP or min(values) == max(values):
+        return None
+    return bootstrap_mean(values, seed=seed, resamples=resamples)
 
 
 def paired_difference(

@@ -49,6 +49,7 @@ from repository.evaluation import (
 )
 from repository.evaluation_index import EvaluationFilters
 from repository.index import User
+from repository.stats import MIN_BOOTSTRAP
 from repository.trial import Status
 
 router = APIRouter(include_in_schema=False, route_class=PageRoute)
@@ -91,13 +92,21 @@ def rate_words(score: Score, ended: bool) -> str:
 
 
 def reward_words(score: Score) -> str:
+    """The mean reward with its 95 % bootstrap interval, or why it has none
+    (``repository.stats.mean_interval``): too few episodes, or rewards all alike (the
+    score does not say which when enough episodes ended: one may have no reward)."""
     if score.mean_reward is None:
         return "no reward yet"
     words = f"mean reward {rounded(score.mean_reward, 3)}"
-    if score.reward_interval is None:
-        return words
-    low, high = score.reward_interval
-    return f"{words} ({rounded(low, 3)} to {rounded(high, 3)}, 95 % bootstrap)"
+    if score.reward_interval is not None:
+        low, high = score.reward_interval
+        return f"{words} ({rounded(low, 3)} to {rounded(high, 3)}, 95 % bootstrap)"
+    if score.done is not None and score.done < MIN_BOOTSTRAP:
+        few = plural(score.done, "episode")
+        return f"{words} ({few}: too few for a 95 % interval, which takes {MIN_BOOTSTRAP})"
+    return (
+        f"{words} (no 95 % interval: the rewards are all the same, or fewer than {MIN_BOOTSTRAP})"
+    )
 
 
 def replay_words(rows: Sequence[EpisodeRow], verified: bool, episodes: int) -> str:

@@ -1,5 +1,6 @@
 """An evaluation's statistics, held to SciPy's: Wilson's interval, McNemar's exact test,
-and bootstrap intervals that are seeded, cover the mean and narrow with more episodes."""
+and bootstrap intervals that are seeded, cover the mean and narrow with more episodes,
+and are none where they cannot be 95 % intervals."""
 
 from __future__ import annotations
 
@@ -8,7 +9,16 @@ import random
 import pytest
 from scipy import stats as scipy_stats
 
-from repository.stats import Interval, bootstrap_mean, mcnemar_exact, paired_difference, wilson
+from repository.stats import (
+    MIN_BOOTSTRAP,
+    Interval,
+    bootstrap_mean,
+    mcnemar_exact,
+    mean_interval,
+    paired_difference,
+    range_coverage,
+    wilson,
+)
 
 
 @pytest.mark.parametrize(
@@ -69,6 +79,44 @@ def test_bootstrap_is_seeded_covers_the_mean_and_narrows_with_more_episodes() ->
 def test_bootstrap_of_nothing_or_one_value() -> None:
     assert bootstrap_mean([]) is None
     assert bootstrap_mean([2.5]) == Interval(2.5, 2.5)
+
+
+def test_the_fewest_values_for_a_95_percent_bootstrap_is_where_their_range_can_hold_it() -> None:
+    """The percentile interval lies within the values' range (every resample's mean
+    does), and n draws of a continuous distribution straddle its median with probability
+    1 - P(all below) - P(all above) = 1 - 2 Binomial(n, 1/2).pmf(0): below 95 % up to 5
+    values (93.75 %), above from 6 (96.9 %). For a symmetric distribution the median is
+    the mean, so under 6 values no percentile bootstrap is a 95 % interval of it."""
+    for n in range(1, 12):
+        expected = 1 - 2 * scipy_stats.binom.pmf(0, n, 0.5)
+        assert range_coverage(n) == pytest.approx(expected, abs=1e-15)
+    assert MIN_BOOTSTRAP == min(n for n in range(1, 100) if 1 - 2 * 0.5**n >= 0.95) == 6
+    # and the bootstrap's own coverage of a normal mean: two values, about one time in two
+    rng = random.Random(11)
+    covered = 0
+    for trial in range(400):
+        interval = bootstrap_mean([rng.gauss(0.0, 1.0) for _ in range(2)], seed=trial)
+        assert interval is not None
+        covered += interval.low <= 0.0 <= interval.high
+    assert 0.4 < covered / 400 < 0.6
+
+
+def test_a_mean_interval_over_too_few_or_alike_values_is_none() -> None:
+    """Under MIN_BOOTSTRAP values, or values all alike (a zero-width interval claims a
+    certainty no sample gives), the mean has no interval; otherwise it is the percentile
+    bootstrap, as bootstrap_mean computes it."""
+    values = [17.88, 3.5, 9.25, 12.0, 4.75, 8.5, 1.25]
+    for n in range(MIN_BOOTSTRAP):
+        assert mean_interval(values[:n], seed=5) is None
+    assert bootstrap_mean([17.88], seed=5) == Interval(17.88, 17.88)  # the degenerate one
+    assert mean_interval([17.88], seed=5) is None
+    assert mean_interval([0.0] * 20, seed=5) is None
+    assert mean_interval([1000.0] * 50, seed=5) is None
+    enough = values[:MIN_BOOTSTRAP]
+    got = mean_interval(enough, seed=5)
+    assert got is not None and got == bootstrap_mean(enough, seed=5)
+    assert got.low < sum(enough) / len(enough) < got.high
+    assert mean_interval([0.0] * 19 + [1.0], seed=5) == bootstrap_mean([0.0] * 19 + [1.0], seed=5)
 
 
 def test_paired_difference_is_the_mean_difference_with_its_interval() -> None:

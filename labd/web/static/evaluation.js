@@ -9,6 +9,7 @@ const root = document.getElementById("evaluation");
 const ENDED = new Set(["finished", "cancelled"]);
 const STATES = ["success", "fail", "error", "running", "queued", "cancelled"];
 const DIVERGED_LISTED = 10;
+const MIN_BOOTSTRAP = 6;  // repository/stats.py: the fewest rewards a 95 % interval takes
 const $ = (id) => document.getElementById(id);
 
 function rounded(value, places) {
@@ -35,9 +36,15 @@ function rateWords(score, ended) {
 function rewardWords(score) {
   if (score.mean_reward === null) return "no reward yet";
   const words = `mean reward ${rounded(score.mean_reward, 3)}`;
-  if (score.reward_interval === null) return words;
-  const [low, high] = score.reward_interval;
-  return `${words} (${rounded(low, 3)} to ${rounded(high, 3)}, 95 % bootstrap)`;
+  if (score.reward_interval !== null) {
+    const [low, high] = score.reward_interval;
+    return `${words} (${rounded(low, 3)} to ${rounded(high, 3)}, 95 % bootstrap)`;
+  }
+  if (score.done !== null && score.done < MIN_BOOTSTRAP) {
+    const few = plural(score.done, "episode");
+    return `${words} (${few}: too few for a 95 % interval, which takes ${MIN_BOOTSTRAP})`;
+  }
+  return `${words} (no 95 % interval: the rewards are all the same, or fewer than ${MIN_BOOTSTRAP})`;
 }
 
 function replayWords(rows, verified, episodes) {

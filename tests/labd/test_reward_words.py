@@ -1,0 +1,85 @@
+"""The mean reward in words: the evaluation page's Python and its script say the same,
+and say why there is no interval where there is none."""
+
+from __future__ import annotations
+
+import json
+import shutil
+import subprocess
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from labd.web.evaluations import reward_words
+from repository.evaluation import Score
+
+SCRIPT = Path(__file__).resolve().parents[2] / "labd" / "web" / "static" / "evaluation.js"
+# evaluation.js run in Node: no page (getElementById finds nothing, so it follows
+# nothing), its rewardWords applied to each score given on stdin
+RUN = """
+const fs = require("fs");
+globalThis.document = { getElementById: () => null };
+require("vm").runInThisContext(fs.readFileSync(process.argv[1], "utf8") + ";globalThis.rewardWords = rewardWords;");
+const scores = JSON.parse(fs.readFileSync(0, "utf8"));
+process.stdout.write(JSON.stringify(scores.map((s) => globalThis.rewardWords(s))));
+"""
+
+
+def scored(done: int | None, mean: float | None, interval: tuple[float, float] | None) -> Score:
+    return Score(
+        episodes=20,
+        done=done,
+        running=0,
+        queued=0,
+        successes=done,
+        errors=0,
+        success_rate=None,
+        success_interval=None,
+        mean_reward=mean,
+        reward_interval=interval,
+        verified=False,
+        compute_seconds=None,
+    )
+
+
+SCORES = [
+    scored(0, None, None),
+    scored(1, 17.88, None),
+    scored(2, 17.94, None),
+    scored(5, 0.5, None),
+    scored(20, 0.0, None),
+    scored(None, 3.25, None),
+    scored(20, 0.7, (0.4975, 0.8825)),
+]
+
+
+def test_no_interval_says_why() -> None:
+    """One episode: the mean, and that one is too few for a 95 % interval (six are the
+    fewest); twenty of one reward: no interval, and the two reasons there can be."""
+    assert reward_words(SCORES[1]) == (
+        "mean reward 17.88 (1 episode: too few for a 95 % interval, which takes 6)"
+    )
+    assert reward_words(SCORES[3]).endswith(
+        "(5 episodes: too few for a 95 % interval, which takes 6)"
+    )
+    assert reward_words(SCORES[4]) == (
+        "mean reward 0 (no 95 % interval: the rewards are all the same, or fewer than 6)"
+    )
+    assert reward_words(SCORES[6]) == "mean reward 0.7 (0.498 to 0.883, 95 % bootstrap)"
+
+
+@pytest.mark.skipif(shutil.which("node") is None, reason="needs Node.js")
+def test_the_pages_script_says_what_the_python_says() -> None:
+    """rewardWords in static/evaluation.js, run in Node on the API's JSON of each score,
+    gives the very words of labd.web.evaluations.reward_words."""
+    payload: list[dict[str, Any]] = [s.model_dump(mode="json") for s in SCORES]
+    done = subprocess.run(
+        ["node", "-e", RUN, str(SCRIPT)],
+        input=json.dumps(payload),
+        capture_output=True,
+        text=True,
+        timeout=30,
+        check=True,
+    )
+    assert json.loads(done.stdout) == [reward_words(s) for s in SCORES]
