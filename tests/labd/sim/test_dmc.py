@@ -330,6 +330,30 @@ def test_the_threshold_decides_success_or_failure(monkeypatch):
     assert live.running and live.task.outcome(live.physics) is None
 
 
+def test_the_time_limits_end_is_truncated_with_its_verdict_and_the_suites_own_is_not(
+    monkeypatch,
+):
+    """An episode the time limit ended keeps its verdict as its status (what
+    /lab/episode has always said) and is truncated (Simulation.truncated, Gymnasium's
+    flag), as dm_control's last discount of 1 says; one the suite's own termination
+    ended (discount 0) is not."""
+    spec = PACK["dmc-cartpole-balance"]
+    short = {"time_limit": 5 * listing_of(spec.name).control_timestep}
+    sim = Simulation(spec, short, seed=3)
+    assert not sim.truncated
+    while sim.running:
+        sim.step()
+    assert (sim.status, sim.truncated) == (EpisodeStatus.FAILED, True)
+    outcome = sim.task.outcome(sim.physics)
+    assert outcome is not None and outcome.truncated and outcome.reason == sim.reason
+
+    own = Simulation(spec, {}, seed=3)
+    monkeypatch.setattr(own.task.inner, "get_termination", lambda physics: 0.0)
+    own.step()
+    assert (own.status, own.truncated, own.tick) == (EpisodeStatus.FAILED, False, 1)
+    assert "the suite ended the episode at step 1" in own.reason
+
+
 def test_seeds_beyond_numpys_are_still_seeds():
     """Seeds up to 2**32 - 1 are dm_control's own; larger ones (held-out suites) build,
     are reproducible, and differ from their low word."""
