@@ -1,6 +1,7 @@
 """The archive's pages: the lab, trials, one trial, a commit, a task.
 
-    GET /                   the lab: its tasks, live robots, recent trials, the queue now
+    GET /                   the lab: what runs and waits, recent trials, the latest
+                            evaluations and the leaderboards, live robots, the tasks
     GET /trials             filters (repository, commit, task, outcome, user, time),
                             sorted by time (pages by cursor) or reward (pages by number)
     GET /trials/{id}        outcome and reason, what ran, metrics, logs, downloads, the
@@ -33,11 +34,12 @@ from labd.api.models import Id, trial_detail
 from labd.api.state import App
 from labd.errors import LabError
 from labd.sim import registry
-from labd.web.evaluations import task_board
+from labd.web.evaluations import Listed, rate_words, task_board
 from labd.web.problems import PageRoute, on_form
 from labd.web.render import page
 from labd.web.session import Viewer
 from repository.errors import BlobError
+from repository.evaluation_index import EvaluationFilters
 from repository.index import Derived, Filters, Order
 from repository.trial import Kind, Outcome, Status, Trial
 from repository.units import KiB
@@ -46,6 +48,13 @@ from scheduler.states import State
 
 router = APIRouter(include_in_schema=False, route_class=PageRoute)
 PAGE = 50
+# The home page fits a 1280x800 screen: the recent trials, the running trials it names
+# (it counts them all), the latest evaluations, and how many evaluations back it looks
+# for the suites whose leaderboards it links.
+HOME_TRIALS = 8
+HOME_RUNNING = 5
+HOME_EVALUATIONS = 6
+HOME_EVALUATED = 20
 LOG_SHOWN = 64 * KiB  # bytes of a log shown on its trial's page (the end of it)
 # What the outcome menu also offers: the states of a trial that has no outcome.
 WITHOUT_OUTCOME = tuple(s for s in Status if s is not Status.FINISHED)
@@ -53,19 +62,32 @@ WITHOUT_OUTCOME = tuple(s for s in Status if s is not Status.FINISHED)
 
 @router.get("/", response_class=HTMLResponse)
 def home(request: Request, service: Lab, app: App, viewer: Viewer) -> HTMLResponse:
+    """What a person looks for first, in a screen's height: what runs and waits, the
+    recent trials, the latest evaluations with their rates and the leaderboards of the
+    suites they ran; then the catalogue of tasks. Held-out episodes are left out of what
+    runs and waits (when each starts and ends would time it); an evaluation of a
+    held-out suite shows its aggregate alone, as its own page does."""
     tasks = [registry.get(name) for name in registry.names()]
-    recent = service.index.find(Filters(), limit=10).items
-    running = service.queue.running(public=True)
+    latest = service.evaluations.find(EvaluationFilters(), limit=HOME_EVALUATED).items
+    robots: dict[str, list[str]] = {}
+    for robot in app.site.robots:
+        robots.setdefault(robot.task, []).append(robot.name)
     return page(
         request,
         "home.html",
         {
             "tasks": tasks,
+            "robots": robots,
             "site": app.site,
-            "recent": recent,
-            "running": running,
+            "recent": service.index.find(Filters(), limit=HOME_TRIALS).items,
+            "running": service.queue.running(public=True),
+            "running_shown": HOME_RUNNING,
             "queued": service.queue.queued(public=True),
             "unwell": [h for h in service.queue.health.values() if h.state is State.OUT],
+            "evaluations": [
+                Listed(e, rate_words(e.score, e.status.ended)) for e in latest[:HOME_EVALUATIONS]
+            ],
+            "boards": list(dict.fromkeys((e.task, e.suite) for e in latest)),
             "now": dt.datetime.now(dt.UTC),
         },
         user=viewer,
