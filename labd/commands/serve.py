@@ -38,6 +38,7 @@ from repository.errors import ArchiveError, SchemaMismatch
 from repository.masking import mask_url
 from repository.reservations import MAX_HORIZON, MAX_SLOT, Rules
 from repository.units import KiB, MiB
+from sandbox.api import SandboxError
 from scheduler.data import DataPolicy
 from scheduler.evaluate import HeldOutBudget
 from scheduler.queue import QueueConfig
@@ -588,7 +589,7 @@ def main(args: argparse.Namespace) -> int:
     except SchemaMismatch as err:
         where = f"--database {args.database}" if args.database else f"--data {args.data}"
         return fail(args, f"{err}: labd migrate {where}")
-    except (ArchiveError, LabError, OSError) as err:
+    except (ArchiveError, LabError, SandboxError, OSError) as err:
         return fail(args, str(err))
     return 0
 

@@ -111,14 +111,15 @@ def test_an_engine_that_refuses_is_said_to_need_starting(
     [
         ["run", str(MAZE), "--task", "icreate-maze"],
         ["worker", "--server", "http://127.0.0.1:9", "--token", "t"],
+        ["serve", "--http-port", "0", "--bridge-port", "0", "--no-robots", "--workers", "1"],
     ],
-    ids=["run", "worker"],
+    ids=["run", "worker", "serve"],
 )
 def test_the_commands_print_the_one_line(
     nothing: dict[str, str], tmp_path: Path, argv: list[str]
 ) -> None:
-    """labd run and labd worker (as labd serve starts its workers) on a machine with
-    neither sandbox exit 2 with that one line, no traceback."""
+    """labd run, labd worker and labd serve (whose workers need a sandbox) on a machine
+    with neither sandbox exit 2 with that one line, no traceback."""
     done = subprocess.run(
         [sys.executable, "-m", "labd", *argv, "--data", str(tmp_path / "data")],
         capture_output=True,
