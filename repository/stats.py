@@ -106,15 +106,16 @@ def mean_interval(
 
 def paired_difference(
     a: Sequence[float], b: Sequence[float], *, seed: int = 0, resamples: int = RESAMPLES
-) -> tuple[float, Interval] | None:
-    """The mean of ``a[i] - b[i]`` over pairs, with its bootstrap 95 % interval; None
-    without pairs."""
+) -> tuple[float, Interval | None] | None:
+    """The mean of ``a[i] - b[i]`` over pairs, with its 95 % interval where there is one
+    (``mean_interval``: none over fewer than ``MIN_BOOTSTRAP`` pairs, or differences all
+    alike); None without pairs."""
     if len(a) != len(b):
         raise ValueError(f"{len(a)} values paired with {len(b)}")
     differences = [x - y for x, y in zip(a, b, strict=True)]
-    interval = bootstrap_mean(differences, seed=seed, resamples=resamples)
-    if interval is None:
+    if not differences:
         return None
+    interval = mean_interval(differences, seed=seed, resamples=resamples)
     return sum(differences) / len(differences), interval
 
 

@@ -283,6 +283,7 @@ def comparison(
             context.update(b=second, said_b=Said.of(second), compared=compared)
             if compared.reward_difference is not None:
                 context["difference"] = rounded(compared.reward_difference, 3)
+                context["min_pairs"] = MIN_BOOTSTRAP
             if compared.reward_difference_interval is not None:
                 low, high = compared.reward_difference_interval
                 context["difference_interval"] = f"{rounded(low, 3)} to {rounded(high, 3)}"

@@ -196,7 +196,10 @@ async def test_two_evaluations_compared_and_two_that_do_not_pair(web, service, w
     table = {k: page.by_id(k)["text"] for k in ("both", "only-a", "only-b", "neither")}
     assert table == {"both": "8", "only-a": "10", "only-b": "0", "neither": "2"}
     assert page.by_id("p-value")["text"].startswith("0.002 ")
-    assert page.by_id("difference")["text"].startswith("0.5 (0.5 to 0.5, 95 % bootstrap)")
+    assert page.by_id("difference")["text"].startswith(  # every pair differs by 0.5
+        "0.5 (no 95 % interval: the differences are all alike, or fewer than 6 pairs)"
+    )
+    assert (api["reward_difference"], api["reward_difference_interval"]) == (0.5, None)
     assert f"/evaluations/{b['id']}" in reply.text and f"/evaluations/{d['id']}" in reply.text
 
     choosing = Elements((await web.get(f"/compare?a={b['id']}")).text)

@@ -123,10 +123,13 @@ def test_paired_difference_is_the_mean_difference_with_its_interval() -> None:
     a = [1.0, 2.0, 3.0, 4.0, 5.0, 6.0]
     b = [0.5, 1.5, 2.5, 3.5, 4.5, 5.5]
     mean, interval = paired_difference(a, b, seed=1)
-    assert mean == pytest.approx(0.5)
-    assert interval.low == pytest.approx(0.5) and interval.high == pytest.approx(
-        0.5
-    )  # every pair differs by 0.5
+    assert mean == pytest.approx(0.5) and interval is None  # every pair differs by 0.5
+    c = [0.5, 1.0, 2.0, 3.5, 4.0, 6.5]  # differences 0.5, 1, 1, 0.5, 1, -0.5
+    mean, interval = paired_difference(a, c, seed=1)
+    assert mean == pytest.approx(3.5 / 6)
+    assert interval == mean_interval([0.5, 1.0, 1.0, 0.5, 1.0, -0.5], seed=1)
+    assert interval is not None and interval.low < mean < interval.high
+    assert paired_difference(a[:5], c[:5], seed=1) == (pytest.approx(0.8), None)  # 5 pairs
     assert paired_difference([], []) is None
     with pytest.raises(ValueError, match="paired"):
         paired_difference([1.0], [1.0, 2.0])
