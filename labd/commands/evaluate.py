@@ -37,6 +37,7 @@ from labd.commands.common import (
     server_options,
 )
 from repository.errors import ArchiveError
+from repository.stats import MIN_BOOTSTRAP
 from repository.trial import Status
 from scheduler.client import ApiClient
 from scheduler.errors import RemoteError
@@ -252,6 +253,11 @@ def _lines(e: EvaluationView) -> Iterator[str]:
     if s.mean_reward is not None and s.reward_interval is not None:
         low, high = s.reward_interval
         yield f"  mean reward {s.mean_reward:.4g} (95 % interval {low:.4g} to {high:.4g})"
+    elif s.mean_reward is not None:
+        yield (
+            f"  mean reward {s.mean_reward:.4g} (no 95 % interval: the rewards are all alike,"
+            f" or fewer than {MIN_BOOTSTRAP})"
+        )
     unverified = [r.episode for r in e.rows if not r.verified]
     if s.verified:
         yield "  verified: the lab's replay of every episode reproduced its record"

@@ -217,6 +217,19 @@ def test_waiting_without_a_gate_says_nothing_more_of_a_whole_evaluation(lab, rep
     )
 
 
+def test_a_reward_without_an_interval_says_why(lab, repo, capsys):
+    """Rewards all alike give no 95 % interval (``repository.stats.mean_interval``): the
+    result says the mean alone, and why, rather than a zero-width interval."""
+    service = lab.lab.service
+    run(capsys, "evaluate", str(repo))
+    file_suite(service, DEV)  # every episode a success of reward 1
+    with ApiClient(lab.http_url()) as client:
+        alike = client.get("/api/evaluations/1", EvaluationView)
+    assert (alike.mean_reward, alike.reward_interval) == (1.0, None)
+    said = "\n".join(evaluate._lines(alike))
+    assert "  mean reward 1 (no 95 % interval: the rewards are all alike, or fewer than 6)" in said
+
+
 def test_cancel_an_evaluation_from_the_command_line(lab, repo, capsys):
     """``labd cancel --evaluation ID`` cancels an evaluation's episodes that have not
     ended and says so; again, it exits 2 saying there was nothing left to cancel; an
