@@ -4,9 +4,10 @@
                 [--data DIR] [fetch options as for labd serve]
 
 It claims trials from the lab's queue over the HTTP API, runs them here in the sandbox
-(fetching the repositories itself, into ``DATA/cache``), uploads the MCAP files and
-logs to the lab's archive and files the outcomes, until SIGINT or SIGTERM. The token
-must be a worker's: ``labd users add NAME --worker`` on the lab's machine.
+(fetching the repositories itself, into ``DATA/cache``; the lab's own, the playground's,
+from ``--server`` whatever public URL the lab records them under), uploads the MCAP
+files and logs to the lab's archive and files the outcomes, until SIGINT or SIGTERM.
+The token must be a worker's: ``labd users add NAME --worker`` on the lab's machine.
 """
 
 from __future__ import annotations
