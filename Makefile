@@ -56,10 +56,10 @@ test: lint $(JSSTAMP) $(WEBSTAMP)
 # submission, an evaluation, a rerun and a verified download through it, then torn down.
 # About 4 minutes, so not part of `make test`; docs/operate.md. Both need root and Docker.
 deploy-image: $(STAMP) $(WEBSTAMP)
-	$(PY) deploy/build-image
+	$(PY) deploy/build_image.py
 
 deploy-smoke: $(STAMP) $(WEBSTAMP)
-	$(PY) deploy/smoke
+	$(PY) deploy/smoke.py
 
 bench: $(STAMP) $(WEBSTAMP)
 	$(PY) bench/sim.py

@@ -53,12 +53,14 @@ def main() -> int:
 
 def create_bucket(serve: dict[str, object]) -> None:
     """Make the bucket that ``blobs`` names, at ``blobs_option``'s endpoint_url."""
-    import s3fs  # noqa: PLC0415 - labd's s3 extra, needed here only
+    import s3fs  # type: ignore[import-untyped]  # noqa: PLC0415 - labd's s3 extra, needed here only
 
     blobs = str(serve.get("blobs", ""))
     if not blobs.startswith("s3://"):
         raise SetupError(f"--create-bucket: blobs is {blobs!r}, not an s3:// URL")
-    options = dict(str(o).split("=", 1) for o in serve.get("blobs_option", []))  # type: ignore[attr-defined]
+    listed = serve.get("blobs_option", [])
+    pairs = (str(o).split("=", 1) for o in (listed if isinstance(listed, list) else []))
+    options = {key: value for key, value in pairs}
     bucket = blobs.removeprefix("s3://").split("/", 1)[0]
     fs = s3fs.S3FileSystem(endpoint_url=options.get("endpoint_url"))
     if fs.exists(bucket):

@@ -1,7 +1,7 @@
 #!/usr/bin/env python3
 """Build the lab's container images from this repository and this machine; nothing pulled.
 
-    .venv/bin/python deploy/build-image [--only lab|postgres] [--work DIR] [--keep]
+    .venv/bin/python deploy/build_image.py [--only lab|postgres] [--work DIR] [--keep]
 
 Two images, each a root filesystem made of what this host has and imported with no base
 (``docker import`` of a tar), the way the controller sandbox's runtime is made
@@ -16,7 +16,8 @@ trial deployment, the S3-compatible store, one image for all three:
   (``pip freeze`` of ``.venv`` as constraints), without the packages' own test suites;
 - ``/opt/labd/s3``: a second venv with moto's S3 service (``moto_server``), a stand-in
   store for the smoke test and trials of the compose file, never for production;
-- ``deploy/labd-setup`` and ``deploy/labd-worker-entrypoint`` in ``/usr/local/bin``;
+- ``deploy/labd_setup.py`` (as ``labd-setup``) and ``deploy/labd-worker-entrypoint`` in
+  ``/usr/local/bin``;
 - git with its helpers (``git http-backend`` for the playground's repositories,
   ``git-remote-https``, ``git daemon``), ssh, bubblewrap and the util-linux tools the
   bubblewrap sandbox uses (``prlimit``, ``unshare``, ``mount``, ``setpriv``), Node.js
@@ -58,7 +59,8 @@ REPO = Path(__file__).resolve().parent.parent
 DEPLOY = REPO / "deploy"
 sys.path.insert(0, str(REPO))
 
-from sandbox import runtime as rt  # noqa: E402 - after the repository is on the path
+from sandbox import RuntimeBuildError  # noqa: E402 - after the repository is on the path
+from sandbox import runtime as rt  # noqa: E402
 
 LABD_UID = 10001  # the lab's user in the image; workers run as root (bubblewrap's uids)
 POSTGRES_UID = 10002
@@ -150,7 +152,7 @@ def main() -> int:
             _image(args, "labd", version, build_lab, extra_tags=("latest",))
         if args.only in (None, "postgres"):
             _image(args, "labd-postgres", version, build_postgres, extra_tags=("latest",))
-    except (BuildError, rt.RuntimeBuildError) as err:
+    except (BuildError, RuntimeBuildError) as err:
         print(f"build-image: {err}", file=sys.stderr)
         return 1
     return 0
@@ -215,9 +217,12 @@ def build_lab(rootfs: Path, version: str) -> list[str]:
     for program in POSTGRES_CLIENTS:
         _add(rootfs, pg_bin / program)
         (rootfs / "usr/local/bin" / program).symlink_to(pg_bin / program)
-    for script in ("labd-setup", "labd-worker-entrypoint"):
-        shutil.copyfile(DEPLOY / script, rootfs / "usr/local/bin" / script)
-        (rootfs / "usr/local/bin" / script).chmod(0o755)
+    for script, command in (
+        ("labd_setup.py", "labd-setup"),
+        ("labd-worker-entrypoint", "labd-worker-entrypoint"),
+    ):
+        shutil.copyfile(DEPLOY / script, rootfs / "usr/local/bin" / command)
+        (rootfs / "usr/local/bin" / command).chmod(0o755)
     _log("shared libraries (ldd)")
     _libraries(rootfs)
     _etc(rootfs, [("labd", LABD_UID, "/var/lib/labd")])

@@ -1,9 +1,9 @@
 #!/usr/bin/env python3
 """The deployment's smoke test: deploy/'s compose stack, used as a team would use it.
 
-    .venv/bin/python deploy/smoke [--no-build] [--keep]      (make deploy-smoke)
+    .venv/bin/python deploy/smoke.py [--no-build] [--keep]      (make deploy-smoke)
 
-1. builds the images (``deploy/build-image``; ``--no-build`` takes ``labd:VERSION`` and
+1. builds the images (``deploy/build_image.py``; ``--no-build`` takes ``labd:VERSION`` and
    ``labd-postgres:VERSION`` as they are);
 2. puts the example controller ``controllers/examples/icreate-maze`` in a git repository
    served by ``git daemon`` (``deploy/smoke.yml`` adds that service to the stack);
@@ -49,7 +49,7 @@ DEPLOY = REPO / "deploy"
 LABD = Path(sys.executable).parent / "labd"  # the CLI of the venv that runs this test
 EXAMPLE = REPO / "controllers" / "examples" / "icreate-maze"
 EXAMPLE_URL = "git://git/icreate-maze.git"  # as the lab and the workers reach it
-LAB_UID = 10001  # the lab's user in the image (deploy/build-image)
+LAB_UID = 10001  # the lab's user in the image (deploy/build_image.py)
 UP_TIMEOUT = 300.0  # seconds for the stack to be ready (first start: PostgreSQL's initdb)
 STARTED = time.monotonic()
 
@@ -89,15 +89,15 @@ def main() -> int:
 
 
 def build() -> str:
-    step("building the images (deploy/build-image)")
+    step("building the images (deploy/build_image.py)")
     done = subprocess.run(  # noqa: S603 - our own script
-        [sys.executable, str(DEPLOY / "build-image")],
+        [sys.executable, str(DEPLOY / "build_image.py")],
         stdout=subprocess.PIPE,
         text=True,
         check=False,
     )
     if done.returncode != 0:
-        raise SmokeError(f"deploy/build-image failed ({done.returncode})")
+        raise SmokeError(f"deploy/build_image.py failed ({done.returncode})")
     tags = done.stdout.split()
     say(f"built {', '.join(tags)}")
     return tags[0].split(":", 1)[1]
