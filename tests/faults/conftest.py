@@ -76,10 +76,15 @@ class Served:
         self.token = ""
 
     def start(self) -> Served:
+        args = list(self.args)
+        top: list[str] = []  # `labd`'s own option goes before the command
+        if "--log-level" in args:
+            at = args.index("--log-level")
+            top, args[at : at + 2] = args[at : at + 2], []
         command = [
-            sys.executable, "-m", "labd", "serve", "--data", str(self.data),
+            sys.executable, "-m", "labd", *top, "serve", "--data", str(self.data),
             "--cache", str(self.cache), "--http-port", "0", "--bridge-port", "0",
-            "--videos", "asked", *self.args,
+            "--videos", "asked", *args,
         ]  # fmt: skip
         self.output = []
         self.process = subprocess.Popen(

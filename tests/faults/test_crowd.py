@@ -173,7 +173,7 @@ async def subscribers(client: Healthy, expected: int) -> None:
         await asyncio.sleep(0.05)  # a poll of the lab's own count, not a wait for time
 
 
-@pytest.mark.timeout(300)
+@pytest.mark.timeout(300 * SECOND)
 def test_200_clients_half_never_reading(served):
     """With 100 stalled camera subscribers beside them, each of 100 healthy clients goes
     on receiving the camera and odometry, in order and missing nothing another healthy

@@ -8,12 +8,18 @@ than one address (all of 127.0.0.0/8), so an attacker on 127.0.0.1 and a bystand
   (32, the default) and a 503 saying so, and another address is still let in;
 - slowloris, on a machine whose open-file limit is 1,024 (the usual default): a
   thousand connections that send a header byte every second, to the HTTP port and the
-  bridge. Another address still gets a page and a bridge connection at once, the
-  slow connections are cut at the header timeout, and the log stays small;
+  bridge. Another address still gets a page and a bridge connection, every slow
+  connection is cut by the lab (at the header timeout, never before) or refused, and
+  the log stays small;
 - 100 anonymous readers of the pages and of a live robot's 3D scene, through resets:
-  the robot's `/clock` keeps its rate;
+  the robot's `/clock` goes on after each reset, in order, and every reader is answered;
 - the same export asked for again, and by several clients at once: built once;
-- a 1 GiB blob uploaded by a worker: the live robot's camera and clock never stall.
+- a 1 GiB blob uploaded by a worker: the live robot's camera and clock go on while the
+  upload is under way.
+
+The tests assert what the lab does, never how fast: how long the bystander waits, the
+robot's rates beside the readers and the gaps during the upload are measured by
+``bench/crowds.py``, each against the same figure without the attack.
 """
 
 from __future__ import annotations
@@ -22,11 +28,13 @@ import asyncio
 import contextlib
 import hashlib
 import itertools
+import re
 import resource
 import socket
 import statistics
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -38,15 +46,16 @@ from websockets.asyncio.client import ClientConnection, connect
 from websockets.exceptions import InvalidStatus
 
 from labd.config import BridgeConfig, HttpConfig
+from labd.logs import BURST, RATE
 from scheduler.remote import PROTOCOL, PROTOCOL_HEADER
 from tests.faults.conftest import wait_for
+from tests.helpers.timing import SECOND, eventually
 
 pytestmark = [pytest.mark.integration, pytest.mark.rates]
 
 ATTACKER, BYSTANDER = "127.0.0.1", "127.0.0.2"  # two addresses of loopback
 SHARE = BridgeConfig().max_connections_per_address
 HTTP = HttpConfig()
-KEPT = 0.85  # share of its rate alone a live robot keeps under attack
 CLOCK = ("/clock", "rosgraph_msgs/msg/Clock")
 CAMERA = ("/camera/image/compressed", "sensor_msgs/msg/CompressedImage")
 
@@ -57,7 +66,7 @@ def port_of(url: str) -> int:
 
 async def bridge_client(url: str, address: str = ATTACKER, **kwargs: Any) -> ClientConnection:
     """A WebSocket client of the bridge, connecting from ``address``."""
-    kwargs.setdefault("open_timeout", 10)
+    kwargs.setdefault("open_timeout", 30 * SECOND)
     return await connect(url, local_addr=(address, 0), **kwargs)
 
 
@@ -68,6 +77,7 @@ class Watcher:
         self.ws = ws
         self.topics = topics
         self.arrivals: dict[str, list[float]] = {topic: [] for topic, _ in topics}
+        self.stamps: dict[str, list[int]] = {topic: [] for topic, _ in topics}  # sim time, ns
         self.replies: asyncio.Queue[dict[str, Any]] = asyncio.Queue()
         self.reader = asyncio.create_task(self._read())
 
@@ -84,22 +94,26 @@ class Watcher:
             message = orjson.loads(frame)
             if message["op"] == "publish":
                 self.arrivals[message["topic"]].append(time.monotonic())
+                msg = message["msg"]
+                stamp = msg["clock"] if "clock" in msg else msg["header"]["stamp"]
+                self.stamps[message["topic"]].append(stamp["sec"] * 10**9 + stamp["nanosec"])
             else:
                 await self.replies.put(message)
 
     async def call(self, service: str) -> dict[str, Any]:
         frame = {"op": "call_service", "service": service, "args": {}, "id": service}
         await self.ws.send(orjson.dumps(frame).decode())
-        return await asyncio.wait_for(self.replies.get(), 30)
+        return await asyncio.wait_for(self.replies.get(), 30 * SECOND)
 
-    def rate(self, topic: str, start: float, end: float) -> float:
-        """Messages per second on ``topic`` that arrived from ``start`` to ``end``."""
-        return sum(start <= t < end for t in self.arrivals[topic]) / (end - start)
-
-    def longest_gap(self, topic: str, start: float, end: float) -> float:
-        """The longest time from ``start`` to ``end`` with no message on ``topic``."""
-        times = [start, *(t for t in self.arrivals[topic] if start <= t < end), end]
-        return max(b - a for a, b in itertools.pairwise(times))
+    async def hears(self, count: int, *topics: str) -> None:
+        """Wait until ``count`` more messages have come on each of ``topics``."""
+        marks = {topic: len(self.arrivals[topic]) for topic in topics}
+        await eventually(
+            f"{count} more messages on {', '.join(topics)}",
+            lambda: all(len(self.arrivals[t]) - marks[t] >= count for t in topics),
+            60 * SECOND,
+            detail=lambda: {t: len(self.arrivals[t]) - marks[t] for t in topics},
+        )
 
     async def close(self) -> None:
         await self.ws.close()
@@ -108,17 +122,10 @@ class Watcher:
             await self.reader
 
 
-async def window(seconds: float) -> tuple[float, float]:
-    """A measurement window of ``seconds``, from now: its start and end."""
-    start = time.monotonic()
-    await asyncio.sleep(seconds)  # a measurement window, not a wait for a condition
-    return start, time.monotonic()
-
-
 # -- 1. one address takes every bridge slot ---------------------------------------------------
 
 
-@pytest.mark.timeout(120)
+@pytest.mark.timeout(120 * SECOND)
 def test_one_address_gets_only_its_share_of_the_bridge(served):
     """An address that opens bridge connections until refused gets its share (32 by
     default) and a 503 that says so; another address is still let in, and a slot freed
@@ -168,8 +175,8 @@ async def status_of(url: str, address: str) -> int:
 # -- 2. slowloris -----------------------------------------------------------------------------
 
 SLOW = 1_100  # connections: past the usual limit of 1,024 open files
-SLOW_FOR = 12.0  # seconds the slow clients keep at it
 HEADER_TIMEOUT = 3.0  # the lab's header timeout in this test (default 10 s)
+LET_GO = 60 * SECOND  # after the attack, a slow connection the lab has not cut is kept
 LOG_BYTES = 64 * 1024  # the whole log of the lab under attack, at most
 
 
@@ -184,14 +191,14 @@ def open_files_limit(soft: int) -> Iterator[None]:
         resource.setrlimit(resource.RLIMIT_NOFILE, was)
 
 
-@pytest.mark.timeout(180)
+@pytest.mark.timeout(240 * SECOND)
 def test_slowloris_locks_out_nobody(served):
     """1,100 connections from one address sending a header byte a second (more than a
     1,024-file limit holds), each coming back when cut: another address gets the home
-    page and a bridge connection within 2 s (the median of three tries), each slow
-    connection is cut at the header timeout or refused, the address never holds more
-    than 256 HTTP connections and 32 bridge handshakes, and the lab's log stays under
-    64 KiB."""
+    page and a bridge connection three times during the attack, every slow connection is
+    refused or cut by the lab (an HTTP one answered 408 at the header timeout, never
+    before), the address never holds more than 256 HTTP connections and 32 bridge
+    handshakes, and the lab's log stays under 64 KiB."""
     lab = served(
         "--robot", "icreate-1=icreate-maze", "--no-playground", "--workers", "0",
         "--header-timeout", str(HEADER_TIMEOUT),
@@ -201,29 +208,63 @@ def test_slowloris_locks_out_nobody(served):
     started_log = len(lab.log.encode())
     figures = asyncio.run(slowloris(lab.server, lab.bridge + "/robots/icreate-1", lab.pid))
     log_bytes = len(lab.log.encode()) - started_log
+    ended: list[Ended] = figures.pop("ended")
+    timed_out = [e for e in ended if e.answer.startswith(b"HTTP/1.1 408 ")]
+    figures |= {
+        "connections": len(ended),
+        "answers": {a: sum(e.answer[:12] == a for e in ended) for a in {e.answer[:12] for e in ended}},
+        "shortest_408": round(min(e.seconds for e in timed_out), 2),
+        "longest_held": round(max(e.seconds for e in ended), 2),
+    }  # fmt: skip
     print("slowloris:", figures, f"log {log_bytes} bytes")
-    assert statistics.median(figures["page_seconds"]) < 2.0, figures
-    assert statistics.median(figures["bridge_seconds"]) < 2.0, figures
-    assert figures["longest_held"] < HEADER_TIMEOUT + 2.0, figures
+    assert len(figures["page_seconds"]) == len(figures["bridge_seconds"]) == 3, figures
+    kept = [e for e in ended if not e.by_lab]
+    assert not kept, f"{len(kept)} slow connections were never cut by the lab: {figures}"
+    assert timed_out and all(e.seconds >= HEADER_TIMEOUT for e in timed_out), figures
     assert 0 < figures["most_held_http"] <= HTTP.max_connections_per_address == 256, figures
     assert 0 < figures["most_held_bridge"] <= SHARE, figures  # in their handshake
     assert log_bytes < LOG_BYTES, lab.log[-4000:]
     assert lab.process.poll() is None, lab.log[-4000:]
 
 
+@dataclass
+class Ended:
+    """A slow connection, once over: how long it was kept, the first bytes the lab
+    answered (none when it just closed it), and whether the lab ended it (else the test
+    let go of it, ``LET_GO`` after the attack)."""
+
+    seconds: float
+    answer: bytes
+    by_lab: bool
+
+
+class Attack:
+    """The slow clients' state: ``stop`` ends the attack (no new connection), after which
+    a connection the lab has not cut by ``let_go`` is given up."""
+
+    def __init__(self) -> None:
+        self.stop = asyncio.Event()
+        self.let_go = float("inf")
+        self.ended: list[Ended] = []
+
+    def end(self) -> None:
+        self.let_go = time.monotonic() + LET_GO
+        self.stop.set()
+
+
 async def slowloris(server: str, bridge: str, pid: int) -> dict[str, Any]:
-    stop = asyncio.Event()
-    held: list[float] = []  # how long each slow connection was kept before it was cut
+    attack = Attack()
     ports = (port_of(server), port_of(bridge))
-    slow = [asyncio.create_task(slow_client(ports[i % 2], stop, held)) for i in range(SLOW)]
+    slow = [asyncio.create_task(slow_client(ports[i % 2], attack)) for i in range(SLOW)]
     most = dict.fromkeys(ports, 0)
+    held = dict.fromkeys(ports, 0)
 
     async def count() -> None:
         """The attacker's connections the lab held across two looks 0.5 s apart (not
         those it was refusing just then), most at once on each port."""
         before: dict[int, set[int]] = {port: set() for port in ports}
-        while not stop.is_set():
-            await asyncio.sleep(0.5)
+        while not attack.stop.is_set():
+            await asyncio.sleep(0.5)  # the interval between two looks
             conns = await asyncio.to_thread(psutil.Process(pid).net_connections, "tcp")
             for port in ports:
                 now = {
@@ -231,73 +272,92 @@ async def slowloris(server: str, bridge: str, pid: int) -> dict[str, Any]:
                     for c in conns
                     if c.laddr.port == port and c.raddr and c.raddr.ip == ATTACKER
                 }
-                most[port] = max(most[port], len(now & before[port]))
+                held[port] = len(now & before[port])
+                most[port] = max(most[port], held[port])
                 before[port] = now
 
     counting = asyncio.create_task(count())
     pages: list[float] = []
     bridges: list[float] = []
     try:
-        await asyncio.sleep(SLOW_FOR / 4)  # the attack in full swing
+        await eventually(  # the attack in full swing: the address holds half its shares
+            "the attacker to hold half its connections on each port",
+            lambda: (
+                held[ports[0]] >= HTTP.max_connections_per_address // 2
+                and held[ports[1]] >= SHARE // 2
+            ),
+            60 * SECOND,
+            detail=lambda: held,
+        )
         transport = httpx.AsyncHTTPTransport(local_address=BYSTANDER)
-        async with httpx.AsyncClient(transport=transport, timeout=30) as client:
+        async with httpx.AsyncClient(transport=transport, timeout=30 * SECOND) as client:
             for _ in range(3):  # a bystander comes three times during the attack
                 began = time.monotonic()
                 page = await client.get(server + "/", headers={"Connection": "close"})
                 pages.append(time.monotonic() - began)
                 assert page.status_code == 200, page.text
                 began = time.monotonic()
-                async with await bridge_client(bridge, BYSTANDER, open_timeout=30):
+                async with await bridge_client(bridge, BYSTANDER):
                     bridges.append(time.monotonic() - began)
-                await asyncio.sleep(SLOW_FOR / 4)
+                cut = len(attack.ended)
+                await eventually(  # the attack goes on: connections cut, and back
+                    f"{SHARE} more slow connections to end",
+                    lambda: len(attack.ended) >= cut + SHARE,  # noqa: B023 (awaited here)
+                    60 * SECOND,
+                )
     finally:
-        stop.set()
+        attack.end()
         await asyncio.gather(*slow, counting)
     return {
         "page_seconds": [round(t, 2) for t in pages],
+        "bridge_seconds": [round(t, 2) for t in bridges],
         "most_held_http": most[ports[0]],
         "most_held_bridge": most[ports[1]],
-        "bridge_seconds": [round(t, 2) for t in bridges],
-        "connections": len(held),
-        "cut_or_refused": sum(h < SLOW_FOR for h in held),
-        "longest_held": round(max(held), 2),
-        "median_held": round(statistics.median(held), 2),
+        "median_held": round(statistics.median(e.seconds for e in attack.ended), 2),
+        "ended": attack.ended,
     }
 
 
-async def slow_client(port: int, stop: asyncio.Event, held: list[float]) -> None:
+async def slow_client(port: int, attack: Attack) -> None:
     """Open connections one after another, each sending a request head a byte a second
-    and never finishing it, until ``stop``; note how long each one was kept."""
-    while not stop.is_set():
+    and never finishing it, until the attack stops; note how each one ended."""
+    while not attack.stop.is_set():
         began = time.monotonic()
         try:
             reader, writer = await asyncio.open_connection(ATTACKER, port)
         except OSError:
-            await asyncio.sleep(1.0)
+            await asyncio.sleep(1.0)  # the attacker's pace
             continue
+        answer, by_lab = b"", False
         try:
             writer.write(b"GET / HTTP/1.1\r\nHost: lab\r\n")
-            while not stop.is_set() and not reader.at_eof():
-                with contextlib.suppress(TimeoutError):
-                    await asyncio.wait_for(reader.read(4096), 1.0)  # sees the cut at once
+            while True:
+                with contextlib.suppress(TimeoutError):  # a byte a second; sees a cut at once
+                    answer += await asyncio.wait_for(reader.read(4096), 1.0)
+                if reader.at_eof():
+                    by_lab = True
+                    break
+                if time.monotonic() > attack.let_go:
+                    break
                 writer.write(b"X")
                 await writer.drain()
         except OSError:
-            pass
+            by_lab = True  # reset by the lab
         finally:
-            held.append(time.monotonic() - began)
+            attack.ended.append(Ended(time.monotonic() - began, answer[:64], by_lab))
             writer.close()
-        await asyncio.sleep(2.0)  # then it comes back
+        await asyncio.sleep(2.0)  # then it comes back, at the attacker's pace
 
 
 BAD = 2_000  # requests that are not HTTP
 
 
-@pytest.mark.timeout(120)
+@pytest.mark.timeout(120 * SECOND)
 def test_a_flood_of_bad_requests_is_logged_a_few_times_a_second(served):
     """2,000 requests that are not HTTP, one after another: each is answered 400, and
-    the lab's log grows by under 4 KiB (the warning a few times a second, then how
-    many like it were held back)."""
+    the lab's log grows by the warning's burst and then a few lines a second at most
+    (``labd.logs``: 5, then 2 a second), each saying how many like it were held back,
+    with no traceback."""
     lab = served("--no-robots", "--workers", "0").start()
     started_log = len(lab.log.encode())
     port = port_of(lab.server)
@@ -307,10 +367,13 @@ def test_a_flood_of_bad_requests_is_logged_a_few_times_a_second(served):
             sock.sendall(b"BAD\x00 / HTTP/1.1\r\n\r\n")
             assert sock.recv(64).startswith(b"HTTP/1.1 400 ")
     seconds = time.monotonic() - began
-    wait_for("the log to say how many it held back", lambda: "more like it" in lab.log, 10)
-    log_bytes = len(lab.log.encode()) - started_log
-    print(f"bad requests: {BAD} in {seconds:.1f} s, log {log_bytes} bytes")
-    assert log_bytes < 4096, lab.log[-4000:]
+    wait_for("the log to say how many it held back", lambda: "more like it" in lab.log, 10 * SECOND)
+    within = time.monotonic() - began  # the log's lines so far came within this time
+    logged = lab.log.encode()[started_log:].decode()
+    lines = logged.splitlines()
+    print(f"bad requests: {BAD} in {seconds:.1f} s, log {len(logged)} bytes, {len(lines)} lines")
+    assert len(lines) <= BURST + RATE * within + 1, logged[-4000:]
+    assert "Traceback" not in logged and max(map(len, lines)) < 512, logged[-4000:]
 
 
 # -- 3. readers of pages and the scene --------------------------------------------------------
@@ -320,17 +383,22 @@ SCENE = "/api/robots/pr2-1/scene"
 PAGES = (SCENE, "/", SCENE, "/robots/pr2-1", SCENE, "/trials", SCENE, "/robots")
 
 
-@pytest.mark.timeout(180)
+RESET_TICKS = 20  # /clock messages the watcher hears after each reset, readers reading
+
+
+@pytest.mark.timeout(240 * SECOND)
 def test_readers_of_pages_and_the_scene_do_not_slow_the_robot(served):
     """100 anonymous readers of the pages and of the PR2's 3D scene (half of them the
-    scene), while the robot's episode is reset three times: its /clock, as a WebSocket
-    client sees it, keeps at least 85 % of its rate alone."""
+    scene), while the robot's episode is reset three times: after each reset the robot's
+    /clock, as a WebSocket client sees it, goes on (20 ticks, in order: it goes back only
+    at a reset), every reader is answered again and again, and none fails."""
     lab = served("--robot", "pr2-1=pr2-table", "--no-playground", "--workers", "0").start()
     figures = asyncio.run(readers(lab.server, lab.bridge + "/robots/pr2-1"))
     print("readers:", figures)
-    assert figures["alone"] > 10, figures  # the robot really runs
-    assert figures["requests"] > READERS, figures  # the readers really read
-    assert figures["beside_readers"] >= KEPT * figures["alone"], figures
+    assert figures["clock_in_order"], figures  # rising, or back to 0 at a new episode
+    assert figures["clock_back"] <= 3, figures  # back only at the resets
+    assert figures["clock_during"] >= 3 * RESET_TICKS, figures
+    assert min(figures["answers"]) >= 2, figures  # each reader was answered more than once
     assert figures["failed"] == [], figures
     assert lab.process.poll() is None, lab.log[-4000:]
 
@@ -338,35 +406,36 @@ def test_readers_of_pages_and_the_scene_do_not_slow_the_robot(served):
 async def readers(server: str, bridge: str) -> dict[str, Any]:
     watcher = await Watcher.open(bridge, CLOCK)
     try:
-        await asyncio.sleep(2.0)  # warm-up: the robot steps once someone listens
-        start, end = await window(6.0)
-        alone = watcher.rate("/clock", start, end)
+        await watcher.hears(RESET_TICKS, CLOCK[0])  # the robot steps once someone listens
         stop = asyncio.Event()
-        latencies: list[tuple[float, float]] = []  # when each request began, how long it took
+        answers = [0] * READERS  # each reader's answers
         failed: list[str] = []
         limits = httpx.Limits(max_connections=READERS, max_keepalive_connections=READERS)
         async with httpx.AsyncClient(base_url=server, limits=limits, timeout=120) as client:
             tasks = [
-                asyncio.create_task(reader(client, PAGES[n % len(PAGES)], stop, latencies, failed))
+                asyncio.create_task(reader(client, PAGES[n % len(PAGES)], stop, answers, n, failed))
                 for n in range(READERS)
             ]
-            await asyncio.sleep(2.0)  # every reader at it
-            start = time.monotonic()
+            await eventually("every reader to be answered", lambda: min(answers) >= 1, 120 * SECOND)
+            start = len(watcher.stamps[CLOCK[0]])
+            answered = list(answers)
             for _ in range(3):  # a new episode: a new scene to describe
                 answer = await watcher.call("/lab/reset")
                 assert answer["values"]["success"], answer
-                await asyncio.sleep(3.0)  # a measurement window, not a wait for a condition
-            end = time.monotonic()
+                await watcher.hears(RESET_TICKS, CLOCK[0])
+            await eventually(  # and every reader answered again, resets and all
+                "every reader to be answered during the resets",
+                lambda: all(a > b for a, b in zip(answers, answered, strict=True)),
+                120 * SECOND,
+            )
             stop.set()
             await asyncio.gather(*tasks)
-        timed = sorted(took for began, took in latencies if start <= began < end)
+        clock = watcher.stamps[CLOCK[0]]
         return {
-            "alone": round(alone, 2),
-            "beside_readers": round(watcher.rate("/clock", start, end), 2),
-            "longest_gap": round(watcher.longest_gap("/clock", start, end), 3),
-            "requests": len(timed),  # begun in the window, as the two below
-            "p50": round(timed[len(timed) // 2], 3),
-            "p99": round(timed[int(len(timed) * 0.99)], 3),
+            "clock_during": len(clock) - start,
+            "clock_back": sum(b < a for a, b in itertools.pairwise(clock)),
+            "clock_in_order": all(b > a or b == 0 for a, b in itertools.pairwise(clock)),
+            "answers": sorted(answers)[:: READERS // 10],
             "failed": failed[:5],
         }
     finally:
@@ -377,13 +446,13 @@ async def reader(
     client: httpx.AsyncClient,
     path: str,
     stop: asyncio.Event,
-    latencies: list[tuple[float, float]],
+    answers: list[int],
+    n: int,
     failed: list[str],
 ) -> None:
-    """Read ``path`` again and again until ``stop``; note each answer's time, and what
-    failed (a status other than 200, a connection dropped)."""
+    """Read ``path`` again and again until ``stop``; count reader ``n``'s answers, and
+    note what failed (a status other than 200, a connection dropped)."""
     while not stop.is_set():
-        began = time.monotonic()
         try:
             answer = await client.get(path)
         except httpx.TransportError as err:
@@ -391,35 +460,38 @@ async def reader(
             continue
         if answer.status_code != 200:
             failed.append(f"{path}: {answer.status_code} {answer.text[:200]}")
-        latencies.append((began, time.monotonic() - began))
+        answers[n] += 1
 
 
 # -- 4. exports -------------------------------------------------------------------------------
 
 
-@pytest.mark.timeout(300)
+BUILT = re.compile(r" INFO labd\.api\.builds: built export (\S+) in ")  # one per build
+
+
+@pytest.mark.timeout(300 * SECOND)
 def test_an_export_is_built_once(served, tmp_path: Path):
-    """The same export asked for again is served without being built again (under a
-    quarter of the first request's time), and four clients asking at once for a new one
-    share one build (under twice one build's time), all getting the same bytes."""
+    """The same export asked for again is served without being built again, and four
+    clients asking at once for a new one share one build, all getting the same bytes:
+    three exports asked for eight times, three builds in the lab's log."""
     data = tmp_path / "data"
-    lab = served("--no-robots", "--workers", "0", data=data)
+    lab = served("--no-robots", "--workers", "0", "--log-level", "INFO", data=data)
     filed = lab.labd("demonstrate", "--data", str(data), "--count", "2", "--json")
     assert filed.returncode == 0, filed.stderr
     lab.start()
     ids = [t["id"] for t in lab.get("/api/trials?kind=demonstration")["trials"]]
     assert len(ids) == 2, ids
     figures = asyncio.run(export_requests(lab.server, ids))
-    print("exports:", {k: v for k, v in figures.items() if k != "digests"})
-    assert figures["again"] < 0.25 * figures["first"], figures
-    assert figures["four_at_once"] < 2.0 * figures["single_first"], figures
-    assert figures["single_again"] < 0.25 * figures["single_first"], figures
-    assert len(set(figures["digests"])) == 2, figures  # one dataset each, the same every time
     assert lab.process.poll() is None, lab.log[-4000:]
+    lab.stop()  # its log read to the end
+    built = BUILT.findall(lab.log)
+    print("exports:", {k: v for k, v in figures.items() if k != "digests"}, "built:", built)
+    assert len(built) == len(set(built)) == 3, built  # the parquet, each trial's lerobot
+    assert len(set(figures["digests"])) == 2, figures  # one dataset each, the same every time
 
 
 async def export_requests(server: str, ids: list[int]) -> dict[str, Any]:
-    async with httpx.AsyncClient(base_url=server, timeout=240) as client:
+    async with httpx.AsyncClient(base_url=server, timeout=240 * SECOND) as client:
 
         async def get(path: str, **params: Any) -> tuple[float, str]:
             began = time.monotonic()
@@ -433,8 +505,7 @@ async def export_requests(server: str, ids: list[int]) -> dict[str, Any]:
         four = await asyncio.gather(*(get(single) for _ in range(4)))
         four_at_once = max(seconds for seconds, _ in four)
         single_again, single_made = await get(single)
-        # one build of the single-trial export alone, for scale: the other trial's
-        single_first, _ = await get(f"/api/trials/{ids[1]}/export/lerobot")
+        single_first, _ = await get(f"/api/trials/{ids[1]}/export/lerobot")  # its own build
     return {
         "first": round(first, 2),
         "again": round(again, 2),
@@ -449,19 +520,24 @@ async def export_requests(server: str, ids: list[int]) -> dict[str, Any]:
 
 UPLOAD = 1 << 30  # bytes a worker uploads
 BLOCK = 1 << 20
-GAP = 1.5  # seconds the robot's camera or clock may go without a message (30 periods; 3.3 s before)
+PACE = 32  # blocks: between two runs of 32 MiB, the robot must have published
 
 
-def upload_blocks() -> Iterator[bytes]:
+def upload_blocks(between: Callable[[int], None] = lambda n: None) -> Iterator[bytes]:
+    """The upload's blocks; ``between(n)`` is called before block ``n`` of every run of
+    ``PACE`` blocks."""
     block = hashlib.sha256(b"labd").digest() * (BLOCK // 32)
     for n in range(UPLOAD // BLOCK):
+        if n % PACE == 0:
+            between(n)
         yield n.to_bytes(8, "big") + block[8:]
 
 
-@pytest.mark.timeout(300)
+@pytest.mark.timeout(300 * SECOND)
 def test_a_large_upload_does_not_stall_the_robot(served):
-    """A worker uploads a 1 GiB blob: meanwhile a live robot's camera and clock, as a
-    WebSocket client sees them, never go 1 s without a message, and the blob is stored."""
+    """A worker uploads a 1 GiB blob: while the lab holds it half-received, a live
+    robot's camera and clock go on (each publishes between every two runs of 32 MiB of
+    the upload, which waits for them), and the blob is stored."""
     lab = served("--robot", "icreate-1=icreate-maze", "--no-playground", "--workers", "0")
     lab.token = lab.add_user("worker", "--worker")
     lab.start()
@@ -472,8 +548,7 @@ def test_a_large_upload_does_not_stall_the_robot(served):
     figures = asyncio.run(upload(lab, digest))
     print("upload:", figures)
     assert figures["status"] == 201, figures
-    assert figures["camera_alone"] > 5, figures  # the camera really renders
-    assert figures["clock_gap"] < GAP and figures["camera_gap"] < GAP, figures
+    assert figures["paced"] == UPLOAD // BLOCK // PACE, figures  # the robot went on each time
     assert lab.process.poll() is None, lab.log[-4000:]
     lab.stop()
     for blob in lab.data.rglob(digest.removeprefix("sha256:") + "*"):
@@ -482,30 +557,30 @@ def test_a_large_upload_does_not_stall_the_robot(served):
 
 async def upload(lab: Any, digest: str) -> dict[str, Any]:
     watcher = await Watcher.open(lab.bridge + "/robots/icreate-1", CLOCK, CAMERA)
-    try:
-        await asyncio.sleep(2.0)  # warm-up: the camera renders for its first watcher
-        start, end = await window(4.0)
-        camera_alone = watcher.rate(CAMERA[0], start, end)
+    paced: list[int] = []
 
+    def robot_went_on(n: int) -> None:
+        """On the upload's thread: wait until the robot's clock and camera have each
+        published since the last run of blocks (the test's loop notes their messages)."""
+        marks = {topic: len(watcher.arrivals[topic]) for topic, _ in (CLOCK, CAMERA)}
+        deadline = time.monotonic() + 60 * SECOND
+        while any(len(watcher.arrivals[topic]) == mark for topic, mark in marks.items()):
+            if time.monotonic() > deadline:
+                raise AssertionError(f"the robot stalled with {n} MiB of the upload sent")
+            time.sleep(0.005)  # a poll of the test loop's count, not a wait for time
+        paced.append(n)
+
+    try:
+        await watcher.hears(1, CLOCK[0], CAMERA[0])  # the camera renders for its watcher
         headers = {"Authorization": f"Bearer {lab.token}", PROTOCOL_HEADER: str(PROTOCOL)}
-        start = time.monotonic()
         # on a thread: this loop only reads the robot's messages, and notes them on time
         answer = await asyncio.to_thread(
             httpx.put,
             f"{lab.server}/api/blobs/{digest}",
-            content=upload_blocks(),
+            content=upload_blocks(robot_went_on),
             headers=headers,
-            timeout=240,
+            timeout=240 * SECOND,
         )
-        end = time.monotonic()
-        await asyncio.sleep(1.0)  # the robot's messages of the last moment arrive
-        return {
-            "status": answer.status_code,
-            "seconds": round(end - start, 2),
-            "camera_alone": round(camera_alone, 2),
-            "clock_gap": round(watcher.longest_gap(CLOCK[0], start, end), 3),
-            "camera_gap": round(watcher.longest_gap(CAMERA[0], start, end), 3),
-            "camera_during": round(watcher.rate(CAMERA[0], start, end), 2),
-        }
+        return {"status": answer.status_code, "paced": len(paced)}
     finally:
         await watcher.close()
