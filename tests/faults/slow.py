@@ -3,6 +3,8 @@
 - ``controller(ticks, pause)``: the files of a repository whose controller steps
   ``ticks`` times, ``pause`` seconds apart (with ``requirements=True`` it imports
   ``tinypkg``, which its requirements name);
+- ``Held``: a repository whose controller steps until the test lets it go (a file the
+  test writes into its checkout), so its trial runs for as long as a test needs it to;
 - ``PackageIndex``: a PEP 503 index on 127.0.0.1 serving ``tinypkg``, whose page waits
   until the test sets ``release`` (a trial is held while preparing);
 - ``S3Server``: moto's S3 server in a process of its own, which ``pause`` freezes with
@@ -12,15 +14,18 @@
 from __future__ import annotations
 
 import base64
+import contextlib
 import hashlib
 import io
 import signal
 import subprocess
 import sys
+import tempfile
 import threading
 import uuid
 import zipfile
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
+from pathlib import Path
 from typing import Any, ClassVar
 
 import pytest
@@ -50,6 +55,42 @@ def controller(ticks: int, pause: float = 0.0, *, requirements: bool = False) ->
         files["requirements.txt"] = f"tinypkg==1.0  # {uuid.uuid4().hex}\n"
         files["c.py"] = "import tinypkg\nprint('tinypkg', tinypkg.VALUE)\n" + STEPS
     return files
+
+
+HELD = """\
+import os, time
+from controllers.client import Lab
+# held: {token}
+with Lab.connect() as lab:
+    while not os.path.exists("let-go"):  # written into the checkout by the test
+        lab.publish("/cmd_vel", "geometry_msgs/msg/Twist", {{"angular": {{"z": 0.5}}}})
+        lab.step()
+        time.sleep(0.1)  # the pace of its steps: a small record
+"""
+
+
+class Held:
+    """A repository whose controller steps, a tenth of a second apart, until ``let_go``:
+    its trial (submitted with ``params``: an episode of an hour) runs until then.
+
+    Run by a lab on this machine (its workers' checkouts are in the same temporary folder
+    as the test's): ``let_go`` writes a file into the checkout, which the sandbox sees."""
+
+    params: ClassVar[dict[str, float]] = {"time_limit": 3600.0}  # the episode outlasts a test
+
+    def __init__(self) -> None:
+        self.token = uuid.uuid4().hex
+        self.files = {"lab.toml": TOML, "c.py": HELD.format(token=self.token)}
+
+    def let_go(self) -> int:
+        """Let every checkout of this controller go; how many there were."""
+        let_go = 0
+        for code in Path(tempfile.gettempdir()).glob("labd-trial-*/code/c.py"):
+            with contextlib.suppress(FileNotFoundError):  # another trial's, just removed
+                if self.token in code.read_text():
+                    (code.parent / "let-go").write_text("")
+                    let_go += 1
+        return let_go
 
 
 # -- a package index that answers when the test lets it ------------------------------------

@@ -1,7 +1,8 @@
 """`labd backup` of a lab serving a running trial, and `labd restore` into a new folder
 (and a new database), on SQLite and on PostgreSQL.
 
-A real `labd serve` with a worker runs a slow controller while the backup is taken; the
+A real `labd serve` with a worker runs a controller that steps until the test lets it
+go, so the backup is taken while its trial runs, whatever the machine's speed; the
 backup restores into a fresh lab whose `labd serve` lists the same trials as the lab did
 then, serves the same bytes, and whose every record `labd verify` accepts. A second
 backup into the same folder copies only the blobs it lacks; a restore into a lab that
@@ -24,8 +25,9 @@ import pytest
 from labd.hosted import HostedRepos
 from tests.conftest import postgres_databases
 from tests.faults.conftest import Served, wait_for
-from tests.faults.slow import controller
+from tests.faults.slow import Held, controller
 from tests.helpers.githttp import GitRepo
+from tests.helpers.timing import SECOND
 
 pytestmark = pytest.mark.integration
 
@@ -95,7 +97,7 @@ def blob_files(folder: Path) -> dict[Path, tuple[int, int]]:
     }
 
 
-@pytest.mark.timeout(420)
+@pytest.mark.timeout(420 * SECOND)
 def test_a_backup_of_a_running_lab_restores_a_lab_that_serves_the_same_records(
     databases, labs, tmp_path
 ):
@@ -113,8 +115,9 @@ def test_a_backup_of_a_running_lab_restores_a_lab_that_serves_the_same_records(
     head = HostedRepos(lab.data / "git").commit(
         "alice", "robot", {"lab.toml": b"[controller]\n"}, "first", author="alice", when=WHEN
     )
-    slow = lab.submit(GitRepo.create(tmp_path / "slow", controller(100, 0.1)).path)
-    wait_for("the slow trial to run", lambda: lab.stage(slow["id"]) == "running", 90)
+    held = Held()
+    slow = lab.submit(GitRepo.create(tmp_path / "slow", held.files).path, params=held.params)
+    wait_for("the held trial to run", lambda: lab.stage(slow["id"]) == "running", 90 * SECOND)
 
     dest = tmp_path / "backup"
     made = ok("backup", str(dest), "--data", str(lab.data), *where)
@@ -131,7 +134,9 @@ def test_a_backup_of_a_running_lab_restores_a_lab_that_serves_the_same_records(
     assert restored["trials"] == 2
 
     # the trial ends; a second backup into the same folder copies only its blobs
-    lab.wait_ended([slow["id"]], 120)
+    assert held.let_go() == 1
+    [ended] = lab.wait_ended([slow["id"]], 120 * SECOND)
+    assert ended["reason"].startswith("the controller exited with 0"), ended
     before = blob_files(dest)
     again = ok("backup", str(dest), "--data", str(lab.data), *where)
     after = blob_files(dest)
