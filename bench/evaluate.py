@@ -41,8 +41,9 @@ import sandbox
 from labd.sim.simulation import Simulation
 from labd.trial import LabHost, client_library
 from repository.tables import derived, episodes, trials
+from repository.trial import Order
 from repository.well_known import REPLAY, SUMMARY
-from scheduler.runner import RunOptions, TrialSpec, run_trial
+from scheduler.runner import RunOptions, run_trial
 
 ROOT = Path(__file__).resolve().parent.parent
 EXAMPLE = ROOT / "controllers" / "examples" / "icreate-maze"
@@ -159,9 +160,11 @@ def one_episode(cache: Path, repo: Path, seed: int) -> dict[str, float]:
     """One episode through the trial runner in this process: prepare, start, ticks."""
     backend = sandbox.backend("bwrap", cache, extra_packages=[client_library()])
     out = Path(tempfile.mkdtemp(prefix="bench-episode-"))
-    spec = TrialSpec(source=str(repo), ref="main", task="icreate-maze", seed=seed)
+    order = Order(repository=str(repo), ref="main", task="icreate-maze", seed=seed)
     result = asyncio.run(
-        run_trial(spec, backend=backend, host=LabHost(), out=out, cache=cache, options=RunOptions())
+        run_trial(
+            order, backend=backend, host=LabHost(), out=out, cache=cache, options=RunOptions()
+        )
     )
     shutil.rmtree(out, ignore_errors=True)
     assert result.start_seconds is not None and result.run_seconds is not None

@@ -27,8 +27,8 @@ from labd.graph.types import TypeRegistry
 from labd.replay import replay
 from labd.trial import LabHost, client_library
 from labd.video import Video, VideoSpec
-from repository.trial import Outcome
-from scheduler.runner import RunOptions, TrialSpec, run_trial
+from repository.trial import Order, Outcome
+from scheduler.runner import RunOptions, run_trial
 
 ROOT = Path(__file__).resolve().parent.parent
 EXAMPLES = {
@@ -42,7 +42,7 @@ def trial(example: Path, out: Path, cache: Path) -> Any:
     backend = sandbox.backend("bwrap", cache, extra_packages=[client_library()])
     result = asyncio.run(
         run_trial(
-            TrialSpec(source=str(example), seed=1),
+            Order(repository=str(example), seed=1),
             backend=backend,
             host=LabHost(),
             out=out,

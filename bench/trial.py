@@ -37,9 +37,9 @@ from typing import Any
 import sandbox
 from labd.sim.simulation import Simulation
 from labd.trial import LabHost, client_library
-from repository.trial import Outcome
+from repository.trial import Order, Outcome
 from sandbox.api import Exit, Job
-from scheduler.runner import RunOptions, TrialSpec, run_trial
+from scheduler.runner import RunOptions, run_trial
 
 ROOT = Path(__file__).resolve().parent.parent
 EXAMPLE = ROOT / "controllers" / "examples" / "icreate-maze"
@@ -126,7 +126,7 @@ def trials(
         for seed in seeds:
             result = asyncio.run(
                 run_trial(
-                    TrialSpec(source=str(example), seed=seed),
+                    Order(repository=str(example), seed=seed),
                     backend=backend,
                     out=Path(folder) / f"{backend.name}-{seed}",
                     cache=cache,

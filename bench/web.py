@@ -49,7 +49,7 @@ from archive import pct, synthetic  # noqa: E402  (bench/archive.py)
 from labd.service import Service, ServiceConfig  # noqa: E402
 from labd.web import create_app  # noqa: E402
 from repository.index import Derived, Filters  # noqa: E402
-from repository.trial import Filing, Outcome  # noqa: E402
+from repository.trial import Filing, Order, Outcome  # noqa: E402
 from repository.well_known import SUMMARY, SUMMARY_MEDIA_TYPE  # noqa: E402
 from tests.integration.browser import CHROMIUM, FLAGS  # noqa: E402
 
@@ -183,10 +183,11 @@ def file_trial(service: Service, out: Path) -> tuple[int, float]:
     manifest = result["manifest"]
     service.index.add_user("bench", max_running=5)
     user = service.index.user("bench")
-    trial_id = service.queue.submit(
-        user, repository="https://example.org/bench/maze.git", ref="main", commit="b" * 40,
+    order = Order(
+        repository="https://example.org/bench/maze.git", ref="main", commit="b" * 40,
         task="icreate-maze", params=manifest["parameters"], seed=manifest["seed"], public=True,
     )  # fmt: skip
+    trial_id = service.queue.submit(user, order)
     service.queue.claim("bench")
     mcap = out / "trial.mcap"
     filing = Filing(

@@ -60,7 +60,7 @@ from labd.recorder import Recorder, digest_topics
 from labd.recorder.record import Keep
 from labd.station import Station
 from repository.digests import manifest_digest
-from repository.trial import EpisodeStatus, Kind
+from repository.trial import EpisodeStatus, Kind, Order
 from repository.units import MiB
 from repository.well_known import MANIFEST, OUTCOME, UX_EVENTS
 from scheduler.manifest import SCHEMA, versions
@@ -126,6 +126,19 @@ class Demonstration:
     metrics: dict[str, Any]
     achieved: bool
     reason: str
+
+    @property
+    def order(self) -> Order:
+        """What the archive files the drive as: a public demonstration of the robot's task
+        and seed, with no code (no ref, no commit)."""
+        return Order(
+            repository=f"robot:{self.robot}",
+            task=self.task,
+            params=self.params,
+            seed=self.seed,
+            public=True,
+            kind=Kind.DEMONSTRATION,
+        )
 
 
 class Filings:

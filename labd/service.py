@@ -43,7 +43,7 @@ from repository.evaluation_index import Evaluations
 from repository.index import Derived, Index
 from repository.reservations import Reservations, Rules, load_secret
 from repository.signing import Keyring
-from repository.trial import Ending, Filing, Kind
+from repository.trial import Ending, Filing
 from repository.well_known import RECORD_FILE, REPLAY
 from scheduler.data import DataPolicy, LocalArchive
 from scheduler.evaluate import Evaluator, HeldOutBudget
@@ -318,15 +318,7 @@ class Service:
             mcap=self.store.put_file(mcap),
             mcap_size=mcap.stat().st_size,
         )
-        trial_id = self.queue.file_finished(
-            kind=Kind.DEMONSTRATION,
-            repository=f"robot:{demo.robot}",
-            task=demo.task,
-            params=demo.params,
-            seed=demo.seed,
-            submitter=demo.user,
-            filing=filing,
-        )
+        trial_id = self.queue.file_finished(demo.order, submitter=demo.user, filing=filing)
         log.info("demonstration %d filed: %s drove %s", trial_id, demo.user, demo.robot)
         try:
             self._replay(trial_id, mcap)

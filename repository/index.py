@@ -48,7 +48,7 @@ from repository.tables import (
     trials,
     users,
 )
-from repository.trial import Kind, Outcome, PinnedRecord, Status, Trial
+from repository.trial import Kind, Order, Outcome, Status, Trial
 from repository.units import moment
 from repository.wal import IndexFiles
 from repository.well_known import REPLAY
@@ -89,8 +89,8 @@ class Page:
     next: int | None
 
 
-class Order(StrEnum):
-    """How ``Index.find`` orders trials: newest first, or best reward first."""
+class Sort(StrEnum):
+    """How ``Index.find`` sorts trials: newest first, or best reward first."""
 
     TIME = "time"
     REWARD = "reward"
@@ -360,34 +360,23 @@ class Index:
 
     # -- trials -------------------------------------------------------------------------
 
-    def add_trial(
-        self,
-        *,
-        repository: str,
-        ref: str | None,
-        commit: str,
-        task: str,
-        params: Mapping[str, Any],
-        seed: int,
-        submitter: str,
-        public: bool,
-        rerun_of: int | None = None,
-        kind: Kind = Kind.TRIAL,
-        data: Sequence[PinnedRecord] | None = None,
-        db: Connection | None = None,
-    ) -> int:
+    def add_trial(self, order: Order, *, submitter: str, db: Connection | None = None) -> int:
+        """Queue ``order`` for ``submitter`` as a new trial (in ``db``'s transaction, if
+        given); its id. Its task is resolved by then (``Order``)."""
+        if order.task is None:
+            raise ArchiveError("a trial is queued with its task resolved; this order names none")
         values = {
-            "kind": kind.value,
-            "repository": repository,
-            "ref": ref,
-            "commit": commit,
-            "task": task,
-            "params": dict(params),
-            "seed": seed,
+            "kind": order.kind.value,
+            "repository": order.repository,
+            "ref": order.ref,
+            "commit": order.commit,
+            "task": order.task,
+            "params": dict(order.params),
+            "seed": order.seed,
             "submitter": submitter,
-            "public": public,
-            "rerun_of": rerun_of,
-            "data": [p.model_dump(mode="json") for p in data] if data else None,
+            "public": order.public,
+            "rerun_of": order.rerun_of,
+            "data": [p.model_dump(mode="json") for p in order.data] if order.data else None,
             "status": Status.QUEUED.value,
             "reason": "waiting for a worker",
             "created": self.clock(),
@@ -457,7 +446,7 @@ class Index:
         *,
         limit: int = 50,
         before: int | None = None,
-        order: Order = Order.TIME,
+        order: Sort = Sort.TIME,
         offset: int = 0,
     ) -> Page:
         """Trials matching ``filters``, a page at a time.
@@ -466,7 +455,7 @@ class Index:
         by ``reward``, best first (trials without one last), a page at ``offset``.
         """
         query = sa.select(trials).where(*self._conditions(filters))
-        if order is Order.REWARD:
+        if order is Sort.REWARD:
             query = query.order_by(trials.c.reward.desc().nulls_last(), trials.c.id.desc())
             query = query.offset(offset)
         else:

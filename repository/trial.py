@@ -1,5 +1,7 @@
 """The trial record, typed: what every part of the lab reads and writes about a trial.
 
+What was asked is one ``Order``, built where a trial is asked for and passed whole: the
+queue keeps it as the trial's row, a ``Claim`` hands it to a worker, the runner runs it.
 One record goes from the queue to the index, the API, the CLI and the workers:
 
 - ``status`` is the lifecycle only: ``queued`` → ``running`` → ``finished`` (or
@@ -122,6 +124,52 @@ class PinnedRecord(BaseModel):
         return {"trial": self.trial, "data_digest": self.data_digest, "mcap": self.mcap}
 
 
+class Order(BaseModel):
+    """What was asked of the lab for one trial: one value from the request to the record.
+
+    The code (a repository, the ref asked for, the commit it resolved to), the task, its
+    parameters and seed, whether the repository is public, the kind of trial, the trial
+    it reruns and the archived records it learns from. Built once where a trial is asked
+    for (a submission, an evaluation's episodes, a rerun, a live robot's drive, ``labd
+    run``) and passed whole, as httpx passes its ``Request``: the queue keeps it as the
+    trial's row (``Index.add_trial``), a ``Claim`` hands it to a worker, the runner runs
+    it. A new thing a trial asks is one field here, not an edit at every call site.
+
+    Two fields are open until the code is checked out, in ``labd run`` alone (the queue
+    holds its orders resolved): ``commit`` ("" until the ref is resolved; a
+    demonstration, which has no code, keeps "") and ``task`` (None: the one the
+    repository's ``lab.toml`` names).
+    """
+
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    repository: str = Field(description="a git URL or path (robot:NAME for a demonstration)")
+    ref: str | None = Field(default=None, description="the branch, tag or commit asked for")
+    commit: str = Field(default="", description="the commit the ref resolved to")
+    task: str | None = Field(default=None, description="the task; None: the one lab.toml names")
+    params: dict[str, Value] = Field(default_factory=dict, description="task parameters")
+    seed: int = Field(default=0, description="the episode's seed")
+    public: bool = Field(
+        default=False,
+        description="a repository anyone may read (private unless the lab found it so)",
+    )
+    kind: Kind = Kind.TRIAL
+    rerun_of: int | None = Field(default=None, description="the trial this one reruns")
+    data: tuple[PinnedRecord, ...] = Field(
+        default=(), description="the archived records it learns from, pinned when it was submitted"
+    )
+
+    def episode(self, seed: int) -> Order:
+        """The same order with another seed (an evaluation's episode)."""
+        return self.model_copy(update={"seed": seed})
+
+    def rerun(self, of: int) -> Order:
+        """The order of a rerun of trial ``of``, which this order queued: the same code,
+        pinned at its commit, the same task, parameters, seed and records it learnt from
+        (whatever was filed since), linked to it."""
+        return self.model_copy(update={"ref": self.commit, "rerun_of": of})
+
+
 class Ending(BaseModel):
     """How a trial ended: ``finished`` with an outcome, or ``cancelled`` without one."""
 
@@ -239,6 +287,22 @@ class Trial(BaseModel):
     signature: dict[str, Any] | None = None  # the lab's, over the filed record
 
     @property
+    def order(self) -> Order:
+        """What was asked for this trial, as it was queued."""
+        return Order(
+            repository=self.repository,
+            ref=self.ref,
+            commit=self.commit,
+            task=self.task,
+            params=self.params,
+            seed=self.seed,
+            public=self.public,
+            kind=self.kind,
+            rerun_of=self.rerun_of,
+            data=tuple(self.data or ()),
+        )
+
+    @property
     def original(self) -> int:
         """The trial this one reruns, or its own id."""
         return self.rerun_of if self.rerun_of is not None else self.id
@@ -260,19 +324,14 @@ class Trial(BaseModel):
 
 
 class Claim(BaseModel):
-    """A trial a worker holds, with what it needs to run it."""
+    """A trial a worker holds: its id, which attempt this is, and its order whole, with
+    what the worker needs to know to run it (``blind``)."""
 
     model_config = ConfigDict(frozen=True)
 
     id: int
-    repository: str
-    commit: str
-    task: str
-    params: dict[str, Value]
-    seed: int
-    rerun_of: int | None
     attempt: int
-    data: list[PinnedRecord] | None = None
+    order: Order
     blind: bool = Field(
         default=False,
         description="an episode of a held-out suite (or a rerun of one): its controller is"

@@ -24,7 +24,7 @@ from typing import TYPE_CHECKING
 
 from repository.errors import ArchiveError
 from scheduler.errors import QueueError
-from scheduler.runner import RunOptions, TrialSpec, run_trial
+from scheduler.runner import RunOptions, run_trial
 from scheduler.states import State
 
 if TYPE_CHECKING:
@@ -81,18 +81,12 @@ class Canaries:
         reference = await asyncio.to_thread(worker.queue.trial, trial_id)
         if not reference.data_digest or not reference.mcap:
             return None  # nothing to compare with (not finished, or no record)
-        spec = TrialSpec(
-            source=reference.repository,
-            ref=reference.commit,
-            task=reference.task,
-            params=reference.params,
-            seed=reference.seed,
-            blind=(reference.manifest or {}).get("blind") is True,  # as the reference ran
-        )
+        order = reference.order.rerun(reference.id)
         folder = Path(tempfile.mkdtemp(prefix="labd-canary-", dir=worker.config.work))
         try:
             result = await run_trial(
-                spec,
+                order,
+                blind=(reference.manifest or {}).get("blind") is True,  # as the reference ran
                 backend=worker.backend,
                 host=worker.host,
                 out=folder / "run",
@@ -100,6 +94,7 @@ class Canaries:
                 options=RunOptions(
                     limits=worker.config.options.limits, fetch=worker.config.options.fetch
                 ),
+                archive=worker.store,  # the records it learnt from, as a rerun gets them
             )
             if result.data_digest == reference.data_digest:
                 return None

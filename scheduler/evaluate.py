@@ -119,43 +119,38 @@ class Evaluator:
         if request.task is not None:  # an unknown suite is refused before fetching
             self.suite(request.task, request.suite)
         prepared = self.submissions.prepare(request.repository, request.ref, request.task, {})
-        suite = self.suite(prepared.task, request.suite)
-        values = self.host.check(prepared.task, suite.params)
-        params = {name: values[name] for name in sorted(suite.params)}
-        seeds = suite.seeds_with(self.secret, prepared.task)
-        task_version = self.host.task_version(prepared.task)
-        resolved = prepared.resolved
+        asked = prepared.order
+        assert asked.task is not None  # a prepared order names its task
+        task = asked.task
+        suite = self.suite(task, request.suite)
+        values = self.host.check(task, suite.params)
+        order = asked.model_copy(
+            update={"params": {name: values[name] for name in sorted(suite.params)}}
+        )
+        seeds = suite.seeds_with(self.secret, task)
+        task_version = self.host.task_version(task)
 
         def add(db: Connection, ids: list[int]) -> int:
             if suite.held_out:
-                self._spend(db, user, resolved.commit, prepared.task, (suite.name, suite.version))
+                self._spend(db, user, order.commit, task, (suite.name, suite.version))
             return self.evaluations.add(
                 db,
-                task=prepared.task,
+                task=task,
                 task_version=task_version,
                 suite=suite.name,
                 suite_version=suite.version,
                 held_out=suite.held_out,
-                repository=resolved.repository,
-                ref=request.ref,
-                commit=resolved.commit,
-                params=params,
+                repository=order.repository,
+                ref=order.ref,
+                commit=order.commit,
+                params=order.params,
                 submitter=user.name,
                 seeds=seeds,
                 trial_ids=ids,
             )
 
         evaluation_id = self.queue.submit_many(
-            user,
-            seeds,
-            add,
-            repository=resolved.repository,
-            ref=request.ref,
-            commit=resolved.commit,
-            task=prepared.task,
-            params=params,
-            public=resolved.public,
-            data=prepared.data,
+            user, [order.episode(seed) for seed in seeds], then=add
         )
         log.info(
             "evaluation %d queued for %s: %s, suite %s version %d, %d episodes",
@@ -229,19 +224,12 @@ class Evaluator:
                 rerun_of=old.id,
             )
 
-        new_id = self.queue.submit_many(
-            user,
-            seeds,
-            add,
-            repository=old.repository,
-            ref=old.commit,
-            commit=old.commit,
-            task=old.task,
-            params=old.params,
-            public=first.public,
-            rerun_of=[r.trial for r in old.rows],
-            data=first.data,  # the very records its episodes learnt from
-        )
+        # each episode's own rerun, of the very records its episodes learnt from
+        asked = first.order
+        orders = [
+            asked.episode(row.seed).rerun(row.trial) for row in old.rows if row.seed is not None
+        ]
+        new_id = self.queue.submit_many(user, orders, then=add)
         log.info("evaluation %d queued for %s: a rerun of %d", new_id, user.name, old.id)
         return new_id
 

@@ -23,7 +23,7 @@ PostgreSQL, and a late worker cannot overwrite what the queue already decided.
 from __future__ import annotations
 
 import logging
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any, TypeVar
 
@@ -34,7 +34,7 @@ from repository.index import Derived, Index, User, blind, hidden, reward_of, to_
 from repository.signing import Keyring, record_statement
 from repository.tables import episodes
 from repository.tables import trials as T
-from repository.trial import Claim, Filing, Kind, Outcome, PinnedRecord, Status, Trial
+from repository.trial import Claim, Filing, Order, Outcome, Status, Trial
 from scheduler.canary import Health
 from scheduler.errors import EpisodeOfEvaluation, FilingRefused, NotYours, QuotaExceeded
 from scheduler.states import Cancel
@@ -86,56 +86,22 @@ class Queue:
 
     # -- submitting ---------------------------------------------------------------------
 
-    def submit(
-        self,
-        user: User,
-        *,
-        repository: str,
-        ref: str | None,
-        commit: str,
-        task: str,
-        params: Mapping[str, Any],
-        seed: int,
-        public: bool,
-        rerun_of: int | None = None,
-        data: Sequence[PinnedRecord] | None = None,
-    ) -> int:
-        """Queue a trial for ``user``, within their daily limit (QuotaExceeded); ``data``
-        are the archived records it learns from, pinned (``scheduler.data``)."""
-        return self.submit_many(
-            user,
-            [seed],
-            lambda _db, ids: ids[0],
-            repository=repository,
-            ref=ref,
-            commit=commit,
-            task=task,
-            params=params,
-            public=public,
-            rerun_of=rerun_of,
-            data=data,
-        )
+    def submit(self, user: User, order: Order) -> int:
+        """Queue ``order`` for ``user``, within their daily limit (QuotaExceeded); the new
+        trial's id."""
+        return self.submit_many(user, [order], then=lambda _db, ids: ids[0])
 
     def submit_many(
         self,
         user: User,
-        seeds: Sequence[int],
-        then: Callable[[Connection, list[int]], R],
+        orders: Sequence[Order],
         *,
-        repository: str,
-        ref: str | None,
-        commit: str,
-        task: str,
-        params: Mapping[str, Any],
-        public: bool,
-        rerun_of: int | Sequence[int] | None = None,
-        data: Sequence[PinnedRecord] | None = None,
+        then: Callable[[Connection, list[int]], R],
     ) -> R:
-        """Queue one trial per seed for ``user``, all or none: each counts towards their
+        """Queue one trial per order for ``user``, all or none: each counts towards their
         daily limit (QuotaExceeded). ``then(db, ids)`` runs in the same transaction (an
-        evaluation is written with its episodes); what it returns is returned.
-        ``rerun_of`` is one trial, or one per seed."""
-        reruns = rerun_of if isinstance(rerun_of, Sequence) else [rerun_of] * len(seeds)
+        evaluation is written with its episodes, an order each: ``Order.episode``, and
+        for a rerun ``Order.rerun`` of each episode's own); what it returns is returned."""
         with self.index.begin() as db:
             _lock_user(db, user.name)
             since = self.clock() - DAY
@@ -144,32 +110,17 @@ class Queue:
                 .select_from(T)
                 .where(T.c.submitter == user.name, T.c.created >= since)
             ).scalar_one()
-            if today + len(seeds) > user.max_daily:
+            if today + len(orders) > user.max_daily:
                 over = (
-                    f"; these {len(seeds)} would take it past the daily limit of {user.max_daily}"
-                    if len(seeds) > 1
+                    f"; these {len(orders)} would take it past the daily limit of {user.max_daily}"
+                    if len(orders) > 1
                     else ", the daily limit"
                 )
                 raise QuotaExceeded(
                     f"{user.name} has submitted {today} trials in the last 24 hours{over};"
                     " try again later or ask the operator for more"
                 )
-            ids = [
-                self.index.add_trial(
-                    repository=repository,
-                    ref=ref,
-                    commit=commit,
-                    task=task,
-                    params=params,
-                    seed=seed,
-                    submitter=user.name,
-                    public=public,
-                    rerun_of=again,
-                    data=data,
-                    db=db,
-                )
-                for seed, again in zip(seeds, reruns, strict=True)
-            ]
+            ids = [self.index.add_trial(order, submitter=user.name, db=db) for order in orders]
             return then(db, ids)
 
     def _ended(self, trial_ids: Sequence[int]) -> None:
@@ -232,13 +183,13 @@ class Queue:
         for _ in range(5):  # another worker may take the chosen trial first
             now = self.clock()
             with self.index.begin() as db:
-                order = self._choose(db)
+                candidates = self._choose(db)
                 if db.dialect.name == "postgresql":  # the best one no one else is taking
-                    first = next((o for o in order if _lock_row(db, o[0])), None)
-                    order = [first] if first else []
-                if not order:
+                    first = next((c for c in candidates if _lock_row(db, c[0])), None)
+                    candidates = [first] if first else []
+                if not candidates:
                     return None
-                chosen, submitter, limit = order[0]
+                chosen, submitter, limit = candidates[0]
                 if _lock_user(db, submitter) and _running(db, submitter) >= limit:
                     continue  # another worker just gave this submitter their last slot
                 taken = db.execute(
@@ -262,16 +213,7 @@ class Queue:
                 ).scalar()
             log.info("worker %s claimed trial %d (attempt %d)", worker, chosen, row.attempts)
             return Claim(
-                id=row.id,
-                repository=row.repository,
-                commit=row.commit,
-                task=row.task,
-                params=dict(row.params),
-                seed=row.seed,
-                rerun_of=row.rerun_of,
-                attempt=row.attempts,
-                data=row.data,
-                blind=bool(unseen),
+                id=row.id, attempt=row.attempts, order=to_trial(row).order, blind=bool(unseen)
             )
         return None
 
@@ -358,33 +300,13 @@ class Queue:
         return True
 
     def file_finished(
-        self,
-        *,
-        kind: Kind,
-        repository: str,
-        task: str,
-        params: Mapping[str, Any],
-        seed: int,
-        submitter: str,
-        filing: Filing,
-        started: float | None = None,
+        self, order: Order, *, submitter: str, filing: Filing, started: float | None = None
     ) -> int:
-        """File a record made outside the queue (a live robot's demonstration): a trial
-        that is finished when it is added, signed as any other."""
+        """File a record made outside the queue (a live robot's demonstration, ``order``):
+        a trial that is finished when it is added, signed as any other."""
         now = self.clock()
         with self.index.begin() as db:
-            trial_id = self.index.add_trial(
-                repository=repository,
-                ref=None,
-                commit="",
-                task=task,
-                params=params,
-                seed=seed,
-                submitter=submitter,
-                public=True,
-                kind=kind,
-                db=db,
-            )
+            trial_id = self.index.add_trial(order, submitter=submitter, db=db)
             values = filing.model_dump(mode="json")
             db.execute(
                 sa.update(T)

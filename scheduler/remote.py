@@ -25,12 +25,15 @@ from scheduler.client import ApiClient, version
 from scheduler.errors import ApiRefused, FilingRefused, RemoteError
 from scheduler.states import State
 
-PROTOCOL = 4  # 1: labd 0.1 (status succeeded/failed); 2: status and outcome apart;
+PROTOCOL = 5  # 1: labd 0.1 (status succeeded/failed); 2: status and outcome apart;
 # 3: the lab holds a filing to its record (422 if not borne out), no metrics without one;
 # 4: claims say ``blind`` (held-out episodes: the controller learns no seed), replay
-# verdicts are the lab's own (a remote worker files none). Still 4 with hello's ``git``
-# (the prefix the lab records its hosted repositories under): an addition a worker of 4
-# ignores, and without which a worker fetches only what is under its own --server
+# verdicts are the lab's own (a remote worker files none); hello's ``git`` (the prefix
+# the lab records its hosted repositories under) came later, an addition a worker of 4
+# ignores; 5: a claim carries the trial's order whole ({"id", "attempt", "order":
+# {repository, ref, commit, task, params, seed, public, kind, rerun_of, data}, "blind"}),
+# where a claim of 4 had some of its fields beside id and attempt: a worker of 4 would
+# read a claim of 5 as missing them
 PROTOCOL_HEADER = "X-Labd-Worker-Protocol"
 VERSION_HEADER = "X-Labd-Version"
 

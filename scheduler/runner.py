@@ -24,21 +24,20 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-import dataclasses
 import hashlib
 import json
 import logging
 import shutil
 import tempfile
 import time
-from collections.abc import Awaitable, Callable, Mapping
+from collections.abc import Awaitable, Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 from repository.digests import manifest_digest, readable_json
 from repository.errors import ArchiveError
-from repository.trial import Ending, Outcome, PinnedRecord, Status, Value
+from repository.trial import Ending, Order, Outcome, Status, Value
 from repository.units import MiB
 from repository.well_known import LOGS, MANIFEST, OUTCOME, RECORD_FILE
 from sandbox.api import Backend, Exit, InstallError, Job, Limits, Running, SandboxError
@@ -63,21 +62,6 @@ from scheduler.source import Source, checkout
 from scheduler.states import Stage
 
 log = logging.getLogger("scheduler.runner")
-
-
-@dataclass(frozen=True)
-class TrialSpec:
-    """What to run: the code, the task (default: lab.toml's), its parameters and seed."""
-
-    source: str
-    ref: str | None = None
-    task: str | None = None
-    params: Mapping[str, Any] = field(default_factory=dict)
-    seed: int = 0
-    data: tuple[PinnedRecord, ...] = ()  # the archived records it learns from, pinned
-    # A held-out episode: the controller is told nothing of the seed (no LAB_SEED, and
-    # /lab/episode says 0); the manifest says so, and its replay and reruns run blind too.
-    blind: bool = False
 
 
 @dataclass(frozen=True)
@@ -175,8 +159,9 @@ class TrialResult:
 
 
 async def run_trial(
-    spec: TrialSpec,
+    order: Order,
     *,
+    blind: bool = False,
     backend: Backend,
     host: TrialHost,
     out: Path,
@@ -186,11 +171,15 @@ async def run_trial(
     archive: Blobs | None = None,
     resolver: Archive | None = None,
 ) -> TrialResult:
-    """Run one trial into the folder ``out``.
+    """Run ``order`` into the folder ``out``: its code at its commit (or, not resolved
+    yet, at its ref), its task (or lab.toml's), parameters and seed.
 
-    ``archive`` is where the records ``spec.data`` pins are fetched from (a lab's blob
-    store, or its HTTP API); ``resolver`` is where lab.toml's ``[data]`` is resolved
-    when the spec pins nothing yet (``labd run``: a local archive, or a lab's API). A
+    ``blind``: a held-out episode, whose controller is told nothing of the seed (no
+    ``LAB_SEED``, and ``/lab/episode`` says 0); the manifest says so, and its replay and
+    reruns run blind too. ``archive`` is where the records ``order.data`` pins are
+    fetched from (a lab's blob store, or its HTTP API); ``resolver`` is where lab.toml's
+    ``[data]`` is resolved when the order pins nothing yet (``labd run``: a local
+    archive, or a lab's API). A
     trial that cannot start (no lab.toml, an unknown task, requirements that do not
     install, pinned data that is gone or changed...) ends as an ``error`` with the
     reason, not with an exception.
@@ -208,7 +197,8 @@ async def run_trial(
         try:
             prepared = await asyncio.wait_for(
                 _prepare(
-                    spec,
+                    order,
+                    blind=blind,
                     backend=backend,
                     host=host,
                     work=work,
@@ -229,7 +219,7 @@ async def run_trial(
         result = await trial.run()
     except (TrialError, SandboxError) as err:
         # The trial could not start: an error, with the reason, and no record.
-        log.info("trial of %s could not start: %s", spec.source, err)
+        log.info("trial of %s could not start: %s", order.repository, err)
         result = TrialResult(Ending.error(str(err)), out, backend=backend.name)
     finally:
         shutil.rmtree(work, ignore_errors=True)
@@ -238,7 +228,7 @@ async def run_trial(
         write_whole(out / "result.json", (json.dumps(result.to_json(), indent=2) + "\n").encode())
     except OSError as err:
         reason = storage_failure(err, "the trial's result could not be written")
-        log.error("trial of %s: %s", spec.source, reason)
+        log.error("trial of %s: %s", order.repository, reason)
         if result.outcome is not Outcome.ERROR:
             result.ending = Ending.lab_error(reason)
     return result
@@ -246,11 +236,14 @@ async def run_trial(
 
 @dataclass
 class _Prepared:
-    spec: TrialSpec
+    """A trial ready to start: its order resolved (the commit checked out, the task,
+    the records it learns from pinned), its code and what was installed for it."""
+
+    order: Order  # task and commit resolved
+    blind: bool
     source: Source
     config: controller_config.ControllerConfig
-    task: str
-    values: dict[str, Value]
+    values: dict[str, Value]  # the task's parameters, every one
     host: TrialHost
     python_paths: list[Path]
     requirements_sha: str | None
@@ -258,10 +251,16 @@ class _Prepared:
     node_modules: Path | None = None  # the installed npm packages, mounted at /node_modules
     node_packages_sha: str | None = None  # sha256 of package-lock.json
 
+    @property
+    def task(self) -> str:
+        assert self.order.task is not None  # resolved by ``_prepare``
+        return self.order.task
+
 
 async def _prepare(
-    spec: TrialSpec,
+    order: Order,
     *,
+    blind: bool,
     backend: Backend,
     host: TrialHost,
     work: Path,
@@ -271,12 +270,13 @@ async def _prepare(
     resolver: Archive | None = None,
 ) -> _Prepared:
     code = work / "code"
-    source = await asyncio.to_thread(checkout, spec.source, spec.ref, code, cache, options.fetch)
+    ref = order.commit or order.ref  # a queued trial's pinned commit; labd run's ref
+    source = await asyncio.to_thread(checkout, order.repository, ref, code, cache, options.fetch)
     config = controller_config.load(code)
-    task = spec.task or config.task
+    task = order.task or config.task
     if task is None:
         raise ControllerConfigError("it names no task and none was given (--task)")
-    values = host.check(task, spec.params)
+    values = host.check(task, order.params)
     python_paths, requirements_sha = [], None
     if config.requirements:
         target, requirements_sha = await install_requirements(
@@ -286,29 +286,30 @@ async def _prepare(
     node_modules, node_sha = None, None
     if config.node_packages:
         node_modules, node_sha = await install_node_packages(backend, code, cache)
+    pinned = order.data
     data = None
-    if config.data is not None and not spec.data:
+    if config.data is not None and not pinned:
         if resolver is None:
             raise ControllerConfigError(
                 "it has [data], but no data was pinned for this trial and there is no archive"
                 " to resolve it against (labd run: --server URL, or --data with a lab's archive)"
             )
         try:
-            pinned = await asyncio.to_thread(resolve, config.data, resolver)
+            pinned = tuple(await asyncio.to_thread(resolve, config.data, resolver))
         except (QueueError, ArchiveError) as err:  # nothing to pin, too much, unreachable
             raise TrialError(str(err)) from None
-        spec = dataclasses.replace(spec, data=tuple(pinned))
-    if spec.data:
+    if pinned:
         if archive is None:
             raise DataUnavailable(
-                spec.data[0].trial, "cannot be fetched: this runner has no archive to read it from"
+                pinned[0].trial, "cannot be fetched: this runner has no archive to read it from"
             )
-        data = await asyncio.to_thread(materialize, spec.data, archive, host, cache)
+        data = await asyncio.to_thread(materialize, pinned, archive, host, cache)
+    resolved = order.model_copy(update={"commit": source.commit, "task": task, "data": pinned})
     return _Prepared(
-        spec,
+        resolved,
+        blind,
         source,
         config,
-        task,
         values,
         host,
         python_paths,
@@ -396,11 +397,11 @@ class _Trial:
         self.lab: TrialLab = prepared.host.open(
             prepared.task,
             prepared.values,
-            prepared.spec.seed,
+            prepared.order.seed,
             realtime=prepared.config.realtime,
             out=out,
             interfaces=prepared.config.interface_files,
-            blind=prepared.spec.blind,
+            blind=prepared.blind,
         )
         self.launched: float | None = None  # loop time the sandbox was started
         self.first_step: float | None = None
@@ -414,13 +415,13 @@ class _Trial:
             task=p.task,
             task_version=lab.task_version,
             parameters=p.values,
-            seed=p.spec.seed,
+            seed=p.order.seed,
             runtime=self.backend.runtime_digest(),
             requirements_sha256=p.requirements_sha,
             node_packages_sha256=p.node_packages_sha,
             model_sha256=lab.model_sha256,
-            data=p.spec.data,
-            blind=p.spec.blind,
+            data=p.order.data,
+            blind=p.blind,
         )
         digest = manifest_digest(manifest)
         socket_dir = self.work / "bridge"
@@ -472,8 +473,8 @@ class _Trial:
     def _job(self, socket: Path) -> Job:
         p = self.prepared
         env = {"LAB_TASK": p.task, "LAB_PARAMS": json.dumps(p.values, sort_keys=True)}
-        if not p.spec.blind:  # a held-out episode's seed never reaches its controller
-            env["LAB_SEED"] = str(p.spec.seed)
+        if not p.blind:  # a held-out episode's seed never reaches its controller
+            env["LAB_SEED"] = str(p.order.seed)
         return Job(
             command=p.config.command,
             code=self.work / "code",

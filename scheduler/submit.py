@@ -37,7 +37,7 @@ from pathlib import Path
 from typing import Any
 
 from repository.index import Index, User
-from repository.trial import Kind, PinnedRecord, TrialRequest, Value
+from repository.trial import Kind, Order, PinnedRecord, TrialRequest
 from scheduler import controller
 from scheduler import data as pinning
 from scheduler.data import Archive, DataPolicy
@@ -52,17 +52,15 @@ log = logging.getLogger("scheduler.submit")
 
 @dataclass(frozen=True)
 class Prepared:
-    """A submission checked and resolved: what its trials are queued with."""
+    """A submission checked and resolved: the order its trials are queued with (one per
+    seed for an evaluation: ``Order.episode``)."""
 
-    resolved: Resolved
-    ref: str | None
-    task: str
-    params: dict[str, Value]  # the ones the request named, normalized
-    data: list[PinnedRecord] | None  # lab.toml's [data], pinned
+    order: Order
 
     def __str__(self) -> str:
-        where = f"{self.resolved.repository}@{self.resolved.commit[:12]} ({self.ref or 'HEAD'})"
-        return f"{where} {self.task}"
+        order = self.order
+        where = f"{order.repository}@{order.commit[:12]} ({order.ref or 'HEAD'})"
+        return f"{where} {order.task}"
 
 
 class Submissions:
@@ -129,25 +127,14 @@ class Submissions:
         Raises InvalidRequest, RepositoryError or QuotaExceeded, having written nothing.
         """
         prepared = self.prepare(request.repository, request.ref, request.task, request.params)
-        trial_id = self.queue.submit(
-            user,
-            repository=prepared.resolved.repository,
-            ref=request.ref,
-            commit=prepared.resolved.commit,
-            task=prepared.task,
-            params=prepared.params,
-            seed=request.seed,
-            public=prepared.resolved.public,
-            data=prepared.data,
-        )
+        order = prepared.order.episode(request.seed)
+        trial_id = self.queue.submit(user, order)
         log.info(
             "trial %d queued for %s: %s, learning from %s",
             trial_id,
             user.name,
             prepared,
-            f"trials {', '.join(str(p.trial) for p in prepared.data)}"
-            if prepared.data
-            else "no data",
+            f"trials {', '.join(str(p.trial) for p in order.data)}" if order.data else "no data",
         )
         return trial_id
 
@@ -155,7 +142,8 @@ class Submissions:
         self, repository: str, ref: str | None, task: str | None, params: Mapping[str, Any]
     ) -> Prepared:
         """Check the task and parameters, resolve the ref to a commit, read its
-        ``lab.toml`` and pin its ``[data]``: what a trial of it is queued with.
+        ``lab.toml`` and pin its ``[data]``: the order a trial of it is queued with (its
+        seed 0: ``Order.episode`` sets it).
 
         Raises InvalidRequest or RepositoryError.
         """
@@ -171,17 +159,21 @@ class Submissions:
                 f" (--task, or task in {controller.FILE}); the tasks are {tasks}"
             )
         values = self.host.check(task, params)
-        data: list[PinnedRecord] | None = None
+        data: list[PinnedRecord] = []
         if config.data is not None:
             if self.archive is None:
                 raise InvalidRequest(f"{controller.FILE} has [data], but this lab has no archive")
             data = pinning.resolve(config.data, self.archive, self.data_policy)
         return Prepared(
-            resolved=resolved,
-            ref=ref,
-            task=task,
-            params={name: values[name] for name in sorted(params)},  # as normalized
-            data=data,
+            Order(
+                repository=resolved.repository,
+                ref=ref,
+                commit=resolved.commit,
+                task=task,
+                params={name: values[name] for name in sorted(params)},  # as normalized
+                public=resolved.public,
+                data=tuple(data),
+            )
         )
 
     def lab_toml(self, resolved: Resolved) -> controller.ControllerConfig:
@@ -205,17 +197,7 @@ class Submissions:
             )
         if old.rerun_of is not None:
             old = self.index.trial(old.rerun_of)
-        new_id = self.queue.submit(
-            user,
-            repository=old.repository,
-            ref=old.commit,
-            commit=old.commit,
-            task=old.task,
-            params=old.params,
-            seed=old.seed,
-            public=old.public,
-            rerun_of=old.id,
-            data=old.data,  # the very records it learnt from, whatever was filed since
-        )
+        # the very records it learnt from, whatever was filed since
+        new_id = self.queue.submit(user, old.order.rerun(old.id))
         log.info("trial %d queued for %s: a rerun of %d", new_id, user.name, old.id)
         return new_id

@@ -43,7 +43,7 @@ from scheduler.canary import Canaries, Health
 from scheduler.errors import FilingRefused, QueueError
 from scheduler.host import TrialHost
 from scheduler.outcome import storage_failure
-from scheduler.runner import Progress, RunOptions, TrialResult, TrialSpec, run_trial
+from scheduler.runner import Progress, RunOptions, TrialResult, run_trial
 from scheduler.states import Stage, State
 
 
@@ -181,21 +181,14 @@ class Worker:
         """Run one claimed trial to its end and file it."""
         out = self.config.work / f"trial-{claim.id}-{claim.attempt}"
         shutil.rmtree(out, ignore_errors=True)
-        spec = TrialSpec(
-            source=claim.repository,
-            ref=claim.commit,
-            task=claim.task,
-            params=claim.params,
-            seed=claim.seed,
-            data=tuple(claim.data or ()),
-            blind=claim.blind,
-        )
-        self.log.info("trial %d: %s@%s %s", claim.id, claim.repository, claim.commit[:12], spec)
+        order = claim.order
+        self.log.info("trial %d: %s@%s %s", claim.id, order.repository, order.commit[:12], order)
         progress = Progress()
         self._current = (claim, progress)
         running = asyncio.create_task(
             run_trial(
-                spec,
+                order,
+                blind=claim.blind,
                 backend=self.backend,
                 host=self.host,
                 out=out,
@@ -369,8 +362,9 @@ class Worker:
         except (ArchiveError, QueueError) as err:
             self.log.exception("trial %d: the record could not be stored", claim.id)
             return Filing.lab_error(f"the archive could not store the trial's record: {err}")
-        if claim.rerun_of is not None and result is not None and result.status is Status.FINISHED:
-            record.update(self._compare(claim.rerun_of, result))
+        rerun_of = claim.order.rerun_of
+        if rerun_of is not None and result is not None and result.status is Status.FINISHED:
+            record.update(self._compare(rerun_of, result))
         return Filing(**record)
 
     async def _summarize(self, trial_id: int, mcap: Path) -> None:

@@ -32,12 +32,12 @@ from labd.errors import LabError
 from labd.trial import LabHost, client_library
 from repository.blobs import BlobStore
 from repository.index import Filters, Index
-from repository.trial import Trial
+from repository.trial import Order, Trial
 from sandbox.api import Limits, SandboxError
 from scheduler.client import ApiClient
 from scheduler.data import Archive, LocalArchive, RemoteArchive
 from scheduler.errors import InvalidRequest
-from scheduler.runner import RunOptions, TrialResult, TrialSpec, run_trial
+from scheduler.runner import RunOptions, TrialResult, run_trial
 
 
 def add_parser(commands: Any) -> None:
@@ -84,8 +84,8 @@ def main(args: argparse.Namespace) -> int:
     out = (
         args.out or args.data / "runs" / f"{time.strftime('%Y%m%d-%H%M%S')}-{secrets.token_hex(3)}"
     )
-    spec = TrialSpec(
-        source=args.source, ref=args.ref, task=args.task, params=params, seed=args.seed
+    order = Order(
+        repository=args.source, ref=args.ref, task=args.task, params=params, seed=args.seed
     )
     options = RunOptions(limits=Limits(wall=args.wall))
     with contextlib.ExitStack() as stack:
@@ -93,7 +93,7 @@ def main(args: argparse.Namespace) -> int:
         try:
             result = asyncio.run(
                 run_trial(
-                    spec,
+                    order,
                     backend=backend,
                     host=LabHost(),
                     out=out,
@@ -107,7 +107,7 @@ def main(args: argparse.Namespace) -> int:
     if args.json:
         print(json.dumps(result.to_json(), indent=2))
     else:
-        report(result, spec)
+        report(result, order)
     return int(exit_code(result.status, result.outcome))
 
 
@@ -153,13 +153,13 @@ class _LocalArchive:
             self.opened.index.close()
 
 
-def report(result: TrialResult, spec: TrialSpec) -> None:
+def report(result: TrialResult, order: Order) -> None:
     what = result.outcome.value.upper() if result.outcome else result.status.value
     print(f"trial {what}: {result.reason}")
     if result.manifest:
         task = result.manifest["task"]["name"]
         print(
-            f"  task {task}, seed {spec.seed}, sandbox {result.backend}, "
+            f"  task {task}, seed {order.seed}, sandbox {result.backend}, "
             f"{result.wall_seconds:.1f} s"
         )
     if result.metrics:

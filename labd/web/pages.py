@@ -40,7 +40,7 @@ from labd.web.render import page
 from labd.web.session import Viewer
 from repository.errors import BlobError
 from repository.evaluation_index import EvaluationFilters
-from repository.index import Derived, Filters, Order
+from repository.index import Derived, Filters, Sort
 from repository.trial import Kind, Outcome, Status, Trial
 from repository.units import KiB
 from repository.well_known import REPLAY, SUMMARY, VIDEO
@@ -124,11 +124,11 @@ def trials(
         "since": q.since,
         "until": q.until,
         "kind": q.kind,
-        "order": Order(q.order) if q.order in set(Order) else Order.TIME,
+        "order": Sort(q.order) if q.order in set(Sort) else Sort.TIME,
     }
     repository, commit, task, outcome, user = q.repository, q.commit, q.task, q.outcome, q.user
     since, until, kind, before, page_number = q.since, q.until, q.kind, q.before, q.page
-    query = {k: v for k, v in form.items() if v and not (k == "order" and v is Order.TIME)}
+    query = {k: v for k, v in form.items() if v and not (k == "order" and v is Sort.TIME)}
 
     def shown(
         items: list[Trial], next_cursor: int | None, problem: str | None, status: int
@@ -162,9 +162,9 @@ def trials(
             since=_day(since, "since"),
             until=_day(until, "until", end=True),
         )
-        if form["order"] is Order.REWARD:
+        if form["order"] is Sort.REWARD:
             found = service.index.find(
-                filters, limit=PAGE, order=Order.REWARD, offset=(page_number - 1) * PAGE
+                filters, limit=PAGE, order=Sort.REWARD, offset=(page_number - 1) * PAGE
             )
         else:
             found = service.index.find(filters, limit=PAGE, before=before)

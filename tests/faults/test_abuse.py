@@ -25,8 +25,8 @@ from websockets.asyncio.client import connect
 
 from labd.graph.graph import Side
 from labd.recorder import read_channels
-from repository.trial import Outcome
-from scheduler.runner import TrialSpec, run_trial
+from repository.trial import Order, Outcome
+from scheduler.runner import run_trial
 from tests.faults.test_crowd import Healthy
 from tests.helpers.sandboxes import make_backend
 
@@ -42,9 +42,9 @@ def run(cache, host, tmp_path: Path, mode: str):
     toml.write_text(toml.read_text().replace('"abuse"', f'"{mode}"'))
     folder.chmod(0o755)
     backend = make_backend("bwrap", cache)
-    spec = TrialSpec(source=str(folder), seed=2)
+    order = Order(repository=str(folder), seed=2)
     return asyncio.run(
-        run_trial(spec, backend=backend, host=host, out=tmp_path / f"{mode}-run", cache=cache)
+        run_trial(order, backend=backend, host=host, out=tmp_path / f"{mode}-run", cache=cache)
     )
 
 

@@ -30,12 +30,12 @@ from typing import Any, ClassVar
 import psutil
 import pytest
 
-from repository.trial import Outcome
+from repository.trial import Order, Outcome
 from sandbox.api import PROXY_PORT, Backend
 from sandbox.docker import DockerBackend
 from sandbox.install import INSTALL_LIMITS
 from sandbox.proxy import ProxyLimits
-from scheduler.runner import RunOptions, TrialResult, TrialSpec, run_trial
+from scheduler.runner import RunOptions, TrialResult, run_trial
 from tests.faults.slow import tiny_wheel
 
 pytestmark = [pytest.mark.integration, pytest.mark.timeout(300)]
@@ -181,10 +181,10 @@ def pip_repository(folder: Path, listener: Listener) -> Path:
 
 
 def run(backend: Backend, host: Any, tmp_path: Path, source: Path) -> TrialResult:
-    spec = TrialSpec(source=str(source), params={"time_limit": 1})
+    order = Order(repository=str(source), params={"time_limit": 1})
     return asyncio.run(
         run_trial(
-            spec,
+            order,
             backend=backend,
             host=host,
             out=tmp_path / "out",

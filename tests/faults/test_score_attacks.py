@@ -22,10 +22,10 @@ import pytest
 from labd.replay import replay
 from labd.workers import LOCAL_WORKERS
 from repository.index import Derived
-from repository.trial import Filing
+from repository.trial import Filing, Order
 from repository.well_known import LOGS, REPLAY
 from scheduler.remote import PROTOCOL, PROTOCOL_HEADER
-from scheduler.runner import TrialSpec, run_trial
+from scheduler.runner import run_trial
 from tests.fakes import verify_episodes
 from tests.helpers.githttp import GitRepo
 from tests.labd.test_api import api, auth, repo, service, token  # noqa: F401 (fixtures)
@@ -47,9 +47,11 @@ with Lab.connect() as lab:
 SPY_TOML = '[controller]\ncommand = ["python", "spy.py"]\ntask = "icreate-maze"\n'
 
 
-def _run(backend, cache, host, tmp_path, spec: TrialSpec):
+def _run(backend, cache, host, tmp_path, order: Order, *, blind: bool = False):
     out = tmp_path / f"run-{len(list(tmp_path.glob('run-*')))}"
-    return asyncio.run(run_trial(spec, backend=backend, host=host, out=out, cache=cache))
+    return asyncio.run(
+        run_trial(order, blind=blind, backend=backend, host=host, out=out, cache=cache)
+    )
 
 
 @pytest.mark.integration
@@ -58,7 +60,7 @@ def test_a_held_out_episode_runs_blind_and_its_record_still_replays(backend, cac
     any episode number); the manifest says it ran blind, and the lab's replay of the
     record verifies. The same controller on the same seed, not blind, sees it."""
     spy = GitRepo.create(tmp_path / "spy", {"lab.toml": SPY_TOML, "spy.py": SPY}).path
-    blind = _run(backend, cache, host, tmp_path, TrialSpec(str(spy), seed=SEED, blind=True))
+    blind = _run(backend, cache, host, tmp_path, Order(repository=str(spy), seed=SEED), blind=True)
     told = json.loads((blind.folder / LOGS["stdout"]).read_text().splitlines()[-1])
     assert (told["env"], told["topic"]) == (None, 0)
     assert not [name for name in told["environ"] if "SEED" in name or "EPISODE" in name]
@@ -66,7 +68,7 @@ def test_a_held_out_episode_runs_blind_and_its_record_still_replays(backend, cac
     assert str(SEED) not in (blind.folder / LOGS["stdout"]).read_text()
     assert replay(blind.mcap).verified
 
-    seen = _run(backend, cache, host, tmp_path, TrialSpec(str(spy), seed=SEED))
+    seen = _run(backend, cache, host, tmp_path, Order(repository=str(spy), seed=SEED))
     told = json.loads((seen.folder / LOGS["stdout"]).read_text().splitlines()[-1])
     assert (told["env"], told["topic"]) == (str(SEED), SEED)
     assert "blind" not in seen.manifest  # a trial's manifest is as it always was
@@ -91,7 +93,7 @@ def _claim_and_file(service, worker: str, outcomes: dict[int, str], stdout: byte
             reason=f"{outcome} at tick 9",
             data_digest=f"{claim.id:064x}",
             metrics={"reward": 1.0 if outcome == "success" else 0.0},
-            wall_seconds=5.0 * (claim.seed % 4),  # the timing channel: seed % 4 x 5 s
+            wall_seconds=5.0 * (claim.order.seed % 4),  # the timing channel: seed % 4 x 5 s
             stdout=log,
             mcap=record,
             mcap_size=34,

@@ -22,10 +22,10 @@ from labd.api.app import create_app
 from labd.service import Service, ServiceConfig
 from repository.blobs import BlobStore
 from repository.index import Index, connect
-from repository.trial import Outcome, Status
+from repository.trial import Order, Outcome, Status
 from scheduler.errors import QuotaExceeded
 from scheduler.queue import Queue, QueueConfig
-from scheduler.runner import RunOptions, TrialSpec, run_trial
+from scheduler.runner import RunOptions, run_trial
 from scheduler.worker import Worker, WorkerConfig
 from tests.faults.conftest import gone
 from tests.faults.slow import PackageIndex, S3Server, controller
@@ -59,16 +59,15 @@ def queue(database_url: str, clock: Clock):
 
 
 def submit(queue: Queue, seed: int = 0) -> int:
-    return queue.submit(
-        queue.index.user("alice"),
+    order = Order(
         repository="https://example.org/r.git",
         ref="main",
         commit="a" * 40,
         task="icreate-maze",
-        params={},
         seed=seed,
         public=True,
     )
+    return queue.submit(queue.index.user("alice"), order)
 
 
 def test_a_user_submits_at_most_500_trials_a_day(queue: Queue, clock: Clock):
@@ -133,7 +132,7 @@ def test_preparing_past_its_deadline_is_an_error(
     monkeypatch.setenv("PIP_INDEX_URL", index.url)
     repo = GitRepo.create(tmp_path / "needs", controller(3, requirements=True))
     backend = make_backend("bwrap", cache)
-    spec = TrialSpec(source=str(repo.path))
+    order = Order(repository=str(repo.path))
     options = RunOptions(prepare=8.0)
 
     async def run() -> Any:
@@ -142,7 +141,7 @@ def test_preparing_past_its_deadline_is_an_error(
         # are not the installer's
         before = {p.pid for p in psutil.Process().children(recursive=True)}
         trial = asyncio.create_task(
-            run_trial(spec, backend=backend, host=host, out=out, cache=cache, options=options)
+            run_trial(order, backend=backend, host=host, out=out, cache=cache, options=options)
         )
         asked = asyncio.create_task(asyncio.to_thread(index.asked.wait, 60))
         await asyncio.wait({trial, asked}, return_when=asyncio.FIRST_COMPLETED)
@@ -171,16 +170,10 @@ def quick_trial_on_s3(
     db.add_user("alice")
     queue = Queue(db, config)
     repo = GitRepo.create(tmp_path / "quick", controller(3))
-    trial = queue.submit(
-        db.user("alice"),
-        repository=str(repo.path),
-        ref="main",
-        commit=repo.rev(),
-        task="icreate-maze",
-        params={},
-        seed=0,
-        public=True,
+    order = Order(
+        repository=str(repo.path), ref="main", commit=repo.rev(), task="icreate-maze", public=True
     )
+    trial = queue.submit(db.user("alice"), order)
     store = BlobStore(
         "s3://lab-archive/records",
         {"endpoint_url": s3.url, "key": "testing", "secret": "testing"},

@@ -18,7 +18,7 @@ import pytest
 
 from repository.evaluation import EvaluationRequest
 from repository.index import User
-from repository.trial import Filing
+from repository.trial import Filing, Order
 from scheduler.fetch import FetchPolicy
 from tests.helpers.githttp import GitRepo
 from tests.helpers.labs import ServerThread, lab_config, running
@@ -68,16 +68,15 @@ class Filler:
         return self.service.index.user(name)
 
     def submit(self, name: str, task: str, seed: int, commit: str) -> int:
-        return self.service.queue.submit(
-            self.user(name),
+        order = Order(
             repository=str(self.repo.path),
             ref="main",
             commit=commit,
             task=task,
-            params={},
             seed=seed,
             public=True,
         )
+        return self.service.queue.submit(self.user(name), order)
 
     def claim(self, worker: str) -> int:
         """The next queued trial, claimed by ``worker`` (the test queues one at a time)."""

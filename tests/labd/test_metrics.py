@@ -26,20 +26,19 @@ from labd.metrics import CONTENT_TYPE
 from labd.service import Service, ServiceConfig
 from labd.workers import LOCAL_WORKERS
 from repository.evaluation_index import Evaluations
-from repository.trial import Status
+from repository.trial import Order, Status
 from scheduler.remote import PROTOCOL, PROTOCOL_HEADER
 from tests.labd.test_api import check_declared
 
 DOCS = Path(__file__).resolve().parents[2] / "docs" / "metrics.md"
 COMMIT = "c" * 40
-ASKED = {
-    "repository": "https://example.org/r.git",
-    "ref": "main",
-    "commit": COMMIT,
-    "task": "icreate-maze",
-    "params": {},
-    "submitter": "alice",
-}
+ASKED = Order(
+    repository="https://example.org/r.git",
+    ref="main",
+    commit=COMMIT,
+    task="icreate-maze",
+    public=True,
+)
 
 
 class Clock:
@@ -302,7 +301,8 @@ async def test_the_index_is_counted_as_the_archive_reads_it(tmp_path, database_u
                 .where(evaluation_table.c.id.in_([made[2], made[4]]))
                 .values(finished=clock.now)
             )
-        rerun = index.add_trial(**ASKED, seed=0, public=True, rerun_of=trials[2][0])
+        again = ASKED.model_copy(update={"rerun_of": trials[2][0]})
+        rerun = index.add_trial(again, submitter="alice")
         index.update(rerun, status="finished", outcome="success", reproduced=False)
         clock.now += 90
         statuses = {e: evaluations.get(e).status for e in made}
@@ -341,10 +341,17 @@ def evaluate(service: Service, *, seeds: int) -> int:
     """An evaluation of ``seeds`` episodes, queued, as the evaluator writes one."""
     index = service.index
     with index.begin() as db:
-        ids = [index.add_trial(**ASKED, seed=seed, public=True, db=db) for seed in range(seeds)]
+        ids = [
+            index.add_trial(ASKED.episode(seed), submitter="alice", db=db) for seed in range(seeds)
+        ]
         return service.evaluations.add(
             db,
-            **ASKED,
+            repository=ASKED.repository,
+            ref=ASKED.ref,
+            commit=ASKED.commit,
+            task="icreate-maze",
+            params={},
+            submitter="alice",
             task_version="1",
             suite="dev",
             suite_version=1,
@@ -358,7 +365,7 @@ async def test_the_blob_stores_errors_are_counted(service):
     """A damaged blob read (its download refused) counts as ``corrupt``, a write the disk
     refuses as ``write``; a blob that is not there counts as nothing."""
     digest = service.store.put_bytes(b"the record's bytes")
-    held = service.index.add_trial(**ASKED, seed=0, public=True)  # a record anyone may read
+    held = service.index.add_trial(ASKED, submitter="alice")  # a record anyone may read
     service.index.update(held, status="finished", outcome="success", mcap=digest)
     path = Path(service.store.path(digest))
     path.chmod(0o644)

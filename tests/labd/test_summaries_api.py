@@ -15,7 +15,7 @@ from labd.api.app import create_app
 from labd.recorder.summary import VERSION
 from repository.errors import RecordNotFound
 from repository.index import Derived
-from repository.trial import Filing
+from repository.trial import Filing, Order
 from repository.well_known import SUMMARY, SUMMARY_MEDIA_TYPE
 from scheduler.remote import PROTOCOL, PROTOCOL_HEADER, RemoteLab
 from tests.fakes import file_unchecked
@@ -37,10 +37,8 @@ def record(registry, tmp_path_factory):
 def file_trial(service, record, worker="w"):  # noqa: F811
     """A finished trial with ``record`` as its MCAP, filed by ``worker``."""
     user = _alice(service)
-    trial_id = service.queue.submit(
-        user, repository="/r", ref=None, commit="c" * 40, task="icreate-maze", params={},
-        seed=3, public=True,
-    )  # fmt: skip
+    order = Order(repository="/r", commit="c" * 40, task="icreate-maze", seed=3, public=True)
+    trial_id = service.queue.submit(user, order)
     assert service.queue.claim(worker).id == trial_id
     digest = service.store.put_file(record)
     filing = Filing(
@@ -91,9 +89,8 @@ async def test_no_record_no_summary(api, service):  # noqa: F811
     """A trial without a record, and no trial at all, are 404s that say so."""
     user = _alice(service)
     queued = service.queue.submit(
-        user, repository="/r", ref=None, commit="c" * 40, task="icreate-maze", params={},
-        seed=0, public=True,
-    )  # fmt: skip
+        user, Order(repository="/r", commit="c" * 40, task="icreate-maze", public=True)
+    )
     answer = await api.get(PATH.format(queued))
     assert answer.status_code == 404 and "no record" in answer.json()["error"]
     assert (await api.get(PATH.format(424242))).status_code == 404

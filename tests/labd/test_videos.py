@@ -14,6 +14,7 @@ import pytest
 from labd.trial import LabHost
 from labd.videos import Videos
 from repository.index import Derived
+from repository.trial import Order
 from repository.well_known import REPLAY, VIDEO
 from tests.labd.test_api import api, service  # noqa: F401  (fixtures)
 from tests.labd.test_recorder import record
@@ -115,10 +116,8 @@ async def test_a_slow_render_is_a_503_to_come_back_to_and_goes_on(
 async def test_a_trial_without_a_record_has_no_video(api, service):  # noqa: F811
     service.index.add_user("bob", max_running=1)
     user = service.index.user("bob")
-    trial_id = service.queue.submit(
-        user, repository="/r", ref=None, commit="c" * 40, task="icreate-maze", params={},
-        seed=3, public=True,
-    )  # fmt: skip
+    order = Order(repository="/r", commit="c" * 40, task="icreate-maze", seed=3, public=True)
+    trial_id = service.queue.submit(user, order)
     answer = await api.get(PATH.format(trial_id))
     assert answer.status_code == 404 and "no record" in answer.json()["error"]
 

@@ -12,7 +12,7 @@ from markupsafe import escape
 from labd.service import Service, ServiceConfig
 from labd.web import RobotLink, Site, create_app
 from labd.web.problems import PageRoute
-from repository.trial import Filing
+from repository.trial import Filing, Order
 from scheduler.fetch import FetchPolicy
 from tests.fakes import file_unchecked
 from tests.helpers.githttp import GitRepo
@@ -53,8 +53,7 @@ def repo(tmp_path):
 
 def queue(service, repo, **kwargs):
     alice = service.index.user("alice")
-    return service.queue.submit(
-        alice,
+    order = Order(
         repository=str(repo.path),
         ref=kwargs.pop("ref", "main"),
         commit=repo.rev(),
@@ -64,6 +63,7 @@ def queue(service, repo, **kwargs):
         public=True,
         **kwargs,
     )
+    return service.queue.submit(alice, order)
 
 
 def finish(service, trial_id, filing):

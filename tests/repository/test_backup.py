@@ -25,6 +25,7 @@ from repository.tables import (
     reservations,
     trials,
 )
+from repository.trial import Order
 from repository.well_known import REPLAY, SUMMARY, VIDEO
 from tests.repository.test_migrate import schema_1
 
@@ -126,17 +127,17 @@ def sign_filed(index: Index, keyring: Keyring) -> None:
 
 
 def _trial(index: Index, rerun_of: int | None = None) -> int:
-    return index.add_trial(
+    order = Order(
         repository="https://example.org/r.git",
         ref="main",
         commit=COMMIT,
         task="icreate-maze",
         params={"maze_size": 7},
         seed=2**63 - 1,
-        submitter="alice",
         public=True,
         rerun_of=rerun_of,
     )
+    return index.add_trial(order, submitter="alice")
 
 
 def rows(url: str) -> dict[str, list[dict[str, Any]]]:

@@ -9,7 +9,7 @@ import pytest
 from repository.errors import HeldOut, RecordNotFound
 from repository.evaluation_index import EvaluationFilters, Evaluations
 from repository.index import Derived, Filters, Index
-from repository.trial import Status
+from repository.trial import Order, Status
 from repository.well_known import REPLAY
 
 COMMIT = "c" * 40
@@ -24,20 +24,14 @@ def index(database_url):
 
 def add(index: Index, evaluations: Evaluations, *, held_out: bool, seeds: list[int]) -> int:
     with index.begin() as db:
-        ids = [
-            index.add_trial(
-                repository="https://example.org/r.git",
-                ref="main",
-                commit=COMMIT,
-                task="icreate-maze",
-                params={},
-                seed=seed,
-                submitter="alice",
-                public=True,
-                db=db,
-            )
-            for seed in seeds
-        ]
+        asked = Order(
+            repository="https://example.org/r.git",
+            ref="main",
+            commit=COMMIT,
+            task="icreate-maze",
+            public=True,
+        )
+        ids = [index.add_trial(asked.episode(seed), submitter="alice", db=db) for seed in seeds]
         return evaluations.add(
             db,
             task="icreate-maze",

@@ -6,9 +6,9 @@ import pytest
 import sqlalchemy as sa
 
 from repository.errors import ArchiveError, RecordNotFound, SchemaMismatch
-from repository.index import Filters, Index, Order
+from repository.index import Filters, Index, Sort
 from repository.tables import meta
-from repository.trial import Kind, Outcome, Status
+from repository.trial import Kind, Order, Outcome, Status
 
 
 @pytest.fixture
@@ -19,17 +19,16 @@ def index(database_url):
 
 
 def trial(index, commit, *, rerun_of=None, seed=0):
-    return index.add_trial(
+    order = Order(
         repository="https://example.org/r.git",
-        ref=None,
         commit=commit,
         task="icreate-maze",
         params={"maze_size": 7},
         seed=seed,
-        submitter="alice",
         public=True,
         rerun_of=rerun_of,
     )
+    return index.add_trial(order, submitter="alice")
 
 
 def test_tokens_find_their_user_and_only_a_hash_is_kept(index):
@@ -131,7 +130,7 @@ def test_sorting_by_reward(index):
     finish(index, ids[b, 1], "success", None)
     rerun = trial(index, b, rerun_of=ids[b, 0])
     finish(index, rerun, "fail", 0.0)
-    best = index.find(Filters(task="icreate-maze"), order=Order.REWARD, limit=3)
+    best = index.find(Filters(task="icreate-maze"), order=Sort.REWARD, limit=3)
     assert [t.id for t in best.items] == [ids[a, 0], ids[b, 0], ids[a, 1]]
-    rest = index.find(Filters(task="icreate-maze"), order=Order.REWARD, limit=3, offset=3)
+    rest = index.find(Filters(task="icreate-maze"), order=Sort.REWARD, limit=3, offset=3)
     assert [t.id for t in rest.items] == [rerun, ids[b, 1]]

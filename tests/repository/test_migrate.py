@@ -9,7 +9,7 @@ from repository import index as current
 from repository.errors import SchemaMismatch
 from repository.index import Index, connect
 from repository.migrate import schema_of, upgrade
-from repository.trial import Kind, Outcome, PinnedRecord, Status
+from repository.trial import Kind, Order, Outcome, PinnedRecord, Status
 
 NEW_COLUMNS = {"kind", "outcome", "reward", "signature", "data"}
 SCHEMA_3_COLUMNS = {"lab_fault"}
@@ -173,17 +173,15 @@ def test_an_upgraded_index_keeps_the_data_a_trial_pins(database_url):
     )
     index = Index.open(database_url)
     try:
-        new = index.add_trial(
+        order = Order(
             repository="https://example.org/knn.git",
-            ref=None,
             commit="b" * 40,
             task="icreate-maze",
-            params={},
             seed=1,
-            submitter="alice",
             public=True,
-            data=[pinned],
+            data=(pinned,),
         )
+        new = index.add_trial(order, submitter="alice")
         assert index.trial(new).data == [pinned]
     finally:
         index.close()

@@ -10,7 +10,7 @@ import pytest
 from labd.trial import LabHost
 from repository.blobs import BlobStore
 from repository.index import Index
-from repository.trial import Outcome, Status
+from repository.trial import Order, Outcome, Status
 from scheduler.canary import State
 from scheduler.queue import Queue
 from scheduler.runner import RunOptions
@@ -49,16 +49,15 @@ def lab(tmp_path, cache, backend):
 
 
 def submit(queue, repo, seed=0):
-    return queue.submit(
-        queue.index.user("alice"),
+    order = Order(
         repository=str(repo.path),
         ref="main",
         commit=repo.rev(),
         task="icreate-maze",
-        params={},
         seed=seed,
         public=True,
     )
+    return queue.submit(queue.index.user("alice"), order)
 
 
 def worker(name, queue, store, backend, host, tmp_path, cache, canaries=()):

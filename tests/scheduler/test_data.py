@@ -9,7 +9,7 @@ from labd.graph.types import TypeRegistry
 from labd.trial import LabHost
 from repository.blobs import BlobStore
 from repository.index import Index
-from repository.trial import Kind, Outcome, PinnedRecord, Status
+from repository.trial import Kind, Order, Outcome, PinnedRecord, Status
 from scheduler import controller
 from scheduler.controller import DataQuery, DataSpec
 from scheduler.data import DataPolicy, LocalArchive, materialize, resolve
@@ -38,10 +38,8 @@ def finished(
     record: bool = True,
 ) -> int:
     index = archive.index
-    trial = index.add_trial(
-        repository="robot:icreate-1", ref=None, commit="", task=task, params={}, seed=3,
-        submitter=user, public=public, kind=kind,
-    )  # fmt: skip
+    order = Order(repository="robot:icreate-1", task=task, seed=3, public=public, kind=kind)
+    trial = index.add_trial(order, submitter=user)
     index.update(
         trial,
         status=Status.FINISHED.value,

@@ -10,8 +10,8 @@ from pathlib import Path
 import pytest
 
 from labd.replay import replay
-from repository.trial import Outcome
-from scheduler.runner import RunOptions, TrialSpec, run_trial
+from repository.trial import Order, Outcome
+from scheduler.runner import RunOptions, run_trial
 
 pytestmark = pytest.mark.integration
 EXAMPLE = Path(__file__).resolve().parents[2] / "controllers" / "examples" / "dmc-cartpole-balance"
@@ -36,10 +36,10 @@ main({action})
 
 
 def run(backend, cache, host, tmp_path, source, **kwargs):
-    spec = TrialSpec(source=str(source), **kwargs)
+    order = Order(repository=str(source), **kwargs)
     out = tmp_path / f"run-{len(list(tmp_path.glob('run-*')))}"
     return asyncio.run(
-        run_trial(spec, backend=backend, host=host, out=out, cache=cache, options=RunOptions())
+        run_trial(order, backend=backend, host=host, out=out, cache=cache, options=RunOptions())
     )
 
 

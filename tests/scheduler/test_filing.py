@@ -10,7 +10,7 @@ import pytest
 from repository.digests import manifest_digest
 from repository.index import Index
 from repository.signing import Keyring
-from repository.trial import Filing, Trial
+from repository.trial import Filing, Order, Trial
 from scheduler.errors import FilingRefused
 from scheduler.filing import Claims, Expected, filing_problems, record_differences
 from scheduler.host import RecordFacts
@@ -161,9 +161,8 @@ def index(tmp_path):
 def claimed(queue: Queue) -> int:
     alice = queue.index.user("alice")
     queue.submit(
-        alice, repository="/r", ref=None, commit="c" * 40, task="icreate-maze", params={},
-        seed=4, public=True,
-    )  # fmt: skip
+        alice, Order(repository="/r", commit="c" * 40, task="icreate-maze", seed=4, public=True)
+    )
     claim = queue.claim("w")
     assert claim is not None
     return claim.id

@@ -19,11 +19,11 @@ import pytest
 from labd.trial import LabHost
 from repository.blobs import BlobStore
 from repository.index import Derived, Index
-from repository.trial import Claim, Filing, Outcome, Trial
+from repository.trial import Claim, Filing, Order, Outcome, Trial
 from sandbox.api import Backend, Limits
 from scheduler.fetch import FetchPolicy
 from scheduler.queue import Queue
-from scheduler.runner import RunOptions, TrialResult, TrialSpec, run_trial
+from scheduler.runner import RunOptions, TrialResult, run_trial
 from scheduler.worker import Worker, WorkerConfig
 from tests.helpers.githttp import GitRepo, Link
 
@@ -114,9 +114,9 @@ def source_of(repo: GitRepo, way: str) -> str:
 
 def run(backend: Backend, cache: Path, host: LabHost, tmp_path: Path, source: str) -> TrialResult:
     out = tmp_path / f"run-{len(list(tmp_path.glob('run-*')))}"
-    spec = TrialSpec(source=source)
+    order = Order(repository=source)
     return asyncio.run(
-        run_trial(spec, backend=backend, host=host, out=out, cache=cache, options=OPTIONS)
+        run_trial(order, backend=backend, host=host, out=out, cache=cache, options=OPTIONS)
     )
 
 
@@ -197,16 +197,10 @@ async def test_one_worker_files_every_hostile_trial_and_runs_the_next(
     submitted = {}
     for name, files in [*((n, h.files) for n, h in sorted(HOSTILE.items())), ("good", None)]:
         repo = make_repo(tmp_path, name, files or USES_ITS_OWN_LINK)
-        submitted[name] = queue.submit(
-            mallory,
-            repository=repo.url,
-            ref="main",
-            commit=repo.rev(),
-            task="icreate-maze",
-            params={},
-            seed=0,
-            public=True,
+        order = Order(
+            repository=repo.url, ref="main", commit=repo.rev(), task="icreate-maze", public=True
         )
+        submitted[name] = queue.submit(mallory, order)
     jobs = Counting(queue, expected=len(submitted))
     config = WorkerConfig(
         name="only",

@@ -34,10 +34,10 @@ from labd.trial import LabHost
 from repository.formats import FORMATS
 from repository.index import Filters, Index
 from repository.lerobot import LEROBOT
-from repository.trial import Kind, Status, TrialRequest
+from repository.trial import Kind, Order, Status, TrialRequest
 from scheduler.data import LocalArchive
 from scheduler.fetch import FetchPolicy
-from scheduler.runner import RunOptions, TrialSpec, run_trial
+from scheduler.runner import RunOptions, run_trial
 from scheduler.worker import Worker, WorkerConfig
 from tests.helpers.githttp import GitRepo
 from tests.helpers.sandboxes import make_backend
@@ -121,7 +121,7 @@ async def test_a_knn_controller_learns_from_pinned_demonstrations_and_reruns(
         assert done.reward is not None and done.reward > random_reward(SEED) + 10
 
         local = await run_trial(  # labd run: [data] resolved against the local archive
-            TrialSpec(str(repo), seed=SEED, params=PARAMS),
+            Order(repository=str(repo), seed=SEED, params=PARAMS),
             backend=worker.backend,
             host=service.host,
             out=tmp_path / "local-run",
@@ -133,7 +133,7 @@ async def test_a_knn_controller_learns_from_pinned_demonstrations_and_reruns(
         empty = Index.open(f"sqlite:///{tmp_path / 'empty.sqlite'}")
         try:  # labd run against an archive with no demonstrations: a clear error, no record
             nothing = await run_trial(
-                TrialSpec(str(repo), seed=SEED, params=PARAMS),
+                Order(repository=str(repo), seed=SEED, params=PARAMS),
                 backend=worker.backend,
                 host=service.host,
                 out=tmp_path / "nothing-run",
@@ -174,7 +174,7 @@ def example_records(cache, tmp_path_factory):
         out = tmp_path_factory.mktemp(name)
         result = asyncio.run(
             run_trial(
-                TrialSpec(str(EXAMPLES / name)),
+                Order(repository=str(EXAMPLES / name)),
                 backend=backend,
                 host=LabHost(),
                 out=out,

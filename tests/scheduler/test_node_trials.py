@@ -12,9 +12,9 @@ from pathlib import Path
 import pytest
 
 from labd.replay import replay
-from repository.trial import Outcome
+from repository.trial import Order, Outcome
 from sandbox.api import Limits, MiB
-from scheduler.runner import RunOptions, TrialSpec, run_trial
+from scheduler.runner import RunOptions, run_trial
 from tests.helpers.sandboxes import BACKENDS, make_backend
 
 pytestmark = pytest.mark.integration
@@ -54,11 +54,11 @@ def stepper(tmp_path: Path, *args: str, package: bool = False, lock: bool = True
 
 
 def run(backend, cache, host, tmp_path, source, options=None, params=SHORT, **kwargs):
-    spec = TrialSpec(source=str(source), params=dict(params), **kwargs)
+    order = Order(repository=str(source), params=dict(params), **kwargs)
     out = tmp_path / f"run-{len(list(tmp_path.glob('run-*')))}"
     return asyncio.run(
         run_trial(
-            spec, backend=backend, host=host, out=out, cache=cache, options=options or RunOptions()
+            order, backend=backend, host=host, out=out, cache=cache, options=options or RunOptions()
         )
     )
 

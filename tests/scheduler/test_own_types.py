@@ -17,9 +17,9 @@ from labd.errors import UnknownTypeError
 from labd.graph.graph import Side
 from labd.recorder import read_channels
 from labd.replay import replay
-from repository.trial import Outcome
+from repository.trial import Order, Outcome
 from scheduler.controller import load
-from scheduler.runner import TrialSpec, run_trial
+from scheduler.runner import run_trial
 from tests.helpers.sandboxes import make_backend
 
 pytestmark = pytest.mark.integration
@@ -28,8 +28,8 @@ OWN_TYPES = Path(__file__).resolve().parent / "controllers" / "own-types"
 
 def run(backend, cache, host, tmp_path, source):
     out = tmp_path / f"run-{len(list(tmp_path.glob('run-*')))}"
-    spec = TrialSpec(source=str(source), seed=2)
-    return asyncio.run(run_trial(spec, backend=backend, host=host, out=out, cache=cache))
+    order = Order(repository=str(source), seed=2)
+    return asyncio.run(run_trial(order, backend=backend, host=host, out=out, cache=cache))
 
 
 def repository(tmp_path):

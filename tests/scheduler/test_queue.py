@@ -7,7 +7,7 @@ import threading
 import pytest
 
 from repository.index import Filters, Index, connect
-from repository.trial import Filing, Outcome, Status
+from repository.trial import Filing, Order, Outcome, Status
 from scheduler.errors import NotYours, QuotaExceeded
 from scheduler.queue import Cancel, Queue, QueueConfig
 
@@ -41,16 +41,15 @@ def queue(index):
 
 
 def submit(queue, user, *, public=True, commit=COMMIT, seed=0):
-    return queue.submit(
-        user,
+    order = Order(
         repository="https://example.org/r.git",
         ref="main",
         commit=commit,
         task="icreate-maze",
-        params={},
         seed=seed,
         public=public,
     )
+    return queue.submit(user, order)
 
 
 def make_user(index, name, **limits):
@@ -309,18 +308,18 @@ def test_a_batch_of_episodes_is_queued_whole_and_shares_the_queue(index, queue):
     another user's trial submitted while it runs is the next one claimed, not the 51st."""
     alice = make_user(index, "alice", max_running=4, max_daily=60)
     bob = make_user(index, "bob")
-    common = {
-        "repository": "https://example.org/r.git",
-        "ref": "main",
-        "commit": COMMIT,
-        "task": "icreate-maze",
-        "params": {},
-        "public": True,
-    }
-    ids = queue.submit_many(alice, list(range(50)), lambda _db, ids: ids, **common)
+    common = Order(
+        repository="https://example.org/r.git",
+        ref="main",
+        commit=COMMIT,
+        task="icreate-maze",
+        public=True,
+    )
+    batch = [common.episode(seed) for seed in range(50)]
+    ids = queue.submit_many(alice, batch, then=lambda _db, ids: ids)
     assert [index.trial(t).seed for t in ids] == list(range(50))
     with pytest.raises(QuotaExceeded, match="these 11 would take it past the daily limit of 60"):
-        queue.submit_many(alice, list(range(11)), lambda _db, ids: ids, **common)
+        queue.submit_many(alice, batch[:11], then=lambda _db, ids: ids)
     assert len(index.find(Filters(submitter="alice"), limit=100).items) == 50  # none of the 11
     running = [queue.claim(f"w{n}") for n in range(2)]
     assert [c.id for c in running if c] == ids[:2]

@@ -19,10 +19,10 @@ from rosbags.highlevel import AnyReader
 from labd.graph.graph import Side
 from labd.recorder import data_digest, read_channels, read_messages
 from labd.replay import replay
-from repository.trial import Outcome
+from repository.trial import Order, Outcome
 from sandbox.api import Limits, MiB
 from scheduler.fetch import FetchPolicy
-from scheduler.runner import RunOptions, TrialSpec, run_trial
+from scheduler.runner import RunOptions, run_trial
 from tests.helpers.githttp import GitRepo
 from tests.helpers.sandboxes import BACKENDS, make_backend
 from tests.sandbox.test_isolation import host_addresses
@@ -35,10 +35,10 @@ ATTACKS = Path(__file__).resolve().parent / "attacks"
 
 def run(backend, cache, host, tmp_path, source, **kwargs):
     options = kwargs.pop("options", RunOptions())
-    spec = TrialSpec(source=str(source), **kwargs)
+    order = Order(repository=str(source), **kwargs)
     out = tmp_path / f"run-{len(list(tmp_path.glob('run-*')))}"
     return asyncio.run(
-        run_trial(spec, backend=backend, host=host, out=out, cache=cache, options=options)
+        run_trial(order, backend=backend, host=host, out=out, cache=cache, options=options)
     )
 
 

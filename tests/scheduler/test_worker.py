@@ -11,7 +11,7 @@ import pytest
 from labd.trial import LabHost
 from repository.blobs import BlobStore
 from repository.index import Index
-from repository.trial import Ending, Outcome, Status
+from repository.trial import Ending, Order, Outcome, Status
 from sandbox.api import Limits
 from scheduler.host import Episode
 from scheduler.queue import Queue, QueueConfig
@@ -38,17 +38,10 @@ def worker(queue, store, tmp_path):
 
 def claimed(queue, rerun_of=None):
     alice = queue.index.user("alice")
-    queue.submit(
-        alice,
-        repository="/r",
-        ref=None,
-        commit=COMMIT,
-        task="pointmass",
-        params={},
-        seed=4,
-        public=True,
-        rerun_of=rerun_of,
+    order = Order(
+        repository="/r", commit=COMMIT, task="pointmass", seed=4, public=True, rerun_of=rerun_of
     )
+    queue.submit(alice, order)
     return queue.claim("w")
 
 
@@ -187,19 +180,10 @@ class Unused:
 def queue_repo(queue, tmp_path, count=1):
     repo = GitRepo.create(tmp_path / "repo", {"lab.toml": LAB_TOML, "c.py": "pass\n"})
     alice = queue.index.user("alice")
-    return [
-        queue.submit(
-            alice,
-            repository=str(repo.path),
-            ref="main",
-            commit=repo.rev(),
-            task="icreate-maze",
-            params={},
-            seed=n,
-            public=True,
-        )
-        for n in range(count)
-    ]
+    order = Order(
+        repository=str(repo.path), ref="main", commit=repo.rev(), task="icreate-maze", public=True
+    )
+    return [queue.submit(alice, order.episode(n)) for n in range(count)]
 
 
 async def test_an_exception_in_a_trial_is_an_error_and_the_worker_goes_on(queue, tmp_path):

@@ -10,6 +10,7 @@ import time
 
 from labd.trial import LabHost
 from repository.blobs import BlobStore
+from repository.trial import Order
 from repository.well_known import REPLAY, SUMMARY
 from scheduler.worker import Worker, WorkerConfig, _stopped
 from tests.labd.test_recorder import record
@@ -47,13 +48,8 @@ async def test_the_next_trial_runs_while_the_last_ones_replay_is_made(
 
     monkeypatch.setattr("scheduler.worker.run_trial", run_trial)
     alice = queue.index.user("alice")
-    ids = [
-        queue.submit(
-            alice, repository="/r", ref=None, commit=COMMIT, task="icreate-maze", params={},
-            seed=seed, public=True,
-        )
-        for seed in (4, 5)
-    ]  # fmt: skip
+    order = Order(repository="/r", commit=COMMIT, task="icreate-maze", public=True)
+    ids = [queue.submit(alice, order.episode(seed)) for seed in (4, 5)]
     host = SlowReplay()
     config = WorkerConfig(name="w", work=tmp_path / "work", cache=tmp_path / "cache", poll=0.1)
     worker = Worker(queue, BlobStore(str(tmp_path / "blobs")), None, host, config)
@@ -89,10 +85,8 @@ async def test_a_stopped_worker_stops_what_it_was_making_of_its_last_record(
 
     monkeypatch.setattr("scheduler.worker.run_trial", run_trial)
     alice = queue.index.user("alice")
-    trial_id = queue.submit(
-        alice, repository="/r", ref=None, commit=COMMIT, task="icreate-maze", params={},
-        seed=4, public=True,
-    )  # fmt: skip
+    order = Order(repository="/r", commit=COMMIT, task="icreate-maze", seed=4, public=True)
+    trial_id = queue.submit(alice, order)
     config = WorkerConfig(name="w", work=tmp_path / "work", cache=tmp_path / "cache", poll=0.1)
     worker = Worker(queue, BlobStore(str(tmp_path / "blobs")), None, SlowReplay(), config)
     stop = asyncio.Event()
