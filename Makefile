@@ -36,13 +36,20 @@ $(WEBSTAMP): $(WEB)/package.json $(WEB)/package-lock.json $(WEB)/build.mjs
 demo: $(STAMP) $(WEBSTAMP)
 	$(VENV)/bin/labd demo $(if $(BRIDGE_PORT),--bridge-port $(BRIDGE_PORT)) $(if $(HTTP_PORT),--http-port $(HTTP_PORT))
 
-lint: $(STAMP)
+# The Python (ruff, mypy --strict: the packages and deploy/'s scripts), and the pages'
+# scripts with their tests in Node (ESLint, from web/'s npm lock: web/eslint.config.mjs).
+JSLINT := labd/web/static tests/js/pages $(WEB)/build.mjs $(WEB)/codemirror.mjs $(WEB)/eslint.config.mjs
+
+lint: $(STAMP) $(WEBSTAMP)
 	$(VENV)/bin/ruff check .
 	$(VENV)/bin/ruff format --check .
 	$(VENV)/bin/mypy
+	$(WEB)/node_modules/.bin/eslint --config $(WEB)/eslint.config.mjs --max-warnings 0 $(JSLINT)
 
 # Tests run in parallel (pytest-xdist): JOBS workers, more than the 2 cores, since most
 # integration tests wait on processes and sockets; tests marked `rates` run one at a time.
+# The pages' logic runs in Node's test runner (tests/js/pages/*.test.mjs), one pytest case
+# a file (tests/labd/test_page_scripts.py); alone: node --test tests/js/pages/
 JOBS ?= 3
 
 unit: $(STAMP)

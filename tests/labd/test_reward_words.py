@@ -14,15 +14,16 @@ import pytest
 from labd.web.evaluations import reward_words
 from repository.evaluation import Score
 
-SCRIPT = Path(__file__).resolve().parents[2] / "labd" / "web" / "static" / "evaluation.js"
-# evaluation.js run in Node: no page (getElementById finds nothing, so it follows
-# nothing), its rewardWords applied to each score given on stdin
+SCRIPT = Path(__file__).resolve().parents[2] / "labd" / "web" / "static" / "evaluation-words.js"
+# the evaluation page's words (evaluation-words.js, a module with no page) in Node: its
+# rewardWords applied to each score given on stdin
 RUN = """
 const fs = require("fs");
-globalThis.document = { getElementById: () => null };
-require("vm").runInThisContext(fs.readFileSync(process.argv[1], "utf8") + ";globalThis.rewardWords = rewardWords;");
-const scores = JSON.parse(fs.readFileSync(0, "utf8"));
-process.stdout.write(JSON.stringify(scores.map((s) => globalThis.rewardWords(s))));
+const { pathToFileURL } = require("url");
+import(pathToFileURL(process.argv[1]).href).then(({ rewardWords }) => {
+  const scores = JSON.parse(fs.readFileSync(0, "utf8"));
+  process.stdout.write(JSON.stringify(scores.map((s) => rewardWords(s))));
+});
 """
 
 
@@ -71,7 +72,7 @@ def test_no_interval_says_why() -> None:
 
 @pytest.mark.skipif(shutil.which("node") is None, reason="needs Node.js")
 def test_the_pages_script_says_what_the_python_says() -> None:
-    """rewardWords in static/evaluation.js, run in Node on the API's JSON of each score,
+    """rewardWords in static/evaluation-words.js, run in Node on the API's JSON of each score,
     gives the very words of labd.web.evaluations.reward_words."""
     payload: list[dict[str, Any]] = [s.model_dump(mode="json") for s in SCORES]
     done = subprocess.run(

@@ -6,47 +6,27 @@
 // It reads the record's summary (GET /api/trials/{id}/summary: labd/recorder/summary.py
 // describes it), never the MCAP. Everything it loads comes from this lab.
 // For tests and the benchmark, window.labRecord exposes the summary, the scrubber
-// (seek), the pose of a body in the 3D scene, and when each part was drawn.
+// (seek), the pose of a body in the 3D scene, and when each part was drawn. The time and
+// what is said of it are in timeline.js.
 
-const section = document.getElementById("record");
-const view = document.getElementById("record-view");
+import { $, el } from "./page.js";
+import {
+  Playback, Timeline, before, clockWords, endsWords, speedFor, spriteCell, stripFrames,
+} from "./timeline.js";
+
+const section = $("record");
+const view = $("record-view");
 const PALETTE = ["#1f77b4", "#d62728", "#2ca02c", "#ff7f0e", "#9467bd", "#8c564b", "#e377c2",
   "#7f7f7f", "#bcbd22", "#17becf"];
 const drawn = {};
+const time = new Timeline();
+const seek = (t) => time.seek(t);
 const api = { drawn, seek, ready: null };
 window.labRecord = api;
 
 function mark(part) {
   drawn[part] = performance.now();
   section.dataset.drawn = Object.keys(drawn).join(" ");
-}
-
-function el(tag, attrs = {}, ...children) {
-  const node = document.createElement(tag);
-  for (const [k, v] of Object.entries(attrs)) {
-    if (k === "class") node.className = v; else node.setAttribute(k, v);
-  }
-  node.append(...children);
-  return node;
-}
-
-// The latest index of sorted ``times`` at or before ``t`` (0 if none is).
-function before(times, t) {
-  let lo = 0, hi = times.length - 1;
-  if (hi < 0 || t <= times[0]) return 0;
-  while (lo < hi) {
-    const mid = (lo + hi + 1) >> 1;
-    if (times[mid] <= t) lo = mid; else hi = mid - 1;
-  }
-  return lo;
-}
-
-const listeners = [];  // called with the scrubbed time
-let now = 0;
-
-function seek(t) {
-  now = t;
-  for (const f of listeners) f(t);
 }
 
 // -- the scrubber ---------------------------------------------------------------------
@@ -59,31 +39,26 @@ function scrubber(summary) {
   const play = el("button", { type: "button", id: "record-play" }, "▶ play");
   const speed = el("select", { "aria-label": "playback speed" },
     ...[1, 4, 16].map((s) => el("option", { value: String(s) }, `${s}×`)));
-  speed.value = duration > 120 ? "16" : "4";
+  speed.value = speedFor(duration);
+  const playback = new Playback(time, duration);
   let playing = null;
   play.addEventListener("click", () => {
     if (playing !== null) { cancelAnimationFrame(playing); playing = null; play.textContent = "▶ play"; return; }
     play.textContent = "❚❚ pause";
-    let last = performance.now();
-    if (now >= duration) seek(0);
+    playback.begin(performance.now());
     const step = (clock) => {
-      const t = Math.min(duration, now + ((clock - last) / 1000) * Number(speed.value));
-      last = clock;
-      seek(t);
-      if (t >= duration) { playing = null; play.textContent = "▶ play"; return; }
+      if (!playback.step(clock, Number(speed.value))) { playing = null; play.textContent = "▶ play"; return; }
       playing = requestAnimationFrame(step);
     };
     playing = requestAnimationFrame(step);
   });
   range.addEventListener("input", () => seek(Number(range.value)));
-  listeners.push((t) => {
+  time.listen((t) => {
     range.value = String(t);
-    const k = before(summary.t, t);
-    label.textContent = `${t.toFixed(1)} s · tick ${summary.tick[k] ?? 0}`;
+    label.textContent = clockWords(summary, t);
   });
-  const ended = (summary.episode.ends || []).map(([t, status]) => `${status} at ${Number(t).toFixed(1)} s`);
   return el("div", { class: "scrub" }, play, speed, range, label,
-    el("span", { class: "muted" }, ended.join(", ")));
+    el("span", { class: "muted" }, endsWords(summary.episode)));
 }
 
 // -- plots ------------------------------------------------------------------------------
@@ -113,7 +88,7 @@ function plots(summary, width) {
       const x = chart.cursor.left;
       if (x != null && x >= 0) seek(Math.max(0, chart.posToVal(x, "x")));
     });
-    listeners.push((s) => { line.style.left = `${chart.valToPos(s, "x")}px`; });
+    time.listen((s) => { line.style.left = `${chart.valToPos(s, "x")}px`; });
   }
   const fixed = summary.constant || [];
   if (fixed.length) {
@@ -142,18 +117,16 @@ async function camera(info) {
     const k = before(info.t, t);
     if (k === shown) return;
     shown = k;
-    const x = (k % info.columns) * info.width, y = Math.floor(k / info.columns) * info.height;
+    const [x, y] = spriteCell(info, k);
     ctx.drawImage(image, x, y, info.width, info.height, 0, 0, canvas.width, canvas.height);
     caption.textContent = `frame ${k + 1} of ${info.t.length}, at ${info.t[k].toFixed(1)} s`;
   };
   show(0);
-  listeners.push(show);
+  time.listen(show);
   const strip = el("div", { class: "strip" });
-  const every = Math.max(1, Math.ceil(info.t.length / 12));
-  for (let k = 0; k < info.t.length; k += every) {
+  for (const k of stripFrames(info.t.length)) {
     const thumb = el("canvas", { width: String(info.width), height: String(info.height), title: `${info.t[k].toFixed(1)} s` });
-    thumb.getContext("2d").drawImage(image, (k % info.columns) * info.width, Math.floor(k / info.columns) * info.height,
-      info.width, info.height, 0, 0, info.width, info.height);
+    thumb.getContext("2d").drawImage(image, ...spriteCell(info, k), info.width, info.height, 0, 0, info.width, info.height);
     thumb.addEventListener("click", () => seek(info.t[k]));
     strip.append(thumb);
   }
@@ -206,23 +179,23 @@ function floorMap(map) {
     }
   };
   show(0);
-  listeners.push(show);
+  time.listen(show);
   return el("figure", { class: "panel map" }, canvas,
     el("figcaption", { class: "muted" }, `from above, in ${map.frame}: walls, tags, the goal (green), the robot's path`));
 }
 
 // -- the 3D scene -------------------------------------------------------------------------
 
-async function scene3d(info, summary, holder) {
+async function scene3d(info, summary, figure) {
   const THREE = await import("three");
   const { OrbitControls } = await import("three/addons/controls/OrbitControls.min.js");
-  const { buildScene, frame } = await import("/static/scene.js");
-  const width = holder.clientWidth || 420, height = Math.round(width * 0.75);
+  const { buildScene, frame } = await import("./scene.js");
+  const width = figure.clientWidth || 420, height = Math.round(width * 0.75);
   const renderer = new THREE.WebGLRenderer({ antialias: true });
   renderer.setPixelRatio(Math.min(2, window.devicePixelRatio || 1));
   renderer.setSize(width, height);
   renderer.domElement.id = "record-scene";
-  holder.replaceChildren(renderer.domElement, el("div", { class: "muted" }, "drag to turn, scroll to zoom"));
+  figure.replaceChildren(renderer.domElement, el("div", { class: "muted" }, "drag to turn, scroll to zoom"));
   const scene = await buildScene(THREE, info);
   const q = info.qpos0.slice();
   const pose = (index) => {  // the joint positions at a point: those that move, over the first
@@ -233,12 +206,12 @@ async function scene3d(info, summary, holder) {
   pose(0);
   scene.world.updateMatrixWorld(true);
   // a wide scene (a maze) from high up, so that walls hide little; a table from the side
-  const view = summary.map ? [-0.15, -0.45, 0.95] : [-0.55, -0.75, 0.6];
-  const { camera, centre } = frame(THREE, scene.solids, view, width / height);
-  const controls = new OrbitControls(camera, renderer.domElement);
+  const from = summary.map ? [-0.15, -0.45, 0.95] : [-0.55, -0.75, 0.6];
+  const { camera: eye, centre } = frame(THREE, scene.solids, from, width / height);
+  const controls = new OrbitControls(eye, renderer.domElement);
   controls.target.copy(centre);
   controls.update();
-  const render = () => renderer.render(scene.world, camera);
+  const render = () => renderer.render(scene.world, eye);
   controls.addEventListener("change", render);
 
   let current = -1;
@@ -249,8 +222,8 @@ async function scene3d(info, summary, holder) {
     pose(k);
     render();
   };
-  show(now);
-  listeners.push(show);
+  show(time.now);
+  time.listen(show);
   api.bodyPose = (name) => {
     const i = info.bodies.findIndex((b) => b.name === name);
     return i < 0 ? null : [...scene.pos[i].toArray(), ...scene.quat[i].toArray()];
@@ -299,9 +272,9 @@ async function main() {
   await Promise.all(work);
   seek(0);
   if (summary.scene) {
-    const holder = el("figure", { class: "panel scene" }, el("p", { class: "muted" }, "Loading the 3D scene…"));
-    top.append(holder);
-    await scene3d(summary.scene, summary, holder);
+    const figure = el("figure", { class: "panel scene" }, el("p", { class: "muted" }, "Loading the 3D scene…"));
+    top.append(figure);
+    await scene3d(summary.scene, summary, figure);
     mark("scene");
   }
   if (summary.ux) { view.append(uxEvents(summary.ux)); mark("ux"); }

@@ -8,35 +8,16 @@
 import * as THREE from "three";
 import { OrbitControls } from "three/addons/controls/OrbitControls.min.js";
 import { Topic } from "/static/vendor/roslib/roslib.min.js";
-import { buildScene, frame } from "/static/scene.js";
-import { camera, config, connect } from "/static/live/lab.js";
+import { $, config, count, el, start } from "../page.js";
+import { buildScene, frame } from "../scene.js";
+import { Rolling, messages } from "./actions.js";
+import { camera, connect } from "./lab.js";
+import { seconds } from "./messages.js";
 
-const $ = (id) => document.getElementById(id);
 const SEND_MS = 100;  // commands while the sliders are in use
 const POSE_MS = 250;  // the 3D scene's pose, from the lab's HTTP server
 const KEPT = 200;  // points of each plot
 const PALETTE = ["#1f77b4", "#d62728", "#2ca02c", "#ff7f0e", "#9467bd", "#8c564b", "#e377c2", "#17becf"];
-
-function el(tag, attrs = {}, ...children) {
-  const node = document.createElement(tag);
-  for (const [k, v] of Object.entries(attrs)) node.setAttribute(k, v);
-  node.append(...children);
-  return node;
-}
-
-/** The command messages a vector stands for (as registry.Actions.messages does). */
-export function messages(actions, vector) {
-  const made = {};
-  for (const [topic, { message }] of Object.entries(actions.templates)) made[topic] = structuredClone(message);
-  actions.dimensions.forEach((d, i) => {
-    const path = d.path.split(".");
-    let here = made[d.topic];
-    for (const key of path.slice(0, -1)) here = here[Array.isArray(here) ? Number(key) : key];
-    const last = path[path.length - 1];
-    here[Array.isArray(here) ? Number(last) : last] = Math.min(d.high, Math.max(d.low, vector[i]));
-  });
-  return made;
-}
 
 function sliders(live, actions) {
   const box = $("sliders");
@@ -47,7 +28,7 @@ function sliders(live, actions) {
     input.addEventListener("input", () => {
       vector[i] = Number(input.value);
       shown.textContent = vector[i].toFixed(3);
-      start();
+      begin();
     });
     box.append(el("p", { class: "slider" }, el("label", { for: `action-${i}` }, d.name), input, shown));
     return { input, shown };
@@ -56,10 +37,10 @@ function sliders(live, actions) {
     ([topic, { type }]) => [topic, live.command(topic, type)]));
   const send = () => {
     for (const [topic, message] of Object.entries(messages(actions, vector))) senders[topic](message);
-    box.dataset.sent = String(Number(box.dataset.sent || 0) + 1);
+    count(box, "sent");
   };
   let timer = null;
-  const start = () => { if (!timer) { send(); timer = setInterval(send, SEND_MS); } };
+  const begin = () => { if (!timer) { send(); timer = setInterval(send, SEND_MS); } };
   $("neutral").addEventListener("click", () => {
     actions.dimensions.forEach((d, i) => {
       vector[i] = d.neutral; inputs[i].input.value = d.neutral; inputs[i].shown.textContent = d.neutral.toFixed(3);
@@ -77,23 +58,19 @@ function plots(live, topics) {
     const holder = el("div", { class: "plot", id: `plot-${name.replaceAll("/", "_")}` });
     box.append(el("h3", {}, name), holder);
     let chart = null;
-    const t = [], series = [];
+    const rolling = new Rolling(KEPT);
     new Topic({ ros: live.ros, name, messageType: type, throttle_rate: 100, queue_length: 1 }).subscribe((m) => {
-      const values = Array.isArray(m.data) ? m.data : [m.data];
-      const now = live.episode ? live.episode.header.stamp.sec + live.episode.header.stamp.nanosec / 1e9 : t.length;
-      if (!chart) {
-        values.forEach(() => series.push([]));
+      const values = Rolling.values(m);
+      const now = live.episode ? seconds(live.episode.header.stamp) : rolling.t.length;
+      if (rolling.push(now, values)) {
         chart = new uPlot({
           width: Math.max(280, holder.clientWidth || 420), height: 140, legend: { show: values.length <= 8 },
           scales: { x: { time: false } },  // simulation seconds
           series: [{ label: "s" }, ...values.map((_, i) => ({ label: `${i}`, stroke: PALETTE[i % PALETTE.length], points: { show: false } }))],
-        }, [t, ...series], holder);
+        }, rolling.data, holder);
       }
-      t.push(now);
-      values.forEach((v, i) => series[i]?.push(v));
-      if (t.length > KEPT) { t.shift(); series.forEach((s) => s.shift()); }
-      chart.setData([t, ...series]);
-      holder.dataset.points = String(t.length);
+      chart.setData(rolling.data);
+      holder.dataset.points = String(rolling.t.length);
     });
   }
 }
@@ -122,20 +99,18 @@ async function scene3d(cfg) {
       if (next.seed !== info.seed) scene = await buildScene(THREE, next);
       info = next;
       scene.pose(info.qpos);
-      holder.dataset.posed = String(Number(holder.dataset.posed || 0) + 1);
+      count(holder, "posed");
     } catch { /* the next one will do */ } finally { busy = false; }
   }, POSE_MS);
   renderer.setAnimationLoop(() => renderer.render(scene.world, eye));
 }
 
-connect(config()).then(async (live) => {
+start(async () => {
+  const live = await connect(config("live-config"));
   const cfg = live.config;
   camera(live, $("camera"));
   if (cfg.actions) sliders(live, cfg.actions);
   plots(live, cfg.plots || []);
   await scene3d(cfg).catch((err) => { $("scene3d").textContent = `the model could not be drawn: ${err}`; });
   document.body.dataset.ready = "yes";
-}).catch((err) => {
-  $("status").textContent = `the page could not start: ${err}`;
-  throw err;
 });

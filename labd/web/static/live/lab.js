@@ -6,9 +6,14 @@
 // lab's HTTP server except to fetch a reservation's key; the robot is reached only
 // through the bridge. A page script adds its own events with
 //   window.labLive.ux("study", "question-1", "yes")
-// and they land in the drive's record beside the robot's data.
+// and they land in the drive's record beside the robot's data. What the page makes of
+// each message is in messages.js (checked in Node); this module wires it to the page.
 
 import { Ros, Service, Topic } from "/static/vendor/roslib/roslib.min.js";
+import { $, count, status } from "../page.js";
+import {
+  commandGate, connectedWords, driverView, episodeWords, imageSource, latencySummary, uxEvent,
+} from "./messages.js";
 
 const UX_EVERY_MS = 2000;  // frame display latency is summed up this often
 
@@ -21,51 +26,50 @@ class LabRos extends Ros {
   }
 }
 
-export function config() {
-  return JSON.parse(document.getElementById("live-config").textContent);
-}
-
-const $ = (id) => document.getElementById(id);
-
 /**
- * Connect to the robot of this page (``config`` from the server: bridge address,
- * session id, user, interface) and wire the parts every page has. Returns the page's
- * handle, also ``window.labLive``.
+ * Connect to the robot of this page (``cfg`` from the server: bridge address, session
+ * id, user, interface) and wire the parts every page has. Returns the page's handle,
+ * also ``window.labLive``.
  */
 export async function connect(cfg) {
   const key = cfg.reservations ? await reservationKey(cfg) : null;
   const ros = new LabRos({});
   const live = {
     ros, config: cfg, driving: false, driver: "", episode: null, key,
-    onDriver: [], onEpisode: [],
+    onDriver: [], onEpisode: [], status,
   };
   window.labLive = live;
-  live.status = (text, level = "info") => {
-    const line = $("status");
-    line.textContent = text;
-    line.dataset.level = level;
-  };
-  ros.on("connection", () => live.status(
-    key ? "connected with your slot's key" : cfg.reservations
-      ? "connected; watching (driving needs a slot's key)" : "connected", "info"));
-  ros.on("close", () => live.status("the bridge closed the connection: reload the page to reconnect", "error"));
-  ros.on("error", () => live.status("cannot reach the robot's bridge", "error"));
+  ros.on("connection", () => status(connectedWords(key, cfg.reservations), "info"));
+  ros.on("close", () => status("the bridge closed the connection: reload the page to reconnect", "error"));
+  ros.on("error", () => status("cannot reach the robot's bridge", "error"));
   ros.on("lab-status", (s) => {
-    live.status(s.msg, s.level);
+    status(s.msg, s.level);
     live.ux("refused", s.id || "", s.msg);
   });
   if (key) ros.authenticate(key.key);  // the first frame, before anything else
   ros.setStatusLevel("warning");
   await ros.connect(cfg.bridge);
+  const shown = uxEvents(live);
+  driverAndEpisode(live, shown);
+  controlServices(live);
+  const gate = commandGate(live);
+  /** A command topic: ``send(msg)`` publishes it, taking control first when nobody
+   * drives (messages.js, commandGate). */
+  live.command = (name, type) => {
+    const topic = new Topic({ ros, name, messageType: type, queue_size: 1 });
+    return gate((msg) => topic.publish(msg));
+  };
+  return live;
+}
 
-  // -- user-experience events ---------------------------------------------------------
+/** live.ux(kind, what, value) publishes a user-experience event; the page's keys, clicks
+ * and focus are some. Returns ``shown()``, the event of the interface the page shows
+ * (sent now, and again when this page starts driving). */
+function uxEvents(live) {
+  const { ros, config: cfg } = live;
   const events = new Topic({ ros, name: "/ux/events", messageType: "lab_msgs/msg/UxEvent", queue_size: 1 });
   live.ux = (kind, what = "", value = "") => {
-    events.publish({
-      session: cfg.session, kind: String(kind), key: String(what),
-      value: typeof value === "string" ? value : JSON.stringify(value),
-      browser_ms: performance.timeOrigin + performance.now(),
-    });
+    events.publish(uxEvent(cfg.session, kind, what, value, performance.timeOrigin + performance.now()));
   };
   const shown = () => live.ux("interface", cfg.interface,
     { assigned: cfg.assigned, ratio: cfg.ratio, robot: cfg.robot, driving: live.driving });
@@ -78,15 +82,21 @@ export async function connect(cfg) {
   window.addEventListener("blur", () => live.ux("focus", "window", "lost"));
   window.addEventListener("focus", () => live.ux("focus", "window", "back"));
   document.addEventListener("visibilitychange", () => live.ux("focus", "tab", document.visibilityState));
+  return shown;
+}
 
-  // -- who drives, and the episode ------------------------------------------------------
+/** Who drives (/lab/driver) and the episode (/lab/episode), on the page and to the page
+ * script's listeners (live.onDriver, live.onEpisode). */
+function driverAndEpisode(live, shown) {
+  const { ros, config: cfg } = live;
   new Topic({ ros, name: "/lab/driver", messageType: "lab_msgs/msg/Driver" }).subscribe((m) => {
     const was = live.driving;
+    const view = driverView(m, cfg.session, cfg.user);
     live.driver = m.driver;
-    live.driving = m.driver !== "" && m.session === cfg.session;
+    live.driving = view.driving;
     if (live.driving && !was) shown();  // in the drive's record from its start
-    $("driver").textContent = m.driver ? `${m.driver}${m.interface ? ` (${m.interface})` : ""}` : "nobody";
-    $("you").textContent = `${cfg.user}, ${live.driving ? "driving" : "watching"}`;
+    $("driver").textContent = view.driver;
+    $("you").textContent = view.you;
     $("take").disabled = live.driving;
     $("release").disabled = !live.driving;
     document.body.dataset.driving = live.driving ? "yes" : "no";
@@ -97,58 +107,52 @@ export async function connect(cfg) {
     .subscribe((m) => {
       live.episode = m;
       $("seed").textContent = `seed ${m.seed}`;
-      const t = m.header.stamp.sec + m.header.stamp.nanosec / 1e9;
-      $("episode").textContent = `${m.status} · ${t.toFixed(1)} s · reward ${m.total_reward.toFixed(2)}`
-        + (m.reason ? ` · ${m.reason}` : "");
+      $("episode").textContent = episodeWords(m);
       live.onEpisode.forEach((f) => f(m));
     });
+}
 
+/** live.drive(), live.release() and live.reset(): the lab's services, and their buttons. */
+function controlServices(live) {
+  const { ros, config: cfg } = live;
   const call = (name, type, request) => new Promise((resolve) => {
     new Service({ ros, name, serviceType: type }).callService(
       request, resolve, (err) => resolve({ success: false, message: String(err) }));
   });
-  live.drive = async () => {
-    const answer = await call("/lab/drive", "lab_msgs/srv/Drive",
-      { session: cfg.session, interface: cfg.interface, user: cfg.user });
-    live.status(answer.message, answer.success ? "info" : "warning");
+  const said = (answer) => {
+    status(answer.message, answer.success ? "info" : "warning");
     return answer.success;
   };
-  live.release = async () => {
-    const answer = await call("/lab/release", "std_srvs/srv/Trigger", {});
-    live.status(answer.message, answer.success ? "info" : "warning");
-  };
-  live.reset = async () => {
-    const answer = await call("/lab/reset", "std_srvs/srv/Trigger", {});
-    live.status(answer.message, answer.success ? "info" : "warning");
-  };
+  live.drive = async () => said(await call("/lab/drive", "lab_msgs/srv/Drive",
+    { session: cfg.session, interface: cfg.interface, user: cfg.user }));
+  live.release = async () => { said(await call("/lab/release", "std_srvs/srv/Trigger", {})); };
+  live.reset = async () => { said(await call("/lab/reset", "std_srvs/srv/Trigger", {})); };
   $("take").addEventListener("click", () => live.drive());
   $("release").addEventListener("click", () => live.release());
   $("reset").addEventListener("click", () => live.reset());
-
-  /** A command topic: ``send(msg)`` publishes it, taking control first when nobody
-   * drives (a watcher's commands go out too, and the bridge's refusal is shown). */
-  let asking = null;
-  live.command = (name, type) => {
-    const topic = new Topic({ ros, name, messageType: type, queue_size: 1 });
-    return async (msg) => {
-      if (!live.driving && !live.driver) {
-        asking = asking || live.drive().finally(() => { asking = null; });
-        if (!(await asking)) return;
-      }
-      topic.publish(msg);
-    };
-  };
-  return live;
 }
 
-/** A signed-in person's key for the slot running now (null: they watch). */
-async function reservationKey(cfg) {
-  if (!cfg.signed_in) return null;
-  const response = await fetch(`/api/robots/${cfg.robot}/key`, { credentials: "same-origin" });
+/** The lab has no slot of this robot for this person now: its words say why. */
+export class NoSlot extends Error {}
+
+/** The slot of ``robot`` running now for the signed-in person (its ``key``), or NoSlot
+ * with the lab's own words (else ``otherwise``). */
+export async function slotKey(robot, otherwise) {
+  const response = await fetch(`/api/robots/${robot}/key`, { credentials: "same-origin" });
   if (response.ok) return response.json();
   const problem = await response.json().catch(() => ({}));
-  document.getElementById("status").textContent = problem.error || "no slot of yours runs now";
-  return null;
+  throw new NoSlot(problem.error || otherwise);
+}
+
+/** A signed-in person's key for the slot running now (null: they watch, and the status
+ * line says why). */
+async function reservationKey(cfg) {
+  if (!cfg.signed_in) return null;
+  return slotKey(cfg.robot, "no slot of yours runs now").catch((err) => {
+    if (!(err instanceof NoSlot)) throw err;
+    $("status").textContent = err.message;
+    return null;
+  });
 }
 
 /**
@@ -167,10 +171,10 @@ export function camera(live, img, { onFrame = null } = {}) {
     if (busy) return;  // the browser still decodes the last one: skip, never queue up
     busy = true;
     const arrived = performance.now();
-    img.src = `data:image/${m.format.includes("png") ? "png" : "jpeg"};base64,${m.data}`;
+    img.src = imageSource(m);
     img.decode().then(() => requestAnimationFrame(() => {
       latencies.push(performance.now() - arrived);
-      img.dataset.frames = String(Number(img.dataset.frames || 0) + 1);
+      count(img, "frames");
       if (onFrame) onFrame(m);
     })).catch(() => {}).finally(() => { busy = false; });
   };
@@ -181,31 +185,11 @@ export function camera(live, img, { onFrame = null } = {}) {
     img.dataset.subscribed = document.visibilityState === "hidden" ? "no" : "yes";
   });
   setInterval(() => {
-    if (!latencies.length) return;
-    const sorted = latencies.sort((a, b) => a - b);
-    const at = (q) => sorted[Math.min(sorted.length - 1, Math.floor(q * sorted.length))];
-    live.ux("latency", "camera", { p50_ms: +at(0.5).toFixed(1), max_ms: +at(1).toFixed(1), frames });
+    const summary = latencySummary(latencies, frames);
+    if (!summary) return;
+    live.ux("latency", "camera", summary);
     latencies = []; frames = 0;
   }, UX_EVERY_MS);
   if (document.visibilityState !== "hidden") { on(); img.dataset.subscribed = "yes"; }
   return topic;
-}
-
-/** Fixed-rate repetition of a velocity while it is held: a live Twist lapses after
- * half a second, as a real base's does. ``set(msg)`` sends it now and every
- * ``periodMs``; ``set(null)`` sends ``zero`` once and stops. */
-export function repeater(send, zero, periodMs = 100) {
-  let current = null, timer = null;
-  return {
-    set(msg) {
-      const same = JSON.stringify(msg) === JSON.stringify(current);
-      current = msg;
-      if (msg === null) {
-        if (timer) { clearInterval(timer); timer = null; send(zero); }
-        return;
-      }
-      if (!same) send(msg);
-      if (!timer) timer = setInterval(() => current && send(current), periodMs);
-    },
-  };
 }

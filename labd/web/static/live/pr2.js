@@ -5,36 +5,53 @@
 // the 3D view (TransformControls) or move it with the keyboard, and the arm follows
 // (/left_arm/pose, /right_arm/pose: docs/tasks.md). Everything goes through the bridge;
 // only the model's shapes come from the lab's HTTP server (/api/robots/NAME/scene).
+// The commands' messages are made in arms.js.
 
 import * as THREE from "three";
 import { OrbitControls } from "three/addons/controls/OrbitControls.min.js";
 import { TransformControls } from "three/addons/controls/TransformControls.min.js";
 import { Topic } from "/static/vendor/roslib/roslib.min.js";
-import { buildScene, frame, kinematics } from "/static/scene.js";
-import { camera, config, connect, repeater } from "/static/live/lab.js";
+import { $, config, start } from "../page.js";
+import { buildScene, frame, kinematics } from "../scene.js";
+import {
+  BASE_KEYS, READY, STEP, TARGET_KEYS, ZERO_TWIST, armJoints, baseTwist, readyPlan, targetEvent,
+  targetPose, targetWords, trajectory,
+} from "./arms.js";
+import { camera, connect } from "./lab.js";
+import { repeater } from "./messages.js";
 
-const $ = (id) => document.getElementById(id);
 const ARMS = {
   left: { topic: "/left_arm/pose", tool: "l_gripper_tool_frame", color: 0x2e9d4f },
   right: { topic: "/right_arm/pose", tool: "r_gripper_tool_frame", color: 0xd0452f },
 };
-const STEP = 0.02;  // m per key press of a target
-const TARGET_KEYS = { i: [1, 0, 0], k: [-1, 0, 0], j: [0, 1, 0], l: [0, -1, 0], u: [0, 0, 1], o: [0, 0, -1] };
-const BASE_KEYS = { w: [1, 0, 0], s: [-1, 0, 0], a: [0, 1, 0], d: [0, -1, 0], q: [0, 0, 1], e: [0, 0, -1] };
-const READY = {  // the arms' ready pose and the joints' names (docs/tasks.md)
-  left: [0.66, -0.18, 1.34, -1.65, 1.37, -1.78, 2.1],
-  right: [-0.66, -0.18, -1.34, -1.65, -1.37, -1.78, 1.04],
-};
-const JOINTS = ["shoulder_pan", "shoulder_lift", "upper_arm_roll", "elbow_flex", "forearm_roll", "wrist_flex", "wrist_roll"];
 const pose3 = (p, q) => ({ p: new THREE.Vector3(p.x, p.y, p.z), q: new THREE.Quaternion(q.x, q.y, q.z, q.w) });
 
 async function main() {
-  const cfg = config();
-  const live = await connect(cfg);
-  const { ros } = live;
+  const live = await connect(config("live-config"));
   camera(live, $("camera"));
+  const view = await sceneView(live);
+  const arms = armTargets(live, view);
+  window.labPr2 = {  // for scripts and tests: where things are, and moving a target
+    seed: () => (view.loading ? null : view.info.seed),  // the episode whose scene is shown
+    tool: (arm) => view.tools[ARMS[arm].tool]?.p.toArray() ?? null,
+    target: (arm) => arms.targets[arm].inBase?.p.toArray() ?? null,
+    bodyPose: (name) => (name in view.body
+      ? [...view.scene.pos[view.body[name]].toArray(), ...view.scene.quat[view.body[name]].toArray()] : null),
+  };
+  follow(live.ros, view, arms);
+  draw(view);
+  baseControls(live, view, arms);
+  jointControls(live, view, arms);
+  document.body.dataset.ready = "yes";  // every handler is in place
+}
 
-  // -- the scene -------------------------------------------------------------------------
+/**
+ * The 3D view: its renderer, camera and orbit, and the episode's model. Each episode has
+ * its own model (the objects the seed drew), loaded again when the seed changes; ``q`` is
+ * MuJoCo's qpos, kept from the robot's topics, and ``dirty`` says the scene needs posing.
+ * ``onLoad`` are called with each new scene before it is shown.
+ */
+async function sceneView(live) {
   const holder = $("scene3d");
   const width = holder.clientWidth || 640, height = Math.round(width * 0.7);
   const renderer = new THREE.WebGLRenderer({ antialias: true });
@@ -42,183 +59,194 @@ async function main() {
   renderer.setSize(width, height);
   renderer.domElement.id = "pr2-scene";
   holder.replaceChildren(renderer.domElement);
-  // Each episode has its own model (the objects the seed drew): loaded again when the
-  // seed changes. ``q`` is MuJoCo's qpos, kept from the robot's topics.
-  let info, scene, q, body, root, rest, worldFromOdom;
-  let worldFromBase = null;  // from /tf: odom -> base_footprint
-  const tools = {};  // the tool frames in base_footprint, from /tf
-  const targets = {};
-  let handle = null, dirty = true;
+  const view = {
+    renderer, info: null, scene: null, q: null, body: null, root: undefined, rest: null,
+    worldFromOdom: null,
+    worldFromBase: null,  // from /tf: odom -> base_footprint
+    tools: {},  // the tool frames in base_footprint, from /tf
+    dirty: true, loading: null, onLoad: [],
+    toWorld: (p) => p.clone().applyQuaternion(view.worldFromBase.q).add(view.worldFromBase.p),
+    toBase: (p) => p.clone().sub(view.worldFromBase.p).applyQuaternion(view.worldFromBase.q.clone().invert()),
+  };
   const load = async () => {
-    info = await (await fetch(cfg.scene)).json();
+    const info = view.info = await (await fetch(live.config.scene)).json();
     const next = await buildScene(THREE, info);
-    for (const t of Object.values(targets)) { next.world.add(t.mesh); t.inBase = null; t.mesh.visible = false; }
-    if (handle) next.world.add(handle.getHelper());
-    scene = next;
-    q = info.qpos.slice();
-    body = Object.fromEntries(info.bodies.map((b, i) => [b.name, i]));
-    root = body[info.root];
-    rest = kinematics(THREE, info.bodies);  // where the root is at rest: its planar joints measure from there
-    rest.forward(info.rest);
-    worldFromOdom = pose3({ x: info.odom[0], y: info.odom[1], z: info.odom[2] },
-      { x: info.odom[3], y: info.odom[4], z: info.odom[5], w: info.odom[6] });
-    worldFromBase = null;
-    scene.pose(q);
-    dirty = true;
+    for (const f of view.onLoad) f(next);
+    view.scene = next;
+    view.q = info.qpos.slice();
+    view.body = Object.fromEntries(info.bodies.map((b, i) => [b.name, i]));
+    view.root = view.body[info.root];
+    view.rest = kinematics(THREE, info.bodies);  // where the root is at rest: its planar joints measure from there
+    view.rest.forward(info.rest);
+    const o = info.odom;
+    view.worldFromOdom = pose3({ x: o[0], y: o[1], z: o[2] }, { x: o[3], y: o[4], z: o[5], w: o[6] });
+    view.worldFromBase = null;
+    view.scene.pose(view.q);
+    view.dirty = true;
   };
   await load();
-  let loading = null;
   const reload = (seed) => {  // once per seed; a seed that came during a load is loaded after
-    if (seed === info.seed || loading) return;
-    loading = load().finally(() => {
-      loading = null;
+    if (seed === view.info.seed || view.loading) return;
+    view.loading = load().finally(() => {
+      view.loading = null;
       if (live.episode) reload(live.episode.seed);
     });
   };
   live.onEpisode.push((m) => reload(m.seed));
 
-  scene.pose(q);
+  const { scene } = view;
+  scene.pose(view.q);
   scene.world.updateMatrixWorld(true);
   const { camera: eye, centre } = frame(THREE, scene.solids.filter((m) => m.parent !== scene.world), [-0.9, -0.7, 0.55], width / height);
-  const orbit = new OrbitControls(eye, renderer.domElement);
-  orbit.target.copy(centre);
-  orbit.update();
+  view.eye = eye;
+  view.orbit = new OrbitControls(eye, renderer.domElement);
+  view.orbit.target.copy(centre);
+  view.orbit.update();
+  return view;
+}
 
-  // -- Cartesian targets, one per arm -------------------------------------------------------
+/** Draw the view each animation frame while the page is in view, posed when dirty. */
+function draw(view) {
+  let frames = 0;
+  const next = () => {
+    requestAnimationFrame(next);
+    if (document.visibilityState === "hidden") return;
+    if (view.dirty) { view.scene.pose(view.q); view.dirty = false; }
+    view.renderer.render(view.scene.world, view.eye);
+    frames += 1;
+    view.renderer.domElement.dataset.frames = String(frames);
+  };
+  requestAnimationFrame(next);
+}
+
+/**
+ * The Cartesian targets, one per arm: a sphere in the scene, in base_footprint once the
+ * tool's frame is known (a target starts where the tool is, pointing as it points), and
+ * the handle (TransformControls) on the selected one. Moving a target sends it.
+ */
+function armTargets(live, view) {
+  const targets = {};
   for (const [arm, spec] of Object.entries(ARMS)) {
     const mesh = new THREE.Mesh(new THREE.SphereGeometry(0.025, 16, 12),
       new THREE.MeshLambertMaterial({ color: spec.color, transparent: true, opacity: 0.8 }));
     mesh.add(new THREE.AxesHelper(0.08));
     mesh.visible = false;
     mesh.name = `${arm}-target`;
-    scene.world.add(mesh);
+    view.scene.world.add(mesh);
     targets[arm] = { mesh, inBase: null, send: live.command(spec.topic, "geometry_msgs/msg/PoseStamped") };
   }
-  let selected = "left";
-  handle = new TransformControls(eye, renderer.domElement);
+  const handle = new TransformControls(view.eye, view.renderer.domElement);
   handle.setSize(0.8);
-  scene.world.add(handle.getHelper());
-  handle.addEventListener("dragging-changed", (e) => { orbit.enabled = !e.value; });
-  const toWorld = (p) => p.clone().applyQuaternion(worldFromBase.q).add(worldFromBase.p);
-  const toBase = (p) => p.clone().sub(worldFromBase.p).applyQuaternion(worldFromBase.q.clone().invert());
-  const place = (arm) => {
+  view.scene.world.add(handle.getHelper());
+  handle.addEventListener("dragging-changed", (e) => { view.orbit.enabled = !e.value; });
+  view.onLoad.push((next) => {  // a new episode's scene: the targets start again
+    for (const t of Object.values(targets)) { next.world.add(t.mesh); t.inBase = null; t.mesh.visible = false; }
+    next.world.add(handle.getHelper());
+  });
+  const arms = { targets, handle, selected: "left" };
+  arms.place = (arm) => {
     const t = targets[arm];
-    if (!t.inBase || !worldFromBase) return;
-    t.mesh.position.copy(toWorld(t.inBase.p));
-    t.mesh.quaternion.copy(worldFromBase.q).multiply(t.inBase.q);
+    if (!t.inBase || !view.worldFromBase) return;
+    t.mesh.position.copy(view.toWorld(t.inBase.p));
+    t.mesh.quaternion.copy(view.worldFromBase.q).multiply(t.inBase.q);
     t.mesh.visible = true;
   };
   let lastSent = 0;
-  const sendTarget = (arm) => {
-    const t = targets[arm];
-    const p = t.inBase.p, o = t.inBase.q;
-    t.send({ header: { stamp: { sec: 0, nanosec: 0 }, frame_id: "base_footprint" },
-             pose: { position: { x: p.x, y: p.y, z: p.z }, orientation: { x: o.x, y: o.y, z: o.z, w: o.w } } });
-    $(`${arm}-target-at`).textContent = `(${p.x.toFixed(2)}, ${p.y.toFixed(2)}, ${p.z.toFixed(2)}) m`;
-    live.ux("target", arm, { x: +p.x.toFixed(3), y: +p.y.toFixed(3), z: +p.z.toFixed(3) });
+  arms.send = (arm) => {
+    const { p, q } = targets[arm].inBase;
+    targets[arm].send(targetPose(p, q));
+    $(`${arm}-target-at`).textContent = targetWords(p);
+    live.ux("target", arm, targetEvent(p));
   };
-  const grab = (arm) => {  // a target starts where the tool is, pointing as it points
-    const t = targets[arm];
-    if (!t.inBase && tools[ARMS[arm].tool]) {
-      const tool = tools[ARMS[arm].tool];
+  arms.grab = (arm) => {  // a target starts where the tool is, pointing as it points
+    const t = targets[arm], tool = view.tools[ARMS[arm].tool];
+    if (!t.inBase && tool) {
       t.inBase = { p: tool.p.clone(), q: tool.q.clone() };
-      place(arm);
+      arms.place(arm);
     }
     return t.inBase !== null;
   };
-  const select = (arm) => {
-    selected = arm;
+  arms.select = (arm) => {
+    arms.selected = arm;
     for (const b of document.querySelectorAll("input[name=arm]")) b.checked = b.value === arm;
-    if (grab(arm)) handle.attach(targets[arm].mesh);
+    if (arms.grab(arm)) handle.attach(targets[arm].mesh);
   };
-  for (const b of document.querySelectorAll("input[name=arm]")) b.addEventListener("change", () => select(b.value));
+  for (const b of document.querySelectorAll("input[name=arm]")) b.addEventListener("change", () => arms.select(b.value));
   handle.addEventListener("objectChange", () => {
-    const t = targets[selected];
-    if (!worldFromBase || !t.inBase) return;
-    t.inBase.p.copy(toBase(t.mesh.position));
+    const t = targets[arms.selected];
+    if (!view.worldFromBase || !t.inBase) return;
+    t.inBase.p.copy(view.toBase(t.mesh.position));
     const now = performance.now();
-    if (now - lastSent > 100) { lastSent = now; sendTarget(selected); }
+    if (now - lastSent > 100) { lastSent = now; arms.send(arms.selected); }
   });
-  handle.addEventListener("mouseUp", () => targets[selected].inBase && sendTarget(selected));
-  window.labPr2 = {  // for scripts and tests: where things are, and moving a target
-    seed: () => (loading ? null : info.seed),  // the episode whose scene is shown
-    tool: (arm) => tools[ARMS[arm].tool]?.p.toArray() ?? null,
-    target: (arm) => targets[arm].inBase?.p.toArray() ?? null,
-    bodyPose: (name) => (name in body ? [...scene.pos[body[name]].toArray(), ...scene.quat[body[name]].toArray()] : null),
-  };
+  handle.addEventListener("mouseUp", () => targets[arms.selected].inBase && arms.send(arms.selected));
+  return arms;
+}
 
-  // -- the robot's topics pose the scene -----------------------------------------------------
+/** The robot's topics pose the scene: /joint_states the joints, /tf the base in odom and
+ * the tools in the base, /objects the table's objects. */
+function follow(ros, view, arms) {
   new Topic({ ros, name: "/joint_states", messageType: "sensor_msgs/msg/JointState" }).subscribe((m) => {
-    m.name.forEach((name, i) => { if (name in info.joints) q[info.joints[name]] = m.position[i]; });
-    dirty = true;
+    m.name.forEach((name, i) => { if (name in view.info.joints) view.q[view.info.joints[name]] = m.position[i]; });
+    view.dirty = true;
   });
   new Topic({ ros, name: "/tf", messageType: "tf2_msgs/msg/TFMessage" }).subscribe((m) => {
     for (const t of m.transforms) {
       const local = pose3(t.transform.translation, t.transform.rotation);
-      if (t.header.frame_id === "odom" && t.child_frame_id === info.root) {
-        worldFromBase = { p: local.p.clone().applyQuaternion(worldFromOdom.q).add(worldFromOdom.p),
-                          q: worldFromOdom.q.clone().multiply(local.q) };
-        placeRoot(worldFromBase);
-      } else if (t.header.frame_id === info.root) {
-        tools[t.child_frame_id] = local;
+      if (t.header.frame_id === "odom" && t.child_frame_id === view.info.root) {
+        const odom = view.worldFromOdom;
+        view.worldFromBase = { p: local.p.clone().applyQuaternion(odom.q).add(odom.p), q: odom.q.clone().multiply(local.q) };
+        placeRoot(view, view.worldFromBase);
+      } else if (t.header.frame_id === view.info.root) {
+        view.tools[t.child_frame_id] = local;
       }
     }
-    for (const arm of Object.keys(ARMS)) place(arm);
-    if (!targets[selected].inBase && grab(selected)) handle.attach(targets[selected].mesh);
-    dirty = true;
+    for (const arm of Object.keys(ARMS)) arms.place(arm);
+    if (!arms.targets[arms.selected].inBase && arms.grab(arms.selected)) arms.handle.attach(arms.targets[arms.selected].mesh);
+    view.dirty = true;
   });
   new Topic({ ros, name: "/objects", messageType: "lab_msgs/msg/DetectedObjectArray", throttle_rate: 100 }).subscribe((m) => {
-    if (!worldFromBase) return;
+    if (!view.worldFromBase) return;
     for (const o of m.objects) {
-      const i = body[o.name];
-      const free = i === undefined ? null : info.bodies[i].joints.find((j) => j[0] === 0);
+      const i = view.body[o.name];
+      const free = i === undefined ? null : view.info.bodies[i].joints.find((j) => j[0] === 0);
       if (!free) continue;
       const local = pose3(o.pose.position, o.pose.orientation);
-      const p = toWorld(local.p), r = worldFromBase.q.clone().multiply(local.q);
-      q.splice(free[1], 7, p.x, p.y, p.z, r.w, r.x, r.y, r.z);
+      const p = view.toWorld(local.p), r = view.worldFromBase.q.clone().multiply(local.q);
+      view.q.splice(free[1], 7, p.x, p.y, p.z, r.w, r.x, r.y, r.z);
     }
-    dirty = true;
+    view.dirty = true;
   });
-  function placeRoot(pose) {  // the base's planar joints, so that it is at ``pose``
-    if (root === undefined) return;
-    const yaw = (o) => new THREE.Euler().setFromQuaternion(o, "ZYX").z;
-    const turn = yaw(pose.q) - yaw(rest.quat[root]);
-    for (const [type, adr, ax, ay, az, , , , ref] of info.bodies[root].joints) {
-      if (type === 3) q[adr] = ref + Math.atan2(Math.sin(turn), Math.cos(turn)) * (Math.sign(az) || 1);
-      else if (type === 2) q[adr] = ref + pose.p.clone().sub(rest.pos[root]).dot(new THREE.Vector3(ax, ay, az));
-    }
-  }
-  let frames = 0;
-  const draw = () => {
-    requestAnimationFrame(draw);
-    if (document.visibilityState === "hidden") return;
-    if (dirty) { scene.pose(q); dirty = false; }
-    renderer.render(scene.world, eye);
-    frames += 1;
-    renderer.domElement.dataset.frames = String(frames);
-  };
-  requestAnimationFrame(draw);
+}
 
-  // -- controls ------------------------------------------------------------------------------
-  const base = repeater(live.command("/base/cmd_vel", "geometry_msgs/msg/Twist"),
-    { linear: { x: 0, y: 0, z: 0 }, angular: { x: 0, y: 0, z: 0 } });
+/** The base's planar joints in ``view.q``, so that it is at ``pose`` in the world. */
+function placeRoot(view, pose) {
+  const { root, rest, info, q } = view;
+  if (root === undefined) return;
+  const yaw = (o) => new THREE.Euler().setFromQuaternion(o, "ZYX").z;
+  const turn = yaw(pose.q) - yaw(rest.quat[root]);
+  for (const [type, adr, ax, ay, az, , , , ref] of info.bodies[root].joints) {
+    if (type === 3) q[adr] = ref + Math.atan2(Math.sin(turn), Math.cos(turn)) * (Math.sign(az) || 1);
+    else if (type === 2) q[adr] = ref + pose.p.clone().sub(rest.pos[root]).dot(new THREE.Vector3(ax, ay, az));
+  }
+}
+
+/** The keyboard and the on-screen pad: the base while a key is held (W A S D Q E), the
+ * arm to move (1, 2) and its target (I K J L U O, a step a press). */
+function baseControls(live, view, arms) {
+  const base = repeater(live.command("/base/cmd_vel", "geometry_msgs/msg/Twist"), ZERO_TWIST);
   const held = new Set();
-  const moveBase = () => {
-    const v = [0, 0, 0];
-    for (const k of held) BASE_KEYS[k].forEach((x, i) => { v[i] += x; });
-    base.set(held.size ? { linear: { x: 0.2 * v[0], y: 0.2 * v[1], z: 0 }, angular: { x: 0, y: 0, z: 0.5 * v[2] } } : null);
-  };
+  const moveBase = () => base.set(baseTwist(held));
   document.addEventListener("keydown", (e) => {
     if (e.target.closest("input[type=number], textarea")) return;
     const k = e.key.toLowerCase();
     if (k in BASE_KEYS) { held.add(k); moveBase(); e.preventDefault(); return; }
-    if (k === "1" || k === "2") { select(k === "1" ? "left" : "right"); return; }
-    if (k in TARGET_KEYS && grab(selected)) {
-      const t = targets[selected];
-      t.inBase.p.add(new THREE.Vector3(...TARGET_KEYS[k]).multiplyScalar(STEP));
-      place(selected);
-      sendTarget(selected);
-      dirty = true;
+    if (k === "1" || k === "2") { arms.select(k === "1" ? "left" : "right"); return; }
+    if (k in TARGET_KEYS && arms.grab(arms.selected)) {
+      arms.targets[arms.selected].inBase.p.add(new THREE.Vector3(...TARGET_KEYS[k]).multiplyScalar(STEP));
+      arms.place(arms.selected);
+      arms.send(arms.selected);
+      view.dirty = true;
       e.preventDefault();
     }
   });
@@ -231,17 +259,15 @@ async function main() {
       button.addEventListener(end, () => { if (held.delete(k)) moveBase(); });
     }
   }
-  const trajectory = (topic) => {
+}
+
+/** The torso, the head and the grippers from their inputs, and the arms' ready pose. */
+function jointControls(live, view, arms) {
+  const command = (topic) => {
     const send = live.command(topic, "trajectory_msgs/msg/JointTrajectory");
-    return (names, points) => send({
-      header: { stamp: { sec: 0, nanosec: 0 }, frame_id: "" }, joint_names: names,
-      points: points.map(([positions, seconds]) => ({
-        positions, velocities: [], accelerations: [], effort: [],
-        time_from_start: { sec: Math.floor(seconds), nanosec: Math.round((seconds % 1) * 1e9) },
-      })),
-    });
+    return (names, points) => send(trajectory(names, points));
   };
-  const torso = trajectory("/torso/command"), head = trajectory("/head/command");
+  const torso = command("/torso/command"), head = command("/head/command");
   $("torso").addEventListener("change", (e) => torso(["torso_lift_joint"], [[Number(e.target.value), 0]]));
   const aim = () => head(["head_pan_joint", "head_tilt_joint"], [[[Number($("pan").value), Number($("tilt").value)], 0]]);
   $("pan").addEventListener("change", aim);
@@ -250,26 +276,20 @@ async function main() {
     const send = live.command(`/${side}_gripper/command`, "std_msgs/msg/Float64");
     $(`${side}-gripper`).addEventListener("change", (e) => send({ data: Number(e.target.value) }));
   }
-  const arms = { left: trajectory("/left_arm/command"), right: trajectory("/right_arm/command") };
+  const armCommands = { left: command("/left_arm/command"), right: command("/right_arm/command") };
   $("ready").addEventListener("click", () => {  // untuck without sweeping the table
     torso(["torso_lift_joint"], [[0.2, 4]]);
     $("torso").value = "0.2";
     setTimeout(() => {
       for (const [side, ready] of Object.entries(READY)) {
-        const names = JOINTS.map((j) => `${side[0]}_${j}_joint`);
-        const now = names.map((n) => q[info.joints[n]]);
-        const lifted = (pose) => pose.map((x, i) => (i === 1 ? -0.5 : x));
-        arms[side](names, [[lifted(now), 2], [lifted(ready), 4], [ready, 5]]);
+        const names = armJoints(side);
+        armCommands[side](names, readyPlan(names.map((n) => view.q[view.info.joints[n]]), ready));
       }
     }, 4000);
     setTimeout(() => {  // the targets start again from where the tools are now
-      for (const arm of Object.keys(ARMS)) { targets[arm].inBase = null; grab(arm); }
+      for (const arm of Object.keys(ARMS)) { arms.targets[arm].inBase = null; arms.grab(arm); }
     }, 9500);
   });
-  document.body.dataset.ready = "yes";  // every handler is in place
 }
 
-main().catch((err) => {
-  document.getElementById("status").textContent = `the page could not start: ${err}`;
-  throw err;
-});
+start(main);

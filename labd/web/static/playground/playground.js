@@ -11,24 +11,20 @@
 //   that commit (POST /api/playground/trials); the page links to the trial.
 //
 // The script is kept in the browser's storage per task between visits, until it is run
-// as a trial or started again.
+// as a trial or started again. The checks and the runner's messages are in checks.js.
 
 import {
   EditorView, basicSetup, javascript, lintGutter, parse, setDiagnostics,
 } from "/static/vendor/codemirror/codemirror.min.js";
 import { Ros } from "/static/vendor/roslib/roslib.min.js";
-import { camera } from "/static/live/lab.js";
+import { camera, slotKey } from "../live/lab.js";
+import { $, config, count, status } from "../page.js";
+import { bridgeAddress, fromRunner, markRange, syntaxError, trialProgress } from "./checks.js";
 
-const cfg = JSON.parse(document.getElementById("playground-config").textContent);
-const $ = (id) => document.getElementById(id);
+const cfg = config("playground-config");
 const csrf = document.querySelector("meta[name=csrf-token]")?.content ?? "";
 const stored = `labd.playground.${cfg.task}`;
 const MAX_LINES = 2000; // of the console; older lines are dropped
-
-function status(text, level = "info") {
-  $("status").textContent = text;
-  $("status").dataset.level = level;
-}
 
 // -- the editor ---------------------------------------------------------------------------
 const initial = cfg.opened?.script ?? localStorage.getItem(stored) ?? cfg.template;
@@ -53,11 +49,8 @@ const script = () => editor.state.doc.toString();
 
 /** Mark the script's line ``line`` (1-based; column 0 = the whole line) with ``message``. */
 function mark(message, line, column = 0) {
-  const doc = editor.state.doc;
-  const at = doc.line(Math.min(Math.max(line, 1), doc.lines));
-  const from = column > 0 ? Math.min(at.from + column - 1, at.to) : at.from;
-  const to = column > 0 ? Math.min(from + 1, at.to) : at.to;
-  editor.dispatch(setDiagnostics(editor.state, [{ from, to: Math.max(to, from), severity: "error", message }]));
+  const { from, to } = markRange(editor.state.doc, line, column);
+  editor.dispatch(setDiagnostics(editor.state, [{ from, to, severity: "error", message }]));
   editor.dispatch({ selection: { anchor: from }, scrollIntoView: true });
 }
 
@@ -76,7 +69,7 @@ function print(text, level = "log") {
   box.append(line);
   while (box.childElementCount > MAX_LINES) box.firstElementChild.remove();
   box.scrollTop = box.scrollHeight;
-  box.dataset.lines = String(Number(box.dataset.lines || 0) + 1);
+  count(box, "lines");
 }
 
 // -- the robot's camera (the page watches with its own connection) -------------------------
@@ -84,24 +77,18 @@ let viewer = null;
 async function key(robot) {
   if (!cfg.reservations) return null;
   if (!cfg.signed_in) throw new Error("this lab's robots are driven in reserved slots: sign in, and book one on /reservations");
-  const answer = await fetch(`/api/robots/${robot}/key`, { credentials: "same-origin" });
-  if (answer.ok) return (await answer.json()).key;
-  const problem = await answer.json().catch(() => ({}));
-  throw new Error(problem.error || "no slot of yours on this robot runs now: book one on /reservations");
+  return (await slotKey(robot, "no slot of yours on this robot runs now: book one on /reservations")).key;
 }
-function address(robot, slotKey) {
-  const found = cfg.robots.find((r) => r.name === robot);
-  return slotKey ? `${found.bridge}?key=${encodeURIComponent(slotKey)}` : found.bridge;
-}
+const address = (robot, slot) => bridgeAddress(cfg.robots, robot, slot);
 async function watch(robot) {
   if (viewer) viewer.close();
   viewer = null;
   if (!robot) return;
-  let slotKey = null;
-  if (cfg.signed_in) slotKey = await key(robot).catch(() => null); // else watch, if the lab lets anyone
+  let slot = null;
+  if (cfg.signed_in) slot = await key(robot).catch(() => null); // else watch, if the lab lets anyone
   const ros = new Ros({});
   ros.on("error", () => status(`cannot reach ${robot}'s bridge`, "warning"));
-  await ros.connect(address(robot, slotKey));
+  await ros.connect(address(robot, slot));
   viewer = ros;
   camera({ ros, ux: () => {} }, $("camera"));
 }
@@ -124,34 +111,28 @@ function stop(why) {
 }
 function heard(event) {
   if (!frame || event.source !== frame.contentWindow) return;
-  const m = event.data || {};
-  if (m.op === "ready") {
+  const said = fromRunner(event.data);
+  if (said?.do === "run") {
     frame.contentWindow.postMessage({ op: "run", code: script(), url: frame.dataset.url }, "*");
     status(`running live on ${frame.dataset.robot}`);
-  } else if (m.op === "log") {
-    print(m.text, m.level);
-  } else if (m.op === "error") {
-    const at = m.line ? ` (line ${m.line})` : "";
-    print(`${m.text}${at}`, "error");
-    if (m.line) mark(m.text, m.line, m.column);
-    stop(`the script failed${at}: ${m.text}`);
+  } else if (said?.do === "print") {
+    print(said.text, said.level);
+  } else if (said?.do === "fail") {
+    print(said.printed, "error");
+    if (said.mark) mark(said.mark.message, said.mark.line, said.mark.column);
+    stop(said.why);
     $("status").dataset.level = "error";
-  } else if (m.op === "done") {
-    stop("the script ended");
+  } else if (said?.do === "stop") {
+    stop(said.why);
   }
 }
 /** Whether the script parses (acorn, as an ES module); if not, its error is marked. */
 function parses() {
-  try {
-    parse(script(), { ecmaVersion: "latest", sourceType: "module" });
-    return true;
-  } catch (err) {
-    const message = `SyntaxError: ${err.message.replace(/ \(\d+:\d+\)$/, "")}`;
-    const line = err.loc?.line ?? 1;
-    mark(message, line, (err.loc?.column ?? -1) + 1);
-    status(`line ${line}: ${message}`, "error");
-    return false;
-  }
+  const error = syntaxError(parse, script());
+  if (error === null) return true;
+  mark(error.message, error.line, error.column);
+  status(`line ${error.line}: ${error.message}`, "error");
+  return false;
 }
 $("run-live").addEventListener("click", async () => {
   const robot = robotChoice();
@@ -159,9 +140,9 @@ $("run-live").addEventListener("click", async () => {
   stop();
   $("console").replaceChildren();
   if (!parses()) return;
-  let slotKey = null;
+  let slot;
   try {
-    slotKey = await key(robot);
+    slot = await key(robot);
   } catch (err) {
     status(err.message, "warning");
     return;
@@ -170,7 +151,7 @@ $("run-live").addEventListener("click", async () => {
   frame.sandbox = "allow-scripts"; // an opaque origin: the bridge, and nothing of yours
   frame.className = "pg-runner";
   frame.title = "the script, running";
-  frame.dataset.url = address(robot, slotKey);
+  frame.dataset.url = address(robot, slot);
   frame.dataset.robot = robot;
   window.addEventListener("message", heard);
   frame.src = "/playground/runner";
@@ -197,10 +178,9 @@ async function post(path, body) {
 /** Show the trial's progress until it ends: queued, running, then its outcome and why. */
 async function follow(trial) {
   for (;;) {
-    const said = trial.outcome ? `${trial.outcome}: ${trial.reason}` : trial.reason || trial.status;
-    status(`trial #${trial.id} ${trial.status}${said && said !== trial.status ? ` · ${said}` : ""}`,
-      trial.outcome === "error" ? "error" : "info");
-    if (trial.status === "finished" || trial.status === "cancelled") break;
+    const progress = trialProgress(trial);
+    status(progress.text, progress.level);
+    if (progress.ended) break;
     await new Promise((resolve) => setTimeout(resolve, 2000));
     const answer = await fetch(`/api/trials/${trial.id}`, { credentials: "same-origin" });
     if (!answer.ok) break;
