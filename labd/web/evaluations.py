@@ -15,7 +15,7 @@ part of a task's page that ranks its evaluations.
 and, for ``GET /tasks/{name}`` (``labd.web.pages``), ``task_board``: the task's suites
 and the leaderboard of one suite's evaluations, with their ties.
 
-The words a page says of a score are made here (``Said``); ``static/evaluation.js``
+The words a page says of a score are made here (``Said``); ``static/evaluation-words.js``
 says the same of the API's JSON, rounded the same way (half up, as JavaScript's
 ``Math.round``), so a page that updated itself reads as it would reloaded.
 """
@@ -180,7 +180,7 @@ class Cell:
 
 @dataclass(frozen=True)
 class Said:
-    """What a page says of an evaluation's score (``static/evaluation.js`` the same)."""
+    """What a page says of an evaluation's score (``static/evaluation-words.js`` the same)."""
 
     rate: str
     reward: str
