@@ -20,7 +20,8 @@
 
 Only the module of the command asked for is imported, so a command that talks to a lab
 starts without the simulator. ``labd serve`` and the operator's commands read the lab's
-configuration file and ``LABD_*`` variables (``labd.commands.settings``).
+configuration file and ``LABD_*`` variables (``labd.commands.config``); ``labd serve``'s
+settings are declared once, in ``labd.commands.settings``.
 
 Exit codes are listed in ``labd.commands.common`` and at the end of ``labd --help``.
 """
@@ -43,7 +44,7 @@ from dataclasses import dataclass
 from typing import Any, NoReturn
 
 from labd import __version__
-from labd.commands import settings
+from labd.commands import config, settings
 from labd.commands.common import EPILOG, fail
 from labd.logs import limit_repeats
 
@@ -86,7 +87,7 @@ COMMANDS = {
     ),
     "backup": Command("backup", "the operator's: a consistent copy of the archive, while it runs"),
     "restore": Command("backup", "the operator's: bring a backup up as a new lab"),
-    "config": Command("settings", "the operator's: the effective settings and their sources"),
+    "config": Command("config", "the operator's: the effective settings and their sources"),
     "keys": Command("verify", "the operator's: the keys the lab signs with"),
     "verify": Command("verify", "check a record or an export against its signature"),
     "replay": Command("replay", "re-simulate a record and compare; render videos"),
@@ -143,13 +144,7 @@ def build_parser(argv: Sequence[str] | None = None) -> argparse.ArgumentParser:
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     parser.add_argument("--version", action="version", version=f"labd {__version__}")
-    parser.add_argument(
-        "--log-level",
-        default="WARNING",
-        choices=["DEBUG", "INFO", "WARNING", "ERROR"],
-        help="what the lab logs on stderr: INFO adds what it does, step by step"
-        " (default: %(default)s)",
-    )
+    settings.add(parser, settings.group(settings.LABD))  # --log-level
     commands = parser.add_subparsers(
         dest="command", required=True, metavar="COMMAND", parser_class=Parser
     )
@@ -159,9 +154,9 @@ def build_parser(argv: Sequence[str] | None = None) -> argparse.ArgumentParser:
     for name, command in COMMANDS.items():
         if name not in commands.choices:
             commands.add_parser(name, help=command.help, add_help=False)
-        elif name in settings.CONFIGURED:
-            for leaf in settings.leaves(commands.choices[name]):
-                settings.add_config_option(leaf)
+        elif name in config.CONFIGURED:
+            for leaf in config.leaves(commands.choices[name]):
+                config.add_config_option(leaf)
     return parser
 
 
@@ -211,10 +206,10 @@ def _main(argv: Sequence[str] | None) -> int:
     argv = sys.argv[1:] if argv is None else list(argv)
     parser = build_parser(argv)
     args = parser.parse_args(argv)
-    if args.command in settings.CONFIGURED:
+    if args.command in config.CONFIGURED:
         try:
-            settings.apply(parser, args, settings.given(build_parser, argv))
-        except settings.ConfigError as err:
+            config.apply(parser, args, config.given(build_parser, argv))
+        except config.ConfigError as err:
             return fail(args, str(err))
     # force: a library may have configured the root logger on import (absl's logging
     # does, at dm_control's first message), which would make this call do nothing

@@ -45,15 +45,15 @@ import shutil
 import sys
 import time
 from collections.abc import Callable, Iterator
-from dataclasses import asdict
+from dataclasses import asdict, replace
 from pathlib import Path
 from typing import Any
 
 import sqlalchemy as sa
 
 from labd import __version__, datalock
-from labd.commands.common import ExitCode, assignment, emit, fail, json_option
-from labd.config import DATA
+from labd.commands import settings
+from labd.commands.common import ExitCode, emit, fail, json_option
 from labd.hosted import HostedRepos
 from labd.service import ServiceConfig
 from repository import backup as store
@@ -87,23 +87,9 @@ class Failed(Exception):
         super().__init__(message)
 
 
-def _where(parser: argparse.ArgumentParser, data_help: str, default: Path | None) -> None:
-    parser.add_argument("--data", type=Path, default=default, help=data_help)
-    parser.add_argument("--database", help="SQLAlchemy URL (default: sqlite:///DATA/index.sqlite)")
-    parser.add_argument(
-        "--blobs",
-        help="blob store: a folder or an fsspec URL such as s3://bucket/prefix"
-        " (default: DATA/blobs)",
-    )
-    parser.add_argument(
-        "--blobs-option",
-        action="append",
-        default=[],
-        type=assignment,
-        metavar="NAME=VALUE",
-        help="an fsspec storage option for --blobs (repeatable; S3 keys come from"
-        " AWS_ACCESS_KEY_ID and AWS_SECRET_ACCESS_KEY)",
-    )
+def _where(parser: argparse.ArgumentParser, data: settings.Setting) -> None:
+    """``data`` (the lab's, or the new lab's), and the lab's database and blob store."""
+    settings.add(parser, [data, *map(settings.get, ("database", "blobs", "blobs_option"))])
     json_option(parser)
 
 
@@ -118,7 +104,7 @@ def add_backup_parser(commands: Any) -> None:
         metavar="DEST",
         help="a new folder, or an earlier backup's (then only new blobs are copied)",
     )
-    _where(p, "the lab's data folder (default: %(default)s)", DATA)
+    _where(p, settings.get("data"))
 
 
 def add_restore_parser(commands: Any) -> None:
@@ -131,7 +117,9 @@ def add_restore_parser(commands: Any) -> None:
         help="the lab's public keys (what its /api/keys answers, or one PEM key): the"
         " backup's signing key must be one of them, and every signature is held to them",
     )
-    _where(p, "the new lab's data folder, for its keys and repositories (no default)", None)
+    data = settings.get("data")
+    said = "the new lab's data folder, for its keys and repositories (no default)"
+    _where(p, replace(data, help=said, default=None))
 
 
 def add_parser(commands: Any) -> None:

@@ -29,9 +29,10 @@ from typing import Any
 
 from labd import datalock
 from labd.api.models import TrialDetail
+from labd.commands import settings
 from labd.commands.common import ExitCode, exit_code, worst
 from labd.commands.remote import headline, wait
-from labd.config import DATA, BridgeConfig
+from labd.config import BridgeConfig
 from labd.lab import LabConfig
 from labd.service import ServiceConfig
 from labd.trial import client_library
@@ -47,9 +48,7 @@ LAB = LabConfig()
 
 def add_parser(commands: Any) -> None:
     demo = commands.add_parser("demo", help="serve the lab, submit the examples, show results")
-    demo.add_argument(
-        "--data", type=Path, default=DATA, help="the lab's data folder (default: %(default)s)"
-    )
+    settings.add(demo, [settings.get("data")])
     demo.add_argument(
         "--http-port",
         type=int,

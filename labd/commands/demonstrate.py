@@ -19,8 +19,8 @@ import tempfile
 from pathlib import Path
 from typing import Any
 
+from labd.commands import settings
 from labd.commands.common import fail, json_option
-from labd.config import DATA
 from labd.graph.types import TypeRegistry
 from labd.live import Driving
 from labd.scripted import demonstrate
@@ -43,10 +43,7 @@ def add_parser(commands: Any) -> None:
         default="script",
         help="who the demonstrations are filed under (default: %(default)s)",
     )
-    p.add_argument(
-        "--data", type=Path, default=DATA, help="the lab's data folder (default: %(default)s)"
-    )
-    p.add_argument("--database", help="SQLAlchemy URL (default: sqlite:///DATA/index.sqlite)")
+    settings.add(p, [settings.get("data"), settings.get("database")])
     json_option(p)
 
 

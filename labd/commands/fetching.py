@@ -1,104 +1,29 @@
-"""What a lab fetches and how: the options ``labd serve`` and ``labd worker`` share."""
+"""What a lab fetches and how: the settings ``labd serve`` and ``labd worker`` share
+(``settings.FETCH``), and the fetch policy they make."""
 
 from __future__ import annotations
 
 import argparse
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
+from labd.commands import settings
 from labd.config import assignment
-from repository.units import MiB
 from scheduler.fetch import Credential, FetchPolicy
 
-DEFAULTS = FetchPolicy()
+OPTIONS = settings.group(settings.FETCH)
 
 
-def add_options(group: Any) -> None:
-    group.add_argument(
-        "--allow-scheme",
-        action="append",
-        dest="schemes",
-        metavar="SCHEME",
-        help="repository URL schemes accepted (repeatable; default: "
-        f"{' '.join(sorted(DEFAULTS.schemes))}; add http for plain HTTP)",
-    )
-    group.add_argument(
-        "--allow-local-repos",
-        action="store_true",
-        help="accept local paths and file:// URLs as repositories: whoever may submit then"
-        " reaches this machine's folders (default: refused; the lab's own are always refused)",
-    )
-    group.add_argument(
-        "--allow-private-hosts",
-        action="store_true",
-        help="fetch from hosts at loopback, link-local and private addresses too: whoever"
-        " may submit then reaches this machine's ports and its network (default: refused;"
-        " the lab's own repositories are always fetched)",
-    )
-    group.add_argument(
-        "--max-repo-mb",
-        type=int,
-        default=DEFAULTS.max_bytes // MiB,
-        help="largest repository fetched, in MiB (default: %(default)s)",
-    )
-    group.add_argument(
-        "--max-checkout-mb",
-        type=int,
-        default=DEFAULTS.max_checkout_bytes // MiB,
-        help="largest commit checked out (its files added up, as written to disk), in MiB"
-        " (default: %(default)s)",
-    )
-    group.add_argument(
-        "--fetch-timeout",
-        type=float,
-        default=DEFAULTS.timeout,
-        help="seconds a fetch may take (default: %(default)g)",
-    )
-    group.add_argument(
-        "--submodule-allow",
-        action="append",
-        default=[],
-        metavar="URL_PREFIX",
-        help="submodules whose URL starts with this may be followed (repeatable; default: none)",
-    )
-    group.add_argument(
-        "--git-token",
-        action="append",
-        default=[],
-        metavar="URL_PREFIX=FILE",
-        help="for private https repositories under URL_PREFIX: a token, read from FILE "
-        "(repeatable; default: none); git alone sees it, never a controller",
-    )
-    group.add_argument(
-        "--git-ssh-key",
-        action="append",
-        default=[],
-        metavar="URL_PREFIX=KEYFILE",
-        help="for private ssh repositories under URL_PREFIX: a deploy key (repeatable;"
-        " default: none)",
-    )
+def add_options(parser: Any) -> None:
+    """The settings of what is fetched (``settings.FETCH``), in their group."""
+    settings.add(parser, OPTIONS, grouped=True)
 
 
 def argv(args: argparse.Namespace) -> list[str]:
     """The options of ``add_options`` as given, for another labd command (the worker
     processes ``labd serve`` starts fetch what it would)."""
-    out: list[str] = []
-    for scheme in args.schemes or ():
-        out += ["--allow-scheme", scheme]
-    if args.allow_local_repos:
-        out.append("--allow-local-repos")
-    if args.allow_private_hosts:
-        out.append("--allow-private-hosts")
-    out += ["--max-repo-mb", str(args.max_repo_mb), "--max-checkout-mb", str(args.max_checkout_mb)]
-    out += ["--fetch-timeout", f"{args.fetch_timeout:g}"]
-    for flag, items in (
-        ("--submodule-allow", args.submodule_allow),
-        ("--git-token", args.git_token),
-        ("--git-ssh-key", args.git_ssh_key),
-    ):
-        for item in items:
-            out += [flag, item]
-    return out
+    return settings.argv(args, OPTIONS)
 
 
 def policy(args: argparse.Namespace, command: str) -> FetchPolicy:
@@ -116,26 +41,17 @@ def policy(args: argparse.Namespace, command: str) -> FetchPolicy:
         if not Path(file).is_file():
             raise SystemExit(f"{command}: --git-ssh-key {prefix}: no key file {file}")
         credentials.append(Credential(prefix, ssh_key=Path(file).resolve()))
-    schemes = frozenset(args.schemes) if args.schemes else DEFAULTS.schemes
-    if "file" in schemes:
+    if "file" in args.allow_scheme:
         raise SystemExit(f"{command}: --allow-scheme file: local paths are --allow-local-repos")
-    if args.allow_local_repos:
-        schemes |= {"file"}
     for flag, value in (
         ("--max-repo-mb", args.max_repo_mb),
         ("--max-checkout-mb", args.max_checkout_mb),
     ):
         if value <= 0:
             raise SystemExit(f"{command}: {flag} {value}: give a size of 1 MiB or more")
-    return FetchPolicy(
-        credentials=tuple(credentials),
-        schemes=schemes,
-        max_bytes=args.max_repo_mb * MiB,
-        max_checkout_bytes=args.max_checkout_mb * MiB,
-        timeout=args.fetch_timeout,
-        submodules=tuple(args.submodule_allow),
-        private_hosts=args.allow_private_hosts,
-    )
+    found = settings.build(FetchPolicy, args, credentials=tuple(credentials))
+    schemes = found.schemes or FetchPolicy().schemes  # an empty list in a file: the default
+    return replace(found, schemes=schemes | {"file"} if args.allow_local_repos else schemes)
 
 
 def _pair(item: str, command: str, flag: str, form: str) -> tuple[str, str]:

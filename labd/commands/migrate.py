@@ -10,11 +10,11 @@ lab (and its remote workers) first.
 from __future__ import annotations
 
 import argparse
-from pathlib import Path
 from typing import Any
 
+from labd.commands import settings
 from labd.commands.common import emit, fail, json_option
-from labd.config import DATA, database_url
+from labd.config import database_url
 from repository.errors import ArchiveError
 from repository.index import connect
 from repository.migrate import upgrade
@@ -22,13 +22,7 @@ from repository.migrate import upgrade
 
 def add_parser(commands: Any) -> None:
     p = commands.add_parser("migrate", help="upgrade the archive's index to this labd's schema")
-    p.add_argument(
-        "--data",
-        type=Path,
-        default=DATA,
-        help="the lab's data folder (default: %(default)s)",
-    )
-    p.add_argument("--database", help="SQLAlchemy URL (default: sqlite:///DATA/index.sqlite)")
+    settings.add(p, [settings.get("data"), settings.get("database")])
     json_option(p)
 
 

@@ -3,10 +3,11 @@
     labd serve [--host H] [--bridge-port P] [--http-port P] [--data DIR]
                [--robot NAME=TASK ... | --no-robots] [--lockstep] [--no-service] ...
 
-Every default comes from the configuration objects (``labd.config``,
-``labd.service``); ``labd serve --help`` shows them. A port in use, a certificate
-that does not load, an index of an older schema: each stops it with one line saying
-what to change.
+Its settings are the table's (``labd.commands.settings``): their flags, and the
+configuration objects the lab reads, built from them (``settings.build``); here are
+only the checks of what the settings mean together, and what the lab works out from
+them. A port in use, a certificate that does not load, an index of an older schema:
+each stops it with one line saying what to change.
 """
 
 from __future__ import annotations
@@ -19,25 +20,22 @@ import logging
 import resource
 import signal
 import sys
-from dataclasses import replace
-from pathlib import Path
 from typing import Any
 from urllib.parse import urlsplit
 
 from labd import __version__, privacy
-from labd.commands import fetching
-from labd.commands.common import assignment, fail, param_option
+from labd.commands import fetching, settings
+from labd.commands.common import fail
 from labd.config import BridgeConfig, DriveLimits, HttpConfig, RobotConfig
 from labd.datalock import DataLock
 from labd.errors import LabError
 from labd.lab import Lab, LabConfig
 from labd.service import ServiceConfig
 from labd.sim import registry
-from labd.videos import MODES
 from repository.errors import ArchiveError, SchemaMismatch
 from repository.masking import mask_url
 from repository.reservations import MAX_HORIZON, MAX_SLOT, Rules
-from repository.units import KiB, MiB
+from repository.units import KiB
 from sandbox.api import SandboxError
 from scheduler.data import DataPolicy
 from scheduler.evaluate import HeldOutBudget
@@ -50,12 +48,6 @@ log = logging.getLogger("labd.serve")
 # exports; during a 1 GiB upload the camera went up to 0.85 s without a frame at
 # Python's default (5 ms), 0.08-0.76 s at 1 ms on a loaded machine (docs/faults.md).
 SWITCH_INTERVAL = 0.001
-BRIDGE = BridgeConfig()
-DRIVES = DriveLimits()
-HTTP = HttpConfig()
-LAB = LabConfig()
-SERVICE = ServiceConfig()
-RULES = Rules()
 
 
 class Refused(Exception):
@@ -63,335 +55,12 @@ class Refused(Exception):
 
 
 def add_parser(commands: Any) -> None:
+    """``labd serve`` and its settings (``labd.commands.settings``), in their groups."""
     serve = commands.add_parser(
         "serve",
         help="run the lab: the bridge and robots, the HTTP API, the archive and its workers",
     )
-    serve.add_argument(
-        "--host", default=BRIDGE.host, help="address to listen on (default: %(default)s)"
-    )
-    serve.add_argument(
-        "--bridge-port",
-        type=int,
-        default=BRIDGE.port,
-        help="rosbridge WebSocket port (default: %(default)s; 0: any free port)",
-    )
-    serve.add_argument(
-        "--data", type=Path, default=LAB.data, help="where data is kept (default: %(default)s)"
-    )
-    serve.add_argument(
-        "--protected-prefix",
-        action="append",
-        dest="protected",
-        help="names under this prefix never cross the bridge (repeatable; default: "
-        f"{' '.join(BRIDGE.protected_prefixes)})",
-    )
-    serve.add_argument(
-        "--authorizer",
-        metavar="URL",
-        help='require keys, checked at URL?key=KEY (answers {"seconds": N}; default: none)',
-    )
-    serve.add_argument(
-        "--key-recheck",
-        type=float,
-        default=BRIDGE.key_recheck,
-        metavar="S",
-        help="seconds between asking the authorizer again about each connected client's"
-        " key: a withdrawn key disconnects its client within this (default: %(default)g;"
-        " 0: never)",
-    )
-    serve.add_argument(
-        "--tls-cert",
-        type=Path,
-        help="certificate (PEM): the robots are served at wss://, the pages and API at"
-        " https:// (their cookies marked Secure) (default: none, plain ws:// and http://)",
-    )
-    serve.add_argument("--tls-key", type=Path, help="private key (PEM) of --tls-cert")
-    serve.add_argument(
-        "--max-connections",
-        type=int,
-        default=BRIDGE.max_connections,
-        help="bridge clients at once (default: %(default)s)",
-    )
-    serve.add_argument(
-        "--max-connections-per-address",
-        type=int,
-        default=BRIDGE.max_connections_per_address,
-        metavar="N",
-        help="bridge clients at once from one address, its share of --max-connections"
-        " (default: %(default)s; 0: no share; behind a proxy, every client has its address)",
-    )
-    serve.add_argument(
-        "--header-timeout",
-        type=float,
-        default=HTTP.header_timeout,
-        metavar="SECONDS",
-        help="time a client has to send an HTTP request's head, or the bridge's"
-        " handshake (default: %(default)g)",
-    )
-    serve.add_argument(
-        "--robot",
-        action="append",
-        type=assignment,
-        metavar="NAME=TASK",
-        dest="robots",
-        help="host a live robot running TASK at /robots/NAME (repeatable; default: "
-        + " and ".join(f"{name}={task}" for name, task in registry.default_robots())
-        + ")",
-    )
-    serve.add_argument("--no-robots", action="store_true", help="host no robot")
-    serve.add_argument(
-        "--lockstep",
-        action="store_true",
-        help="robots step only when /lab/step is called, as in trials (default: live)",
-    )
-    serve.add_argument(
-        "--seed", type=int, default=0, help="the robots' first episode seed (default: 0)"
-    )
-    param_option(serve, "a task parameter for every robot (repeatable; default: the tasks' own)")
-    serve.add_argument("--no-playground", action="store_true", help="host no playground graph")
-    serve.add_argument(
-        "--interface-ratio",
-        type=float,
-        default=LAB.interface_ratio,
-        metavar="R",
-        help="the share of the maze robot's page sessions shown the camera (interface A);"
-        " the others see the tags and sensing without video (B) (default: %(default)s)",
-    )
-    drives = serve.add_argument_group(
-        "what a drive of a live robot files (docs/live.md)", "Limits of 0 mean no limit."
-    )
-    drives.add_argument(
-        "--max-drive-mb",
-        type=int,
-        default=DRIVES.max_record // MiB,
-        metavar="N",
-        help="MiB of a drive's record: there the drive ends, filed as it stands"
-        " (default: %(default)s)",
-    )
-    drives.add_argument(
-        "--min-drive-ticks",
-        type=int,
-        default=DRIVES.min_ticks,
-        metavar="N",
-        help="a client's drive shorter than this (or with no command) files nothing"
-        " (default: %(default)s)",
-    )
-    drives.add_argument(
-        "--drive-filings",
-        type=int,
-        default=DRIVES.filings_per_minute,
-        metavar="N",
-        help="drives a user, or else an address, may file a minute, over all the robots"
-        " (default: %(default)s)",
-    )
-    group = serve.add_argument_group("the archive, the queue and its workers")
-    group.add_argument(
-        "--http-port",
-        type=int,
-        default=LAB.http_port,
-        help="HTTP API port (default: %(default)s; 0: any free port)",
-    )
-    group.add_argument(
-        "--public-url",
-        metavar="URL",
-        help="the address people and remote workers reach the HTTP port at, such as"
-        " https://lab.example.org behind a proxy; the playground's repositories are"
-        " recorded under URL/git/ (default: http://HOST:PORT as the lab listens)",
-    )
-    group.add_argument(
-        "--http-connections-per-address",
-        type=int,
-        default=HTTP.max_connections_per_address,
-        metavar="N",
-        help="HTTP connections open at once from one address (default: %(default)s; 0: no limit)",
-    )
-    group.add_argument("--database", help="SQLAlchemy URL (default: sqlite:///DATA/index.sqlite)")
-    group.add_argument(
-        "--trusted-proxy",
-        action="append",
-        default=[],
-        metavar="ADDR",
-        dest="trusted_proxies",
-        help="a reverse proxy (an address or network) whose X-Forwarded-For names the"
-        " client; repeatable (default: none: the throttles count the socket's address)",
-    )
-    group.add_argument(
-        "--blobs",
-        help="blob store: a folder or an fsspec URL such as s3://bucket/prefix"
-        " (default: DATA/blobs)",
-    )
-    group.add_argument(
-        "--blobs-option",
-        action="append",
-        default=[],
-        type=assignment,
-        metavar="NAME=VALUE",
-        help="an fsspec storage option for --blobs, e.g. endpoint_url=http://127.0.0.1:9000 "
-        "(repeatable; S3 keys come from AWS_ACCESS_KEY_ID and AWS_SECRET_ACCESS_KEY)",
-    )
-    group.add_argument(
-        "--workers",
-        type=int,
-        default=SERVICE.workers,
-        help="trials run at once (default: %(default)s; 0: none)",
-    )
-    group.add_argument(
-        "--worker-processes",
-        type=int,
-        default=SERVICE.worker_processes,
-        metavar="N",
-        help="trials run at once by worker processes of their own (labd worker against this"
-        " lab), beside --workers in this process: a trial's lab side gets a core of its own"
-        " (default: %(default)s)",
-    )
-    group.add_argument(
-        "--videos",
-        choices=MODES,
-        default=SERVICE.videos,
-        help="render replayed records' camera videos in the background while no trial runs or"
-        " waits, or only when someone asks for one (default: %(default)s)",
-    )
-    group.add_argument(
-        "--sandbox",
-        choices=["docker", "bwrap"],
-        help="isolation backend (default: docker if an engine answers, else bwrap)",
-    )
-    group.add_argument(
-        "--max-data-trials",
-        type=int,
-        default=SERVICE.data_policy.max_trials,
-        help="archived records one trial's [data] may pin (default: %(default)s)",
-    )
-    group.add_argument(
-        "--max-data-mb",
-        type=int,
-        default=SERVICE.data_policy.max_bytes // MiB,
-        help="MiB of records one trial's [data] may pin (default: %(default)s)",
-    )
-    group.add_argument(
-        "--lease",
-        type=float,
-        default=SERVICE.queue.lease,
-        help="seconds before a silent worker's trial is requeued (default: %(default)g)",
-    )
-    fetching.add_options(group)
-    group.add_argument(
-        "--resolve-timeout",
-        type=float,
-        default=fetching.DEFAULTS.resolve_timeout,
-        metavar="S",
-        help="seconds a submission may take to fetch its repository and resolve its ref,"
-        " its submitter waiting (default: %(default)g; at most --fetch-timeout)",
-    )
-    group.add_argument(
-        "--cache", type=Path, help="git mirrors and controller runtimes (default: DATA/cache)"
-    )
-    group.add_argument(
-        "--canary",
-        action="append",
-        type=int,
-        default=[],
-        metavar="TRIAL",
-        help="a reference trial each worker reruns when it starts and every --canary-every"
-        " seconds; one that does not reproduce takes the worker out (repeatable; default: none)",
-    )
-    group.add_argument(
-        "--canary-every",
-        type=float,
-        default=SERVICE.canary_every,
-        help="seconds between a worker's canary reruns (default: %(default)g)",
-    )
-    group.add_argument(
-        "--held-out-per-commit",
-        type=int,
-        default=SERVICE.held_out.per_commit,
-        metavar="N",
-        help="evaluations of a held-out suite version one user may have of one commit"
-        " (reruns included; those the lab broke not counted; default: %(default)s)",
-    )
-    group.add_argument(
-        "--held-out-per-day",
-        type=int,
-        default=SERVICE.held_out.per_day,
-        metavar="N",
-        help="evaluations of held-out suites one user may submit in 24 hours"
-        " (default: %(default)s)",
-    )
-    group.add_argument(
-        "--no-service", action="store_true", help="no HTTP API, no archive, no workers"
-    )
-    add_reservation_options(serve)
-
-
-def _limit(value: float | None) -> str:
-    return "no limit" if value is None else f"{value:g}"
-
-
-def add_reservation_options(serve: Any) -> None:
-    group = serve.add_argument_group(
-        "accounts and reservations (docs/reservations.md)",
-        "Limits of 0 mean no limit. Days are UTC days; weeks start on Monday.",
-    )
-    group.add_argument(
-        "--reservations",
-        action="store_true",
-        help="only the holder of a reservation's key drives a live robot, in their slot"
-        " (default: anyone connected may drive, one at a time)",
-    )
-    group.add_argument(
-        "--no-watchers",
-        action="store_true",
-        help="with --reservations: a client needs a key even to watch (default: anyone may watch)",
-    )
-    group.add_argument(
-        "--signup",
-        action="store_true",
-        help="people may make their own accounts on the sign-in page (default: only the"
-        " operator, with labd users add)",
-    )
-    group.add_argument(
-        "--max-slot",
-        type=float,
-        default=RULES.max_slot / 60,
-        metavar="MIN",
-        help="minutes a slot may last (default: %(default)g)",
-    )
-    group.add_argument(
-        "--max-slots-per-day",
-        type=int,
-        default=RULES.max_slots_per_day,
-        metavar="N",
-        help=f"slots a person may have a day (default: {_limit(RULES.max_slots_per_day)})",
-    )
-    group.add_argument(
-        "--max-minutes-per-day",
-        type=float,
-        default=RULES.max_minutes_per_day,
-        metavar="MIN",
-        help=f"minutes of slots a day (default: {_limit(RULES.max_minutes_per_day)})",
-    )
-    group.add_argument(
-        "--max-slots-per-week",
-        type=int,
-        default=RULES.max_slots_per_week,
-        metavar="N",
-        help=f"slots a person may have a week (default: {_limit(RULES.max_slots_per_week)})",
-    )
-    group.add_argument(
-        "--max-minutes-per-week",
-        type=float,
-        default=RULES.max_minutes_per_week,
-        metavar="MIN",
-        help=f"minutes of slots a week (default: {_limit(RULES.max_minutes_per_week)})",
-    )
-    group.add_argument(
-        "--book-ahead",
-        type=float,
-        default=RULES.horizon / 86400,
-        metavar="DAYS",
-        help="how far ahead a slot may start (default: %(default)g days)",
-    )
+    settings.add(serve, settings.SERVE, grouped=True)
 
 
 def config(args: argparse.Namespace) -> LabConfig:
@@ -416,29 +85,21 @@ def config(args: argparse.Namespace) -> LabConfig:
         raise Refused(f"--header-timeout {args.header_timeout:g}: give a time over 0 seconds")
     if args.max_connections_per_address < 0 or args.http_connections_per_address < 0:
         raise Refused("the limits per address are a number of connections, or 0 for none")
-    return LabConfig(
-        data=args.data,
+    check_proxies(args)
+    return settings.build(
+        LabConfig,
+        args,
         bridge=bridge_config(args),
         robots=robots,
-        playground=not args.no_playground,
-        http_port=args.http_port,
-        http=http_config(args),
+        http=settings.build(HttpConfig, args),
         service=service_config(args),
-        interface_ratio=args.interface_ratio,
-        reservations=args.reservations,
-        watchers=not args.no_watchers,
-        drives=DriveLimits(
-            max_record=args.max_drive_mb * MiB,
-            min_ticks=args.min_drive_ticks,
-            filings_per_minute=args.drive_filings,
-        ),
-        trusted_proxies=trusted_proxies(args),
+        drives=settings.build(DriveLimits, args),
     )
 
 
-def trusted_proxies(args: argparse.Namespace) -> tuple[str, ...]:
-    """The proxies ``--trusted-proxy`` names, each an address or a network."""
-    for proxy in args.trusted_proxies:
+def check_proxies(args: argparse.Namespace) -> None:
+    """Each ``--trusted-proxy`` is an address or a network."""
+    for proxy in args.trusted_proxy:
         try:
             ipaddress.ip_network(proxy, strict=False)
         except ValueError:
@@ -446,7 +107,6 @@ def trusted_proxies(args: argparse.Namespace) -> tuple[str, ...]:
                 f"--trusted-proxy {proxy}: give the proxy's address (127.0.0.1) or network"
                 " (10.0.0.0/8)"
             ) from None
-    return tuple(args.trusted_proxies)
 
 
 def rules(args: argparse.Namespace) -> Rules:
@@ -460,43 +120,33 @@ def rules(args: argparse.Namespace) -> Rules:
             f"--book-ahead may be at most {MAX_HORIZON / 86400:g} days: bookings further"
             " ahead are refused"
         )
-
-    def limit(value: float | None) -> float | None:
-        if value is not None and value < 0:
-            raise Refused("the limits per day and per week are 0 (no limit) or more")
-        return value or None
-
-    def count(value: int | None) -> int | None:
-        found = limit(value)
-        return None if found is None else int(found)
-
-    return Rules(
-        max_slot=args.max_slot * 60,
-        max_slots_per_day=count(args.max_slots_per_day),
-        max_minutes_per_day=limit(args.max_minutes_per_day),
-        max_slots_per_week=count(args.max_slots_per_week),
-        max_minutes_per_week=limit(args.max_minutes_per_week),
-        horizon=args.book_ahead * 86400,
+    limits = (
+        args.max_slots_per_day,
+        args.max_minutes_per_day,
+        args.max_slots_per_week,
+        args.max_minutes_per_week,
     )
+    if any(limit < 0 for limit in limits):
+        raise Refused("the limits per day and per week are 0 (no limit) or more")
+    return settings.build(Rules, args)
 
 
 def robot_configs(args: argparse.Namespace) -> tuple[RobotConfig, ...]:
     if args.no_robots:
-        if args.robots:
+        if args.robot:
             raise Refused("--robot and --no-robots contradict each other; give one")
         return ()
-    pairs = list(args.robots) if args.robots else registry.default_robots()
+    pairs = list(args.robot) if args.robot else registry.default_robots()
     names = [name for name, _ in pairs]
     if len(set(names)) != len(names):
         raise Refused(f"two robots have the same name: {', '.join(names)}")
-    params = tuple(args.param)
     robots = []
     for name, task in pairs:
         try:
-            registry.validate(task, dict(params))
+            registry.validate(task, dict(args.param))
         except LabError as err:
             raise Refused(f"robot {name}: {err}") from None
-        robots.append(RobotConfig(name, task, params, args.seed, live=not args.lockstep))
+        robots.append(settings.build(RobotConfig, args, name=name, task=task))
     return tuple(robots)
 
 
@@ -505,31 +155,22 @@ def service_config(args: argparse.Namespace) -> ServiceConfig | None:
         return None
     if args.resolve_timeout <= 0:
         raise Refused(f"--resolve-timeout {args.resolve_timeout:g}: give more than 0 seconds")
-    fetch = replace(fetching.policy(args, "labd serve"), resolve_timeout=args.resolve_timeout)
     if args.held_out_per_commit < 1 or args.held_out_per_day < 1:
         raise Refused("--held-out-per-commit and --held-out-per-day: give 1 or more")
-    return ServiceConfig(
-        data=args.data,
-        database=args.database,
-        blobs=args.blobs,
-        blob_options=dict(args.blobs_option),
-        cache=args.cache,
-        workers=args.workers,
-        sandbox=args.sandbox,
-        queue=QueueConfig(lease=args.lease),
-        heartbeat=max(0.5, args.lease / 3),
+    fetch = fetching.policy(args, "labd serve")
+    queue = settings.build(QueueConfig, args)
+    return settings.build(
+        ServiceConfig,
+        args,
+        queue=queue,
+        heartbeat=max(0.5, queue.lease / 3),  # a lease outlives two missed heartbeats
         fetch=fetch,
         run=RunOptions(fetch=fetch),
-        data_policy=DataPolicy(args.max_data_trials, args.max_data_mb * MiB),
-        canaries=tuple(args.canary),
-        canary_every=args.canary_every,
+        data_policy=settings.build(DataPolicy, args),
         rules=rules(args),
-        signup=args.signup,
-        videos=args.videos,
-        worker_processes=args.worker_processes,
         worker_options=tuple(fetching.argv(args)),
         public_url=public_url(args.public_url),
-        held_out=HeldOutBudget(args.held_out_per_commit, args.held_out_per_day),
+        held_out=settings.build(HeldOutBudget, args),
     )
 
 
@@ -553,26 +194,7 @@ def bridge_config(args: argparse.Namespace) -> BridgeConfig:
         raise Refused("--tls-cert and --tls-key go together")
     if not args.key_recheck >= 0:
         raise Refused("--key-recheck is 0 (never) or more seconds")
-    protected = tuple(args.protected) if args.protected else BRIDGE.protected_prefixes
-    return BridgeConfig(
-        host=args.host,
-        port=args.bridge_port,
-        protected_prefixes=protected,
-        authorizer_url=args.authorizer,
-        tls_cert=args.tls_cert,
-        tls_key=args.tls_key,
-        max_connections=args.max_connections,
-        key_recheck=args.key_recheck or None,
-        max_connections_per_address=args.max_connections_per_address,
-        handshake_timeout=args.header_timeout,
-    )
-
-
-def http_config(args: argparse.Namespace) -> HttpConfig:
-    return HttpConfig(
-        header_timeout=args.header_timeout,
-        max_connections_per_address=args.http_connections_per_address,
-    )
+    return settings.build(BridgeConfig, args)
 
 
 def main(args: argparse.Namespace) -> int:

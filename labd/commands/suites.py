@@ -18,11 +18,10 @@ from __future__ import annotations
 
 import argparse
 from collections.abc import Iterator
-from pathlib import Path
 from typing import Any
 
+from labd.commands import settings
 from labd.commands.common import ExitCode, emit, fail, json_option
-from labd.config import DATA
 from labd.errors import LabError
 from labd.sim import registry
 from repository.errors import ArchiveError
@@ -57,10 +56,7 @@ def _task_and_suite(parser: argparse.ArgumentParser) -> None:
 
 
 def _where(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument(
-        "--data", type=Path, default=DATA, help="the lab's data folder (default: %(default)s)"
-    )
-    parser.add_argument("--database", help="SQLAlchemy URL (default: sqlite:///DATA/index.sqlite)")
+    settings.add(parser, [settings.get("data"), settings.get("database")])
     json_option(parser)
 
 

@@ -22,11 +22,11 @@ import argparse
 import getpass
 import json
 import sys
-from pathlib import Path
 from typing import Any
 
+from labd.commands import settings
 from labd.commands.common import emit, fail, json_option
-from labd.config import DATA, database_url
+from labd.config import database_url
 from repository.accounts import Accounts
 from repository.errors import ArchiveError
 from repository.index import Index, UserLimits
@@ -40,10 +40,7 @@ class NoPassword(Exception):
 
 
 def _where(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument(
-        "--data", type=Path, default=DATA, help="the lab's data folder (default: %(default)s)"
-    )
-    parser.add_argument("--database", help="SQLAlchemy URL (default: sqlite:///DATA/index.sqlite)")
+    settings.add(parser, [settings.get("data"), settings.get("database")])
     json_option(parser)
 
 

@@ -29,8 +29,8 @@ from typing import Any
 
 from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PublicKey
 
+from labd.commands import settings
 from labd.commands.common import ExitCode, emit, fail, json_option
-from labd.config import DATA
 from labd.trial import LabHost
 from repository.errors import ArchiveError
 from repository.masking import mask_url
@@ -70,9 +70,7 @@ def add_parser(commands: Any) -> None:
     keys = commands.add_parser("keys", help="the operator's: the keys the lab signs with")
     actions = keys.add_subparsers(dest="action", required=True)
     rotate = actions.add_parser("rotate", help="sign with a new key from now on (old ones stay)")
-    rotate.add_argument(
-        "--data", type=Path, default=DATA, help="the lab's data folder (default: %(default)s)"
-    )
+    settings.add(rotate, [settings.get("data")])
     json_option(rotate)
 
 

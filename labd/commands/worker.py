@@ -22,9 +22,8 @@ from pathlib import Path
 from typing import Any
 
 import sandbox
-from labd.commands import fetching
+from labd.commands import fetching, settings
 from labd.commands.common import fail, json_option
-from labd.config import DATA
 from labd.errors import LabError
 from labd.trial import LabHost, client_library
 from repository.masking import mask_url
@@ -57,12 +56,8 @@ def add_parser(commands: Any) -> None:
         choices=["docker", "bwrap"],
         help="isolation backend (default: docker if an engine answers, else bwrap)",
     )
-    p.add_argument(
-        "--data",
-        type=Path,
-        default=DATA,
-        help="cache and work folders (default: %(default)s)",
-    )
+    data = settings.get("data")
+    settings.add(p, [replace(data, help="cache and work folders (default: {default})")])
     p.add_argument(
         "--cache",
         type=Path,
@@ -96,7 +91,7 @@ def add_parser(commands: Any) -> None:
         help="seconds between canary reruns (default: %(default)g)",
     )
     json_option(p)
-    fetching.add_options(p.add_argument_group("what this worker fetches"))
+    fetching.add_options(p)
 
 
 def main(args: argparse.Namespace) -> int:

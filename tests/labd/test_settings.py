@@ -13,17 +13,17 @@ from pathlib import Path
 import pytest
 
 from labd.cli import build_parser
-from labd.commands import settings
-from labd.commands.settings import ConfigError, Setting
+from labd.commands import config
+from labd.commands.config import ConfigError, Found
 from labd.datalock import DataLock, FolderInUse, holder
 
 
 def configured(
     argv: list[str], environ: dict[str, str] | None = None
-) -> tuple[argparse.Namespace, dict[str, Setting]]:
+) -> tuple[argparse.Namespace, dict[str, Found]]:
     parser = build_parser(argv)
     args = parser.parse_args(argv)
-    found = settings.apply(parser, args, settings.given(build_parser, argv), environ or {})
+    found = config.apply(parser, args, config.given(build_parser, argv), environ or {})
     return args, found
 
 
@@ -61,8 +61,8 @@ def test_repeatable_settings_take_lists_tables_and_comma_separated_variables(tmp
     args, _ = configured(
         ["serve", "--config", str(lab)], {"LABD_BLOBS_OPTION": "endpoint_url=http://s3:9000,a=b"}
     )
-    assert args.robots == [("maze-1", "icreate-maze"), ("arm-1", "pr2-table")]
-    assert args.trusted_proxies == ["10.0.0.0/8"]
+    assert args.robot == [("maze-1", "icreate-maze"), ("arm-1", "pr2-table")]
+    assert args.trusted_proxy == ["10.0.0.0/8"]
     assert args.blobs_option == [("endpoint_url", "http://s3:9000"), ("a", "b")]
 
 
@@ -159,7 +159,7 @@ def test_the_documented_example_is_a_configuration_the_lab_takes(tmp_path):
     example = docs.split("## Configuration", 1)[1].split("```toml\n", 1)[1].split("```", 1)[0]
     lab = write(tmp_path / "labd.toml", example)
     args, found = configured(["serve", "--config", str(lab)])
-    assert args.robots == [("icreate-1", "icreate-maze"), ("pr2-1", "pr2-table")]
+    assert args.robot == [("icreate-1", "icreate-maze"), ("pr2-1", "pr2-table")]
     assert args.data == Path("/srv/lab") and args.reservations is True
     assert args.worker_processes == 2 and args.public_url == "https://lab.example.org"
     assert all(s.source == "default" or s.source.endswith("[serve]") for s in found.values())
