@@ -24,13 +24,19 @@ from labd.recorder import read_messages
 from repository.index import Filters
 from repository.trial import Kind
 from tests.helpers.labs import MAZE, PR2, ServerThread, lab_config, running
+from tests.helpers.timing import SECOND
 from tests.integration.browser import browser, watched
 from tests.integration.test_browser import shot
 
 __all__ = ["browser", "watched"]
-pytestmark = [pytest.mark.integration, pytest.mark.timeout(300)]
+pytestmark = [pytest.mark.integration, pytest.mark.timeout(300 * SECOND)]
 CAMERA = "/camera/image/compressed"
 MIN_TICKS = DriveLimits().min_ticks
+# The drive's own episode (its seed, from /lab/driver) has run long enough to be filed.
+LONG_ENOUGH = (
+    "window.labLive.episode.seed === Number(document.body.dataset.seed)"
+    f" && window.labLive.episode.tick >= {MIN_TICKS}"
+)
 
 
 @pytest.fixture(scope="module")
@@ -67,6 +73,14 @@ def ux_events(lab: ServerThread, demo, tmp_path) -> list:
     ]
 
 
+# The kinds of the user-experience events the page sends, in window.uxSent, from now on.
+SENT = """() => {
+  const live = window.labLive, send = live.ux;
+  window.uxSent = [];
+  live.ux = (kind, ...rest) => { window.uxSent.push(kind); return send(kind, ...rest); };
+}"""
+
+
 def test_the_icreate_page_drives_and_files_a_demonstration(lab, watched, tmp_path):
     """Interface A shows camera frames; a held key drives (/odom moves); while another
     client drives, the page shows who, and its key press is refused with a status it
@@ -79,7 +93,7 @@ def test_the_icreate_page_drives_and_files_a_demonstration(lab, watched, tmp_pat
     page.click("#take")
     page.wait_for_function("document.body.dataset.driving === 'yes'")
     hold(page, "ArrowUp", "Number(document.getElementById('odom').dataset.x) > 0.1")
-    page.wait_for_function(f"window.labLive.episode.tick >= {MIN_TICKS}")  # long enough to file
+    page.wait_for_function(LONG_ENOUGH)
     page.evaluate("window.dispatchEvent(new Event('blur'))")  # the person looks elsewhere
     shot(watched, "live-icreate-video")
 
@@ -109,7 +123,10 @@ def test_the_icreate_page_drives_and_files_a_demonstration(lab, watched, tmp_pat
     page.wait_for_function("document.getElementById('driver').textContent === 'nobody'")
     page.click("#take")
     page.wait_for_function("document.body.dataset.driving === 'yes'")
+    page.evaluate(SENT)  # the events the page sends from now on, by kind
     page.keyboard.press("ArrowUp")  # a drive with no command at all is no demonstration
+    page.wait_for_function("window.uxSent.includes('latency')")  # summed up every 2 s
+    page.wait_for_function(LONG_ENOUGH)
 
     before = lab.call(lambda: camera_watchers(lab))
     assert before >= 1
@@ -118,13 +135,12 @@ def test_the_icreate_page_drives_and_files_a_demonstration(lab, watched, tmp_pat
                    document.dispatchEvent(new Event('visibilitychange')); }"""
     )
     lab.wait_until(lambda: camera_watchers(lab) == before - 1)
-    time.sleep(2.1)  # a latency event is summed up every 2 s: wait for one past this
     page.click("#release")
     page.wait_for_function("document.body.dataset.driving === 'no'")
     watched.check()
 
     service = lab.lab.service
-    deadline = time.monotonic() + 30
+    deadline = time.monotonic() + 30 * SECOND
     while len(found := service.index.find(Filters(kind=Kind.DEMONSTRATION)).items) < 2:
         assert time.monotonic() < deadline, f"{len(found)} demonstrations filed, not 2"
         time.sleep(0.1)
@@ -204,13 +220,15 @@ def test_a_gamepad_drives(lab, watched):
     )
     page.evaluate("window.padForward = false")
 
-    # stopped: odometry settles (two readings a second apart agree)
+    # stopped: odometry settles (two readings 20 of the robot's ticks apart agree)
     def still() -> bool:
-        first = page.evaluate(ODOM)
-        time.sleep(1.0)
+        first, tick = page.evaluate(ODOM), page.evaluate("window.labLive.episode.tick")
+        page.wait_for_function(  # or a new episode, from tick 0
+            f"(t => t >= {tick + 20} || t < {tick})(window.labLive.episode.tick)"
+        )
         return first == page.evaluate(ODOM)
 
-    deadline = time.monotonic() + 20
+    deadline = time.monotonic() + 20 * SECOND
     while not still():
         assert time.monotonic() < deadline, "the robot kept moving after the stick was let go"
     page.click("#release")
