@@ -80,6 +80,7 @@ bench: $(STAMP) $(WEBSTAMP)
 	$(PY) bench/cli.py
 	$(PY) bench/knn.py
 	$(PY) bench/evaluate.py
+	$(PY) bench/crowds.py
 
 clean:
 	rm -rf $(VENV) $(JS)/node_modules $(WEB)/node_modules labd/web/static/vendor .mypy_cache .ruff_cache .pytest_cache
