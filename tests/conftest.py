@@ -63,8 +63,8 @@ def pytest_terminal_summary(terminalreporter: Any) -> None:
 
 
 def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
-    """Tests that measure rates run one at a time on one worker of a parallel run
-    (pytest-xdist's ``--dist loadgroup``), so no two of them share the cores."""
+    """Tests that load the machine (crowds, floods) run one at a time on one worker of a
+    parallel run (pytest-xdist's ``--dist loadgroup``), so no two of them share the cores."""
     for item in items:
         if item.get_closest_marker("rates"):
             item.add_marker(pytest.mark.xdist_group("rates"))
