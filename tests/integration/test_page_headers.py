@@ -9,11 +9,14 @@ page cannot frame the lab.
 
 from __future__ import annotations
 
+import time
+
 import pytest
 
 from repository.trial import TrialRequest
 from tests.helpers.githttp import GitRepo
 from tests.helpers.labs import MAZE, PR2, lab_config, running
+from tests.helpers.timing import SECOND
 from tests.integration.browser import Watched, browser, watched
 from tests.integration.test_browser import wait_ended
 
@@ -117,7 +120,9 @@ def test_another_site_cannot_frame_the_lab(lab, browser):
         )
         target = lab.http_url("/session")
         page.set_content(f'<iframe id="f" src="{target}" width="600" height="400"></iframe>')
-        page.wait_for_timeout(2000)
+        deadline = time.monotonic() + 60 * SECOND
+        while not refused and time.monotonic() < deadline:  # until the browser says so
+            page.wait_for_timeout(50)  # lets the page's events in: a poll, not a wait for time
         frame = page.frame_locator("#f")
         assert frame.locator("#password-signin").count() == 0
         assert refused, "the browser did not say it refused the frame"

@@ -11,6 +11,7 @@ import pytest
 
 from labd.api.builds import Builds
 from labd.api.errors import ApiError
+from tests.helpers.timing import eventually
 
 
 async def test_requests_for_one_export_share_its_build(tmp_path):
@@ -25,7 +26,7 @@ async def test_requests_for_one_export_share_its_build(tmp_path):
         return "made"
 
     waiting = [asyncio.ensure_future(builds.once("k", build)) for _ in range(4)]
-    await asyncio.sleep(0.1)  # every request in before the build ends (it cannot end yet)
+    await eventually("the build to start", lambda: calls)  # every request in (one step each)
     release.set()
     assert await asyncio.gather(*waiting) == ["made"] * 4
     assert len(calls) == 1 and builds.made == 1

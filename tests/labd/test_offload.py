@@ -74,7 +74,8 @@ def test_a_pool_starts_a_second_helper_only_while_the_first_is_busy():
         a = pool.call("os:getpid")
         thread = threading.Thread(target=busy)
         thread.start()
-        time.sleep(0.3)  # the first helper is asleep in its call
+        while pool._idle.qsize():  # until the first helper is taken, asleep in its call
+            time.sleep(0.001)
         b = pool.call("os:getpid")
         thread.join()
         assert a != b and set(pool.pids()) == {a, b} and seen == [0]

@@ -6,6 +6,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import json
+import threading
 import time
 
 from labd.trial import LabHost
@@ -20,14 +21,19 @@ REPLAY_SECONDS = 2.0
 
 
 class SlowReplay(LabHost):
-    """Replays as the lab does, after a pause; notes when each replay ended."""
+    """Replays as the lab does, once ``release`` is set (or after a pause, without one);
+    notes when each replay ended."""
 
-    def __init__(self) -> None:
+    def __init__(self, release: threading.Event | None = None) -> None:
         super().__init__()
         self.ended: dict[str, float] = {}
+        self.release = release
 
     def replay(self, mcap, out, *, seconds=None):
-        time.sleep(REPLAY_SECONDS)
+        if self.release is None:
+            time.sleep(REPLAY_SECONDS)
+        else:  # a worker that waited for this replay to claim would wait here 30 s
+            self.release.wait(30)
         done = super().replay(mcap, out, seconds=seconds)
         self.ended[mcap.parent.name] = time.monotonic()
         return done
@@ -43,6 +49,8 @@ async def test_the_next_trial_runs_while_the_last_ones_replay_is_made(
 
     async def run_trial(spec, *, out, **_):  # a recorded pointmass episode, as a trial's
         started[out.name] = time.monotonic()
+        if len(started) == 2:
+            host.release.set()  # the first trial's replay ends only once the second runs
         run = record(registry, out, "icreate-maze", seed=spec.seed, ticks=5, manifest=True)
         return result(run)
 
@@ -50,7 +58,7 @@ async def test_the_next_trial_runs_while_the_last_ones_replay_is_made(
     alice = queue.index.user("alice")
     order = Order(repository="/r", commit=COMMIT, task="icreate-maze", public=True)
     ids = [queue.submit(alice, order.episode(seed)) for seed in (4, 5)]
-    host = SlowReplay()
+    host = SlowReplay(threading.Event())
     config = WorkerConfig(name="w", work=tmp_path / "work", cache=tmp_path / "cache", poll=0.1)
     worker = Worker(queue, BlobStore(str(tmp_path / "blobs")), None, host, config)
     stop = asyncio.Event()
