@@ -49,6 +49,7 @@ from archive import pct, synthetic  # noqa: E402  (bench/archive.py)
 from labd.service import Service, ServiceConfig  # noqa: E402
 from labd.web import create_app  # noqa: E402
 from repository.index import Derived, Filters  # noqa: E402
+from repository.manifest import Manifest  # noqa: E402
 from repository.trial import Filing, Order, Outcome  # noqa: E402
 from repository.well_known import SUMMARY, SUMMARY_MEDIA_TYPE  # noqa: E402
 from tests.integration.browser import CHROMIUM, FLAGS  # noqa: E402
@@ -180,12 +181,12 @@ def make_trial(folder: Path) -> tuple[Path, float]:
 def file_trial(service: Service, out: Path) -> tuple[int, float]:
     """File the trial as a worker does, its summary made and kept beside it."""
     result = json.loads((out / "result.json").read_text())
-    manifest = result["manifest"]
+    manifest = Manifest.from_json(result["manifest"])
     service.index.add_user("bench", max_running=5)
     user = service.index.user("bench")
     order = Order(
         repository="https://example.org/bench/maze.git", ref="main", commit="b" * 40,
-        task="icreate-maze", params=manifest["parameters"], seed=manifest["seed"], public=True,
+        task="icreate-maze", params=manifest.parameters, seed=manifest.seed, public=True,
     )  # fmt: skip
     trial_id = service.queue.submit(user, order)
     service.queue.claim("bench")
@@ -193,7 +194,7 @@ def file_trial(service: Service, out: Path) -> tuple[int, float]:
     filing = Filing(
         status="finished", outcome=result["outcome"], reason=result["reason"],
         mcap=service.store.put_file(mcap), mcap_size=mcap.stat().st_size,
-        data_digest=result["data_digest"], manifest=manifest, metrics=result["metrics"],
+        data_digest=result["data_digest"], manifest=result["manifest"], metrics=result["metrics"],
         backend=result["backend"], wall_seconds=result["wall_seconds"],
     )  # fmt: skip
     service.queue.finish(trial_id, "bench", filing)

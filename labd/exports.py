@@ -31,9 +31,10 @@ from labd.replay import ReplayError, replay
 from labd.sim import registry
 from labd.sim.camera import Camera
 from repository.digests import manifest_digest
-from repository.errors import ExportError
+from repository.errors import ExportError, ManifestError
 from repository.export import ExportFormat, ExportSummary, Layout, Source, export
 from repository.lerobot import DATA_PATH, EPISODES_PATH, LEROBOT
+from repository.manifest import Manifest
 
 log = logging.getLogger("labd.exports")
 ARRAYS = "arrays.npz"
@@ -64,15 +65,24 @@ def _model_camera(task: str) -> str | None:
 def provenance_of(mcap: Path, known: Mapping[str, Any]) -> dict[str, Any]:
     """A record's provenance: what the archive knows of it (``known``: trial, kind,
     outcome, digests ...), completed from the manifest it holds."""
-    manifest = read_manifest(mcap) or {}
+    held = read_manifest(mcap)
+    manifest = _manifest(held)
     found: dict[str, Any] = {
-        "task": manifest.get("task", {}).get("name"),
-        "repository": manifest.get("repository"),
-        "commit": manifest.get("commit"),
-        "seed": manifest.get("seed"),
-        "manifest_digest": manifest_digest(manifest) if manifest else None,
+        "task": manifest.task.name if manifest else None,
+        "repository": manifest.repository if manifest else None,
+        "commit": manifest.commit if manifest else None,
+        "seed": manifest.seed if manifest else None,
+        "manifest_digest": manifest_digest(held) if held else None,
     }
     return {**found, **{k: v for k, v in known.items() if v is not None}}
+
+
+def _manifest(held: dict[str, Any] | None) -> Manifest | None:
+    """The manifest a record holds, typed (None: it holds none)."""
+    try:
+        return None if not held else Manifest.from_json(held)
+    except ManifestError as err:
+        raise ExportError(f"the record's manifest cannot be read: {err}") from None
 
 
 class _Frames:
@@ -94,9 +104,9 @@ class _Frames:
 
 def render(mcap: Path, camera: str, ticks: Sequence[int]) -> dict[int, bytes]:
     """JPEG images of ``camera`` at ``ticks``, rendered by replaying the record ``mcap``."""
-    manifest = read_manifest(mcap) or {}
-    task = manifest.get("task", {}).get("name", "")
-    params = manifest.get("parameters", {})
+    manifest = _manifest(read_manifest(mcap))
+    task = manifest.task.name if manifest else ""
+    params = manifest.parameters if manifest else {}
     model_camera = _model_camera(task)
     if model_camera is None or camera != "camera":
         raise ExportError(f"the lab cannot render {camera!r} of task {task!r}")

@@ -40,14 +40,13 @@ on ``/rosout``); the robot steps on for everyone.
 
 from __future__ import annotations
 
-import json
 import logging
 import math
 import secrets
 import shutil
 from collections import deque
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -59,11 +58,11 @@ from labd.graph.services import ServiceCall
 from labd.recorder import Recorder, digest_topics
 from labd.recorder.record import Keep
 from labd.station import Station
-from repository.digests import manifest_digest
+from repository.digests import readable_json
+from repository.manifest import Driver, Manifest, TaskVersion, Versions
 from repository.trial import EpisodeStatus, Kind, Order
 from repository.units import MiB
 from repository.well_known import MANIFEST, OUTCOME, UX_EVENTS
-from scheduler.manifest import SCHEMA, versions
 
 log = logging.getLogger("labd.live")
 DRIVER = "/lab/driver"
@@ -119,7 +118,7 @@ class Demonstration:
     interface: str
     session: str
     folder: Path
-    manifest: dict[str, Any]
+    manifest: Manifest
     manifest_digest: str
     data_digest: str
     digest_topics: list[str]
@@ -176,7 +175,7 @@ class _Session:
     claimed_user: str = ""  # the user the client typed, unchecked
     client: bool = True  # taken by a client of the bridge: the filing rules apply
     recorder: Recorder | None = None
-    manifest: dict[str, Any] = field(default_factory=dict)
+    manifest: Manifest | None = None  # the drive being recorded's
     folder: Path | None = None
     commands: int = 0  # the driver's commands in the episode being recorded
     full: bool = False  # the record reached its size limit
@@ -353,22 +352,15 @@ class Driving:
         if self.work is None:
             return
         sim = self.robot.sim
-        driver = {"user": session.user, "interface": session.interface, "session": session.session}
-        if session.claimed_user:
-            driver["claimed_user"] = session.claimed_user
-        manifest = {
-            "schema": SCHEMA,
-            "kind": Kind.DEMONSTRATION,
-            "robot": self.name,
-            "task": {"name": sim.spec.name, "version": sim.spec.version},
-            "parameters": dict(sorted(sim.values.items())),
-            "seed": sim.seed,
-            "live": True,
-            "controller": {"realtime": True},
-            "driver": driver,
-            "versions": versions(),
-            "model_sha256": sim.model_digest(),
-        }
+        manifest = Manifest.drive(
+            robot=self.name,
+            task=TaskVersion(sim.spec.name, sim.spec.version),
+            parameters=sim.values,
+            seed=sim.seed,
+            driver=Driver(session.user, session.interface, session.session, session.claimed_user),
+            versions=Versions.here(),
+            model_sha256=sim.model_digest(),
+        )
         # Named by the lab: nothing a client says is ever part of a path.
         folder = self.work / f"{self.name}-{sim.seed}-{secrets.token_hex(6)}"
         topics = digest_topics((o.name for o in sim.task.observations), self._commands)
@@ -377,7 +369,7 @@ class Driving:
                 self.station.graph,
                 folder,
                 digest_topics=topics,
-                manifest=manifest,
+                manifest=manifest.to_json(),
                 keep=self._keeper(session),
             )
         except Exception as err:  # the drive goes on, unrecorded; the robot steps on
@@ -471,10 +463,12 @@ class Driving:
         )
         metrics = dict(sim.metrics())
         outcome = {"achieved": achieved, "reason": said, "metrics": metrics}
+        manifest = session.manifest
+        assert manifest is not None  # recorded since the drive began
         summary = recorder.finish(
             attachments={
-                MANIFEST: ("application/json", _json(session.manifest)),
-                OUTCOME: ("application/json", _json(outcome)),
+                MANIFEST: ("application/json", readable_json(manifest.to_json())),
+                OUTCOME: ("application/json", readable_json(outcome)),
                 **sim.model_files(),
             }
         )
@@ -487,8 +481,8 @@ class Driving:
             interface=session.interface,
             session=session.session,
             folder=folder,
-            manifest=session.manifest,
-            manifest_digest=manifest_digest(session.manifest),
+            manifest=manifest,
+            manifest_digest=manifest.digest,
             data_digest=summary.data_digest,
             digest_topics=sorted(recorder.digest_topics),
             metrics={k: v for k, v in metrics.items() if not _nan(v)},
@@ -549,7 +543,3 @@ def _filer(node: Node) -> tuple[str, str]:
 
 def _nan(value: Any) -> bool:
     return isinstance(value, float) and not math.isfinite(value)
-
-
-def _json(value: Any) -> bytes:
-    return (json.dumps(value, indent=2, sort_keys=True, default=str) + "\n").encode()

@@ -40,9 +40,10 @@ from labd.recorder.reader import RecordedMessage, read_messages
 from labd.sim import registry
 from labd.station import Station
 from labd.video import FIRST, Video, VideoSpec
+from repository.errors import ManifestError
+from repository.manifest import Manifest, Versions
 from repository.well_known import EPISODE, ROSOUT, UX_EVENTS, VIDEO
 from scheduler.host import Replayed
-from scheduler.manifest import versions
 
 log = logging.getLogger("labd.replay")
 IGNORED = frozenset({ROSOUT, UX_EVENTS, "/parameter_events"})
@@ -128,24 +129,23 @@ def ticks_of(
         yield current
 
 
-def check_manifest(manifest: dict[str, Any], station: Station) -> None:
+def check_manifest(manifest: Manifest, station: Station) -> None:
     """Refuse what cannot be the same simulation: another model, another simulator."""
-    recorded = manifest.get("versions", {})
-    here = versions()
+    recorded = manifest.versions
+    here = Versions.here()
     for name in ("mujoco", "dm_control"):
-        if recorded.get(name) != here[name]:
+        then, now = getattr(recorded, name), getattr(here, name)
+        if then != now:
             raise ReplayError(
-                f"the record was made with {name} {recorded.get(name)}, this lab has"
-                f" {name} {here[name]}: a replay needs the same simulator (install {name}=="
-                f"{recorded.get(name)})"
+                f"the record was made with {name} {then}, this lab has {name} {now}: a replay"
+                f" needs the same simulator (install {name}=={then})"
             )
     digest = station.robot.sim.model_digest()
-    if manifest.get("model_sha256") != digest:
+    if manifest.model_sha256 != digest:
         raise ReplayError(
             f"the task's model is not the one recorded (sha256 {digest[:12]}..., the record"
-            f" has {str(manifest.get('model_sha256'))[:12]}...): task"
-            f" {manifest['task']['name']} has changed since; use the labd that made it"
-            f" ({recorded.get('labd')})"
+            f" has {manifest.model_sha256[:12]}...): task {manifest.task.name} has changed"
+            f" since; use the labd that made it ({recorded.labd})"
         )
 
 
@@ -160,38 +160,45 @@ def replay(
     ``renderers`` are called with the physics after every tick (videos rendered after
     the fact); they never change the verdict.
     """
-    try:
-        manifest = read_manifest(path)
-    except (McapError, ZstdError, struct.error, EOFError, ValueError) as err:
-        raise ReplayError(f"{path} cannot be read as a record: {err}") from None
+    manifest = _manifest(path)
     if manifest is None:
         raise ReplayError(f"{path} holds no manifest: it is not a trial's record")
-    task = manifest["task"]["name"]
+    task = manifest.task.name
     spec = registry.get(task)
-    if spec.version != manifest["task"].get("version"):
+    if spec.version != manifest.task.version:
         raise ReplayError(
-            f"the record is of {task} version {manifest['task'].get('version')}; this lab"
+            f"the record is of {task} version {manifest.task.version}; this lab"
             f" has version {spec.version}"
         )
-    realtime = bool(manifest.get("controller", {}).get("realtime"))
     station = Station(
         types or TypeRegistry.shared(),
         "replay",
         task,
-        dict(manifest.get("parameters", {})),
-        int(manifest.get("seed", 0)),
+        dict(manifest.parameters),
+        manifest.seed,
         live=False,
         protected_prefixes=("/protected",),
         # a live robot's episode has no time limit: it ends at its goal, or by a reset
-        time_limit=math.inf if manifest.get("live") else None,
-        blind=manifest.get("blind") is True,  # a held-out episode's /lab/episode, as it ran
+        time_limit=math.inf if manifest.live else None,
+        blind=manifest.blind,  # a held-out episode's /lab/episode, as it ran
     )
     try:
         check_manifest(manifest, station)
         _framebuffer(station, renderers)
-        return _run(path, station, renderers, realtime)
+        return _run(path, station, renderers, manifest.realtime)
     finally:
         station.close()
+
+
+def _manifest(path: Path) -> Manifest | None:
+    """The manifest the record holds (None: none), ``ReplayError`` if it cannot be read."""
+    try:
+        found = read_manifest(path)
+        return None if found is None else Manifest.from_json(found)
+    except (McapError, ZstdError, struct.error, EOFError, ValueError) as err:
+        raise ReplayError(f"{path} cannot be read as a record: {err}") from None
+    except ManifestError as err:
+        raise ReplayError(f"{path}: its manifest cannot be read: {err}") from None
 
 
 def _framebuffer(station: Station, renderers: Sequence[Any]) -> None:
@@ -373,9 +380,9 @@ def replay_filed(
 
 def _camera_size(path: Path) -> dict[str, int]:
     try:
-        manifest = read_manifest(path) or {}
-    except (McapError, ZstdError, struct.error, EOFError, ValueError):
-        manifest = {}
-    params = manifest.get("parameters", {})
+        manifest = _manifest(path)
+    except ReplayError:
+        manifest = None
+    params = {} if manifest is None else manifest.parameters
     width, height = int(params.get("camera_width", 320)), int(params.get("camera_height", 240))
     return {"width": width - width % 2, "height": height - height % 2}

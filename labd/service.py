@@ -309,7 +309,7 @@ class Service:
             **(
                 Ending.success(demo.reason) if demo.achieved else Ending.fail(demo.reason)
             ).model_dump(),
-            manifest=demo.manifest,
+            manifest=demo.manifest.to_json(),
             manifest_digest=demo.manifest_digest,
             data_digest=demo.data_digest,
             digest_topics=demo.digest_topics,

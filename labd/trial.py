@@ -50,10 +50,11 @@ from labd.station import Station
 from repository.blobs import digest_of
 from repository.errors import ExportError
 from repository.evaluation import Suite
+from repository.manifest import Manifest, TaskVersion, Versions
 from repository.trial import EpisodeStatus, PinnedRecord, Value
 from repository.well_known import OUTCOME
 from scheduler.errors import InvalidRequest, TrialError
-from scheduler.host import Attachments, Episode, RecordFacts, Replayed
+from scheduler.host import Attachments, Episode, RecordFacts, Replayed, TrialSetup
 
 log = logging.getLogger("labd.trial")
 MAX_CLIENTS = 16  # bridge connections a trial's controller may open
@@ -84,29 +85,17 @@ class LabHost:
         except LabError as err:
             raise InvalidRequest(str(err)) from None
 
-    def open(
-        self,
-        task: str,
-        values: Mapping[str, Value],
-        seed: int,
-        *,
-        realtime: bool,
-        out: Path,
-        interfaces: Mapping[str, str] | None = None,
-        blind: bool = False,
-    ) -> LabTrial:
+    def open(self, setup: TrialSetup, *, out: Path) -> LabTrial:
         types = self.types
-        if interfaces:
+        if setup.interfaces:
             try:
-                types = trial_types(self.types, interfaces)
+                types = trial_types(self.types, setup.interfaces)
             except InterfaceError as err:
                 raise TrialError(f"the repository's interfaces: {err}") from None
         try:
-            return LabTrial(
-                self, task, values, seed, realtime=realtime, out=out, types=types, blind=blind
-            )
+            return LabTrial(self, setup, out=out, types=types)
         except LabError as err:
-            raise TrialError(f"the task {task} could not be built: {err}") from None
+            raise TrialError(f"the task {setup.task} could not be built: {err}") from None
 
     def first_difference(self, a: Path, b: Path, topics: Sequence[str]) -> str | None:
         difference = first_difference(a, b, topics)
@@ -205,32 +194,37 @@ class LabTrial:
     """One trial's robot, private bridge and recorder (``scheduler.host.TrialLab``)."""
 
     def __init__(
-        self,
-        host: LabHost,
-        task: str,
-        values: Mapping[str, Value],
-        seed: int,
-        *,
-        realtime: bool,
-        out: Path,
-        types: TypeRegistry | None = None,
-        blind: bool = False,
+        self, host: LabHost, setup: TrialSetup, *, out: Path, types: TypeRegistry | None = None
     ) -> None:
-        self.realtime = realtime
+        values = setup.values
+        self.realtime = realtime = setup.controller.realtime
         self.out = out
         limit = float(values["time_limit"]) if realtime and "time_limit" in values else None
         self.station = Station(
             types or host.types,  # with the repository's own types, if it has any
             "trial",
-            task,
+            setup.task,
             dict(values),
-            seed,
+            setup.seed,
             live=realtime,
             protected_prefixes=host.config.protected_prefixes,
             time_limit=limit,
-            blind=blind,
+            blind=setup.blind,
         )
         self.robot = self.station.robot
+        sim = self.robot.sim
+        self.manifest = Manifest.trial(
+            code=setup.code,
+            controller=setup.controller,
+            task=TaskVersion(setup.task, sim.spec.version),
+            parameters=values,
+            seed=setup.seed,
+            runtime=setup.runtime,
+            versions=Versions.here(),
+            model_sha256=sim.model_digest(),
+            data=setup.data,
+            blind=setup.blind,
+        )
         self.robot.on_tick = self._tick
         self.bridge = BridgeServer({"trial": self.station.graph}, host.config)
         self.recorder: Recorder | None = None
@@ -245,14 +239,6 @@ class LabTrial:
         )
 
     # -- what the runner reads ----------------------------------------------------------
-
-    @property
-    def task_version(self) -> str:
-        return self.robot.sim.spec.version
-
-    @property
-    def model_sha256(self) -> str:
-        return self.robot.sim.model_digest()
 
     @property
     def digest_topics(self) -> Sequence[str]:
@@ -295,13 +281,13 @@ class LabTrial:
 
     # -- its life -----------------------------------------------------------------------
 
-    async def start(self, socket: Path, manifest: Mapping[str, Any]) -> None:
+    async def start(self, socket: Path) -> None:
         try:
             self.recorder = Recorder(
                 self.station.graph,
                 self.out,
                 digest_topics=self._digest_topics,
-                manifest=manifest,
+                manifest=self.manifest.to_json(),
                 defer=True,  # written once a tick's answer has left
             )
         except RecordError as err:  # the disk is full

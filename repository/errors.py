@@ -11,6 +11,8 @@ ArchiveError                 the archive could not do what was asked
 ├── IndexUnreachable         the index's database did not answer when opened
 ├── IndexLost                the index's files changed under the running lab (its WAL
 │                            deleted): writes are refused until the lab restarts
+├── ManifestError            a manifest that is not one the lab writes (a key missing,
+│                            unknown or of another type): it names the key
 ├── ExportError              a record could not be exported (format, content)
 ├── BackupError              a backup could not be made or restored (repository.backup)
 │   ├── BackupDamaged        a backup is incomplete or its files were changed
@@ -70,6 +72,16 @@ class HeldOut(ArchiveError):
             " private until the operator retires that suite version (its evaluation shows"
             " how it ended)"
         )
+
+
+class ManifestError(ArchiveError):
+    """A manifest the lab would not have written: ``where`` is the dotted key
+    (``manifest.seed``), ``problem`` what is wrong with it."""
+
+    def __init__(self, where: str, problem: str) -> None:
+        self.where = where
+        self.problem = problem
+        super().__init__(f"{where}: {problem}")
 
 
 class SchemaMismatch(ArchiveError):

@@ -23,6 +23,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from repository.errors import ArchiveError
+from repository.manifest import Manifest
 from scheduler.errors import QueueError
 from scheduler.runner import RunOptions, run_trial
 from scheduler.states import State
@@ -82,11 +83,13 @@ class Canaries:
         if not reference.data_digest or not reference.mcap:
             return None  # nothing to compare with (not finished, or no record)
         order = reference.order.rerun(reference.id)
+        # as the reference ran (a manifest that cannot be read: ManifestError, not checked)
+        blind = Manifest.from_json(reference.manifest).blind if reference.manifest else False
         folder = Path(tempfile.mkdtemp(prefix="labd-canary-", dir=worker.config.work))
         try:
             result = await run_trial(
                 order,
-                blind=(reference.manifest or {}).get("blind") is True,  # as the reference ran
+                blind=blind,
                 backend=worker.backend,
                 host=worker.host,
                 out=folder / "run",

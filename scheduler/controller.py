@@ -39,6 +39,7 @@ from pathlib import Path, PurePosixPath
 from typing import Any
 
 from repository.digests import sha256_json
+from repository.manifest import Controller
 from repository.trial import MAX_ID, Kind, Outcome
 from repository.units import MiB
 from scheduler.errors import (
@@ -99,6 +100,21 @@ class ControllerConfig:
             return None
         # ASCII-escaped, as this digest always was: manifests that name it keep theirs
         return sha256_json(dict(self.interface_files), ascii_only=True)
+
+    def in_manifest(
+        self, *, requirements_sha256: str | None, node_packages_sha256: str | None
+    ) -> Controller:
+        """What a trial's manifest says of this controller, with the digests of what was
+        installed for it."""
+        return Controller(
+            command=tuple(self.command),
+            realtime=self.realtime,
+            requirements=self.requirements,
+            requirements_sha256=requirements_sha256,
+            interfaces=tuple(self.interfaces),
+            interfaces_sha256=self.interfaces_sha256,
+            node_packages_sha256=node_packages_sha256,
+        )
 
 
 def load(code: Path | RepositoryFiles) -> ControllerConfig:

@@ -38,6 +38,8 @@ from pathlib import Path
 from typing import Any, Protocol
 
 from repository.digests import canonical_json, manifest_digest
+from repository.errors import ManifestError
+from repository.manifest import Manifest
 from repository.trial import Filing, Outcome, Status, Trial, Value
 from repository.well_known import LOGS, RECORD_FILE
 from scheduler.errors import FilingRefused, TrialError
@@ -108,19 +110,22 @@ def record_differences(claims: Claims, facts: RecordFacts) -> list[str]:
     return problems
 
 
-def manifest_problems(manifest: Mapping[str, Any], trial: Trial, expected: Expected) -> list[str]:
-    """Where the manifest is not the trial's own, in words."""
-    named = manifest.get("task")
-    task: Mapping[str, Any] = named if isinstance(named, dict) else {}
+def manifest_problems(held: Mapping[str, Any], trial: Trial, expected: Expected) -> list[str]:
+    """Where the manifest ``held`` (as a filing or a record holds it) is not the trial's
+    own, in words."""
+    try:
+        manifest = Manifest.from_json(held)
+    except ManifestError as err:
+        return [f"manifest: it is not one the lab writes ({err})"]
     pinned = [p.manifest_entry() for p in trial.data] if trial.data else None
     pairs = {
-        "repository": (manifest.get("repository"), trial.repository),
-        "commit": (manifest.get("commit"), trial.commit),
-        "task": (task.get("name"), trial.task),
-        "task version": (task.get("version"), expected.version),
-        "parameters": (manifest.get("parameters"), dict(expected.values)),
-        "seed": (manifest.get("seed"), trial.seed),
-        "data": (manifest.get("data"), pinned),
+        "repository": (manifest.repository, trial.repository),
+        "commit": (manifest.commit, trial.commit),
+        "task": (manifest.task.name, trial.task),
+        "task version": (manifest.task.version, expected.version),
+        "parameters": (dict(manifest.parameters), dict(expected.values)),
+        "seed": (manifest.seed, trial.seed),
+        "data": ([p.to_json() for p in manifest.data] or None, pinned),
     }
     return [
         f"manifest: its {name} is {canonical_json(got)},"

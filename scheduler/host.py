@@ -7,16 +7,22 @@ tasks and their parameters, opens the lab side of one trial, and compares record
 session private to the trial on a unix socket, and a recorder, with what the runner
 needs to watch it and judge it. So imports follow the data flow: ``labd`` passes a host
 in, ``scheduler`` never imports ``labd``.
+
+The runner says once what it set up (``TrialSetup``: the task, its values and seed, the
+code and what was installed for it); the lab adds what only it knows (the task's
+version, the compiled model's digest, the simulator's versions) and hands back the
+trial's whole manifest (``TrialLab.manifest``), which it records from ``start`` on.
 """
 
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Protocol
 
 from repository.evaluation import Suite
+from repository.manifest import Code, Controller, Manifest
 from repository.trial import EpisodeStatus, PinnedRecord, Value
 
 Attachments = Mapping[str, tuple[str, bytes]]  # name -> (media type, bytes)
@@ -55,23 +61,45 @@ class Episode:
     diverged: bool  # the physics blew up: the lab's model broke, not the controller
 
 
+@dataclass(frozen=True)
+class TrialSetup:
+    """What the runner asks of the lab for one trial, said once: the task, its full
+    parameter values and seed, whether its controller is told the seed (``blind``: not)
+    and runs on the wall clock (``controller.realtime``), and what the manifest says of
+    the code that drives it (``code``, ``controller``, the sandbox ``runtime``, the
+    archived records it learns from). ``interfaces`` are the repository's own interface
+    files (path in the repository -> text): their types exist in this trial's graph
+    alone."""
+
+    task: str
+    values: Mapping[str, Value]
+    seed: int
+    code: Code
+    controller: Controller
+    runtime: str
+    data: Sequence[PinnedRecord] = ()
+    blind: bool = False
+    interfaces: Mapping[str, str] = field(default_factory=dict)
+
+
 class TrialLab(Protocol):
     """The lab side of one trial, from ``TrialHost.open`` to ``finish``."""
 
     @property
-    def task_version(self) -> str: ...
-
-    @property
-    def model_sha256(self) -> str: ...
+    def manifest(self) -> Manifest:
+        """What runs: the setup's, with the task's version, the compiled model's digest
+        and the simulator's versions (``Manifest.trial``)."""
+        ...
 
     @property
     def digest_topics(self) -> Sequence[str]:
         """The topics the data digest covers (the task's observations and commands)."""
         ...
 
-    async def start(self, socket: Path, manifest: Mapping[str, Any]) -> None:
-        """Listen on ``socket``, record from now on, publish tick 0; on the wall clock,
-        start stepping. ``TrialError`` if the record cannot be written (a full disk)."""
+    async def start(self, socket: Path) -> None:
+        """Listen on ``socket``, record from now on (the manifest first), publish tick 0;
+        on the wall clock, start stepping. ``TrialError`` if the record cannot be written
+        (a full disk)."""
         ...
 
     def episode(self) -> Episode: ...
@@ -112,24 +140,10 @@ class TrialHost(Protocol):
         """The task's full parameter values (``InvalidRequest`` if any is wrong)."""
         ...
 
-    def open(
-        self,
-        task: str,
-        values: Mapping[str, Value],
-        seed: int,
-        *,
-        realtime: bool,
-        out: Path,
-        interfaces: Mapping[str, str] | None = None,
-        blind: bool = False,
-    ) -> TrialLab:
-        """Build the lab side of a trial recording into ``out`` (``TrialError``).
-
-        ``interfaces`` are the repository's own interface files (path in the repository
-        -> text, ``.../PKG/msg/Name.msg`` and the like): their types exist in this
-        trial's graph alone; a malformed or conflicting one is a ``TrialError`` naming
-        its file and line.
-        """
+    def open(self, setup: TrialSetup, *, out: Path) -> TrialLab:
+        """Build the lab side of the trial ``setup`` says, recording into ``out``
+        (``TrialError``; a malformed or conflicting interface file is one naming its
+        file and line)."""
         ...
 
     def first_difference(self, a: Path, b: Path, topics: Sequence[str]) -> str | None:

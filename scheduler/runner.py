@@ -35,8 +35,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from repository.digests import manifest_digest, readable_json
+from repository.digests import readable_json
 from repository.errors import ArchiveError
+from repository.manifest import Code, Manifest
 from repository.trial import Ending, Order, Outcome, Status, Value
 from repository.units import MiB
 from repository.well_known import LOGS, MANIFEST, OUTCOME, RECORD_FILE
@@ -55,10 +56,9 @@ from scheduler.errors import (
 )
 from scheduler.fetch import FetchPolicy
 from scheduler.files import RepositoryFiles
-from scheduler.host import TrialHost, TrialLab
-from scheduler.manifest import build as build_manifest
+from scheduler.host import TrialHost, TrialLab, TrialSetup
 from scheduler.outcome import judge, storage_failure
-from scheduler.source import Source, checkout
+from scheduler.source import checkout
 from scheduler.states import Stage
 
 log = logging.getLogger("scheduler.runner")
@@ -111,7 +111,7 @@ class Progress:
 class TrialResult:
     ending: Ending
     folder: Path
-    manifest: dict[str, Any] = field(default_factory=dict)
+    manifest: Manifest | None = None  # None: the trial did not start
     manifest_digest: str = ""
     data_digest: str = ""
     metrics: dict[str, Any] = field(default_factory=dict)
@@ -154,7 +154,7 @@ class TrialResult:
             "wall_seconds": round(self.wall_seconds, 3),
             "start_seconds": self.start_seconds,
             "run_seconds": self.run_seconds,
-            "manifest": self.manifest,
+            "manifest": self.manifest.to_json() if self.manifest is not None else {},
         }
 
 
@@ -241,7 +241,7 @@ class _Prepared:
 
     order: Order  # task and commit resolved
     blind: bool
-    source: Source
+    code: Code
     config: controller_config.ControllerConfig
     values: dict[str, Value]  # the task's parameters, every one
     host: TrialHost
@@ -269,10 +269,12 @@ async def _prepare(
     archive: Blobs | None,
     resolver: Archive | None = None,
 ) -> _Prepared:
-    code = work / "code"
     ref = order.commit or order.ref  # a queued trial's pinned commit; labd run's ref
-    source = await asyncio.to_thread(checkout, order.repository, ref, code, cache, options.fetch)
-    config = controller_config.load(code)
+    checked_out = work / "code"
+    code = await asyncio.to_thread(
+        checkout, order.repository, ref, checked_out, cache, options.fetch
+    )
+    config = controller_config.load(checked_out)
     task = order.task or config.task
     if task is None:
         raise ControllerConfigError("it names no task and none was given (--task)")
@@ -280,12 +282,12 @@ async def _prepare(
     python_paths, requirements_sha = [], None
     if config.requirements:
         target, requirements_sha = await install_requirements(
-            backend, code, config.requirements, cache
+            backend, checked_out, config.requirements, cache
         )
         python_paths.append(target)
     node_modules, node_sha = None, None
     if config.node_packages:
-        node_modules, node_sha = await install_node_packages(backend, code, cache)
+        node_modules, node_sha = await install_node_packages(backend, checked_out, cache)
     pinned = order.data
     data = None
     if config.data is not None and not pinned:
@@ -304,11 +306,11 @@ async def _prepare(
                 pinned[0].trial, "cannot be fetched: this runner has no archive to read it from"
             )
         data = await asyncio.to_thread(materialize, pinned, archive, host, cache)
-    resolved = order.model_copy(update={"commit": source.commit, "task": task, "data": pinned})
+    resolved = order.model_copy(update={"commit": code.commit or "", "task": task, "data": pinned})
     return _Prepared(
         resolved,
         blind,
-        source,
+        code,
         config,
         values,
         host,
@@ -394,36 +396,29 @@ class _Trial:
         self.options = options
         self.work = work
         self.out = out
-        self.lab: TrialLab = prepared.host.open(
-            prepared.task,
-            prepared.values,
-            prepared.order.seed,
-            realtime=prepared.config.realtime,
-            out=out,
-            interfaces=prepared.config.interface_files,
+        order, config = prepared.order, prepared.config
+        setup = TrialSetup(
+            task=prepared.task,
+            values=prepared.values,
+            seed=order.seed,
+            code=prepared.code,
+            controller=config.in_manifest(
+                requirements_sha256=prepared.requirements_sha,
+                node_packages_sha256=prepared.node_packages_sha,
+            ),
+            runtime=backend.runtime_digest(),
+            data=order.data,
             blind=prepared.blind,
+            interfaces=config.interface_files,
         )
+        self.lab: TrialLab = prepared.host.open(setup, out=out)
         self.launched: float | None = None  # loop time the sandbox was started
         self.first_step: float | None = None
 
     async def run(self) -> TrialResult:
-        p = self.prepared
         lab = self.lab
-        manifest = build_manifest(
-            source=p.source,
-            controller=p.config,
-            task=p.task,
-            task_version=lab.task_version,
-            parameters=p.values,
-            seed=p.order.seed,
-            runtime=self.backend.runtime_digest(),
-            requirements_sha256=p.requirements_sha,
-            node_packages_sha256=p.node_packages_sha,
-            model_sha256=lab.model_sha256,
-            data=p.order.data,
-            blind=p.blind,
-        )
-        digest = manifest_digest(manifest)
+        manifest = lab.manifest
+        digest = manifest.digest
         socket_dir = self.work / "bridge"
         socket_dir.mkdir()
         socket_dir.chmod(0o755)
@@ -431,7 +426,7 @@ class _Trial:
         exit_: Exit | None = None
         ending = Ending.error("the trial did not start")
         try:
-            await lab.start(socket_dir / "bridge.sock", manifest)
+            await lab.start(socket_dir / "bridge.sock")
             (socket_dir / "bridge.sock").chmod(0o777)
             self.launched = asyncio.get_running_loop().time()
             running = await self.backend.start(self._job(socket_dir / "bridge.sock"))
@@ -527,10 +522,10 @@ class _Trial:
                 return exit_, judge(exit_, episode, ended=not episode.running, limits=limits)
 
     def _attachments(
-        self, manifest: dict[str, Any], exit_: Exit | None, result: TrialResult
+        self, manifest: Manifest, exit_: Exit | None, result: TrialResult
     ) -> dict[str, tuple[str, bytes]]:
         files: dict[str, tuple[str, bytes]] = {
-            MANIFEST: ("application/json", readable_json(manifest)),
+            MANIFEST: ("application/json", readable_json(manifest.to_json())),
             OUTCOME: (
                 "application/json",
                 readable_json(
@@ -551,12 +546,12 @@ class _Trial:
             files[LOGS["stderr"]] = ("text/plain", exit_.stderr)
         return files
 
-    def _write_files(self, manifest: dict[str, Any], exit_: Exit | None) -> None:
+    def _write_files(self, manifest: Manifest, exit_: Exit | None) -> None:
         """The record's folder beside the MCAP: the manifest and the controller's logs."""
         if exit_ is not None:
             write_whole(self.out / LOGS["stdout"], exit_.stdout)
             write_whole(self.out / LOGS["stderr"], exit_.stderr)
-        write_whole(self.out / MANIFEST, readable_json(manifest))
+        write_whole(self.out / MANIFEST, readable_json(manifest.to_json()))
 
 
 def write_whole(path: Path, data: bytes) -> None:

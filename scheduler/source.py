@@ -54,6 +54,7 @@ from typing import IO
 
 import git
 
+from repository.manifest import Code
 from repository.units import MiB
 from scheduler.errors import CheckoutTooLarge, RefNotFound, RepositoryError, TrialError
 from scheduler.fetch import PREFLIGHT, Fetched, FetchPolicy, fetch_commit
@@ -64,25 +65,13 @@ URL = re.compile(r"^(?:[a-z][a-z0-9+.-]*://|[\w.-]+@[\w.-]+:)")
 SKIP = {".git", "__pycache__"}
 
 
-@dataclass(frozen=True)
-class Source:
-    """What a trial runs, and how to name it."""
-
-    repository: str  # the URL, or the folder's absolute path
-    commit: str | None  # None for a plain folder or one with uncommitted changes
-    tree: str  # "sha256:..." over the files run (paths, executable bits, contents)
-    git_tree: str | None  # git's tree hash of the commit's folder
-    subdir: str  # the folder within the repository ("" for its root)
-    dirty: bool  # a local folder that differs from its commit
-
-
 def is_url(source: str) -> bool:
     return bool(URL.match(source))
 
 
 def checkout(
     source: str, ref: str | None, dest: Path, cache: Path, policy: FetchPolicy | None = None
-) -> Source:
+) -> Code:
     """Put the files of ``source`` at ``ref`` into ``dest`` (which must not exist).
 
     ``policy`` is the lab's fetch policy; None for ``labd run`` (see the module's doc).
@@ -141,7 +130,7 @@ def _sha256(path: Path) -> str:
     return digest.hexdigest()
 
 
-def _from_folder(folder: Path, ref: str | None, dest: Path) -> Source:
+def _from_folder(folder: Path, ref: str | None, dest: Path) -> Code:
     if not folder.is_dir():
         raise RepositoryError(str(folder), "no such folder")
     folder = folder.resolve()
@@ -155,7 +144,7 @@ def _from_folder(folder: Path, ref: str | None, dest: Path) -> Source:
         dest.mkdir(parents=True)
         with TreeWriter(dest, str(folder)) as writer:
             copy_files(folder, _names(folder), writer)
-        return Source(str(folder), None, tree_digest(dest), None, "", dirty=False)
+        return Code(str(folder), None, tree_digest(dest), None, "", dirty=False)
     with repo:
         root = Path(repo.working_tree_dir or folder).resolve()
         subdir = folder.relative_to(root).as_posix() if folder != root else ""
@@ -164,7 +153,7 @@ def _from_folder(folder: Path, ref: str | None, dest: Path) -> Source:
             dest.mkdir(parents=True)
             with TreeWriter(dest, str(folder)) as writer:
                 _export(repo, commit, subdir, writer, str(folder))
-            return Source(
+            return Code(
                 str(folder),
                 commit,
                 tree_digest(dest),
@@ -182,7 +171,7 @@ def _from_folder(folder: Path, ref: str | None, dest: Path) -> Source:
             copy_files(folder, names, writer)
         dirty = bool(repo.git.status("--porcelain", "--", subdir or "."))
         head = None if dirty or not repo.head.is_valid() else repo.head.commit.hexsha
-        return Source(
+        return Code(
             str(folder),
             head,
             tree_digest(dest),
@@ -194,7 +183,7 @@ def _from_folder(folder: Path, ref: str | None, dest: Path) -> Source:
 
 def _from_mirror(
     source: str, ref: str | None, dest: Path, cache: Path, policy: FetchPolicy
-) -> Source:
+) -> Code:
     fetched = fetch_commit(source, ref, cache, policy)
     _check_size(fetched, policy)
     dest.mkdir(parents=True)
@@ -205,7 +194,7 @@ def _from_mirror(
         for sub in fetched.submodules:  # outer first: a submodule's folder exists by now
             with git.Repo(sub.mirror) as repo:
                 _export(repo, sub.commit, "", writer, sub.repository, into=sub.path)
-    return Source(fetched.repository, fetched.commit, tree_digest(dest), git_tree, "", False)
+    return Code(fetched.repository, fetched.commit, tree_digest(dest), git_tree, "", False)
 
 
 @dataclass(frozen=True)

@@ -334,7 +334,7 @@ class Worker:
         else:
             record = {
                 **result.ending.model_dump(),
-                "manifest": result.manifest or None,
+                "manifest": result.manifest.to_json() if result.manifest else None,
                 "manifest_digest": result.manifest_digest or None,
                 "data_digest": result.data_digest or None,
                 "digest_topics": result.digest_topics or None,
@@ -451,7 +451,8 @@ class Worker:
                 return {"reproduced": False, "divergence": f"the original's record: {err}"}
             difference = self.host.first_difference(theirs, result.mcap, topics)
         text = difference or "the data digests differ"
-        changed = manifest_changes(original.manifest or {}, result.manifest)
+        ran = result.manifest.to_json() if result.manifest else {}
+        changed = manifest_changes(original.manifest or {}, ran)
         if changed:
             text += f"; the manifest differs in {', '.join(changed)}"
         return {"reproduced": False, "divergence": text}

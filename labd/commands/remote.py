@@ -53,7 +53,8 @@ from labd.commands.common import (
     worst,
 )
 from repository.digests import readable_json
-from repository.errors import ArchiveError
+from repository.errors import ArchiveError, ManifestError
+from repository.manifest import Manifest
 from repository.trial import Kind, Outcome, Status
 from repository.well_known import SIGNATURE_SIDECAR
 from scheduler.client import ApiClient
@@ -459,8 +460,12 @@ def _trial_lines(row: TrialDetail, full: bool = False) -> Iterator[str]:
     if row.logs:
         yield f"  logs       labd logs {row.id}"
     if full and row.manifest:
-        versions = row.manifest.get("versions", {})
-        yield "  versions   " + ", ".join(f"{k} {v}" for k, v in versions.items())
+        try:
+            versions = Manifest.from_json(row.manifest).versions.to_json()
+        except ManifestError as err:
+            yield f"  versions   unknown: the manifest cannot be read ({err})"
+        else:
+            yield "  versions   " + ", ".join(f"{k} {v}" for k, v in versions.items())
 
 
 def _verdict_line(row: TrialDetail) -> str:

@@ -107,7 +107,7 @@ def main(args: argparse.Namespace) -> int:
     if args.json:
         print(json.dumps(result.to_json(), indent=2))
     else:
-        report(result, order)
+        report(result)
     return int(exit_code(result.status, result.outcome))
 
 
@@ -153,13 +153,13 @@ class _LocalArchive:
             self.opened.index.close()
 
 
-def report(result: TrialResult, order: Order) -> None:
+def report(result: TrialResult) -> None:
     what = result.outcome.value.upper() if result.outcome else result.status.value
     print(f"trial {what}: {result.reason}")
-    if result.manifest:
-        task = result.manifest["task"]["name"]
+    manifest = result.manifest
+    if manifest is not None:
         print(
-            f"  task {task}, seed {order.seed}, sandbox {result.backend}, "
+            f"  task {manifest.task.name}, seed {manifest.seed}, sandbox {result.backend}, "
             f"{result.wall_seconds:.1f} s"
         )
     if result.metrics:
@@ -169,9 +169,9 @@ def report(result: TrialResult, order: Order) -> None:
         print(f"  manifest sha256:{result.manifest_digest}")
     if result.data_digest:
         print(f"  data     sha256:{result.data_digest}")
-    pinned = (result.manifest or {}).get("data") or []
+    pinned = manifest.data if manifest is not None else ()
     if pinned:
-        trials = ", ".join(str(p["trial"]) for p in pinned)
+        trials = ", ".join(str(p.trial) for p in pinned)
         print(f"  learnt from {len(pinned)} pinned records: trials {trials}")
     if result.mcap:
         print(f"  record   {result.mcap}")

@@ -56,6 +56,8 @@ from labd.recorder import scene, series
 from labd.recorder.bag import mcap_path
 from labd.recorder.reader import RecordedMessage, read_channels, read_messages
 from labd.recorder.record import read_manifest
+from repository.errors import ManifestError
+from repository.manifest import Manifest
 from repository.mcapfile import seeking
 from repository.trial import EpisodeStatus
 from repository.units import KiB
@@ -164,8 +166,7 @@ def read(
     reading = Reading()
     try:
         channels = read_channels(path)
-        manifest = read_manifest(path) or {}
-        reading.task = str((manifest.get("task") or {}).get("name", ""))
+        reading.task = _task(read_manifest(path))
         reading.model = scene.load(_attachments(path))
         if reading.model is not None:
             reading.poser = scene.Poser(reading.model)
@@ -218,6 +219,16 @@ class _Clock:
         if episode:
             self.last = value
         return value
+
+
+def _task(held: dict[str, Any] | None) -> str:
+    """The task the record's manifest names ("" when it holds none)."""
+    if held is None:
+        return ""
+    try:
+        return Manifest.from_json(held).task.name
+    except ManifestError as err:
+        raise SummaryError(f"the record's manifest cannot be read: {err}") from None
 
 
 def _attachments(path: str | Path) -> dict[str, bytes]:

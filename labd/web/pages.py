@@ -38,9 +38,10 @@ from labd.web.evaluations import Listed, rate_words, task_board
 from labd.web.problems import PageRoute, on_form
 from labd.web.render import page
 from labd.web.session import Viewer
-from repository.errors import BlobError
+from repository.errors import BlobError, ManifestError
 from repository.evaluation_index import EvaluationFilters
 from repository.index import Derived, Filters, Sort
+from repository.manifest import Driver, Manifest
 from repository.trial import Kind, Outcome, Status, Trial
 from repository.units import KiB
 from repository.well_known import REPLAY, SUMMARY, VIDEO
@@ -220,9 +221,19 @@ def trial(request: Request, trial_id: Id, service: Lab, viewer: Viewer) -> HTMLR
             "ended": record.status.ended,
             "evaluation": service.evaluations.of_trial(trial_id),
             "playground": _playground(service, record),
+            "driver": _driver(record),
         },
         user=viewer,
     )
+
+
+def _driver(record: Trial) -> Driver | None:
+    """Who drove a demonstration, as its manifest says (None for a trial, or a manifest
+    that cannot be read: the page shows the rest)."""
+    try:
+        return Manifest.from_json(record.manifest).driver if record.manifest else None
+    except ManifestError:
+        return None
 
 
 HOSTED = re.compile(r"^/git/([^/]+)/([^/]+)\.git$")  # the path of one of the lab's own

@@ -64,14 +64,14 @@ def test_a_held_out_episode_runs_blind_and_its_record_still_replays(backend, cac
     told = json.loads((blind.folder / LOGS["stdout"]).read_text().splitlines()[-1])
     assert (told["env"], told["topic"]) == (None, 0)
     assert not [name for name in told["environ"] if "SEED" in name or "EPISODE" in name]
-    assert blind.manifest["blind"] is True and blind.manifest["seed"] == SEED
+    assert blind.manifest.blind is True and blind.manifest.seed == SEED
     assert str(SEED) not in (blind.folder / LOGS["stdout"]).read_text()
     assert replay(blind.mcap).verified
 
     seen = _run(backend, cache, host, tmp_path, Order(repository=str(spy), seed=SEED))
     told = json.loads((seen.folder / LOGS["stdout"]).read_text().splitlines()[-1])
     assert (told["env"], told["topic"]) == (str(SEED), SEED)
-    assert "blind" not in seen.manifest  # a trial's manifest is as it always was
+    assert "blind" not in seen.manifest.to_json()  # a trial's manifest is as it always was
 
 
 def _claim_and_file(service, worker: str, outcomes: dict[int, str], stdout: bytes = b"") -> None:

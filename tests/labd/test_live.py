@@ -15,6 +15,7 @@ from labd.live import Driving, Filings, NotDriving
 from labd.recorder import read_channels, read_messages
 from labd.replay import replay
 from labd.station import Station
+from repository.manifest import Driver
 
 TWIST = "geometry_msgs/msg/Twist"
 UX = "lab_msgs/msg/UxEvent"
@@ -110,14 +111,17 @@ def test_a_drive_is_filed_when_the_driver_leaves_and_replays(live):
     assert driving.current is None
     [demo] = filed
     assert (demo.user, demo.interface, demo.session) == ("guest:page", "perception", "abc")
-    assert demo.manifest["driver"] == {
+    assert demo.manifest.driver == Driver(
+        user="guest:page", claimed_user="ann", interface="perception", session="abc"
+    )
+    assert demo.manifest.to_json()["driver"] == {
         "user": "guest:page",
         "claimed_user": "ann",
         "interface": "perception",
         "session": "abc",
     }
     assert demo.reason == f"the driver left at tick {ENOUGH}" and not demo.achieved
-    assert demo.manifest["kind"] == "demonstration" and demo.manifest["live"] is True
+    assert demo.manifest.kind == "demonstration" and demo.manifest.live is True
     verdict = replay(demo.folder / "trial.mcap")
     assert verdict.verified, verdict
     assert verdict.ticks == ENOUGH
@@ -170,7 +174,7 @@ def test_what_a_client_gives_is_data_never_a_path(live, tmp_path):
     drive(station, command, ENOUGH)
     call(page, "/lab/release")
     [demo] = filed
-    assert demo.manifest["driver"]["session"] == path
+    assert demo.manifest.driver is not None and demo.manifest.driver.session == path
     assert not (tmp_path / "outside").exists()
     limit = LIMITS.max_text
     for request in (

@@ -39,7 +39,7 @@ from labd.sim.registry import TaskSpec
 from labd.sim.robot import TWIST, Robot
 from repository.digests import canonical_json
 from repository.well_known import MANIFEST_KEY, MANIFEST_RECORD, SIDE_KEY
-from scheduler.manifest import versions
+from tests.helpers.manifests import of_robot
 from tests.labd.sim.drive import random_value
 from tests.labd.sim.pointmass import TASK as POINTMASS
 
@@ -87,15 +87,8 @@ def record(
     robot = Robot(graph, task, params or {}, seed)
     topics = digest_topics(robot)
     options: dict[str, Any] = {} if chunk_size is None else {"chunk_size": chunk_size}
-    if manifest:  # what a replay needs of a trial's manifest
-        options["manifest"] = {
-            "task": {"name": robot.sim.spec.name, "version": robot.sim.spec.version},
-            "parameters": robot.values,
-            "seed": seed,
-            "model_sha256": robot.sim.model_digest(),
-            "versions": versions(),
-            "controller": {"realtime": False},
-        }
+    if manifest:  # a trial's manifest, as the lab writes one
+        options["manifest"] = of_robot(robot, seed)
     recorder = Recorder(graph, folder, digest_topics=topics, **options)
     run = Run(RecordSummary(folder, {}, "", None, None, 0), robot, topics)
     graph.taps.append(

@@ -120,6 +120,19 @@ def test_another_model_or_simulator_is_refused_naming_both(registry, tmp_path):
         replay(other_mujoco)
 
 
+def test_a_manifest_without_its_seed_is_refused_never_replayed_as_seed_0(registry, tmp_path):
+    """A record whose manifest lacks its seed (or any key the lab writes) is refused,
+    naming the key: it is never replayed with a default in its place."""
+    run = record(registry, tmp_path / "a", MAZE, seed=3, ticks=3, manifest=True)
+    unseeded = rewrite(run.summary.path, tmp_path / "no-seed.mcap", edit_manifest=_drop_seed)
+    with pytest.raises(ReplayError, match=r"its manifest cannot be read: manifest\.seed: missing"):
+        replay(unseeded)
+
+
+def _drop_seed(manifest):
+    del manifest["seed"]
+
+
 def test_a_cut_record_says_where_it_stops(registry, tmp_path):
     """A record cut short replays as far as it goes and says the file is cut there."""
     run = record(registry, tmp_path / "a", MAZE, seed=3, ticks=30, manifest=True, chunk_size=4096)

@@ -66,5 +66,6 @@ def test_the_key_holder_drives_under_their_own_name(live):
         station.robot.step()
     alice.destroy()
     [demo] = filed
-    assert demo.user == "alice" and demo.manifest["driver"]["user"] == "alice"
-    assert demo.manifest["driver"]["claimed_user"] == "mallory"  # kept apart, unchecked
+    driver = demo.manifest.driver
+    assert demo.user == "alice" and driver is not None and driver.user == "alice"
+    assert driver.claimed_user == "mallory"  # kept apart, unchecked

@@ -30,6 +30,7 @@ from labd.recorder import series as S
 from labd.recorder.summary import MAX_POINTS, VERSION, decode, summarize, summary_blob
 from labd.sim.robot import Robot
 from repository.digests import canonical_json
+from tests.helpers.manifests import of_robot
 from tests.labd.test_recorder import digest_topics, step
 
 Command = tuple[str, str, dict[str, Any]]  # topic, type, value
@@ -57,7 +58,7 @@ def drive(
     """Record ``ticks`` lockstep ticks of ``task``, the client sending ``commands(tick)``."""
     graph = Graph(registry, name="summary-test")
     robot = Robot(graph, task, params or {}, seed)
-    manifest = {"task": {"name": task, "version": robot.sim.spec.version}, "seed": seed}
+    manifest = of_robot(robot, seed)
     recorder = Recorder(graph, folder, digest_topics=digest_topics(robot), manifest=manifest)
     client = graph.create_node("/controller", side=Side.CLIENT)
     if camera:

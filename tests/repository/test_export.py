@@ -26,7 +26,7 @@ from repository.export import Source, export
 from repository.formats import FORMATS, export_format
 from repository.lerobot import LEROBOT
 from repository.parquet import EPISODES_KEY, PARQUET
-from scheduler.manifest import versions
+from tests.helpers.manifests import trial_manifest
 
 TASK = "icreate-maze"
 TICKS = 24
@@ -72,15 +72,15 @@ def drive(
     robot = Robot(graph, TASK, {}, 3)
     task = robot.sim.task
     topics = {o.name for o in task.observations} | {c.name for c in task.commands}
-    manifest = {
-        "task": {"name": TASK, "version": registry.get(TASK).version},
-        "parameters": registry.validate(TASK, {}),
-        "seed": 3,
-        "versions": versions(),
-        "model_sha256": robot.sim.model_digest(),
-        "repository": PROVENANCE["repository"],
-        "commit": PROVENANCE["commit"],
-    }
+    manifest = trial_manifest(
+        TASK,
+        registry.get(TASK).version,
+        registry.validate(TASK, {}),
+        3,
+        model_sha256=robot.sim.model_digest(),
+        repository=PROVENANCE["repository"],
+        commit=PROVENANCE["commit"],
+    ).to_json()
     recorder = Recorder(graph, folder, digest_topics=topics, manifest=manifest)
     run = Drive(folder / "trial.mcap")
     latest: dict[str, Any] = {}

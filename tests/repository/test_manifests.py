@@ -4,22 +4,23 @@
 came from): trials with and without pinned data, interfaces, requirements and node
 packages, held-out episodes run blind, dirty work trees, realtime controllers, live and
 scripted drives, and ones older code wrote. A record filed is never rewritten, and its
-manifest digest names its experiment and is what the lab signed: today's writers must
-give these very bytes.
+manifest digest names its experiment and is what the lab signed: ``Manifest`` must read
+every one of them and write these very bytes again.
 """
 
 from __future__ import annotations
 
 import json
+import re
 from pathlib import Path
 from typing import Any
 
 import pytest
 
-from repository.digests import manifest_digest, readable_json
+from repository.digests import canonical_json, manifest_digest, readable_json
+from repository.errors import ManifestError
+from repository.manifest import Driver, Manifest, TaskVersion
 from repository.trial import Kind, Outcome, PinnedRecord
-from scheduler import manifest as writer
-from scheduler.source import Source
 
 GOLDEN = Path(__file__).resolve().parents[1] / "data" / "manifests"
 INDEX: dict[str, dict[str, Any]] = json.loads((GOLDEN / "index.json").read_text())
@@ -81,57 +82,148 @@ def test_a_stored_manifest_is_a_records_attachment_with_its_filed_digest(name):
         assert sorted(order) == sorted(keys(manifest))
 
 
-@pytest.mark.parametrize("name", TRIALS)
-def test_todays_trial_writer_writes_each_trial_manifest(name, monkeypatch):
-    """``scheduler.manifest.build``, given what a stored trial manifest says ran, writes it
-    again: the same bytes, the same digest, its keys in the same order."""
-    manifest = loaded(name)
-    order = [key.split(".")[1] for key in INDEX[name]["keys"] if key.startswith("versions.")]
-    monkeypatch.setattr(writer, "versions", lambda: {k: manifest["versions"][k] for k in order})
-    controller = manifest["controller"]
+@pytest.mark.parametrize("name", NAMES)
+def test_a_stored_manifest_is_read_and_written_again_byte_for_byte(name):
+    """``Manifest.from_json`` reads it and ``to_json`` writes it again: the record's bytes,
+    its filed digest, its keys in the order its writer put them."""
+    manifest = Manifest.from_json(loaded(name))
+    written = manifest.to_json()
+    assert readable_json(written) == stored(name)
+    assert canonical_json(written) == canonical_json(loaded(name))
+    assert manifest_digest(written) == manifest.digest == INDEX[name]["digest"]
+    order = INDEX[name]["keys"]
+    assert keys(written) == (order if order is not None else _writers_order(written))
 
-    class Config:  # what build reads of a ControllerConfig
-        command = tuple(controller["command"])
-        realtime = controller["realtime"]
-        requirements = controller["requirements"]
-        interfaces = tuple(controller.get("interfaces", ()))
-        interfaces_sha256 = controller.get("interfaces_sha256")
 
-    data = [
-        PinnedRecord(
-            trial=entry["trial"],
-            kind=Kind.DEMONSTRATION,
-            task=manifest["task"]["name"],
-            seed=0,
-            outcome=Outcome.SUCCESS,
-            data_digest=entry["data_digest"],
-            digest_topics=[],
-            mcap=entry["mcap"],
-            size=0,
-        )
-        for entry in manifest.get("data", ())
+def _writers_order(manifest: dict[str, Any]) -> list[str]:
+    """The order today's writer puts a manifest's keys in, for the files whose writing
+    order was not kept: that of another stored manifest of its kind with the same keys."""
+    same = [
+        INDEX[other]["keys"]
+        for other in NAMES
+        if INDEX[other]["keys"] is not None
+        and sorted(INDEX[other]["keys"]) == sorted(keys(manifest))
     ]
-    again = writer.build(
-        source=Source(
-            manifest["repository"],
-            manifest["commit"],
-            manifest["tree"],
-            manifest["git_tree"],
-            manifest["subdir"],
-            manifest["dirty"],
-        ),
-        controller=Config(),  # type: ignore[arg-type]
-        task=manifest["task"]["name"],
-        task_version=manifest["task"]["version"],
-        parameters=manifest["parameters"],
-        seed=manifest["seed"],
-        runtime=manifest["runtime"],
-        requirements_sha256=controller["requirements_sha256"],
-        model_sha256=manifest["model_sha256"],
-        data=data,
-        node_packages_sha256=controller.get("node_packages_sha256"),
-        blind=manifest.get("blind", False),
+    assert same, "no stored manifest of its kind has its keys"
+    return list(same[0])
+
+
+@pytest.mark.parametrize("name", NAMES)
+def test_the_lab_s_constructors_write_each_stored_manifest(name):
+    """``Manifest.trial`` and ``Manifest.drive``, given the parts a stored manifest says
+    ran, write it again, byte for byte and key for key: what the runner and a live robot
+    write is what records hold."""
+    read = Manifest.from_json(loaded(name))
+    task, params, versions = read.task, dict(read.parameters), read.versions
+    if read.kind is Kind.TRIAL:
+        assert read.code is not None and read.controller is not None and read.runtime
+        made = Manifest.trial(
+            code=read.code,
+            controller=read.controller,
+            task=task,
+            parameters=dict(reversed(params.items())),  # the constructor sorts them
+            seed=read.seed,
+            runtime=read.runtime,
+            versions=versions,
+            model_sha256=read.model_sha256,
+            data=[_pinned(p.trial, p.data_digest, p.mcap) for p in read.data],
+            blind=read.blind,
+        )
+    else:
+        assert read.robot is not None and read.driver is not None
+        made = Manifest.drive(
+            robot=read.robot,
+            task=task,
+            parameters=dict(reversed(params.items())),
+            seed=read.seed,
+            driver=read.driver,
+            versions=versions,
+            model_sha256=read.model_sha256,
+        )
+    assert made == read
+    assert readable_json(made.to_json()) == stored(name)
+    assert made.digest == INDEX[name]["digest"]
+    assert keys(made.to_json()) == keys(read.to_json())
+
+
+def _pinned(trial: int, data_digest: str, mcap: str) -> PinnedRecord:
+    return PinnedRecord(
+        trial=trial,
+        kind=Kind.DEMONSTRATION,
+        task="icreate-maze",
+        seed=0,
+        outcome=Outcome.SUCCESS,
+        data_digest=data_digest,
+        digest_topics=[],
+        mcap=mcap,
+        size=0,
     )
-    assert readable_json(again) == stored(name)
-    assert manifest_digest(again) == INDEX[name]["digest"]
-    assert keys(again) == INDEX[name]["keys"]
+
+
+def test_what_readers_ask_is_an_attribute():
+    """A trial's and a drive's manifests answer the same questions by attribute."""
+    trial = Manifest.from_json(loaded("trial-everything-blind"))
+    assert (trial.kind, trial.seed, trial.blind, trial.live, trial.realtime) == (
+        Kind.TRIAL, 5, True, False, False
+    )  # fmt: skip
+    assert trial.repository is not None and trial.repository.endswith("/combo")
+    assert trial.task == TaskVersion("icreate-maze", "1") and trial.parameters["maze_size"] == 5
+    assert trial.controller is not None and trial.controller.interfaces == ("planner_msgs",)
+    data = Manifest.from_json(loaded("trial-data"))
+    assert [p.trial for p in data.data] and data.versions.mujoco
+    drive = Manifest.from_json(loaded("drive-pr2-non-ascii"))
+    assert (drive.kind, drive.live, drive.realtime, drive.repository, drive.commit) == (
+        Kind.DEMONSTRATION, True, True, None, None
+    )  # fmt: skip
+    assert drive.driver == Driver("guest:page", "vidéo", "séance-1 ✓", claimed_user="Zoë")
+    assert drive.robot == "pr2-1" and drive.task.name == "pr2-table"
+
+
+def _without(manifest: dict[str, Any], dotted: str) -> dict[str, Any]:
+    copy = json.loads(json.dumps(manifest))
+    *path, last = dotted.split(".")
+    inner = copy
+    for key in path:
+        inner = inner[key]
+    del inner[last]
+    return copy
+
+
+@pytest.mark.parametrize(
+    ("name", "dotted"),
+    [
+        ("trial-repository-root", "seed"),
+        ("drive-scripted", "seed"),
+        ("trial-example-subdir", "task.version"),
+        ("trial-dmc", "controller.requirements"),
+        ("drive-claimed-user", "driver.session"),
+        ("trial-folder-js", "versions.mujoco"),
+        ("trial-pr2", "schema"),
+    ],
+)
+def test_a_missing_key_is_an_error_naming_it(name, dotted):
+    """A key a record lacks is an error naming it, never a default (a missing seed is not
+    seed 0)."""
+    with pytest.raises(ManifestError, match=rf"^manifest\.{re.escape(dotted)}: missing$"):
+        Manifest.from_json(_without(loaded(name), dotted))
+
+
+@pytest.mark.parametrize(
+    ("change", "said"),
+    [
+        ({"seed": "4"}, r"manifest\.seed: must be an integer, not '4'"),
+        ({"seed": True}, r"manifest\.seed: must be an integer, not True"),
+        ({"dirty": None}, r"manifest\.dirty: must be true or false, not null"),
+        ({"blind": False}, r"manifest\.blind: is written only as true"),
+        ({"data": []}, r"manifest\.data: is written only as a list of records"),
+        ({"note": "x"}, r"manifest: 'note' is not a key the lab writes here"),
+        ({"schema": "labd.trial/2"}, r"manifest\.schema: is 'labd\.trial/2'; this lab reads"),
+        ({"kind": "trial"}, r"manifest\.kind: is 'trial'; only a drive's says its kind"),
+        ({"parameters": {"x": [1]}}, r"manifest\.parameters\.x: must be a number"),
+    ],
+)
+def test_a_key_the_lab_would_not_write_is_an_error(change, said):
+    """A value of another type, or a key or form the lab never writes, is refused: read
+    and written back, it would not keep its digest."""
+    with pytest.raises(ManifestError, match=said):
+        Manifest.from_json({**loaded("trial-repository-root"), **change})

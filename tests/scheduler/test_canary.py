@@ -31,8 +31,8 @@ TOML = '[controller]\ncommand = ["python", "c.py"]\ntask = "icreate-maze"\n'
 class DriftedHost(LabHost):
     """A lab whose physics drifted: every joint a little more damped than the model says."""
 
-    def open(self, task, values, seed, **kwargs):
-        trial = super().open(task, values, seed, **kwargs)
+    def open(self, setup, **kwargs):
+        trial = super().open(setup, **kwargs)
         trial.station.robot.sim.physics.model.dof_damping[:] += 0.05
         return trial
 

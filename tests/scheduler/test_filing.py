@@ -16,16 +16,19 @@ from scheduler.filing import Claims, Expected, filing_problems, record_differenc
 from scheduler.host import RecordFacts
 from scheduler.queue import Queue
 from scheduler.worker import Worker, WorkerConfig
+from tests.helpers.manifests import trial_manifest
 
 TOPICS = ["/clock", "/cmd_vel", "/lab/episode", "/odom"]
 EXPECTED = Expected(values={"time_limit": 30.0}, version="1", digest_topics=TOPICS)
-MANIFEST = {
-    "repository": "/r",
-    "commit": "c" * 40,
-    "task": {"name": "icreate-maze", "version": "1"},
-    "parameters": {"time_limit": 30.0},
-    "seed": 4,
-}
+MANIFEST = trial_manifest(
+    "icreate-maze",
+    "1",
+    {"time_limit": 30.0},
+    4,
+    model_sha256="0" * 64,
+    repository="/r",
+    commit="c" * 40,
+).to_json()
 OUTCOME = {"status": "finished", "outcome": "fail", "reason": "ran out", "metrics": {"reward": 2.5}}
 RECORD = RecordFacts(
     MANIFEST,

@@ -152,7 +152,7 @@ def test_a_controller_uses_its_own_absolute_link(
     repo = make_repo(tmp_path, "own-link", USES_ITS_OWN_LINK)
     result = run(backend, cache, host, tmp_path, source_of(repo, way))
     assert_ran_with_its_own_link(result)
-    assert result.manifest["commit"] == repo.rev()
+    assert result.manifest.commit == repo.rev()
 
 
 class Counting:

@@ -128,7 +128,7 @@ async def test_a_knn_controller_learns_from_pinned_demonstrations_and_reruns(
             cache=cache,
             resolver=LocalArchive(service.index, service.store),
         )
-        assert local.manifest["data"] == done.manifest["data"]
+        assert [p.to_json() for p in local.manifest.data] == done.manifest["data"]
         assert local.data_digest == done.data_digest
         empty = Index.open(f"sqlite:///{tmp_path / 'empty.sqlite'}")
         try:  # labd run against an archive with no demonstrations: a clear error, no record

@@ -77,9 +77,9 @@ def test_own_debug_type_is_published_and_recorded_with_its_schema(backend, cache
         costs = [bag.deserialize(raw, c.msgtype).cost for c, _, raw in bag.messages(connections)]
     assert costs == [0.0, 1.0, 2.0]
 
-    controller = result.manifest["controller"]
-    assert controller["interfaces"] == ["planner_msgs"]
-    assert controller["interfaces_sha256"] == load(folder).interfaces_sha256
+    controller = result.manifest.controller
+    assert controller.interfaces == ("planner_msgs",)
+    assert controller.interfaces_sha256 == load(folder).interfaces_sha256
     # a replay needs none of the controller's types: only the task's commands move the robot
     assert replay(result.mcap).verified
     with pytest.raises(UnknownTypeError):

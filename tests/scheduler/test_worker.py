@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import dataclasses
 import errno
 
 import pytest
@@ -11,6 +12,7 @@ import pytest
 from labd.trial import LabHost
 from repository.blobs import BlobStore
 from repository.index import Index
+from repository.manifest import Manifest
 from repository.trial import Ending, Order, Outcome, Status
 from sandbox.api import Limits
 from scheduler.host import Episode
@@ -18,6 +20,7 @@ from scheduler.queue import Queue, QueueConfig
 from scheduler.runner import RunOptions, TrialResult
 from scheduler.worker import Worker, WorkerConfig, manifest_changes
 from tests.helpers.githttp import GitRepo
+from tests.helpers.manifests import trial_manifest
 from tests.labd.test_recorder import record
 
 COMMIT = "c" * 40
@@ -45,12 +48,18 @@ def claimed(queue, rerun_of=None):
     return queue.claim("w")
 
 
+def ran(labd: str) -> Manifest:
+    """A trial's manifest, made by labd version ``labd``."""
+    made = trial_manifest("pointmass", "1", {}, 4, model_sha256="0" * 64, commit=COMMIT)
+    return dataclasses.replace(made, versions=dataclasses.replace(made.versions, labd=labd))
+
+
 def result(run):
     out = run.summary.folder
     return TrialResult(
         Ending.success("the episode ended"),
         out,
-        manifest={"versions": {"labd": "1"}},
+        manifest=ran("1"),
         data_digest=run.summary.data_digest,
         digest_topics=sorted(run.topics),
     )
@@ -82,7 +91,7 @@ def test_a_rerun_that_diverged_says_where(queue, registry, tmp_path):
     changed = record(registry, tmp_path / "b", seed=4, change_at=6)
     again = claimed(queue, rerun_of=original.id)
     res = result(changed)
-    res.manifest = {"versions": {"labd": "2"}}
+    res.manifest = ran("2")
     row = file(queue, w, again, res)
     assert row.reproduced is False
     assert row.divergence.startswith("diverged at tick 6 on /cmd_vel")
@@ -128,14 +137,15 @@ class BuggyHost(LabHost):
 class StuckLab:
     """A lab side that never starts (and, with ``hang_finish``, never stops either)."""
 
-    task_version = "1"
-    model_sha256 = "0" * 64
     digest_topics = ()
 
-    def __init__(self, hang_finish=False):
+    def __init__(self, setup, hang_finish=False):
         self.hang_finish = hang_finish
+        self.manifest = trial_manifest(
+            setup.task, "1", setup.values, setup.seed, model_sha256="0" * 64
+        )
 
-    async def start(self, socket, manifest):
+    async def start(self, socket):
         await asyncio.Event().wait()
 
     def episode(self):
@@ -164,8 +174,8 @@ class StuckHost(LabHost):
         super().__init__()
         self.hang_finish = hang_finish
 
-    def open(self, task, values, seed, *, realtime, out, interfaces=None, blind=False):
-        return StuckLab(self.hang_finish)
+    def open(self, setup, *, out):
+        return StuckLab(setup, self.hang_finish)
 
 
 class Unused:
