@@ -31,7 +31,7 @@ from repository.evaluation import (
 )
 from repository.index import Index, spellings
 from repository.tables import derived, episodes, evaluations, retired_suites, trials
-from repository.trial import Outcome, Status, Value
+from repository.trial import Order, Outcome, Status
 from repository.units import moment
 from repository.well_known import REPLAY
 
@@ -65,25 +65,26 @@ class Evaluations:
     def add(
         self,
         db: Connection,
+        order: Order,
         *,
-        task: str,
         task_version: str,
         suite: str,
         suite_version: int,
         held_out: bool,
-        repository: str,
-        ref: str | None,
-        commit: str,
-        params: Mapping[str, Value],
         submitter: str,
         seeds: Sequence[int],
         trial_ids: Sequence[int],
         rerun_of: int | None = None,
     ) -> int:
-        """Insert an evaluation whose episodes ``trial_ids`` (in the suite's order, one per
-        seed) were just queued in the transaction ``db``; its id."""
+        """Insert an evaluation of what ``order`` asked (its code, task and parameters;
+        each episode's seed is one of ``seeds``) whose episodes ``trial_ids`` (in the
+        suite's order, one per seed) were just queued in the transaction ``db``; its id.
+        ``rerun_of``: the evaluation it reruns."""
         if len(seeds) != len(trial_ids):
             raise ArchiveError(f"{len(seeds)} seeds for {len(trial_ids)} trials")
+        task = order.task
+        if task is None:
+            raise ArchiveError("an evaluation's order names its task")
         result = db.execute(
             sa.insert(evaluations).values(
                 task=task,
@@ -91,10 +92,10 @@ class Evaluations:
                 suite=suite,
                 suite_version=suite_version,
                 held_out=held_out,
-                repository=repository,
-                ref=ref,
-                commit=commit,
-                params=dict(params),
+                repository=order.repository,
+                ref=order.ref,
+                commit=order.commit,
+                params=dict(order.params),
                 submitter=submitter,
                 rerun_of=rerun_of,
                 created=self.index.clock(),

@@ -135,15 +135,11 @@ class Evaluator:
                 self._spend(db, user, order.commit, task, (suite.name, suite.version))
             return self.evaluations.add(
                 db,
-                task=task,
+                order,
                 task_version=task_version,
                 suite=suite.name,
                 suite_version=suite.version,
                 held_out=suite.held_out,
-                repository=order.repository,
-                ref=order.ref,
-                commit=order.commit,
-                params=order.params,
                 submitter=user.name,
                 seeds=seeds,
                 trial_ids=ids,
@@ -198,6 +194,7 @@ class Evaluator:
         if old.rerun_of is not None:
             old = self.evaluations.get(old.rerun_of, reveal=True)
         first = self.queue.index.trial(old.rows[0].trial)
+        asked = first.order  # the evaluation's code, task and parameters, as its episodes'
         seeds = [r.seed for r in old.rows if r.seed is not None]  # revealed: every one
         assert len(seeds) == len(old.rows)
         hidden = old.held_out and (old.suite, old.suite_version) not in self.evaluations.retired(
@@ -209,15 +206,11 @@ class Evaluator:
                 self._spend(db, user, old.commit, old.task, (old.suite, old.suite_version))
             return self.evaluations.add(
                 db,
-                task=old.task,
+                asked.rerun(first.id),  # its code pinned at its commit, as each episode's
                 task_version=old.task_version,
                 suite=old.suite,
                 suite_version=old.suite_version,
                 held_out=old.held_out,
-                repository=old.repository,
-                ref=old.commit,
-                commit=old.commit,
-                params=old.params,
                 submitter=user.name,
                 seeds=seeds,
                 trial_ids=ids,
@@ -225,7 +218,6 @@ class Evaluator:
             )
 
         # each episode's own rerun, of the very records its episodes learnt from
-        asked = first.order
         orders = [
             asked.episode(row.seed).rerun(row.trial) for row in old.rows if row.seed is not None
         ]

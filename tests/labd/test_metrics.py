@@ -346,11 +346,7 @@ def evaluate(service: Service, *, seeds: int) -> int:
         ]
         return service.evaluations.add(
             db,
-            repository=ASKED.repository,
-            ref=ASKED.ref,
-            commit=ASKED.commit,
-            task="icreate-maze",
-            params={},
+            ASKED,
             submitter="alice",
             task_version="1",
             suite="dev",

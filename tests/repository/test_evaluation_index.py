@@ -34,15 +34,11 @@ def add(index: Index, evaluations: Evaluations, *, held_out: bool, seeds: list[i
         ids = [index.add_trial(asked.episode(seed), submitter="alice", db=db) for seed in seeds]
         return evaluations.add(
             db,
-            task="icreate-maze",
+            asked,
             task_version="1",
             suite="test" if held_out else "dev",
             suite_version=1,
             held_out=held_out,
-            repository="https://example.org/r.git",
-            ref="main",
-            commit=COMMIT,
-            params={},
             submitter="alice",
             seeds=seeds,
             trial_ids=ids,
