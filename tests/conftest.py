@@ -1,5 +1,6 @@
 """Shared fixtures: the type registry, graphs, sessions, a real bridge server, the
-sandboxes (one runtime for the session) and the lab's side of a trial."""
+databases and an index on a clock the test moves, the sandboxes (one runtime for the
+session) and the lab's side of a trial. README.md lists the fixtures' names."""
 
 from __future__ import annotations
 
@@ -22,9 +23,11 @@ from labd.graph.graph import Graph
 from labd.graph.types import TypeRegistry
 from labd.lab import LabConfig
 from labd.trial import LabHost
+from repository.index import Index
+from repository.index import connect as engine
 from sandbox.api import Backend
 from sandbox.docker import DockerBackend
-from tests.fakes import ManualTimers, RecordingTransport, drain
+from tests.fakes import ManualTimers, RecordingTransport, WallClock, drain
 from tests.helpers.labs import ServerThread
 from tests.helpers.sandboxes import BACKENDS, make_backend, runtime_cache
 
@@ -176,6 +179,23 @@ def database_url(request: pytest.FixtureRequest, tmp_path: Any) -> Iterator[str]
         return
     with postgres_databases() as fresh:
         yield fresh()
+
+
+@pytest.fixture
+def clock() -> WallClock:
+    """The index's clock, at 1,000,000 s until the test moves it (a module whose times
+    are dates starts its own ``clock`` there)."""
+    return WallClock(1_000_000.0)
+
+
+@pytest.fixture
+def clocked_index(database_url: str, clock: WallClock) -> Iterator[Index]:
+    """An empty index on each database whose time is ``clock``, for tests of leases,
+    quotas and expiries (``tests/repository``'s ``index`` reads the real time)."""
+    index = Index(engine(database_url), clock=clock)
+    index.create()
+    yield index
+    index.close()
 
 
 @contextlib.contextmanager

@@ -1,4 +1,4 @@
-"""Fakes for unit tests of logic: a manual clock and a recording transport."""
+"""Fakes for unit tests of logic: manual clocks and a recording transport."""
 
 from __future__ import annotations
 
@@ -14,6 +14,17 @@ import orjson
 from repository.index import Derived
 from repository.well_known import REPLAY
 from scheduler.queue import Queue
+
+
+class WallClock:
+    """Seconds since the epoch that move only when the test sets ``now``: the index's,
+    the queue's and the reservations' clock in tests of leases, quotas and expiries."""
+
+    def __init__(self, now: float) -> None:
+        self.now = now
+
+    def __call__(self) -> float:
+        return self.now
 
 
 class ManualTimers:

@@ -29,7 +29,8 @@ from tests.faults.slow import PackageIndex, S3Server
 __all__ = [
     "Served",
     "gone",
-    "index",
+    "held_package_index",
+    "make_bare_lab",
     "s3",
     "served",
     "small_disk",
@@ -247,8 +248,8 @@ def gone(processes: list[psutil.Process], timeout: float = 20) -> None:
 
 
 @pytest.fixture
-def index() -> Iterator[PackageIndex]:
-    """A package index whose page of tinypkg waits until ``index.release`` is set."""
+def held_package_index() -> Iterator[PackageIndex]:
+    """A package index whose page of tinypkg waits until its ``release`` is set."""
     server = PackageIndex()
     yield server
     server.release.set()
@@ -303,3 +304,26 @@ def served(tmp_path: Path, cache: Path) -> Iterator[Callable[..., Served]]:
     yield make
     for lab in labs:
         lab.stop()
+
+
+BARE = ("--no-robots", "--workers", "0")
+
+
+@pytest.fixture
+def make_bare_lab(tmp_path: Path) -> Iterator[Callable[..., Served]]:
+    """Labs to start with no robot and no worker, each on a data folder and a git cache
+    of its own (what is measured is theirs alone), mallory's token set:
+    ``make_bare_lab(*args, env=None)``; each is stopped at the end."""
+    labs: list[Served] = []
+
+    def make(*args: str, env: dict[str, str] | None = None) -> Served:
+        n = len(labs)
+        served = Served(tmp_path / f"data-{n}", tmp_path / f"cache-{n}", *BARE, *args, env=env)
+        labs.append(served)
+        served.start()
+        served.token = served.add_user("mallory")
+        return served
+
+    yield make
+    for served in labs:
+        served.stop()

@@ -27,6 +27,7 @@ from scheduler.errors import QuotaExceeded
 from scheduler.queue import Queue, QueueConfig
 from scheduler.runner import RunOptions, run_trial
 from scheduler.worker import Worker, WorkerConfig
+from tests.fakes import WallClock
 from tests.faults.conftest import gone
 from tests.faults.slow import PackageIndex, S3Server, controller
 from tests.helpers.githttp import GitRepo
@@ -35,21 +36,8 @@ from tests.helpers.sandboxes import make_backend
 pytestmark = pytest.mark.integration
 
 
-class Clock:
-    def __init__(self) -> None:
-        self.now = 1_000_000.0
-
-    def __call__(self) -> float:
-        return self.now
-
-
 @pytest.fixture
-def clock() -> Clock:
-    return Clock()
-
-
-@pytest.fixture
-def queue(database_url: str, clock: Clock):
+def queue(database_url: str, clock: WallClock):
     """The queue with its default configuration, and a user with the default limits."""
     db = Index(connect(database_url), clock=clock)
     db.create()
@@ -70,7 +58,7 @@ def submit(queue: Queue, seed: int = 0) -> int:
     return queue.submit(queue.index.user("alice"), order)
 
 
-def test_a_user_submits_at_most_500_trials_a_day(queue: Queue, clock: Clock):
+def test_a_user_submits_at_most_500_trials_a_day(queue: Queue, clock: WallClock):
     """The 501st submission within 24 hours is refused, saying why; a day later it is not."""
     for n in range(500):
         submit(queue, n)
@@ -91,7 +79,7 @@ def test_a_user_runs_at_most_2_trials_at_once(queue: Queue):
     assert queue.queued() == 1
 
 
-def test_three_lost_leases_end_a_trial_as_an_error(queue: Queue, clock: Clock):
+def test_three_lost_leases_end_a_trial_as_an_error(queue: Queue, clock: WallClock):
     """A trial whose worker is lost three times (30 s leases run out) is given up, saying so."""
     trial = submit(queue)
     for attempt in (1, 2, 3):
@@ -125,11 +113,11 @@ async def test_a_page_of_trials_is_at_most_500(tmp_path: Path):
 
 @pytest.mark.timeout(90)
 def test_preparing_past_its_deadline_is_an_error(
-    cache, host, index: PackageIndex, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+    cache, host, held_package_index: PackageIndex, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ):
     """Requirements whose index does not answer: the trial ends at the preparing deadline
     as an error saying which stage took too long, and the installer's sandbox is stopped."""
-    monkeypatch.setenv("PIP_INDEX_URL", index.url)
+    monkeypatch.setenv("PIP_INDEX_URL", held_package_index.url)
     repo = GitRepo.create(tmp_path / "needs", controller(3, requirements=True))
     backend = make_backend("bwrap", cache)
     order = Order(repository=str(repo.path))
@@ -143,12 +131,12 @@ def test_preparing_past_its_deadline_is_an_error(
         trial = asyncio.create_task(
             run_trial(order, backend=backend, host=host, out=out, cache=cache, options=options)
         )
-        asked = asyncio.create_task(asyncio.to_thread(index.asked.wait, 60))
+        asked = asyncio.create_task(asyncio.to_thread(held_package_index.asked.wait, 60))
         await asyncio.wait({trial, asked}, return_when=asyncio.FIRST_COMPLETED)
         installer = [  # pip, waiting for the index, and its sandbox
             p for p in psutil.Process().children(recursive=True) if p.pid not in before
         ]
-        assert index.asked.is_set() and installer, "pip never asked the index"
+        assert held_package_index.asked.is_set() and installer, "pip never asked the index"
         ended = await trial
         # While the lab goes on (this loop still runs), the installer is gone.
         await asyncio.to_thread(gone, installer, 10)

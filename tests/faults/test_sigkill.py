@@ -48,18 +48,18 @@ def check_ended_once(lab, submitted: list[int], target: dict, queued: dict) -> N
 
 
 @pytest.mark.timeout(180)
-def test_sigkill_while_preparing(served, index: PackageIndex, tmp_path: Path):
+def test_sigkill_while_preparing(served, held_package_index: PackageIndex, tmp_path: Path):
     """Killed while the requirements install (the index has not answered): the trial is
     requeued, installs on its second attempt, runs and is filed once."""
     lab = served("--no-robots", "--workers", "1", "--sandbox", "bwrap", "--lease", "3",
-                 "--allow-local-repos", env={"PIP_INDEX_URL": index.url})  # fmt: skip
+                 "--allow-local-repos", env={"PIP_INDEX_URL": held_package_index.url})  # fmt: skip
     lab.token = lab.add_user("alice")
     lab.start()
     target = lab.submit(GitRepo.create(tmp_path / "t", controller(3, requirements=True)).path)
     queued = lab.submit(GitRepo.create(tmp_path / "q", controller(3)).path)
-    assert index.asked.wait(60), lab.log
+    assert held_package_index.asked.wait(60), lab.log
     kill_and_restart(lab, target["id"], "preparing")
-    index.release.set()
+    held_package_index.release.set()
     rows = lab.wait_ended([target["id"], queued["id"]], 120)
     for row in rows:
         assert row["reason"].startswith("the controller exited with 0 at tick 3"), row["reason"]

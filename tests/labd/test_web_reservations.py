@@ -16,23 +16,16 @@ from argon2 import PasswordHasher
 from labd.service import Service, ServiceConfig
 from labd.web import RobotLink, Site, create_app
 from repository.accounts import Accounts
+from tests.fakes import WallClock
 from tests.labd.test_web import csrf_of
 
 MONDAY = dt.datetime(2030, 1, 7, 9, 0, tzinfo=dt.UTC)
 PASSWORD = "correct horse battery"
 
 
-class Clock:
-    def __init__(self) -> None:
-        self.now = MONDAY.timestamp()
-
-    def __call__(self) -> float:
-        return self.now
-
-
 @pytest.fixture
-def clock():
-    return Clock()
+def clock() -> WallClock:
+    return WallClock(MONDAY.timestamp())
 
 
 def make_service(tmp_path, clock, **options):

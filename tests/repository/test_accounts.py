@@ -15,39 +15,25 @@ from repository.errors import (
     RecordNotFound,
     UnknownKey,
 )
-from repository.index import Index, connect
 from repository.reservations import Reservations, Rules
 from repository.tables import passwords, web_sessions
-
-
-class Clock:
-    def __init__(self) -> None:
-        self.now = 1_900_000_000.0
-
-    def __call__(self) -> float:
-        return self.now
+from tests.fakes import WallClock
 
 
 @pytest.fixture
-def clock():
-    return Clock()
+def clock() -> WallClock:
+    return WallClock(1_900_000_000.0)
 
 
 @pytest.fixture
-def index(database_url, clock):
-    index = Index(connect(database_url), clock=clock)
-    index.create()
-    yield index
-    index.close()
-
-
-@pytest.fixture
-def accounts(index):
+def accounts(clocked_index):
     # cheap parameters: these tests check the logic, not argon2's cost
-    return Accounts(index, hasher=PasswordHasher(time_cost=1, memory_cost=1024), session_age=60)
+    return Accounts(
+        clocked_index, hasher=PasswordHasher(time_cost=1, memory_cost=1024), session_age=60
+    )
 
 
-def test_sign_up_and_password_checks(accounts, index):
+def test_sign_up_and_password_checks(accounts, clocked_index):
     """A signed-up person signs in with their password only; the database keeps an
     argon2id hash; a wrong name and a wrong password are the same refusal."""
     accounts.sign_up("carol", "correct horse battery")
@@ -55,7 +41,7 @@ def test_sign_up_and_password_checks(accounts, index):
     for name, password in (("carol", "wrong password!"), ("nobody", "correct horse battery")):
         with pytest.raises(BadCredentials, match="the user name or the password is wrong"):
             accounts.check_password(name, password)
-    with index.engine.connect() as db:
+    with clocked_index.engine.connect() as db:
         stored = db.execute(sa.select(passwords.c.hash)).scalar()
     assert stored.startswith("$argon2id$") and "correct horse" not in stored
     with pytest.raises(AccountError, match="at least 10 characters"):
@@ -65,84 +51,86 @@ def test_sign_up_and_password_checks(accounts, index):
     assert accounts.tokens("carol") == []  # no token until they make one
 
 
-def test_an_old_hash_is_upgraded_at_sign_in(index):
+def test_an_old_hash_is_upgraded_at_sign_in(clocked_index):
     """A hash made with weaker parameters is replaced at the next good sign-in."""
-    weak = Accounts(index, hasher=PasswordHasher(time_cost=1, memory_cost=1024))
+    weak = Accounts(clocked_index, hasher=PasswordHasher(time_cost=1, memory_cost=1024))
     weak.sign_up("carol", "correct horse battery")
-    strong = Accounts(index, hasher=PasswordHasher(time_cost=2, memory_cost=2048))
+    strong = Accounts(clocked_index, hasher=PasswordHasher(time_cost=2, memory_cost=2048))
     strong.check_password("carol", "correct horse battery")
-    with index.engine.connect() as db:
+    with clocked_index.engine.connect() as db:
         stored = db.execute(sa.select(passwords.c.hash)).scalar()
     assert "m=2048,t=2" in stored
 
 
-def test_tokens_are_listed_made_and_revoked_by_their_owner(accounts, index):
+def test_tokens_are_listed_made_and_revoked_by_their_owner(accounts, clocked_index):
     """A user lists their tokens (labels, never the tokens), makes more, revokes one:
     it stops working at once, the others go on; nobody revokes another's token."""
-    first = index.add_user("alice")
+    first = clocked_index.add_user("alice")
     listed = accounts.tokens("alice")
     assert [t.label for t in listed] == ["made by the operator (labd users add)"]
     made, second = accounts.new_token("alice", "  my laptop\n")
-    assert made.label == "my laptop" and index.user_by_token(second).name == "alice"
-    index.add_user("bob")
+    assert made.label == "my laptop" and clocked_index.user_by_token(second).name == "alice"
+    clocked_index.add_user("bob")
     with pytest.raises(RecordNotFound):
         accounts.revoke_token("bob", made.id)
     revoked = accounts.revoke_token("alice", made.id)
     assert revoked.revoked is not None
-    assert index.user_by_token(second) is None
-    assert index.user_by_token(first).name == "alice"
+    assert clocked_index.user_by_token(second) is None
+    assert clocked_index.user_by_token(first).name == "alice"
     assert [t.revoked is None for t in accounts.tokens("alice")] == [False, True]
 
 
-def test_the_operator_revokes_every_token_or_rotates(accounts, index):
+def test_the_operator_revokes_every_token_or_rotates(accounts, clocked_index):
     """Revoking all of a user's tokens ends their browser sessions too; rotating leaves
     exactly one new token that works."""
-    first = index.add_user("alice")
+    first = clocked_index.add_user("alice")
     _, second = accounts.new_token("alice", "ci")
-    cookie, _ = accounts.open_session(index.user("alice"))
+    cookie, _ = accounts.open_session(clocked_index.user("alice"))
     assert accounts.revoke_all("alice") == 2
-    assert index.user_by_token(first) is None and index.user_by_token(second) is None
+    assert (
+        clocked_index.user_by_token(first) is None and clocked_index.user_by_token(second) is None
+    )
     assert accounts.session(cookie) is None
     new = accounts.rotate("alice")
-    assert index.user_by_token(new).name == "alice"
+    assert clocked_index.user_by_token(new).name == "alice"
     assert [t.revoked is None for t in accounts.tokens("alice")] == [True, False, False]
 
 
-def test_a_token_an_older_labd_made_still_works_until_revoked(accounts, index):
+def test_a_token_an_older_labd_made_still_works_until_revoked(accounts, clocked_index):
     """A user whose only token lives in the users table (an older labd's) still signs
     in with it; revoking all their tokens ends it too."""
-    token = index.add_user("alice")
-    with index.begin() as db:
-        db.execute(sa.delete(index.tokens))
-    assert index.user_by_token(token).name == "alice"
+    token = clocked_index.add_user("alice")
+    with clocked_index.begin() as db:
+        db.execute(sa.delete(clocked_index.tokens))
+    assert clocked_index.user_by_token(token).name == "alice"
     accounts.revoke_all("alice")
-    assert index.user_by_token(token) is None
+    assert clocked_index.user_by_token(token) is None
 
 
-def test_sessions_expire_and_end_and_keep_only_a_hash(accounts, index, clock):
+def test_sessions_expire_and_end_and_keep_only_a_hash(accounts, clocked_index, clock):
     """A session names its user and CSRF token until it expires or is ended; the
     database holds only the cookie's hash."""
-    index.add_user("alice", token=False)
-    cookie, session = accounts.open_session(index.user("alice"))
+    clocked_index.add_user("alice", token=False)
+    cookie, session = accounts.open_session(clocked_index.user("alice"))
     assert accounts.session(cookie).csrf == session.csrf and len(session.csrf) >= 24
-    with index.engine.connect() as db:
+    with clocked_index.engine.connect() as db:
         assert cookie not in str(db.execute(sa.select(web_sessions)).all())
     assert accounts.session(cookie + "x") is None
     clock.now += 61
     assert accounts.session(cookie) is None
-    again, _ = accounts.open_session(index.user("alice"))
+    again, _ = accounts.open_session(clocked_index.user("alice"))
     accounts.end_session(again)
     assert accounts.session(again) is None
 
 
-def test_a_new_password_ends_the_other_sessions_and_keeps_the_tokens(accounts, index):
+def test_a_new_password_ends_the_other_sessions_and_keeps_the_tokens(accounts, clocked_index):
     """Alice's own change keeps the session she changed it from and ends her others;
     the operator's reset ends them all; a wrong current password changes nothing; her
     tokens work throughout; an upgraded hash (the same password) ends nothing."""
-    token = index.add_user("alice")
+    token = clocked_index.add_user("alice")
     accounts.set_password("alice", "correct horse battery")
-    here, _ = accounts.open_session(index.user("alice"))
-    there, _ = accounts.open_session(index.user("alice"))
+    here, _ = accounts.open_session(clocked_index.user("alice"))
+    there, _ = accounts.open_session(clocked_index.user("alice"))
     with pytest.raises(BadCredentials):
         accounts.change_password("alice", "not the password", "another long one", keep=here)
     assert accounts.session(there) is not None
@@ -154,21 +142,21 @@ def test_a_new_password_ends_the_other_sessions_and_keeps_the_tokens(accounts, i
     assert accounts.check_password("alice", "another long one").name == "alice"
     with pytest.raises(BadCredentials):
         accounts.check_password("alice", "correct horse battery")
-    stronger = Accounts(index, hasher=PasswordHasher(time_cost=2, memory_cost=2048))
+    stronger = Accounts(clocked_index, hasher=PasswordHasher(time_cost=2, memory_cost=2048))
     stronger.check_password("alice", "another long one")  # re-hashed: the session stays
     assert accounts.session(here) is not None
     assert accounts.set_password("alice", "the operator's reset") == 1
     assert accounts.session(here) is None
-    assert index.user_by_token(token).name == "alice"
+    assert clocked_index.user_by_token(token).name == "alice"
 
 
-def test_revoking_a_user_replaces_the_keys_of_their_slots(accounts, index, tmp_path):
+def test_revoking_a_user_replaces_the_keys_of_their_slots(accounts, clocked_index, tmp_path):
     """``labd users revoke NAME`` (revoke_all) makes every reservation key of theirs open
     nothing, and leaves their slots booked and others' keys working."""
-    index.add_user("alice")
-    index.add_user("bob")
-    desk = Reservations(index, Rules(), b"k" * 32)
-    now = index.clock()
+    clocked_index.add_user("alice")
+    clocked_index.add_user("bob")
+    desk = Reservations(clocked_index, Rules(), b"k" * 32)
+    now = clocked_index.clock()
     alices = desk.book("alice", "icreate-1", now, now + 600)
     bobs = desk.book("bob", "pr2-1", now, now + 600)
     accounts.revoke_all("alice")
@@ -182,23 +170,23 @@ def test_revoking_a_user_replaces_the_keys_of_their_slots(accounts, index, tmp_p
     "name",
     ["\u0430lice", "\uff41lice", ".", "..", ".alice", "-x", "al ice", "alice\n", "a" * 65, ""],
 )
-def test_names_that_could_pass_for_others_are_refused(index, name):
+def test_names_that_could_pass_for_others_are_refused(clocked_index, name):
     """A new name is ASCII letters, digits, '.', '-', '_', starting with a letter or a
     digit: look-alikes in other scripts and dot names are refused naming the rule."""
     with pytest.raises(ArchiveError, match="use 1 to 64 ASCII letters, digits"):
-        index.add_user(name)
+        clocked_index.add_user(name)
 
 
-def test_names_are_unique_without_case_and_old_collisions_are_found(index):
+def test_names_are_unique_without_case_and_old_collisions_are_found(clocked_index):
     """'Alice' beside 'alice' is refused; names an older labd let collide are kept,
     listed by name_collisions, and no third spelling may join them."""
-    index.add_user("alice")
+    clocked_index.add_user("alice")
     with pytest.raises(ArchiveError, match="'ALICE' is taken: names are told apart without case"):
-        index.add_user("ALICE")
-    with index.begin() as db:  # as an older labd could have made them
+        clocked_index.add_user("ALICE")
+    with clocked_index.begin() as db:  # as an older labd could have made them
         for name in ("Bob", "bob"):
             db.execute(
-                sa.insert(index.users).values(
+                sa.insert(clocked_index.users).values(
                     name=name,
                     token_sha256=name,
                     created=0,
@@ -207,7 +195,7 @@ def test_names_are_unique_without_case_and_old_collisions_are_found(index):
                     worker=False,
                 )
             )
-    assert index.name_collisions() == [["Bob", "bob"]]
+    assert clocked_index.name_collisions() == [["Bob", "bob"]]
     with pytest.raises(ArchiveError, match="is taken"):
-        index.add_user("BOB")
-    assert index.user("Bob").name == "Bob" and index.user("bob").name == "bob"
+        clocked_index.add_user("BOB")
+    assert clocked_index.user("Bob").name == "Bob" and clocked_index.user("bob").name == "bob"

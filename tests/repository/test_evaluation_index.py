@@ -15,13 +15,6 @@ from repository.well_known import REPLAY
 COMMIT = "c" * 40
 
 
-@pytest.fixture
-def index(database_url):
-    index = Index.open(database_url)
-    yield index
-    index.close()
-
-
 def add(index: Index, evaluations: Evaluations, *, held_out: bool, seeds: list[int]) -> int:
     with index.begin() as db:
         asked = Order(

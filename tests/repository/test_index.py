@@ -6,16 +6,9 @@ import pytest
 import sqlalchemy as sa
 
 from repository.errors import ArchiveError, RecordNotFound, SchemaMismatch
-from repository.index import Filters, Index, Sort
+from repository.index import Filters, Sort
 from repository.tables import meta
 from repository.trial import Kind, Order, Outcome, Status
-
-
-@pytest.fixture
-def index(database_url):
-    index = Index.open(database_url)
-    yield index
-    index.close()
 
 
 def trial(index, commit, *, rerun_of=None, seed=0):

@@ -21,6 +21,7 @@ from repository.errors import (
 )
 from repository.index import Index, connect
 from repository.reservations import Booking, Reservations, Rules, load_secret, rekey, when
+from tests.fakes import WallClock
 
 # Monday 2030-01-07 09:00 UTC: tests start on a known day of a known week.
 MONDAY = dt.datetime(2030, 1, 7, 9, 0, tzinfo=dt.UTC).timestamp()
@@ -29,21 +30,14 @@ HOUR = 3600.0
 SECRET = b"s" * 32
 
 
-class Clock:
-    def __init__(self, now: float) -> None:
-        self.now = now
-
-    def __call__(self) -> float:
-        return self.now
+@pytest.fixture
+def clock() -> WallClock:
+    return WallClock(MONDAY)
 
 
 @pytest.fixture
-def clock():
-    return Clock(MONDAY)
-
-
-@pytest.fixture
-def index(database_url, clock):
+def clocked_index(database_url, clock):
+    """The index on ``clock``, alice and bob in it."""
     index = Index(connect(database_url), clock=clock)
     index.create()
     for name in ("alice", "bob"):
@@ -52,13 +46,13 @@ def index(database_url, clock):
     index.close()
 
 
-def booked(index, **rules):
-    return Reservations(index, Rules(**rules), SECRET)
+def booked(clocked_index, **rules):
+    return Reservations(clocked_index, Rules(**rules), SECRET)
 
 
 @pytest.fixture
-def desk(index):
-    return booked(index)
+def desk(clocked_index):
+    return booked(clocked_index)
 
 
 def test_a_booking_gives_a_key_for_its_robot_and_its_slot_only(desk, clock):
@@ -119,13 +113,13 @@ def test_a_key_is_parsed_strictly(desk, clock, spelling):
     assert desk.authorize(made.key, "icreate-1").seconds == HOUR
 
 
-def test_rekeying_a_person_ends_their_keys_and_keeps_their_slots(index, desk, clock):
+def test_rekeying_a_person_ends_their_keys_and_keeps_their_slots(clocked_index, desk, clock):
     """``rekey`` (a revoked person) makes every key of their current and coming slots
     open nothing; the slots stay booked, their new keys work, others' keys are untouched."""
     now_slot = desk.book("alice", "icreate-1", MONDAY, MONDAY + HOUR)
     later = desk.book("alice", "pr2-1", MONDAY + 2 * HOUR, MONDAY + 3 * HOUR)
     bobs = desk.book("bob", "pr2-1", MONDAY, MONDAY + HOUR)
-    with index.begin() as db:
+    with clocked_index.begin() as db:
         assert rekey(db, "alice", clock.now) == 2
     for old in (now_slot, later):
         with pytest.raises(UnknownKey):
@@ -170,17 +164,17 @@ def test_the_operator_cannot_set_an_unbounded_horizon_or_slot():
     assert Rules(horizon=365 * 86400, max_slot=86400).horizon == 365 * 86400
 
 
-def test_keys_are_not_in_the_database_and_another_secret_opens_nothing(index, desk, clock):
+def test_keys_are_not_in_the_database_and_another_secret_opens_nothing(clocked_index, desk, clock):
     """The database holds no key (a copy of it opens no robot); a lab with another
     secret refuses the key; the owner can read their key again, others cannot."""
     made = desk.book("alice", "icreate-1", MONDAY, MONDAY + HOUR)
-    with index.engine.connect() as db:
+    with clocked_index.engine.connect() as db:
         rows = [tuple(map(str, r)) for r in db.execute(sa.text("SELECT * FROM reservations"))]
     assert all(made.key not in value and made.key[-20:] not in value for r in rows for value in r)
     assert desk.key("alice", made.reservation.id) == made.key
     with pytest.raises(NotYourReservation, match="alice's; only they may read its key"):
         desk.key("bob", made.reservation.id)
-    other = Reservations(index, Rules(), b"t" * 32)
+    other = Reservations(clocked_index, Rules(), b"t" * 32)
     with pytest.raises(KeyRefused, match="no such key"):
         other.authorize(made.key, "icreate-1")
 
@@ -207,10 +201,10 @@ def test_a_slot_asked_for_a_moment_ago_starts_now(desk, clock):
     assert made.reservation.start == MONDAY
 
 
-def test_slots_of_one_robot_never_overlap(index):
+def test_slots_of_one_robot_never_overlap(clocked_index):
     """An overlapping booking is refused naming the slot in the way; touching slots and
     other robots are fine."""
-    desk = booked(index, max_minutes_per_day=None)
+    desk = booked(clocked_index, max_minutes_per_day=None)
     desk.book("alice", "icreate-1", MONDAY + HOUR, MONDAY + 2 * HOUR)
     with pytest.raises(SlotTaken, match=r"booked from 2030-01-07 10:00:00 UTC to .* by alice"):
         desk.book("bob", "icreate-1", MONDAY + 90 * MIN, MONDAY + 150 * MIN)
@@ -226,10 +220,10 @@ def test_slots_of_one_robot_never_overlap(index):
     ]
 
 
-def test_limits_per_day_and_per_week(index, clock):
+def test_limits_per_day_and_per_week(clocked_index, clock):
     """A person's slots and minutes per UTC day and per ISO week are capped."""
     desk = booked(
-        index,
+        clocked_index,
         max_slots_per_day=2,
         max_minutes_per_day=90,
         max_slots_per_week=3,
@@ -251,9 +245,9 @@ def test_limits_per_day_and_per_week(index, clock):
     desk.book("alice", "icreate-1", next_monday, next_monday + 10 * MIN)  # a new week
 
 
-def test_minutes_per_week(index):
+def test_minutes_per_week(clocked_index):
     """Minutes per week are summed over the week's days."""
-    desk = booked(index, max_minutes_per_week=100, max_slots_per_day=None)
+    desk = booked(clocked_index, max_minutes_per_week=100, max_slots_per_day=None)
     for day in range(2):
         start = MONDAY + day * 86400
         desk.book("alice", "icreate-1", start, start + 50 * MIN)
@@ -284,9 +278,9 @@ def test_an_extension_only_into_free_time_and_within_the_rules(desk, clock):
         desk.extend("alice", 999, MONDAY + 55 * MIN)
 
 
-def test_an_extension_counts_against_the_limits(index):
+def test_an_extension_counts_against_the_limits(clocked_index):
     """Extending cannot get around the minutes a day allows."""
-    desk = booked(index, max_minutes_per_day=60)
+    desk = booked(clocked_index, max_minutes_per_day=60)
     mine = desk.book("alice", "icreate-1", MONDAY, MONDAY + 30 * MIN).reservation
     desk.book("alice", "pr2-1", MONDAY + HOUR, MONDAY + HOUR + 20 * MIN)
     with pytest.raises(OverLimit, match="70 min of slots"):
@@ -335,12 +329,14 @@ def test_a_replayed_key_of_an_earlier_slot_opens_nothing_in_a_later_one(desk, cl
 
 
 @pytest.mark.parametrize("rounds", [5])
-def test_racing_overlapping_bookings_exactly_one_wins(index, database_url, rounds):
+def test_racing_overlapping_bookings_exactly_one_wins(clocked_index, database_url, rounds):
     """Two clients book overlapping slots at the same moment, from their own
     connections: each time exactly one wins and the other is told the slot is taken."""
     # no daily limit: whoever wins every round must not run into one and win by refusal
     rules = {"max_slots_per_day": None, "max_minutes_per_day": None}
-    desks = [booked(Index(connect(database_url), clock=index.clock), **rules) for _ in range(2)]
+    desks = [
+        booked(Index(connect(database_url), clock=clocked_index.clock), **rules) for _ in range(2)
+    ]
     try:
         for n in range(rounds):
             start = MONDAY + n * HOUR
@@ -374,11 +370,11 @@ def test_racing_overlapping_bookings_exactly_one_wins(index, database_url, round
             desk.index.close()
 
 
-def test_racing_bookings_of_one_person_keep_to_their_limit(index, database_url):
+def test_racing_bookings_of_one_person_keep_to_their_limit(clocked_index, database_url):
     """Two bookings of different robots by one person, at once, with room for one more
     slot that day: exactly one is accepted."""
     desks = [
-        booked(Index(connect(database_url), clock=index.clock), max_slots_per_day=1)
+        booked(Index(connect(database_url), clock=clocked_index.clock), max_slots_per_day=1)
         for _ in range(2)
     ]
     barrier = threading.Barrier(2)

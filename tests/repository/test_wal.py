@@ -16,25 +16,25 @@ from repository.index import Index
 
 
 @pytest.fixture
-def index(tmp_path):
-    index = Index.open(f"sqlite:///{tmp_path / 'index.sqlite'}")
-    yield index
-    index.close()
+def sqlite_index(tmp_path):
+    sqlite_index = Index.open(f"sqlite:///{tmp_path / 'index.sqlite'}")
+    yield sqlite_index
+    sqlite_index.close()
 
 
-def test_a_deleted_wal_stops_writes_and_its_content_is_saved(index, tmp_path, caplog):
+def test_a_deleted_wal_stops_writes_and_its_content_is_saved(sqlite_index, tmp_path, caplog):
     """Deleting the WAL of an open index refuses the next write (and every later one, and
     ``check``) with a reason naming the file, logs it once as critical, and leaves what
     the WAL held in the database file itself."""
-    index.add_user("alice")
+    sqlite_index.add_user("alice")
     wal = tmp_path / "index.sqlite-wal"
     os.unlink(wal)
     with caplog.at_level(logging.CRITICAL, "repository.index"), pytest.raises(IndexLost) as lost:
-        index.add_user("bob")
+        sqlite_index.add_user("bob")
     assert f"{wal} was deleted or replaced" in str(lost.value)
     assert "nothing is lost" in str(lost.value)
     with pytest.raises(IndexLost):
-        index.check()
+        sqlite_index.check()
     assert [r.levelname for r in caplog.records] == ["CRITICAL"]
     # another process reads the database file alone (no WAL): alice is in it
     read = "import sqlite3, sys; print(sqlite3.connect(sys.argv[1]).execute('select name from users').fetchall())"
@@ -46,7 +46,7 @@ def test_a_deleted_wal_stops_writes_and_its_content_is_saved(index, tmp_path, ca
     assert out.stdout.strip() == "[('alice',)]"
 
 
-def test_a_replaced_database_stops_writes(index, tmp_path):
+def test_a_replaced_database_stops_writes(sqlite_index, tmp_path):
     """A database file replaced under the open index (a restore over a running lab) is
     refused the same way."""
     db = tmp_path / "index.sqlite"
@@ -54,15 +54,15 @@ def test_a_replaced_database_stops_writes(index, tmp_path):
     sqlite3.connect(other).close()
     os.replace(other, db)
     with pytest.raises(IndexLost, match=r"index\.sqlite was deleted or replaced"):
-        index.add_user("bob")
+        sqlite_index.add_user("bob")
 
 
-def test_an_index_left_alone_keeps_writing(index):
+def test_an_index_left_alone_keeps_writing(sqlite_index):
     """Writes, closes and reopens of other connections never trip the check (SQLite
     itself does not delete the WAL while the index holds its connection)."""
     for n in range(5):
-        index.add_user(f"u{n}")
-        index.engine.dispose()
-        index.writer.dispose()
-    index.check()
-    assert index.user("u4").name == "u4"
+        sqlite_index.add_user(f"u{n}")
+        sqlite_index.engine.dispose()
+        sqlite_index.writer.dispose()
+    sqlite_index.check()
+    assert sqlite_index.user("u4").name == "u4"

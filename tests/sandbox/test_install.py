@@ -120,7 +120,7 @@ def node_package(workdir: Path) -> tuple[Path, Path]:
 
 
 @pytest.fixture
-def index() -> Iterator[PackageIndex]:
+def package_index() -> Iterator[PackageIndex]:
     """A package index on the lab machine's 127.0.0.1, answering at once."""
     server = PackageIndex()
     server.release.set()
@@ -133,15 +133,15 @@ async def test_an_index_the_operator_put_on_the_labs_loopback_is_reached(
     backend: Backend,
     controllers: Controllers,
     workdir: Path,
-    index: PackageIndex,
+    package_index: PackageIndex,
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:
     """PIP_INDEX_URL on the host's 127.0.0.1 is the configured index: the build step, whose
     sandbox has no network of its own, reaches it through the lab's proxy (Docker too)."""
-    monkeypatch.setenv("PIP_INDEX_URL", index.url)
+    monkeypatch.setenv("PIP_INDEX_URL", package_index.url)
     target = workdir / f"target-{os.urandom(4).hex()}"
     await backend.install(requirements(workdir, "tinypkg==1.0\n"), target)
-    assert index.asked.is_set()
+    assert package_index.asked.is_set()
     ended = await controllers.run("import tinypkg; print(tinypkg.VALUE)", python_paths=[target])
     assert ended.stdout == b"7\n", ended.stderr
 
