@@ -59,7 +59,7 @@ def _wait_for_port(deadline: float) -> None:
 
 
 @contextlib.contextmanager
-def lab(fibonacci_type: str, data: Path) -> Iterator[None]:
+def served_with_fixtures(fibonacci_type: str, data: Path) -> Iterator[None]:
     """labd serve and the fixtures, in this network namespace, for the ``with`` block."""
     subprocess.run(["ip", "link", "set", "lo", "up"], check=True)
     with socket.socket() as probe:
@@ -171,7 +171,7 @@ def run_roslibpy(suite: Path, transports: list[str]) -> dict[str, Any]:
     results: dict[str, Any] = {}
     with (
         tempfile.TemporaryDirectory() as work,
-        lab("example_interfaces/action/Fibonacci", Path(work) / "data"),
+        served_with_fixtures("example_interfaces/action/Fibonacci", Path(work) / "data"),
     ):
         for transport in transports:
             report = Path(work) / f"{transport}.xml"
@@ -192,7 +192,7 @@ def run_roslibjs(tests: Path, distro: str) -> dict[str, Any]:
     results: dict[str, Any] = {}
     with (
         tempfile.TemporaryDirectory() as work,
-        lab("action_tutorials_interfaces/action/Fibonacci", Path(work) / "data"),
+        served_with_fixtures("action_tutorials_interfaces/action/Fibonacci", Path(work) / "data"),
     ):
         report = Path(work) / "vitest.xml"
         env = {**os.environ, "ROS_DISTRO": distro, "ROS_VERSION": "2"}

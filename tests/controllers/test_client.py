@@ -34,15 +34,15 @@ def stamp_ns(message):
 
 
 @pytest.fixture
-def maze(make_server):
+def maze_server(make_server):
     """A lab hosting one lockstep maze robot, with a 2 s episode (20 ticks)."""
     robot = RobotConfig("maze", "icreate-maze", params=(("time_limit", "2"),), seed=3, live=False)
     return make_server(BridgeConfig(port=0), robots=(robot,))
 
 
 @pytest.fixture
-def lab(maze):
-    with Lab.connect(maze.url, timeout=10) as client:
+def maze_client(maze_server):
+    with Lab.connect(maze_server.url, timeout=10) as client:
         yield client
 
 
@@ -81,25 +81,25 @@ def test_connecting_where_nothing_listens_says_so():
 
 
 @pytest.mark.integration
-def test_latched_topics_arrive_on_subscription(lab):
+def test_latched_topics_arrive_on_subscription(maze_client):
     """/goal (latched) is there after one get(); /odom holds the pose of tick 0."""
-    goal = lab.subscribe("/goal", "geometry_msgs/msg/PointStamped").get()
+    goal = maze_client.subscribe("/goal", "geometry_msgs/msg/PointStamped").get()
     assert goal["header"]["frame_id"] == "odom"
-    odom = lab.subscribe("odom", ODOM).get()  # a relative name means the absolute one
+    odom = maze_client.subscribe("odom", ODOM).get()  # a relative name means the absolute one
     assert stamp_ns(odom) == 0
-    assert lab.subscribe("/odom", ODOM).count == 1  # the same subscription
+    assert maze_client.subscribe("/odom", ODOM).count == 1  # the same subscription
 
 
 @pytest.mark.integration
-def test_after_step_the_subscriptions_hold_that_ticks_observations(lab):
+def test_after_step_the_subscriptions_hold_that_ticks_observations(maze_client):
     """Every step returns with the tick's /odom and /clock in, its callbacks run, in order."""
     seen = []
-    odom = lab.subscribe("/odom", ODOM, callback=lambda m: seen.append(stamp_ns(m)))
-    clock = lab.subscribe("/clock", "rosgraph_msgs/msg/Clock")
+    odom = maze_client.subscribe("/odom", ODOM, callback=lambda m: seen.append(stamp_ns(m)))
+    clock = maze_client.subscribe("/clock", "rosgraph_msgs/msg/Clock")
     odom.get()
     for number in range(1, 6):
-        lab.publish("/cmd_vel", TWIST, {"linear": {"x": 0.3}})
-        tick = lab.step()
+        maze_client.publish("/cmd_vel", TWIST, {"linear": {"x": 0.3}})
+        tick = maze_client.step()
         assert (tick.number, tick.status) == (number, "running")
         assert tick.time == pytest.approx(number * 0.1)
         assert stamp_ns(odom.latest) == number * PERIOD_NS
@@ -108,96 +108,96 @@ def test_after_step_the_subscriptions_hold_that_ticks_observations(lab):
         assert seen[-1] == number * PERIOD_NS
     assert seen == [k * PERIOD_NS for k in range(6)]
     assert odom.latest["pose"]["pose"]["position"]["x"] > 0.05  # the command was applied
-    assert lab.episode["tick"] == 5 and lab.episode["status"] == "running"
+    assert maze_client.episode["tick"] == 5 and maze_client.episode["status"] == "running"
 
 
 @pytest.mark.integration
-def test_the_step_that_ends_the_episode_raises_episode_over_and_so_do_later_ones(lab):
+def test_the_step_that_ends_the_episode_raises_episode_over_and_so_do_later_ones(maze_client):
     """At the time limit, step raises EpisodeOver (truncated) with the last tick's
     observations in; a further step raises it again."""
-    odom = lab.subscribe("/odom", ODOM)
+    odom = maze_client.subscribe("/odom", ODOM)
     for _ in range(19):
-        assert lab.step().running
+        assert maze_client.step().running
     with pytest.raises(EpisodeOver) as ended:
-        lab.step()
+        maze_client.step()
     over = ended.value
     assert (over.status, over.success, over.tick.number) == ("truncated", False, 20)
     assert "time limit" in over.reason and "time limit" in str(over)
     assert stamp_ns(odom.latest) == 20 * PERIOD_NS
     with pytest.raises(EpisodeOver) as again:
-        lab.step()
+        maze_client.step()
     assert (again.value.status, again.value.tick.number) == ("truncated", 20)
-    assert lab.episode["status"] == "truncated"
+    assert maze_client.episode["status"] == "truncated"
 
 
 @pytest.mark.integration
-def test_run_calls_the_policy_each_tick_until_the_episode_ends(lab):
+def test_run_calls_the_policy_each_tick_until_the_episode_ends(maze_client):
     """run() gives the policy ticks 0..19 and returns the last one, tick 20."""
     numbers = []
-    last = lab.run(lambda tick: numbers.append(tick.number))
+    last = maze_client.run(lambda tick: numbers.append(tick.number))
     assert numbers == list(range(20))
     assert (last.number, last.status) == (20, "truncated")
 
 
 @pytest.mark.integration
-def test_a_refused_command_raises_status_error_after_the_step(lab):
+def test_a_refused_command_raises_status_error_after_the_step(maze_client):
     """A NaN in a command is refused by the lab; the next step raises its sentence, and
     the tick's observations are in all the same."""
-    odom = lab.subscribe("/odom", ODOM)
-    lab.publish("/cmd_vel", TWIST, {"linear": {"x": math.nan}})
+    odom = maze_client.subscribe("/odom", ODOM)
+    maze_client.publish("/cmd_vel", TWIST, {"linear": {"x": math.nan}})
     with pytest.raises(StatusError, match=r"msg\.linear\.x must be a finite number"):
-        lab.step()
-    assert lab.tick is not None and lab.tick.number == 1  # the step happened
+        maze_client.step()
+    assert maze_client.tick is not None and maze_client.tick.number == 1  # the step happened
     assert stamp_ns(odom.latest) == PERIOD_NS
-    assert lab.step().number == 2  # the connection carries on
+    assert maze_client.step().number == 2  # the connection carries on
 
 
 @pytest.mark.integration
-def test_subscribing_with_the_wrong_type_raises_status_error(lab):
+def test_subscribing_with_the_wrong_type_raises_status_error(maze_client):
     """/odom is not a Twist: get() raises the lab's refusal instead of timing out."""
     with pytest.raises(StatusError, match="/odom"):
-        lab.subscribe("/odom", TWIST).get(timeout=10)
+        maze_client.subscribe("/odom", TWIST).get(timeout=10)
 
 
 @pytest.mark.integration
-def test_a_failed_call_raises_service_error_with_the_labs_sentence(lab):
+def test_a_failed_call_raises_service_error_with_the_labs_sentence(maze_client):
     """Calling a service no one provides is ServiceError naming it."""
     with pytest.raises(ServiceError, match=r"/no_such_service failed: .*no_such_service"):
-        lab.call("/no_such_service")
-    assert lab.call("/rosapi/get_time")["time"]["sec"] == 0  # simulation time
+        maze_client.call("/no_such_service")
+    assert maze_client.call("/rosapi/get_time")["time"]["sec"] == 0  # simulation time
 
 
 @pytest.mark.integration
-def test_waiting_for_a_silent_topic_times_out_clearly(lab):
+def test_waiting_for_a_silent_topic_times_out_clearly(maze_client):
     """get() on a topic no one publishes raises LabTimeout naming the topic."""
-    silent = lab.subscribe("/silence", "std_msgs/msg/String")
+    silent = maze_client.subscribe("/silence", "std_msgs/msg/String")
     with pytest.raises(LabTimeout, match=r"a message on /silence: nothing within 0\.2 s"):
         silent.get(timeout=0.2)
 
 
 @pytest.mark.integration
-def test_connect_reads_the_url_from_the_environment(maze, monkeypatch):
+def test_connect_reads_the_url_from_the_environment(maze_server, monkeypatch):
     """Without a URL, Lab.connect uses $LAB_BRIDGE_URL."""
-    monkeypatch.setenv("LAB_BRIDGE_URL", maze.url)
+    monkeypatch.setenv("LAB_BRIDGE_URL", maze_server.url)
     with Lab.connect() as lab:
-        assert lab.url == maze.url
+        assert lab.url == maze_server.url
         assert lab.episode["task"] == "icreate-maze"
 
 
 @pytest.mark.integration
-def test_an_unknown_robot_path_is_connection_lost(maze):
+def test_an_unknown_robot_path_is_connection_lost(maze_server):
     """A path the lab does not serve (HTTP 404) is ConnectionLost, naming the URL."""
     with pytest.raises(ConnectionLost, match="robots/nobody"):
-        Lab.connect(maze.url + "/robots/nobody", timeout=5)
+        Lab.connect(maze_server.url + "/robots/nobody", timeout=5)
 
 
 @pytest.mark.integration
-def test_next_waits_for_a_message_published_meanwhile(lab):
+def test_next_waits_for_a_message_published_meanwhile(maze_client):
     """A topic published by a client (here, this one) reaches its subscription via next()."""
-    chatter = lab.subscribe("/chatter", "std_msgs/msg/String")
-    lab.publish("/chatter", "std_msgs/msg/String", {"data": "hello"})
+    chatter = maze_client.subscribe("/chatter", "std_msgs/msg/String")
+    maze_client.publish("/chatter", "std_msgs/msg/String", {"data": "hello"})
     assert chatter.next(timeout=10) == {"data": "hello"}
-    lab.publish("/chatter", "std_msgs/msg/String", {"data": "again"})
+    maze_client.publish("/chatter", "std_msgs/msg/String", {"data": "again"})
     assert chatter.next(timeout=10) == {"data": "again"} and chatter.count == 2
 
 
@@ -240,10 +240,10 @@ def test_a_key_opens_a_guarded_lab_and_a_refused_one_is_connection_lost(guarded)
     assert lost.value.code == 1008 and "authorization refused" in str(lost.value)
 
 
-def test_in_a_sandbox_it_connects_to_the_bridges_unix_socket(maze, tmp_path, monkeypatch):
+def test_in_a_sandbox_it_connects_to_the_bridges_unix_socket(maze_server, tmp_path, monkeypatch):
     """Without a URL, with ``$LAB_BRIDGE_SOCKET`` (set in the sandboxes), the client goes
     to that unix socket, not to ``$LAB_BRIDGE_URL``'s port (where the relay would be)."""
-    target = urlsplit(maze.url)
+    target = urlsplit(maze_server.url)
     path = str(tmp_path / "bridge.sock")
     accepted: list[int] = []
 

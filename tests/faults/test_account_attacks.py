@@ -46,23 +46,23 @@ ARGS = (
 
 
 @pytest.fixture
-def lab(served: Any) -> Served:
+def served_lab(served: Any) -> Served:
     """A lab with reservations and sign-up, one live robot, and alice (password, token)."""
-    lab: Served = served(*ARGS).start()
-    lab.token = add_user(lab, "alice", PASSWORD)
-    return lab
+    served_lab: Served = served(*ARGS).start()
+    served_lab.token = add_user(served_lab, "alice", PASSWORD)
+    return served_lab
 
 
-def add_user(lab: Served, name: str, password: str) -> str:
+def add_user(served_lab: Served, name: str, password: str) -> str:
     """``labd users add NAME --password-stdin``, as the operator types it; the token."""
-    done = operator(lab, "add", name, "--password-stdin", "--json", stdin=password + "\n")
+    done = operator(served_lab, "add", name, "--password-stdin", "--json", stdin=password + "\n")
     return str(json.loads(done.stdout)["token"])
 
 
-def operator(lab: Served, *args: str, stdin: str = "") -> subprocess.CompletedProcess[str]:
+def operator(served_lab: Served, *args: str, stdin: str = "") -> subprocess.CompletedProcess[str]:
     """A ``labd users`` command on the lab's data folder, in a process of its own."""
     done = subprocess.run(
-        [sys.executable, "-m", "labd", "users", *args, "--data", str(lab.data)],
+        [sys.executable, "-m", "labd", "users", *args, "--data", str(served_lab.data)],
         input=stdin,
         capture_output=True,
         text=True,
@@ -74,13 +74,13 @@ def operator(lab: Served, *args: str, stdin: str = "") -> subprocess.CompletedPr
 
 
 @pytest.fixture
-def browsers(lab: Served) -> Iterator[Any]:
+def browsers(served_lab: Served) -> Iterator[Any]:
     """Browsers of the lab from a given loopback address: ``browsers("127.0.0.2")``."""
     made: list[httpx.Client] = []
 
     def make(address: str = "127.0.0.1") -> httpx.Client:
         client = httpx.Client(
-            base_url=lab.server,
+            base_url=served_lab.server,
             transport=httpx.HTTPTransport(local_address=address),
             timeout=30,
         )
@@ -125,17 +125,17 @@ def bearer(token: str) -> dict[str, str]:
     return {"Authorization": f"Bearer {token}"}
 
 
-def book(lab: Served, token: str, **body: Any) -> httpx.Response:
+def book(served_lab: Served, token: str, **body: Any) -> httpx.Response:
     return httpx.post(
-        f"{lab.server}/api/reservations",
+        f"{served_lab.server}/api/reservations",
         json={"robot": "icreate-1", **body},
         headers=bearer(token),
         timeout=30,
     )
 
 
-def robot(lab: Served) -> str:
-    return f"{lab.bridge}/robots/icreate-1"
+def robot(served_lab: Served) -> str:
+    return f"{served_lab.bridge}/robots/icreate-1"
 
 
 def closed_reason(ws: Any, timeout: float) -> tuple[int, str]:
@@ -159,24 +159,24 @@ def authorized(ws: Any, key: str) -> None:
 # -- 1. keys of a revoked user ------------------------------------------------------------
 
 
-def test_a_revoked_users_keys_stop_opening_the_robot(lab: Served) -> None:
+def test_a_revoked_users_keys_stop_opening_the_robot(served_lab: Served) -> None:
     """Once the operator revokes alice (`labd users revoke alice`), her slot's key opens
     nothing (/api/auth answers 0 seconds, the bridge refuses it) and her connected
     client is disconnected within the bridge's re-check of keys, told why."""
-    made = book(lab, lab.token, minutes=30)
+    made = book(served_lab, served_lab.token, minutes=30)
     assert made.status_code == 201, made.text
     key = made.json()["key"]["key"]
-    with connect_ws(robot(lab)) as ws:
+    with connect_ws(robot(served_lab)) as ws:
         authorized(ws, key)
-        operator(lab, "revoke", "alice")
+        operator(served_lab, "revoke", "alice")
         revoked = time.monotonic()
-        answer = httpx.get(f"{lab.server}/api/auth", params={"key": key}, timeout=30).json()
+        answer = httpx.get(f"{served_lab.server}/api/auth", params={"key": key}, timeout=30).json()
         assert answer["seconds"] == 0, answer
         code, reason = closed_reason(ws, timeout=RECHECK + 10)
         # the revocation was written when the command ended, at the latest
         print(f"\nrevoked key's client disconnected {time.monotonic() - revoked:.2f} s after")
     assert code == 1008 and reason.startswith("your key no longer opens icreate-1:"), reason
-    with connect_ws(robot(lab) + f"?key={key}") as again:
+    with connect_ws(robot(served_lab) + f"?key={key}") as again:
         code, reason = closed_reason(again, timeout=10)
     assert code == 1008 and reason.startswith("authorization refused: the lab knows no such key")
 
@@ -192,18 +192,18 @@ ODD_KEYS = [
 ]
 
 
-def test_keys_with_unicode_digits_are_refused_at_once(lab: Served) -> None:
+def test_keys_with_unicode_digits_are_refused_at_once(served_lab: Served) -> None:
     """A key with a Unicode digit or letter is no key: /api/auth answers 0 seconds with
     the reason (never a 500), and the bridge closes such a client at once, saying why."""
-    assert book(lab, lab.token, minutes=30).status_code == 201  # reservation 1 exists
+    assert book(served_lab, served_lab.token, minutes=30).status_code == 201  # reservation 1 exists
     for key in ODD_KEYS:
-        answer = httpx.get(f"{lab.server}/api/auth", params={"key": key}, timeout=30)
+        answer = httpx.get(f"{served_lab.server}/api/auth", params={"key": key}, timeout=30)
         assert answer.status_code == 200, (key, answer.status_code, answer.text)
         assert answer.json()["seconds"] == 0, (key, answer.text)
         assert answer.json()["reason"].startswith("this is not a key of this lab"), answer.text
     for key in ODD_KEYS[:2]:
         started = time.monotonic()
-        with connect_ws(robot(lab)) as ws:
+        with connect_ws(robot(served_lab)) as ws:
             ws.send(json.dumps({"op": "auth", "key": key}))
             code, reason = closed_reason(ws, timeout=5)
         assert time.monotonic() - started < 5
@@ -248,13 +248,13 @@ def p99(seconds: list[float]) -> float:
     return ordered[max(0, int(len(ordered) * 0.99) - 1)]
 
 
-async def authorize_200(lab: Served, key: str) -> tuple[list[float], list[float]]:
+async def authorize_200(served_lab: Served, key: str) -> tuple[list[float], list[float]]:
     """200 /api/auth requests at once, then 200 bridge clients presenting the key at
     once, each from a loopback address of its own, each authorized; the seconds each took."""
     addresses = [f"127.0.1.{n}" for n in range(1, 201)]
     clients = [
         httpx.AsyncClient(
-            base_url=lab.server,
+            base_url=served_lab.server,
             transport=httpx.AsyncHTTPTransport(local_address=address),
             timeout=60 * SECOND,
         )
@@ -270,7 +270,7 @@ async def authorize_200(lab: Served, key: str) -> tuple[list[float], list[float]
     async def connect(address: str) -> float:
         started = time.perf_counter()
         async with websockets.connect(
-            robot(lab), local_addr=(address, 0), open_timeout=60 * SECOND, compression=None
+            robot(served_lab), local_addr=(address, 0), open_timeout=60 * SECOND, compression=None
         ) as ws:
             await ws.send(json.dumps({"op": "auth", "key": key}))
             await ws.send(json.dumps({"op": "call_service", "id": "a", "service": "/rosapi/nodes"}))
@@ -337,7 +337,9 @@ def test_200_clients_authorize_at_once_while_every_submission_thread_is_held(
 # -- 4. a password change ends the other sessions -----------------------------------------
 
 
-def test_a_password_change_or_reset_ends_the_other_sessions(lab: Served, browsers: Any) -> None:
+def test_a_password_change_or_reset_ends_the_other_sessions(
+    served_lab: Served, browsers: Any
+) -> None:
     """Alice changes her password on the page: her other signed-in browser is signed
     out, this one stays; the operator's reset (`labd users password`) ends every
     session; her API token survives both (as documented)."""
@@ -353,10 +355,10 @@ def test_a_password_change_or_reset_ends_the_other_sessions(lab: Served, browser
     assert here.get("/api/me").status_code == 200
     assert sign_in(there, "alice", PASSWORD).status_code == 401  # the old one is refused
     assert sign_in(there, "alice", new).status_code == 303
-    operator(lab, "password", "alice", "--password-stdin", stdin="a third long password\n")
+    operator(served_lab, "password", "alice", "--password-stdin", stdin="a third long password\n")
     assert here.get("/api/me").status_code == 401
     assert there.get("/api/me").status_code == 401
-    me = httpx.get(f"{lab.server}/api/me", headers=bearer(lab.token), timeout=30)
+    me = httpx.get(f"{served_lab.server}/api/me", headers=bearer(served_lab.token), timeout=30)
     assert me.status_code == 200 and me.json()["name"] == "alice"
 
 
@@ -364,7 +366,7 @@ def test_a_password_change_or_reset_ends_the_other_sessions(lab: Served, browser
 
 
 def test_wrong_passwords_from_another_address_do_not_lock_the_owner_out(
-    lab: Served, browsers: Any
+    served_lab: Served, browsers: Any
 ) -> None:
     """An attacker at 127.0.0.2 is refused (429) after five wrong passwords for alice,
     while alice, at 127.0.0.1, still signs in with hers."""
@@ -378,7 +380,7 @@ def test_wrong_passwords_from_another_address_do_not_lock_the_owner_out(
 
 
 def test_a_forged_forwarded_for_does_not_change_the_address_throttled(
-    lab: Served, browsers: Any
+    served_lab: Served, browsers: Any
 ) -> None:
     """With no --trusted-proxy, X-Forwarded-For is ignored: 20 failed sign-ins (each
     claiming another address) and 20 unknown keys (likewise) from 127.0.0.1 are throttled
@@ -413,7 +415,7 @@ LOOK_ALIKES = [
 ]
 
 
-def test_look_alike_names_are_refused_at_sign_up(lab: Served, browsers: Any) -> None:
+def test_look_alike_names_are_refused_at_sign_up(served_lab: Served, browsers: Any) -> None:
     """A name that looks like alice's (another script, other capitals, fullwidth), or
     is only dots, is refused on the sign-up page (422, naming the rule), and no account
     is made."""
@@ -421,11 +423,11 @@ def test_look_alike_names_are_refused_at_sign_up(lab: Served, browsers: Any) -> 
         answer = sign_up(browsers(), name)
         assert answer.status_code == 422, (name, answer.status_code)
         assert problem(answer).startswith(expected), problem(answer)
-    listed = json.loads(operator(lab, "list", "--json").stdout)
+    listed = json.loads(operator(served_lab, "list", "--json").stdout)
     assert [row["name"] for row in listed] == ["alice"]
 
 
-def test_sign_ups_are_throttled_per_address(lab: Served, browsers: Any) -> None:
+def test_sign_ups_are_throttled_per_address(served_lab: Served, browsers: Any) -> None:
     """One address makes at most 5 accounts an hour; the 6th is refused (429) saying
     when to try again; another address may still sign up."""
     browser = browsers("127.0.0.3")
@@ -450,12 +452,12 @@ FAR = [
 ]
 
 
-def test_far_future_bookings_are_refused_with_a_4xx(lab: Served, browsers: Any) -> None:
+def test_far_future_bookings_are_refused_with_a_4xx(served_lab: Served, browsers: Any) -> None:
     """Booking times out of any calendar (year 9999, 10^12 s, -10^300 minutes) are
     refused with a 4xx naming the rule, through the API and the booking form; a lab
     cannot be told to book further ahead than a year."""
     for body in FAR:
-        answer = book(lab, lab.token, **body)
+        answer = book(served_lab, served_lab.token, **body)
         assert 400 <= answer.status_code < 500, (body, answer.status_code, answer.text)
         assert answer.json()["error"], answer.text
     browser = browsers()
@@ -464,7 +466,7 @@ def test_far_future_bookings_are_refused_with_a_4xx(lab: Served, browsers: Any) 
         form = {"robot": "icreate-1", "start": "", "minutes": minutes}
         answer = browser.post("/reservations", data={**form, "csrf": csrf(browser, "/")})
         assert answer.status_code == 422, (minutes, answer.status_code)
-    other = lab.data.parent / "other"
+    other = served_lab.data.parent / "other"
     command = ["serve", "--data", str(other), "--http-port", "0", "--bridge-port", "0"]
     refused = subprocess.run(
         [sys.executable, "-m", "labd", *command, "--book-ahead", "1e6"],

@@ -107,18 +107,18 @@ def _whole(answer: bytes) -> bool:
 
 
 @pytest.fixture
-def lab(served: Callable[..., Served]) -> Served:
-    lab = served("--no-robots", "--workers", "0", "--allow-local-repos")
-    lab.start()
-    lab.token = lab.add_user("alice")
-    return lab
+def served_lab(served: Callable[..., Served]) -> Served:
+    served_lab = served("--no-robots", "--workers", "0", "--allow-local-repos")
+    served_lab.start()
+    served_lab.token = served_lab.add_user("alice")
+    return served_lab
 
 
-def test_an_anonymous_200_mib_body_is_refused_before_it_is_read(lab: Served):
+def test_an_anonymous_200_mib_body_is_refused_before_it_is_read(served_lab: Served):
     """A write with no token is answered 401 after at most a few MiB of its 200 MiB body
     were sent, and the server's memory does not grow with the body."""
-    before = lab.rss()
-    got = offer(lab, "/api/trials", ATTACK, {})
+    before = served_lab.rss()
+    got = offer(served_lab, "/api/trials", ATTACK, {})
     grew = (got.peak_rss - before) / MiB
     print(f"\nanonymous 200 MiB body: answered after {got.sent / MiB:.0f} MiB sent;"
           f" RSS {before / MiB:.0f} MiB, peak +{grew:.1f} MiB; {got.head.splitlines()[:1]}")  # fmt: skip
@@ -128,12 +128,18 @@ def test_an_anonymous_200_mib_body_is_refused_before_it_is_read(lab: Served):
 
 
 @pytest.mark.parametrize("chunked", [False, True], ids=["content-length", "chunked"])
-def test_a_writers_body_over_its_routes_limit_is_refused_with_413(lab: Served, chunked: bool):
+def test_a_writers_body_over_its_routes_limit_is_refused_with_413(
+    served_lab: Served, chunked: bool
+):
     """A writer's 200 MiB JSON body is answered 413 naming the 1 MiB limit: from its
     Content-Length before it is read, or as soon as a chunked stream passes the limit."""
-    before = lab.rss()
+    before = served_lab.rss()
     got = offer(
-        lab, "/api/trials", ATTACK, {"Authorization": f"Bearer {lab.token}"}, chunked=chunked
+        served_lab,
+        "/api/trials",
+        ATTACK,
+        {"Authorization": f"Bearer {served_lab.token}"},
+        chunked=chunked,
     )
     grew = (got.peak_rss - before) / MiB
     print(f"\nwriter's 200 MiB body ({'chunked' if chunked else 'content-length'}): answered"
@@ -232,19 +238,21 @@ def attacks(spec: dict[str, Any], ids: int) -> Iterator[tuple[str, str, dict, An
                 yield method.upper(), path, query, sent, f"{where} {name}={huge}"
 
 
-def test_no_integer_or_digest_a_client_sends_answers_500(lab: Served, tmp_path: Path) -> None:
+def test_no_integer_or_digest_a_client_sends_answers_500(
+    served_lab: Served, tmp_path: Path
+) -> None:
     """Every integer of every API route (parameters and JSON fields, from /openapi.json),
     set past the index's range, and a malformed blob digest are answered with a 4xx the
     OpenAPI document declares, ``{"error": ...}``; so are the pages' ids and a lab.toml
     pinning trial 2^63."""
-    worker = lab.add_user("robot", "--worker")
-    trial = lab.submit(GitRepo.create(tmp_path / "r", controller(3)).path)
+    worker = served_lab.add_user("robot", "--worker")
+    trial = served_lab.submit(GitRepo.create(tmp_path / "r", controller(3)).path)
     headers = {
         "Authorization": f"Bearer {worker}",
         PROTOCOL_HEADER: str(PROTOCOL),
         VERSION_HEADER: __version__,
     }
-    with httpx.Client(base_url=lab.server, headers=headers, timeout=60) as client:
+    with httpx.Client(base_url=served_lab.server, headers=headers, timeout=60) as client:
         claimed = client.post("/api/workers/claim", json={"worker": "w1"})
         assert claimed.status_code == 200 and claimed.json()["id"] == trial["id"]
         spec = client.get("/openapi.json").json()
@@ -272,12 +280,12 @@ def test_no_integer_or_digest_a_client_sends_answers_500(lab: Served, tmp_path: 
     pins = controller(3)
     pins["lab.toml"] += f"\n[data]\ntrials = [{2**63}]\n"
     answer = httpx.post(
-        f"{lab.server}/api/trials",
+        f"{served_lab.server}/api/trials",
         json={
             "repository": str(GitRepo.create(tmp_path / "pins", pins).path),
             "task": "icreate-maze",
         },
-        headers={"Authorization": f"Bearer {lab.token}"},
+        headers={"Authorization": f"Bearer {served_lab.token}"},
         timeout=60,
     )
     assert answer.status_code == 422, answer.text
@@ -310,23 +318,25 @@ def _declared_4xx(spec: dict[str, Any], method: str, path: str, answer: httpx.Re
 # -- the index's WAL deleted while the lab serves ---------------------------------------
 
 
-def test_a_deleted_wal_is_detected_and_writes_are_refused(lab: Served, tmp_path: Path) -> None:
+def test_a_deleted_wal_is_detected_and_writes_are_refused(
+    served_lab: Served, tmp_path: Path
+) -> None:
     """Once the index's SQLite WAL is deleted under a serving lab, writes are refused with
     503 saying what happened and what to do, /readyz answers the same, the log says so,
     and after a crash the restarted lab still has every trial and user written before."""
     repo = GitRepo.create(tmp_path / "r", controller(3)).path
-    filed = [lab.submit(repo)["id"] for _ in range(3)]
-    assert httpx.get(f"{lab.server}/readyz", timeout=30).status_code == 200
-    wal = lab.data / "index.sqlite-wal"
+    filed = [served_lab.submit(repo)["id"] for _ in range(3)]
+    assert httpx.get(f"{served_lab.server}/readyz", timeout=30).status_code == 200
+    wal = served_lab.data / "index.sqlite-wal"
     assert wal.exists()
     wal.unlink()
     answer = httpx.post(
-        f"{lab.server}/api/trials",
+        f"{served_lab.server}/api/trials",
         json={"repository": str(repo), "task": "icreate-maze"},
-        headers={"Authorization": f"Bearer {lab.token}"},
+        headers={"Authorization": f"Bearer {served_lab.token}"},
         timeout=60,
     )
-    ready = httpx.get(f"{lab.server}/readyz", timeout=30)
+    ready = httpx.get(f"{served_lab.server}/readyz", timeout=30)
     print(f"\nafter the WAL was deleted: submit {answer.status_code} {answer.text[:300]};"
           f" /readyz {ready.status_code}")  # fmt: skip
     assert answer.status_code == 503, answer.text
@@ -334,9 +344,9 @@ def test_a_deleted_wal_is_detected_and_writes_are_refused(lab: Served, tmp_path:
     assert f"{wal} was deleted or replaced" in refusal
     assert "nothing is lost" in refusal and "restart labd serve" in refusal
     assert ready.status_code == 503 and ready.json() == {"error": f"not ready: index: {refusal}"}
-    assert refusal in lab.log
-    lab.kill()  # a crash: the WAL's content is wherever the lab put it
-    lab.start()
-    kept = [t["id"] for t in lab.get("/api/trials")["trials"]]
+    assert refusal in served_lab.log
+    served_lab.kill()  # a crash: the WAL's content is wherever the lab put it
+    served_lab.start()
+    kept = [t["id"] for t in served_lab.get("/api/trials")["trials"]]
     assert sorted(kept) == filed
-    assert lab.submit(repo)["id"] == filed[-1] + 1  # alice and her token are still there
+    assert served_lab.submit(repo)["id"] == filed[-1] + 1  # alice and her token are still there

@@ -15,6 +15,7 @@ for one such as ``/etc/cron.d``. The attacks are those found on the code before:
 - a manifest signed by another key than the lab's.
 """
 
+# ruff: noqa: F811 (the lab's data folder, imported from test_backup_command, is the tests' argument)
 from __future__ import annotations
 
 import json
@@ -29,7 +30,7 @@ from labd.hosted import HostedRepos
 from repository import backup
 from repository.index import Index
 from repository.signing import SIGNING, Keyring
-from tests.labd.test_backup_command import WHEN, lab, labd  # noqa: F401 (the fixture)
+from tests.labd.test_backup_command import WHEN, data_and_blobs, labd  # noqa: F401 (the fixture)
 from tests.repository.test_backup import sign_filed
 
 STRANGER = 64999  # a local user's uid, who is not the lab's
@@ -63,11 +64,11 @@ def files_in(folder: Path) -> list[str]:
 
 
 @pytest.mark.parametrize("owner", ["a local user", "the lab's user"])
-def test_an_empty_index_makes_no_folder_an_earlier_backup(lab, tmp_path, capsys, owner):  # noqa: F811
+def test_an_empty_index_makes_no_folder_an_earlier_backup(data_and_blobs, tmp_path, capsys, owner):
     """A folder holding an empty ``index.sqlite`` and a link under ``blobs/`` into a
     folder of root's (standing for /etc/cron.d) is no earlier backup, whoever owns it:
     the backup refuses it (exit 2) and nothing is written there or through the link."""
-    data, blobs = lab
+    data, blobs = data_and_blobs
     cron = tmp_path / "cron.d"
     cron.mkdir()
     prepared = tmp_path / "prepared"
@@ -86,11 +87,11 @@ def test_an_empty_index_makes_no_folder_an_earlier_backup(lab, tmp_path, capsys,
     assert out == "" and len(err.strip().splitlines()) == 1, err
 
 
-def test_a_link_planted_in_an_earlier_backup_is_refused(lab, tmp_path, capsys):  # noqa: F811
+def test_a_link_planted_in_an_earlier_backup_is_refused(data_and_blobs, tmp_path, capsys):
     """An earlier, finished backup of this lab in which a link under ``blobs/`` now
     points outside: the next backup refuses the folder naming the link (exit 2), and
     writes nothing through it."""
-    data, blobs = lab
+    data, blobs = data_and_blobs
     dest, cron = tmp_path / "backup", tmp_path / "cron.d"
     cron.mkdir()
     assert labd(capsys, "backup", str(dest), "--data", str(data))[0] == 0
@@ -107,11 +108,13 @@ def test_a_link_planted_in_an_earlier_backup_is_refused(lab, tmp_path, capsys): 
     assert str(folder) in err and "link" in err, err
 
 
-def test_dest_reached_through_a_link_another_user_could_make_is_refused(lab, tmp_path, capsys):  # noqa: F811
+def test_dest_reached_through_a_link_another_user_could_make_is_refused(
+    data_and_blobs, tmp_path, capsys
+):
     """DEST that is a link to root's folder, or lies under a link in a folder every user
     may write to (as /tmp is), is refused (exit 2), and the folder it points to stays
     empty."""
-    data, _ = lab
+    data, _ = data_and_blobs
     cron = tmp_path / "cron.d"
     cron.mkdir()
     shared = tmp_path / "shared"
@@ -129,10 +132,10 @@ def test_dest_reached_through_a_link_another_user_could_make_is_refused(lab, tmp
 # -- restore: what it reads ----------------------------------------------------------------
 
 
-def test_a_restore_refuses_a_key_linked_from_outside_the_backup(lab, tmp_path, capsys):  # noqa: F811
+def test_a_restore_refuses_a_key_linked_from_outside_the_backup(data_and_blobs, tmp_path, capsys):
     """A backup whose ``keys/signing.pem`` is a link to another key file: the restore
     refuses it, naming the link (exit 3), and the new lab gets no key and no rows."""
-    data, _ = lab
+    data, _ = data_and_blobs
     dest, restored = tmp_path / "backup", tmp_path / "restored"
     assert labd(capsys, "backup", str(dest), "--data", str(data))[0] == 0
     outside = Keyring(tmp_path / "outside-keys")
@@ -146,10 +149,12 @@ def test_a_restore_refuses_a_key_linked_from_outside_the_backup(lab, tmp_path, c
     assert str(signing) in err and "link" in err, err
 
 
-def test_a_restore_refuses_a_repository_linked_from_outside_the_backup(lab, tmp_path, capsys):  # noqa: F811
+def test_a_restore_refuses_a_repository_linked_from_outside_the_backup(
+    data_and_blobs, tmp_path, capsys
+):
     """A backup whose ``git/`` holds a link to a user's folder of repositories outside
     it: the restore refuses it (exit 3), and the new lab serves no such repository."""
-    data, _ = lab
+    data, _ = data_and_blobs
     dest, restored = tmp_path / "backup", tmp_path / "restored"
     assert labd(capsys, "backup", str(dest), "--data", str(data))[0] == 0
     outside = HostedRepos(tmp_path / "outside-git")
@@ -161,11 +166,11 @@ def test_a_restore_refuses_a_repository_linked_from_outside_the_backup(lab, tmp_
     assert str(dest / "git" / "mallory") in err, err
 
 
-def test_an_edited_outcome_is_never_restored(lab, tmp_path, capsys):  # noqa: F811
+def test_an_edited_outcome_is_never_restored(data_and_blobs, tmp_path, capsys):
     """A backup whose index says a failed trial succeeded, its manifest's sha256 made to
     match: refused (exit 3), as the manifest's signature no longer holds; and nothing is
     restored."""
-    data, _ = lab
+    data, _ = data_and_blobs
     failed_trial(data)
     dest, restored = tmp_path / "backup", tmp_path / "restored"
     assert labd(capsys, "backup", str(dest), "--data", str(data))[0] == 0
@@ -176,11 +181,13 @@ def test_an_edited_outcome_is_never_restored(lab, tmp_path, capsys):  # noqa: F8
     assert "backup.json" in err and "signature" in err, err
 
 
-def test_an_edited_row_is_refused_even_under_a_manifest_signed_anew(lab, tmp_path, capsys):  # noqa: F811
+def test_an_edited_row_is_refused_even_under_a_manifest_signed_anew(
+    data_and_blobs, tmp_path, capsys
+):
     """Each row is held to its own signature too: with the manifest signed again by the
     lab's key (as one who held it could), the edited outcome is refused, naming trial 1
     and what its signature says."""
-    data, _ = lab
+    data, _ = data_and_blobs
     failed_trial(data)
     dest, restored = tmp_path / "backup", tmp_path / "restored"
     assert labd(capsys, "backup", str(dest), "--data", str(data))[0] == 0
@@ -193,11 +200,11 @@ def test_an_edited_row_is_refused_even_under_a_manifest_signed_anew(lab, tmp_pat
     assert not (restored / "index.sqlite").exists()
 
 
-def test_a_manifest_signed_by_another_key_is_refused(lab, tmp_path, capsys):  # noqa: F811
+def test_a_manifest_signed_by_another_key_is_refused(data_and_blobs, tmp_path, capsys):
     """A backup whose manifest another key signed (its public key added to ``keys/``) is
     refused; one whose whole ``keys/`` was replaced, every row signed again by the new
     key, is refused when the lab's public keys are given (``--key``)."""
-    data, _ = lab
+    data, _ = data_and_blobs
     dest, restored = tmp_path / "backup", tmp_path / "restored"
     assert labd(capsys, "backup", str(dest), "--data", str(data))[0] == 0
     mallory = Keyring(tmp_path / "mallory-keys")
@@ -231,10 +238,10 @@ def test_a_manifest_signed_by_another_key_is_refused(lab, tmp_path, capsys):  # 
     assert not (restored / "index.sqlite").exists()
 
 
-def test_a_backup_and_its_files_are_the_lab_users_alone(lab, tmp_path, capsys):  # noqa: F811
+def test_a_backup_and_its_files_are_the_lab_users_alone(data_and_blobs, tmp_path, capsys):
     """Every folder of a backup is 0700 and no file of it is readable by the group or
     others, DEST itself included; a second backup keeps them so."""
-    data, _ = lab
+    data, _ = data_and_blobs
     dest = tmp_path / "backup"
     for _ in range(2):
         code, _, err = labd(capsys, "backup", str(dest), "--data", str(data))

@@ -21,7 +21,6 @@ import socket
 import ssl
 import threading
 from collections.abc import Callable, Iterator
-from pathlib import Path
 
 import httpx
 import pytest
@@ -30,8 +29,6 @@ import trustme
 from tests.faults.conftest import Served
 
 pytestmark = pytest.mark.integration
-
-LAB = ("--no-robots", "--workers", "0")
 
 
 class Listener:
@@ -92,24 +89,6 @@ def closed_port() -> int:
         return int(probe.getsockname()[1])
 
 
-@pytest.fixture
-def lab(tmp_path: Path) -> Iterator[Callable[..., Served]]:
-    """Labs on data folders of their own, each stopped at the end."""
-    labs: list[Served] = []
-
-    def make(*args: str, env: dict[str, str] | None = None) -> Served:
-        n = len(labs)
-        served = Served(tmp_path / f"data-{n}", tmp_path / f"cache-{n}", *LAB, *args, env=env)
-        labs.append(served)
-        served.start()
-        served.token = served.add_user("mallory")
-        return served
-
-    yield make
-    for served in labs:
-        served.stop()
-
-
 def submit(lab: Served, repository: str) -> httpx.Response:
     return httpx.post(
         f"{lab.server}/api/trials",
@@ -136,12 +115,12 @@ def answered(ports: dict[str, int]) -> dict[tuple[str, str], str]:
     return {probe: url for probe, url in probes(ports).items() if probe != ("http", "git")}
 
 
-def test_failed_fetches_tell_no_port_from_another(lab: Callable[..., Served]) -> None:
+def test_failed_fetches_tell_no_port_from_another(make_bare_lab: Callable[..., Served]) -> None:
     """With private hosts allowed, a submission to a closed port, an HTTP one, a TLS one
     and the lab's own WebSocket bridge gets the same answer (its URL aside), over https
     and git alike; git's own words are in the lab's log, not in the answers."""
     allowed = {"LABD_ALLOW_PRIVATE_HOSTS": "1", "LABD_LOG_LEVEL": "INFO"}
-    served = lab("--resolve-timeout", "20", env=allowed)
+    served = make_bare_lab("--resolve-timeout", "20", env=allowed)
     with listeners() as running:
         ports = {
             "closed": closed_port(),
@@ -162,11 +141,13 @@ def test_failed_fetches_tell_no_port_from_another(lab: Callable[..., Served]) ->
     assert "certificate" in served.log, served.log
 
 
-def test_private_hosts_are_refused_before_any_connection(lab: Callable[..., Served]) -> None:
+def test_private_hosts_are_refused_before_any_connection(
+    make_bare_lab: Callable[..., Served],
+) -> None:
     """By default every loopback URL, by address or by name, is refused naming the
     setting that allows it, and nothing connects to the listeners it names; the lab's
     own hosted repositories (the playground's, on its loopback HTTP port) are fetched."""
-    served = lab()
+    served = make_bare_lab()
     with listeners() as running:
         ports = {name: listener.port for name, listener in running.items()}
         urls = [*probes(ports).values(), f"https://localhost:{ports['tls']}/robot.git"]

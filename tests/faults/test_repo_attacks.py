@@ -39,26 +39,6 @@ MiB = 1024 * 1024
 GiB = 1024 * MiB
 TOML = '[controller]\ncommand = ["python", "c.py"]\ntask = "icreate-maze"\n'
 FILES = {"lab.toml": TOML, "c.py": "print('hello')\n"}
-LAB = ("--no-robots", "--workers", "0")
-
-
-@pytest.fixture
-def lab(tmp_path: Path) -> Iterator[Callable[..., Served]]:
-    """Labs to start on a data folder and a git cache of their own (what is measured is
-    theirs alone): ``lab(*args, env=None)``; each is stopped at the end."""
-    labs: list[Served] = []
-
-    def make(*args: str, env: dict[str, str] | None = None) -> Served:
-        n = len(labs)
-        served = Served(tmp_path / f"data-{n}", tmp_path / f"cache-{n}", *LAB, *args, env=env)
-        labs.append(served)
-        served.start()
-        served.token = served.add_user("mallory")
-        return served
-
-    yield make
-    for served in labs:
-        served.stop()
 
 
 def post(lab: Served, repository: str, timeout: float = 120) -> httpx.Response:
@@ -170,7 +150,7 @@ class Peak:
 
 @pytest.mark.timeout(240)
 def test_a_commit_that_expands_past_the_limit_is_refused_before_it_is_expanded(
-    lab: Callable[..., Served], tmp_path: Path
+    make_bare_lab: Callable[..., Served], tmp_path: Path
 ) -> None:
     """A commit within --max-repo-mb 5 whose files add up to 1 GiB (or that holds a
     million files) is refused at submit time with a 413 naming its size and the limit,
@@ -178,7 +158,9 @@ def test_a_commit_that_expands_past_the_limit_is_refused_before_it_is_expanded(
     repository."""
     temporary = tmp_path / "tmp"  # where the server's temporary files go
     temporary.mkdir()
-    served = lab("--max-repo-mb", "5", "--allow-local-repos", env={"TMPDIR": str(temporary)})
+    served = make_bare_lab(
+        "--max-repo-mb", "5", "--allow-local-repos", env={"TMPDIR": str(temporary)}
+    )
     watched = [temporary, served.data, served.cache]
     for make in (one_big_file, many_copies, tree_bomb):
         repo = make(tmp_path / make.__name__)
@@ -261,13 +243,13 @@ async def crowd(
 
 @pytest.mark.timeout(180 * SECOND)
 def test_submissions_to_a_silent_git_server_leave_anonymous_reads_quick(
-    lab: Callable[..., Served],
+    make_bare_lab: Callable[..., Served],
 ) -> None:
     """80 submissions of a repository whose server never answers: anonymous reads are
     answered (each page, again and again) while the submissions the lab took in hand
     wait, and each of those ends at the resolution deadline, the rest told the lab is
     busy past the 72 it takes in hand."""
-    served = lab("--resolve-timeout", str(RESOLVE), "--allow-private-hosts")  # loopback
+    served = make_bare_lab("--resolve-timeout", str(RESOLVE), "--allow-private-hosts")  # loopback
     with silent_git_server() as url:
         started = time.monotonic()
         answers, reads, answered = asyncio.run(crowd(served, url))
@@ -305,13 +287,13 @@ def test_submissions_to_a_silent_git_server_leave_anonymous_reads_quick(
 
 
 def test_local_paths_are_refused_unless_the_operator_allows_them(
-    lab: Callable[..., Served], tmp_path: Path
+    make_bare_lab: Callable[..., Served], tmp_path: Path
 ) -> None:
     """Without --allow-local-repos, every local path and file:// URL (a repository, a
     folder, nothing at all) gets the same 422 naming the flag, so nothing is learnt of
     the host's folders, and nothing is queued."""
     repo = GitRepo.create(tmp_path / "robot", FILES)
-    served = lab()
+    served = make_bare_lab()
     probes = [
         str(repo.path),
         repo.url,
@@ -334,13 +316,13 @@ def test_local_paths_are_refused_unless_the_operator_allows_them(
 
 
 def test_allowed_local_paths_never_reach_the_labs_own_folders(
-    lab: Callable[..., Served], tmp_path: Path
+    make_bare_lab: Callable[..., Served], tmp_path: Path
 ) -> None:
     """With --allow-local-repos, a repository of the host is taken, but the lab's own
     folders (its git mirrors and cache, its blobs, keys and work) and what lies below
     them are refused with a 422, by whatever path."""
     repo = GitRepo.create(tmp_path / "robot", FILES)
-    served = lab("--allow-local-repos")
+    served = make_bare_lab("--allow-local-repos")
     assert post(served, str(repo.path)).status_code == 201
     [mirror] = (served.cache / "mirrors").iterdir()  # the mirror of that repository
     for probe in (
@@ -361,12 +343,12 @@ def test_allowed_local_paths_never_reach_the_labs_own_folders(
 
 
 def test_data_trial_ids_past_2_63_are_a_clear_refusal(
-    lab: Callable[..., Served], tmp_path: Path
+    make_bare_lab: Callable[..., Served], tmp_path: Path
 ) -> None:
     """lab.toml's [data] naming trial 2^63 (SQLite's integers end at 2^63 - 1) or beyond
     is a 422 that names the trial id and the range, never a 500; 2^31 - 1 (the last id
     PostgreSQL's columns hold) is a trial that does not exist."""
-    served = lab("--allow-local-repos")
+    served = make_bare_lab("--allow-local-repos")
     for trial in (2**63, 2**70, 2**31 - 1):
         toml = f"{TOML}\n[data]\ntrials = [{trial}]\n"
         repo = GitRepo.create(tmp_path / f"learner-{trial}", {**FILES, "lab.toml": toml})

@@ -33,14 +33,14 @@ if len(sys.argv) > 1:
 
 
 @pytest.fixture
-def lab(tmp_path, cache):
+def server(tmp_path, cache):
     """A lab with one worker (bubblewrap) and no robots, its HTTP port chosen freely."""
     with running(lab_config(tmp_path / "data", (), workers=1, cache=cache)) as server:
         yield server
 
 
-def wait_ended(lab: ServerThread, trial_id: int, timeout: float = 120):
-    service = lab.lab.service
+def wait_ended(server: ServerThread, trial_id: int, timeout: float = 120):
+    service = server.lab.service
     deadline = time.monotonic() + timeout
     while not (trial := service.index.trial(trial_id)).status.ended:
         assert time.monotonic() < deadline, trial
@@ -53,11 +53,11 @@ def shot(watched: Watched, name: str) -> None:
     watched.page.screenshot(path=str(SHOTS / f"{name}.png"), full_page=True)
 
 
-def test_the_archive_in_a_browser(lab, watched, tmp_path):
+def test_the_archive_in_a_browser(server, watched, tmp_path):
     """A person signs in, submits a controller that crashes and one that runs, reads the
     traceback, filters the list, reruns from the page and sees the verdict; every page
     renders cleanly and nothing leaves the machine."""
-    service = lab.lab.service
+    service = server.lab.service
     token = service.index.add_user("alice")
     toml = '[controller]\ncommand = ["python", "c.py"{extra}]\ntask = "icreate-maze"\n'
     good = GitRepo.create(tmp_path / "good", {"lab.toml": toml.format(extra=""), "c.py": STEPS})
@@ -65,23 +65,23 @@ def test_the_archive_in_a_browser(lab, watched, tmp_path):
         tmp_path / "bad", {"lab.toml": toml.format(extra=', "crash"'), "c.py": STEPS}
     )
     page = watched.page
-    page.goto(lab.http_url("/"))
+    page.goto(server.http_url("/"))
     assert page.locator("h1").first.inner_text() == "A remote robot lab"
-    page.goto(lab.http_url("/session?then=/submit"))
+    page.goto(server.http_url("/session?then=/submit"))
     page.fill("input[name=token]", token)
     page.click("#token-signin button[type=submit]")
     page.wait_for_url("**/submit")
     made = {}
     for name, repo in (("bad", bad), ("good", good)):
-        page.goto(lab.http_url("/submit"))
+        page.goto(server.http_url("/submit"))
         page.fill("#repository", str(repo.path))
         page.click("form.card button[type=submit]")
         page.wait_for_url("**/trials/*")
         made[name] = int(page.url.rsplit("/", 1)[1])
     for trial_id in made.values():
-        wait_ended(lab, trial_id)
+        wait_ended(server, trial_id)
 
-    page.goto(lab.http_url(f"/trials/{made['bad']}"))
+    page.goto(server.http_url(f"/trials/{made['bad']}"))
     assert page.locator(".headline .badge").inner_text().lower() == "error"
     assert "RuntimeError: the controller has a bug" in page.locator("#reason").inner_text()
     traceback = page.locator("#stderr pre").inner_text()
@@ -90,7 +90,7 @@ def test_the_archive_in_a_browser(lab, watched, tmp_path):
     assert "<script>document.title='owned'</script>" in page.locator("#stdout pre").inner_text()
     shot(watched, "trial-error")
 
-    page.goto(lab.http_url("/trials"))
+    page.goto(server.http_url("/trials"))
     page.select_option("select[name=outcome]", "fail")
     page.click("form.filters button[type=submit]")
     page.wait_for_url("**outcome=fail**")
@@ -102,7 +102,7 @@ def test_the_archive_in_a_browser(lab, watched, tmp_path):
     while "replay.json" not in service.index.derived(made["good"]):
         assert time.monotonic() < deadline, "no replay filed"
         time.sleep(0.2)
-    page.goto(lab.http_url(f"/trials/{made['good']}"))
+    page.goto(server.http_url(f"/trials/{made['good']}"))
     assert page.locator("#replay").inner_text().startswith("Replay: verified")
     assert "renders it when you play it" in page.locator("#video-note").inner_text()
     duration = page.eval_on_selector(  # as pressing play does: the lab renders it now
@@ -119,20 +119,20 @@ def test_the_archive_in_a_browser(lab, watched, tmp_path):
     page.wait_for_url("**/trials/*")
     rerun = int(page.url.rsplit("/", 1)[1])
     assert rerun != made["good"]
-    wait_ended(lab, rerun)
+    wait_ended(server, rerun)
     page.reload()
     assert page.locator(".reproduced").first.inner_text() == "reproduced"
     assert f"trial #{made['good']}" in page.locator(".card").first.inner_text()
-    page.goto(lab.http_url(f"/commits/{good.rev()}"))
+    page.goto(server.http_url(f"/commits/{good.rev()}"))
     assert "1 reproduced" in page.locator("main").inner_text()
     shot(watched, "commit")
 
     for path in ("/", "/tasks/icreate-maze", "/docs", "/redoc", "/trials/424242"):
-        page.goto(lab.http_url(path))
+        page.goto(server.http_url(path))
         page.wait_for_load_state("networkidle")
     assert page.locator("h1").inner_text() == "No trial 424242"
-    watched.expected.add(f"404 {lab.http_url('/trials/424242')}")
-    page.goto(lab.http_url("/docs"))
+    watched.expected.add(f"404 {server.http_url('/trials/424242')}")
+    page.goto(server.http_url("/docs"))
     page.wait_for_selector(".swagger-ui .opblock", timeout=20_000)
     shot(watched, "docs")
     watched.check()

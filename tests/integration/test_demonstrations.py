@@ -21,23 +21,23 @@ TWIST = "geometry_msgs/msg/Twist"
 
 
 @pytest.fixture
-def lab(tmp_path):
+def server(tmp_path):
     with running(lab_config(tmp_path / "data")) as server:
         yield server
 
 
-def connect(lab: ServerThread) -> roslibpy.Ros:
-    ros = roslibpy.Ros(host=lab.url + "/robots/icreate-1")
+def connect(server: ServerThread) -> roslibpy.Ros:
+    ros = roslibpy.Ros(host=server.url + "/robots/icreate-1")
     ros.run(timeout=10)
     return ros
 
 
-def test_a_drive_in_a_real_lab_is_a_demonstration(lab, tmp_path):
+def test_a_drive_in_a_real_lab_is_a_demonstration(server, tmp_path):
     """A roslibpy client takes control with /lab/drive and drives; a second client's
     commands are refused; when the driver leaves, its drive is a demonstration trial
     filed under the lab's name for it, with the session, interface and claimed user in
     its manifest, and its record replays."""
-    driver, watcher = connect(lab), connect(lab)
+    driver, watcher = connect(server), connect(server)
     try:
         seen = []
         roslibpy.Topic(watcher, "/lab/driver", "lab_msgs/msg/Driver").subscribe(seen.append)
@@ -47,7 +47,7 @@ def test_a_drive_in_a_real_lab_is_a_demonstration(lab, tmp_path):
         )
         assert answer["success"], answer
         cmd = roslibpy.Topic(driver, "/cmd_vel", TWIST)
-        with connect_ws(lab.url + "/robots/icreate-1") as other:  # a plain client, watching
+        with connect_ws(server.url + "/robots/icreate-1") as other:  # a plain client, watching
             other.send(json.dumps({"op": "set_level", "level": "error"}))
             other.send(json.dumps({"op": "advertise", "topic": "/cmd_vel", "type": TWIST}))
             other.send(
@@ -67,7 +67,7 @@ def test_a_drive_in_a_real_lab_is_a_demonstration(lab, tmp_path):
         assert any(m["driver"].startswith("guest:") and m["interface"] == "video" for m in seen)
     finally:
         driver.close()
-    service = lab.lab.service
+    service = server.lab.service
     deadline = time.monotonic() + 30
     while not (found := service.index.find(Filters(kind=Kind.DEMONSTRATION)).items):
         assert time.monotonic() < deadline, "no demonstration filed"
@@ -93,7 +93,7 @@ def test_a_drive_in_a_real_lab_is_a_demonstration(lab, tmp_path):
         assert time.monotonic() < deadline, made
         time.sleep(0.1)
     assert json.loads(service.store.read_bytes(made["replay.json"].digest))["verified"] is True
-    video = httpx.get(lab.http_url(f"/api/trials/{demo.id}/video"), timeout=120)
+    video = httpx.get(server.http_url(f"/api/trials/{demo.id}/video"), timeout=120)
     assert video.status_code == 200 and video.headers["content-type"] == "video/mp4"
     assert service.index.derived(demo.id)["video.mp4"].size == len(video.content)
     assert verdict.ticks >= 29  # the 30 odometry messages seen: ticks 0 to 29, at least

@@ -8,7 +8,7 @@ import json
 
 import pytest
 
-from tests.integration.test_service import make_lab, make_repo  # noqa: F401 (a fixture)
+from tests.integration.test_service import make_repo
 
 pytestmark = [pytest.mark.integration, pytest.mark.timeout(600)]
 
@@ -24,8 +24,8 @@ with Lab.connect() as lab:
 LAB_TOML = '[controller]\ncommand = ["python", "c.py"]\ntask = "icreate-maze"\n'
 
 
-def test_an_evaluation_of_the_dev_suite_from_the_command_line(make_lab, tmp_path):  # noqa: F811
-    lab = make_lab("--workers", "2")
+def test_an_evaluation_of_the_dev_suite_from_the_command_line(make_served_lab, tmp_path):
+    lab = make_served_lab("--workers", "2")
     repo = make_repo(tmp_path / "brief", {"lab.toml": LAB_TOML, "c.py": BRIEF})
     gate = lab.labd("evaluate", str(repo), "--suite", "dev", "--wait", "--min-success", "50%", "--json", check=False)  # fmt: skip
     assert gate.returncode == 1, gate.stdout + gate.stderr  # below the gate: 0 of 20

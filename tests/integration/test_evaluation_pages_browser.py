@@ -28,7 +28,7 @@ OUTCOMES = ["success"] * 12 + ["fail"] * 5 + ["error"] * 3  # the dev suite's 20
 
 
 @pytest.fixture
-def lab(tmp_path):
+def server(tmp_path):
     """A lab with no worker and no robot, taking local repositories."""
     fetch = FetchPolicy(schemes=frozenset({"file"}))
     with running(lab_config(tmp_path / "data", (), service={"fetch": fetch})) as server:
@@ -44,21 +44,21 @@ def repo(tmp_path) -> GitRepo:
     return made
 
 
-def evaluated(lab: ServerThread, ref: str, repo: GitRepo) -> int:
-    service = lab.lab.service
+def evaluated(server: ServerThread, ref: str, repo: GitRepo) -> int:
+    service = server.lab.service
     user = service.index.user("erin")
     request = EvaluationRequest(repository=str(repo.path), ref=ref, task="icreate-maze")
     return service.evaluator.submit(user, request)
 
 
-def claim(lab: ServerThread, trial_id: int) -> None:
-    service = lab.lab.service
+def claim(server: ServerThread, trial_id: int) -> None:
+    service = server.lab.service
     service.queue.check = None  # the filings below name no record
     claimed = service.queue.claim("w")
     assert claimed is not None and claimed.id == trial_id
 
 
-def finish(lab: ServerThread, trial_id: int, outcome: str, reward: float) -> None:
+def finish(server: ServerThread, trial_id: int, outcome: str, reward: float) -> None:
     """End a claimed episode as a worker files it (its replay not verified)."""
     filing = Filing(
         status="finished",
@@ -67,13 +67,13 @@ def finish(lab: ServerThread, trial_id: int, outcome: str, reward: float) -> Non
         data_digest=f"{trial_id:064x}",
         metrics={"reward": reward},
     )
-    assert lab.lab.service.queue.finish(trial_id, "w", filing)
+    assert server.lab.service.queue.finish(trial_id, "w", filing)
 
 
-def file(lab: ServerThread, trials: list[int], outcomes: list[str]) -> None:
+def file(server: ServerThread, trials: list[int], outcomes: list[str]) -> None:
     for n, (trial_id, outcome) in enumerate(zip(trials, outcomes, strict=True)):
-        claim(lab, trial_id)
-        finish(lab, trial_id, outcome, n / 16)  # sixteenths: ties to round (0.0625 ...)
+        claim(server, trial_id)
+        finish(server, trial_id, outcome, n / 16)  # sixteenths: ties to round (0.0625 ...)
 
 
 def shot(watched: Watched, name: str) -> None:
@@ -88,23 +88,23 @@ def counts(page) -> dict[str, str]:
     )
 
 
-def test_an_evaluation_page_follows_its_episodes_then_compares(lab, repo, watched: Watched):
+def test_an_evaluation_page_follows_its_episodes_then_compares(server, repo, watched: Watched):
     """While its episodes are filed, the open page updates its counts, cells and score
     from the API, with no reload, until it reads as the page reloaded; then "Compare
     with…" pairs it with another evaluation and shows the API's sentence, and the task's
     page ranks the two, tied."""
-    service = lab.lab.service
+    service = server.lab.service
     service.index.add_user("erin", max_daily=500)
-    first = evaluated(lab, "main", repo)
+    first = evaluated(server, "main", repo)
     trials = [r.trial for r in service.evaluations.get(first).rows]
     page = watched.page
-    page.goto(lab.http_url(f"/evaluations/{first}"))
+    page.goto(server.http_url(f"/evaluations/{first}"))
     assert page.locator("#status").inner_text().lower() == "queued"
     assert counts(page)["queued"] == "20"
     page.evaluate("() => { window.sameDocument = true; }")  # gone, were the page reloaded
 
-    file(lab, trials[:6], OUTCOMES[:6])
-    claim(lab, trials[6])
+    file(server, trials[:6], OUTCOMES[:6])
+    claim(server, trials[6])
     page.wait_for_function(
         "document.querySelector('[data-count=success]').textContent === '6'"
         " && document.querySelector('[data-count=running]').textContent === '1'",
@@ -123,8 +123,8 @@ def test_an_evaluation_page_follows_its_episodes_then_compares(lab, repo, watche
     assert page.locator("#rate").inner_text() == "6 of 20 episodes ended so far, 6 succeeded"
     shot(watched, "evaluation-running")
 
-    finish(lab, trials[6], OUTCOMES[6], 6 / 16)
-    file(lab, trials[7:], OUTCOMES[7:])
+    finish(server, trials[6], OUTCOMES[6], 6 / 16)
+    file(server, trials[7:], OUTCOMES[7:])
     page.wait_for_function(
         "document.getElementById('evaluation').dataset.status === 'finished'", timeout=20 * MS
     )
@@ -147,9 +147,9 @@ def test_an_evaluation_page_follows_its_episodes_then_compares(lab, repo, watche
     )
     assert "60 % (" in page.locator("#rate").inner_text()
 
-    second = evaluated(lab, "v1", repo)
+    second = evaluated(server, "v1", repo)
     later = [r.trial for r in service.evaluations.get(second).rows]
-    file(lab, later, ["success"] * 16 + ["fail"] * 4)
+    file(server, later, ["success"] * 16 + ["fail"] * 4)
     page.click("#compare")
     page.wait_for_url(f"**/compare?a={first}")
     page.select_option("#b", str(second))

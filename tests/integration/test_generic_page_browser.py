@@ -17,25 +17,25 @@ CART = RobotConfig("cart-1", "dmc-cartpole-swingup")
 
 
 @pytest.fixture(scope="module")
-def lab(tmp_path_factory):
+def server(tmp_path_factory):
     with running(lab_config(tmp_path_factory.mktemp("generic") / "data", (CART,))) as server:
         yield server
 
 
-def test_sliders_drive_a_suite_task_and_its_observations_are_plotted(lab, watched):
+def test_sliders_drive_a_suite_task_and_its_observations_are_plotted(server, watched):
     """Moving the cart's slider takes control and pushes the cart along its rail; the
     camera shows frames, the model is drawn and posed, and /observation/position and
     /reward are plotted as they come."""
-    robot = lab.lab.robots["cart-1"]
+    robot = server.lab.robots["cart-1"]
     page = watched.page
-    page.goto(lab.http_url("/robots/cart-1"))
+    page.goto(server.http_url("/robots/cart-1"))
     page.wait_for_function("document.body.dataset.ready === 'yes'", timeout=30_000)
     assert page.locator("#sliders input[type=range]").count() == 1  # cartpole: one actuator
     assert page.locator("label[for=action-0]").inner_text() == "slide"  # its actuator
-    start = lab.call(lambda: float(robot.sim.physics.data.qpos[0]))
+    start = server.call(lambda: float(robot.sim.physics.data.qpos[0]))
     page.locator("#action-0").fill("1")
     page.wait_for_function("document.body.dataset.driving === 'yes'", timeout=20_000)
-    lab.wait_until(lambda: float(robot.sim.physics.data.qpos[0]) > start + 0.2, timeout=20)
+    server.wait_until(lambda: float(robot.sim.physics.data.qpos[0]) > start + 0.2, timeout=20)
     page.wait_for_function("Number(document.getElementById('camera').dataset.frames || 0) > 2")
     page.wait_for_function("Number(document.getElementById('scene3d').dataset.posed || 0) > 2")
     for topic in ("_observation_position", "_reward"):
@@ -45,5 +45,5 @@ def test_sliders_drive_a_suite_task_and_its_observations_are_plotted(lab, watche
     shot(watched, "generic-live-page")
     page.click("#neutral")
     page.click("#release")
-    lab.wait_until(lambda: lab.lab.drives["cart-1"].current is None, timeout=20)
+    server.wait_until(lambda: server.lab.drives["cart-1"].current is None, timeout=20)
     watched.check()

@@ -43,7 +43,7 @@ WAIT = 30.0
 
 
 @pytest.fixture(scope="module")
-def lab(tmp_path_factory: pytest.TempPathFactory) -> Iterator[ServerThread]:
+def server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[ServerThread]:
     """A lab with the archive and no robot; ``alice/robot`` hosted, one commit in it;
     a repository outside DATA/git (``DATA/secret.git``) to be kept out of reach."""
     data = tmp_path_factory.mktemp("git-http") / "data"
@@ -57,22 +57,22 @@ def lab(tmp_path_factory: pytest.TempPathFactory) -> Iterator[ServerThread]:
 
 
 @pytest.fixture
-def hosted(lab: ServerThread) -> HostedRepos:
-    return lab.lab.service.hosted
+def hosted(server: ServerThread) -> HostedRepos:
+    return server.lab.service.hosted
 
 
 @pytest.fixture
-def backends(lab: ServerThread) -> GitHttp:
+def backends(server: ServerThread) -> GitHttp:
     """The lab's mounted git app (its limits may be changed by a test, and are reset)."""
-    mount = next(r for r in lab.lab.app.routes if isinstance(r, Mount) and r.path == "/git")
+    mount = next(r for r in server.lab.app.routes if isinstance(r, Mount) and r.path == "/git")
     app = mount.app
     assert isinstance(app, GitHttp)
     yield app
     app.limits = GitLimits()
 
 
-def url(lab: ServerThread, path: str) -> str:
-    return lab.http_url(f"/git/{path}")
+def url(server: ServerThread, path: str) -> str:
+    return server.http_url(f"/git/{path}")
 
 
 def git(*args: str, cwd: Path | None = None, check: bool = True, **env: str) -> Any:
@@ -88,9 +88,9 @@ def git(*args: str, cwd: Path | None = None, check: bool = True, **env: str) -> 
     )
 
 
-def raw(lab: ServerThread, method: str, path: str, body: bytes = b"", **headers: str) -> Any:
+def raw(server: ServerThread, method: str, path: str, body: bytes = b"", **headers: str) -> Any:
     """One request with ``path`` sent exactly as written (no client normalizes it)."""
-    where = urlsplit(lab.http_url())
+    where = urlsplit(server.http_url())
     connection = http.client.HTTPConnection(where.hostname or "", where.port, timeout=WAIT)
     try:
         connection.request(method, path, body=body or None, headers=headers)
@@ -102,13 +102,13 @@ def raw(lab: ServerThread, method: str, path: str, body: bytes = b"", **headers:
 
 
 @pytest.mark.parametrize("version", ["2", "0"])
-def test_a_clone_gives_the_committed_files_and_commit(lab, hosted, tmp_path, version):
+def test_a_clone_gives_the_committed_files_and_commit(server, hosted, tmp_path, version):
     """``git clone`` over HTTP, with protocol v2 or v0, checks out the hosted commit:
     the same id, the same files, nested ones included."""
     sha = hosted.head("alice", "robot")
     work = tmp_path / "clone"
     done = git(
-        "-c", f"protocol.version={version}", "clone", url(lab, "alice/robot.git"), str(work),
+        "-c", f"protocol.version={version}", "clone", url(server, "alice/robot.git"), str(work),
         GIT_TRACE_PACKET="1",
     )  # fmt: skip
     spoke_v2 = "git< version 2" in done.stderr
@@ -119,11 +119,11 @@ def test_a_clone_gives_the_committed_files_and_commit(lab, hosted, tmp_path, ver
         assert (work / path).read_bytes() == data
 
 
-def test_a_fetch_after_another_commit_gets_it(lab, hosted, tmp_path):
+def test_a_fetch_after_another_commit_gets_it(server, hosted, tmp_path):
     """A clone fetches the next commit the lab makes, over v2 and v0."""
     first = hosted.commit("alice", "fetched", FILES, "one", author="alice", when=WHEN)
     work = tmp_path / "clone"
-    git("clone", url(lab, "alice/fetched.git"), str(work))
+    git("clone", url(server, "alice/fetched.git"), str(work))
     second = hosted.commit(
         "alice", "fetched", {**FILES, "main.mjs": b"go();\n"}, "two", author="alice", when=WHEN + 1
     )
@@ -135,11 +135,11 @@ def test_a_fetch_after_another_commit_gets_it(lab, hosted, tmp_path):
     assert git("rev-parse", "HEAD", cwd=work).stdout.strip() == third
 
 
-def test_a_push_is_refused_and_the_repository_is_unchanged(lab, hosted, tmp_path):
+def test_a_push_is_refused_and_the_repository_is_unchanged(server, hosted, tmp_path):
     """``git push`` is answered 403, git shows the lab's one line, and main stays."""
     before = hosted.head("alice", "robot")
     work = tmp_path / "clone"
-    git("clone", url(lab, "alice/robot.git"), str(work))
+    git("clone", url(server, "alice/robot.git"), str(work))
     (work / "main.mjs").write_text("pwned();\n")
     git("-c", "user.name=m", "-c", "user.email=m@x", "commit", "-qam", "mine", cwd=work)
     pushed = git("push", "origin", "HEAD:main", cwd=work, check=False)
@@ -150,23 +150,23 @@ def test_a_push_is_refused_and_the_repository_is_unchanged(lab, hosted, tmp_path
     assert "403" in pushed.stderr
     assert hosted.head("alice", "robot") == before
     for path in ("alice/robot.git/info/refs?service=git-receive-pack",):
-        assert raw(lab, "GET", f"/git/{path}").status == 403
+        assert raw(server, "GET", f"/git/{path}").status == 403
     posted = raw(
-        lab, "POST", "/git/alice/robot.git/git-receive-pack", b"0000",
+        server, "POST", "/git/alice/robot.git/git-receive-pack", b"0000",
         **{"Content-Type": "application/x-git-receive-pack-request"},
     )  # fmt: skip
     assert posted.status == 403
     assert posted.getheader("Content-Type").startswith("text/plain")
 
 
-def test_an_unknown_repository_is_404(lab):
+def test_an_unknown_repository_is_404(server):
     """``git ls-remote`` of a repository the lab does not host fails with "not found",
     after the lab's own words."""
-    listed = git("ls-remote", url(lab, "alice/nothing.git"), check=False)
+    listed = git("ls-remote", url(server, "alice/nothing.git"), check=False)
     assert listed.returncode != 0
     assert "remote: repository alice/nothing: is not on this lab" in listed.stderr
     assert "not found" in listed.stderr
-    answer = raw(lab, "GET", "/git/nobody/robot.git/info/refs?service=git-upload-pack")
+    answer = raw(server, "GET", "/git/nobody/robot.git/info/refs?service=git-upload-pack")
     assert answer.status == 404
     assert answer.text == "repository nobody/robot: is not on this lab\n"
 
@@ -193,7 +193,7 @@ OUTSIDE = [
 
 
 @pytest.mark.parametrize("path", OUTSIDE)
-def test_no_path_reaches_outside_the_hosted_repositories(lab, hosted, path):
+def test_no_path_reaches_outside_the_hosted_repositories(server, hosted, path):
     """Climbing out of DATA/git (``..``, encoded or not, a symbolic link placed in it),
     malformed names and files of a repository are never answered 200, and never with
     what lies outside (a repository at DATA/secret.git)."""
@@ -201,17 +201,17 @@ def test_no_path_reaches_outside_the_hosted_repositories(lab, hosted, path):
     if not link.exists():
         link.symlink_to(hosted.root.parent / "secret.git")
     secret = (hosted.root.parent / "secret.git" / "refs" / "heads" / "main").read_text().strip()
-    answer = raw(lab, "GET", path)
+    answer = raw(server, "GET", path)
     assert answer.status in (400, 404), (answer.status, answer.text)
     assert secret not in answer.text
     assert "s3cret" not in answer.text
     assert answer.getheader("Content-Type").startswith(("text/plain", "application/json"))
 
 
-def test_a_post_over_the_body_limit_is_413(lab, backends):
+def test_a_post_over_the_body_limit_is_413(server, backends):
     """A fetch's body over 16 MiB is refused with 413 from its Content-Length, before
     any backend runs."""
-    sock = _post(lab, f"Content-Length: {MAX_UPLOAD + 1}")
+    sock = _post(server, f"Content-Length: {MAX_UPLOAD + 1}")
     try:
         with contextlib.suppress(BrokenPipeError, ConnectionResetError):
             sock.sendall(b"0" * (MAX_UPLOAD + 1))
@@ -223,10 +223,10 @@ def test_a_post_over_the_body_limit_is_413(lab, backends):
     assert backends.running == 0
 
 
-def test_a_chunked_post_over_the_body_limit_is_413_and_its_backend_ends(lab, backends):
+def test_a_chunked_post_over_the_body_limit_is_413_and_its_backend_ends(server, backends):
     """Without a Content-Length, the body streams to the backend until it passes 16 MiB:
     then the answer is 413 in words git shows, and the backend is gone."""
-    sock = _post(lab)
+    sock = _post(server)
     sent, answer = 0, b""
     try:
         piece = b"0" * (1024 * 1024)
@@ -242,24 +242,24 @@ def test_a_chunked_post_over_the_body_limit_is_413_and_its_backend_ends(lab, bac
     assert answer.startswith(b"HTTP/1.1 413"), answer[:200]
     assert b"content-type: text/plain" in answer.lower()
     assert b"the request's body is larger than this route takes (16 MiB)" in answer
-    lab.wait_until(lambda: backends.running == 0)
+    server.wait_until(lambda: backends.running == 0)
     assert _backends() == []
 
 
-def test_a_client_that_goes_away_has_its_backend_killed(lab, backends):
+def test_a_client_that_goes_away_has_its_backend_killed(server, backends):
     """A client that sends half a fetch and closes the connection leaves no backend."""
-    sock = _post(lab)
+    sock = _post(server)
     sock.sendall(b"4\r\n0000\r\n")
-    lab.wait_until(lambda: len(_backends()) == 1)
+    server.wait_until(lambda: len(_backends()) == 1)
     sock.close()
-    lab.wait_until(lambda: backends.running == 0)  # after its backend was reaped
+    server.wait_until(lambda: backends.running == 0)  # after its backend was reaped
     assert _backends() == []
 
 
-def test_a_backend_past_its_time_is_killed_and_answered_504(lab, backends):
+def test_a_backend_past_its_time_is_killed_and_answered_504(server, backends):
     """A fetch whose body never ends is cut at the time limit: 504, backend killed."""
     backends.limits = GitLimits(timeout=1.0)
-    sock = _post(lab)
+    sock = _post(server)
     try:
         sock.sendall(b"4\r\n0000\r\n")
         answer = _read_answer(sock)
@@ -267,23 +267,23 @@ def test_a_backend_past_its_time_is_killed_and_answered_504(lab, backends):
         sock.close()
     assert answer.startswith(b"HTTP/1.1 504"), answer[:200]
     assert b"git took longer than this lab's limit of 1 s" in answer
-    lab.wait_until(lambda: backends.running == 0)
+    server.wait_until(lambda: backends.running == 0)
     assert _backends() == []
 
 
-def test_past_the_backends_it_takes_the_lab_answers_503(lab, backends):
+def test_past_the_backends_it_takes_the_lab_answers_503(server, backends):
     """With all its backends busy, the lab answers 503 with Retry-After."""
     backends.limits = GitLimits(backends=0, retry_after=7)
-    answer = raw(lab, "GET", "/git/alice/robot.git/info/refs?service=git-upload-pack")
+    answer = raw(server, "GET", "/git/alice/robot.git/info/refs?service=git-upload-pack")
     assert answer.status == 503
     assert answer.getheader("Retry-After") == "7"
     assert "try again in 7 s" in answer.text
 
 
-def _post(lab: ServerThread, length: str = "Transfer-Encoding: chunked") -> socket.socket:
+def _post(server: ServerThread, length: str = "Transfer-Encoding: chunked") -> socket.socket:
     """A socket that has sent the head of a fetch from alice/robot (chunked, unless
     ``length`` says otherwise), and none of its body."""
-    where = urlsplit(lab.http_url())
+    where = urlsplit(server.http_url())
     sock = socket.create_connection((where.hostname, where.port), timeout=WAIT)
     sock.sendall(
         b"POST /git/alice/robot.git/git-upload-pack HTTP/1.1\r\nHost: lab\r\n"
@@ -322,14 +322,14 @@ def _backends() -> list[psutil.Process]:
     return found
 
 
-def test_a_large_repository_and_a_gzipped_negotiation(lab, hosted, tmp_path):
+def test_a_large_repository_and_a_gzipped_negotiation(server, hosted, tmp_path):
     """A repository of several MiB clones whole (the pack streams in many chunks), and a
     fetch whose negotiation is large enough for git to gzip its request gets the new
     commit (the backend is told the request's encoding)."""
     noise = random.Random(7).randbytes(3 * 1024 * 1024)  # does not compress
     hosted.commit("alice", "large", {**FILES, "noise.bin": noise}, "m", author="alice", when=WHEN)
     work = tmp_path / "clone"
-    git("clone", url(lab, "alice/large.git"), str(work))
+    git("clone", url(server, "alice/large.git"), str(work))
     assert (work / "noise.bin").read_bytes() == noise
     for i in range(64):  # local commits: each is a "have" the fetch offers
         git("-c", "user.name=m", "-c", "user.email=m@x", "commit", "-q", "--allow-empty",

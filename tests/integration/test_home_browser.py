@@ -35,7 +35,7 @@ EARLIER = ["success", "fail"] * 10
 
 
 @pytest.fixture
-def lab(tmp_path: Path) -> Any:
+def server(tmp_path: Path) -> Any:
     """A lab with no worker and one live robot, taking local repositories."""
     fetch = FetchPolicy(schemes=frozenset({"file"}))
     with running(lab_config(tmp_path / "data", service={"fetch": fetch})) as server:
@@ -57,8 +57,8 @@ def home(browser: Any) -> Any:
 class Filler:
     """Fills the lab's queue and archive as submitters and workers would."""
 
-    def __init__(self, lab: ServerThread, repo: GitRepo) -> None:
-        self.service = lab.lab.service
+    def __init__(self, server: ServerThread, repo: GitRepo) -> None:
+        self.service = server.lab.service
         self.service.queue.check = None  # the filings below name no record
         self.repo = repo
         for name in ("ann", "ben", "erin"):
@@ -102,9 +102,9 @@ class Filler:
         return made, self.service.evaluations.trials(made)
 
 
-def fill(lab: ServerThread, repo: GitRepo) -> dict[str, Any]:
+def fill(server: ServerThread, repo: GitRepo) -> dict[str, Any]:
     """The lab as a person finds it mid-afternoon (see the module's docstring)."""
-    f = Filler(lab, repo)
+    f = Filler(server, repo)
     first, second = repo.rev("v1"), repo.rev("main")
     evaluations = []
     for ref, outcomes in (("v1", EARLIER), ("main", DEV)):
@@ -143,7 +143,7 @@ def box(page: Any, selector: str) -> dict[str, float]:
     return found
 
 
-def test_the_home_page_shows_what_a_person_looks_for_first(tmp_path, lab, home: Watched):
+def test_the_home_page_shows_what_a_person_looks_for_first(tmp_path, server, home: Watched):
     """At 1280x800, before scrolling: what runs and waits (public trials alone), the
     recent trials, the latest evaluations with their success rates, and the leaderboards
     of the suites evaluated; below, the tasks in a grid of several columns whose
@@ -152,9 +152,9 @@ def test_the_home_page_shows_what_a_person_looks_for_first(tmp_path, lab, home: 
     repo = GitRepo.create(tmp_path / "ctl", {"lab.toml": toml, "c.py": "print('one')\n"})
     repo.tag("v1")
     repo.commit({"c.py": "print('two')\n"}, "two")
-    made = fill(lab, repo)
+    made = fill(server, repo)
     page = home.page
-    page.goto(lab.http_url("/"))
+    page.goto(server.http_url("/"))
     page.wait_for_load_state("networkidle")
     SHOTS.mkdir(parents=True, exist_ok=True)
     page.screenshot(path=str(SHOTS / "home.png"))

@@ -40,7 +40,7 @@ LONG_ENOUGH = (
 
 
 @pytest.fixture(scope="module")
-def lab(tmp_path_factory):
+def server(tmp_path_factory):
     """One lab for the module: icreate-1 and pr2-1 live, the archive, no workers."""
     data = tmp_path_factory.mktemp("live") / "data"
     with running(lab_config(data, (MAZE, PR2), interface_seed=7)) as server:
@@ -56,16 +56,16 @@ def hold(page, key: str, until: str, timeout: float = 30) -> None:
         page.keyboard.up(key)
 
 
-def camera_watchers(lab: ServerThread) -> int:
+def camera_watchers(server: ServerThread) -> int:
     """The clients subscribed to the maze robot's camera (on the lab's loop)."""
-    graph = lab.lab.graphs["icreate-1"]
+    graph = server.lab.graphs["icreate-1"]
     return len(graph.subscribers_of(CAMERA))
 
 
-def ux_events(lab: ServerThread, demo, tmp_path) -> list:
+def ux_events(server: ServerThread, demo, tmp_path) -> list:
     """The page's events in a demonstration's record."""
     record = tmp_path / f"{demo.id}.mcap"
-    lab.lab.service.store.copy_to(demo.mcap, record)
+    server.lab.service.store.copy_to(demo.mcap, record)
     types = TypeRegistry.default().typestore
     return [
         types.deserialize_cdr(m.data, "lab_msgs/msg/UxEvent")
@@ -81,14 +81,14 @@ SENT = """() => {
 }"""
 
 
-def test_the_icreate_page_drives_and_files_a_demonstration(lab, watched, tmp_path):
+def test_the_icreate_page_drives_and_files_a_demonstration(server, watched, tmp_path):
     """Interface A shows camera frames; a held key drives (/odom moves); while another
     client drives, the page shows who, and its key press is refused with a status it
     shows; a background tab stops the camera; released, the drive is a demonstration in
     the archive with its interface and the page's events (key presses, clicks, the
     interface, focus, latency)."""
     page = watched.page
-    page.goto(lab.http_url("/robots/icreate-1?interface=video"))
+    page.goto(server.http_url("/robots/icreate-1?interface=video"))
     page.wait_for_function("Number(document.getElementById('camera').dataset.frames || 0) >= 3")
     page.click("#take")
     page.wait_for_function("document.body.dataset.driving === 'yes'")
@@ -101,7 +101,7 @@ def test_the_icreate_page_drives_and_files_a_demonstration(lab, watched, tmp_pat
     page.wait_for_function("document.body.dataset.driving === 'no'")
 
     # someone else drives (a roslibpy client): the page watches, and is refused
-    other = roslibpy.Ros(host=lab.url + "/robots/icreate-1")
+    other = roslibpy.Ros(host=server.url + "/robots/icreate-1")
     other.run(timeout=10)
     try:
         answer = roslibpy.Service(other, "/lab/drive", "lab_msgs/srv/Drive").call(
@@ -116,7 +116,7 @@ def test_the_icreate_page_drives_and_files_a_demonstration(lab, watched, tmp_pat
         )
         assert page.get_attribute("#status", "data-level") in ("warning", "error")
         assert page.inner_text("#you").endswith("watching")
-        listed = httpx.get(lab.http_url("/robots")).text
+        listed = httpx.get(server.http_url("/robots")).text
         assert re.search(r'class="driver">guest:client_\d+', listed), listed
     finally:
         other.close()
@@ -128,18 +128,18 @@ def test_the_icreate_page_drives_and_files_a_demonstration(lab, watched, tmp_pat
     page.wait_for_function("window.uxSent.includes('latency')")  # summed up every 2 s
     page.wait_for_function(LONG_ENOUGH)
 
-    before = lab.call(lambda: camera_watchers(lab))
+    before = server.call(lambda: camera_watchers(server))
     assert before >= 1
     page.evaluate(
         """() => { Object.defineProperty(document, 'visibilityState', {value: 'hidden', configurable: true});
                    document.dispatchEvent(new Event('visibilitychange')); }"""
     )
-    lab.wait_until(lambda: camera_watchers(lab) == before - 1)
+    server.wait_until(lambda: camera_watchers(server) == before - 1)
     page.click("#release")
     page.wait_for_function("document.body.dataset.driving === 'no'")
     watched.check()
 
-    service = lab.lab.service
+    service = server.lab.service
     deadline = time.monotonic() + 30 * SECOND
     while len(found := service.index.find(Filters(kind=Kind.DEMONSTRATION)).items) < 2:
         assert time.monotonic() < deadline, f"{len(found)} demonstrations filed, not 2"
@@ -149,7 +149,7 @@ def test_the_icreate_page_drives_and_files_a_demonstration(lab, watched, tmp_pat
     assert len(mine) == len(found) == 2 and {d.task for d in found} == {"icreate-maze"}
     assert all(d.submitter.startswith("guest:client_") for d in mine)
     assert all(d.manifest["driver"]["interface"] == "video" for d in mine)
-    events = [e for demo in mine for e in ux_events(lab, demo, tmp_path)]
+    events = [e for demo in mine for e in ux_events(server, demo, tmp_path)]
     kinds = {e.kind for e in events}
     assert {"interface", "key", "click", "focus", "latency"} <= kinds, kinds
     assert any(e.kind == "key" and e.key == "ArrowUp" for e in events)
@@ -157,17 +157,17 @@ def test_the_icreate_page_drives_and_files_a_demonstration(lab, watched, tmp_pat
     page.evaluate(
         "() => Object.defineProperty(document, 'visibilityState', {value: 'visible', configurable: true})"
     )
-    page.goto(lab.http_url(f"/trials/{mine[0].id}"))
+    page.goto(server.http_url(f"/trials/{mine[0].id}"))
     assert "video" in page.inner_text("dl.facts")
     page.wait_for_function("document.getElementById('ux-events') !== null", timeout=60_000)
     assert "latency" in page.inner_text("#ux-events summary")
 
 
-def test_interface_b_shows_the_tags(lab, watched):
+def test_interface_b_shows_the_tags(server, watched):
     """Interface B draws no video: the tags the robot detects are drawn (turning in place
     until some are in view), with its odometry and the goal."""
     page = watched.page
-    page.goto(lab.http_url("/robots/icreate-1?interface=perception"))
+    page.goto(server.http_url("/robots/icreate-1?interface=perception"))
     assert page.query_selector("#camera") is None
     page.wait_for_function("document.body.dataset.ready === 'yes'")
     page.wait_for_function("Number(document.getElementById('perception').dataset.frames || 0) > 2")
@@ -201,12 +201,12 @@ GAMEPAD = """
 ODOM = "() => ['x', 'y'].map((k) => Number(document.getElementById('odom').dataset[k]))"
 
 
-def test_a_gamepad_drives(lab, watched):
+def test_a_gamepad_drives(server, watched):
     """The left stick of a gamepad (the Gamepad API, polled) drives the robot forward,
     and letting it go stops it; the page names the pad and logs its connection."""
     page = watched.page
     page.add_init_script(GAMEPAD)
-    page.goto(lab.http_url("/robots/icreate-1?interface=perception"))
+    page.goto(server.http_url("/robots/icreate-1?interface=perception"))
     page.wait_for_function("document.body.dataset.ready === 'yes'")
     page.evaluate("window.connectPad()")
     page.wait_for_function("document.getElementById('gamepad').textContent.includes('test pad')")
@@ -236,28 +236,28 @@ def test_a_gamepad_drives(lab, watched):
     watched.check()
 
 
-def test_the_interface_is_drawn_per_session(lab):
+def test_the_interface_is_drawn_per_session(server):
     """Page loads without an override draw both interfaces (the lab's ratio); the
     override wins; an unknown one is refused; an unknown robot is a 404."""
     shown = []
     for _ in range(16):
-        page = httpx.get(lab.http_url("/robots/icreate-1")).text
+        page = httpx.get(server.http_url("/robots/icreate-1")).text
         config = json.loads(re.search(r'id="live-config">(.*?)</script>', page, re.S)[1])
         assert config["assigned"] == "random"
         shown.append(config["interface"])
     assert set(shown) == {"video", "perception"}, shown
-    assert httpx.get(lab.http_url("/robots/icreate-1?interface=perception")).status_code == 200
-    assert httpx.get(lab.http_url("/robots/icreate-1?interface=radar")).status_code == 422
-    assert httpx.get(lab.http_url("/robots/nope")).status_code == 404
-    listed = httpx.get(lab.http_url("/api/robots")).json()
+    assert httpx.get(server.http_url("/robots/icreate-1?interface=perception")).status_code == 200
+    assert httpx.get(server.http_url("/robots/icreate-1?interface=radar")).status_code == 422
+    assert httpx.get(server.http_url("/robots/nope")).status_code == 404
+    listed = httpx.get(server.http_url("/api/robots")).json()
     assert [r["name"] for r in listed] == ["icreate-1", "pr2-1"]
 
 
-def test_the_pr2_page_moves_an_arm_to_a_target(lab, watched):
+def test_the_pr2_page_moves_an_arm_to_a_target(server, watched):
     """The PR2 page draws the robot and the table in 3D from the robot's topics; moving
     the left arm's Cartesian target with the keyboard moves the arm's tool frame."""
     page = watched.page
-    page.goto(lab.http_url("/robots/pr2-1"))
+    page.goto(server.http_url("/robots/pr2-1"))
     page.wait_for_function("document.body.dataset.ready === 'yes'", timeout=60_000)
     page.wait_for_function(
         "Number(document.getElementById('pr2-scene')?.dataset.frames || 0) > 3", timeout=60_000

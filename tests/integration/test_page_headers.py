@@ -45,7 +45,7 @@ MS = 1000
 
 
 @pytest.fixture(scope="module")
-def lab(tmp_path_factory, cache):
+def server(tmp_path_factory, cache):
     """Both live robots, the archive, and one worker (bubblewrap) for a trial's record."""
     data = tmp_path_factory.mktemp("headers") / "data"
     with running(lab_config(data, (MAZE, PR2), workers=1, cache=cache)) as server:
@@ -53,16 +53,16 @@ def lab(tmp_path_factory, cache):
 
 
 @pytest.fixture(scope="module")
-def trial(lab, tmp_path_factory) -> int:
+def trial(server, tmp_path_factory) -> int:
     """A finished trial of the maze, its record summarized for its page."""
     toml = '[controller]\ncommand = ["python", "c.py"]\ntask = "icreate-maze"\n'
     repo = GitRepo.create(tmp_path_factory.mktemp("repo") / "r", {"lab.toml": toml, "c.py": STEPS})
-    service = lab.lab.service
+    service = server.lab.service
     service.index.add_user("alice")
     alice = service.index.user("alice")
     made = service.submissions.submit(alice, TrialRequest(repository=str(repo.path)))
     service.wake()
-    done = wait_ended(lab, made, timeout=180)
+    done = wait_ended(server, made, timeout=180)
     assert done.mcap, done.reason
     return made
 
@@ -89,13 +89,13 @@ PAGES: list[tuple[str, str]] = [
 
 
 @pytest.mark.parametrize(("path", "works"), PAGES, ids=[p for p, _ in PAGES])
-def test_each_page_works_under_its_policy(lab, trial, watched: Watched, path: str, works: str):
+def test_each_page_works_under_its_policy(server, trial, watched: Watched, path: str, works: str):
     """The page does what it does (draws its record, shows the robot's camera or 3D
     scene over the bridge, renders the API's docs) with no violation of its
     Content-Security-Policy, which forbids framing, and nosniff and same-origin referrers."""
     page = watched.page
     page.add_init_script(LISTEN)
-    answer = page.goto(lab.http_url(path.format(trial=trial)))
+    answer = page.goto(server.http_url(path.format(trial=trial)))
     assert answer is not None and answer.status == 200
     headers = answer.headers
     policy = headers["content-security-policy"]
@@ -109,7 +109,7 @@ def test_each_page_works_under_its_policy(lab, trial, watched: Watched, path: st
     watched.check()
 
 
-def test_another_site_cannot_frame_the_lab(lab, browser):
+def test_another_site_cannot_frame_the_lab(server, browser):
     """A page of another origin that frames the lab's sign-in page gets an empty frame."""
     context = browser.new_context()
     try:
@@ -118,7 +118,7 @@ def test_another_site_cannot_frame_the_lab(lab, browser):
         page.on(
             "console", lambda m: refused.append(m.text) if "frame-ancestors" in m.text else None
         )
-        target = lab.http_url("/session")
+        target = server.http_url("/session")
         page.set_content(f'<iframe id="f" src="{target}" width="600" height="400"></iframe>')
         deadline = time.monotonic() + 60 * SECOND
         while not refused and time.monotonic() < deadline:  # until the browser says so

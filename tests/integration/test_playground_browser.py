@@ -41,7 +41,7 @@ SHORT = (
 
 
 @pytest.fixture(scope="module")
-def lab(tmp_path_factory, cache):
+def server(tmp_path_factory, cache):
     """A lab with the live maze robot and one bubblewrap worker; alice may write."""
     data = tmp_path_factory.mktemp("playground") / "data"
     with running(lab_config(data, (MAZE,), workers=1, cache=cache)) as server:
@@ -58,24 +58,24 @@ def set_script(page, text: str) -> None:
     )
 
 
-def sign_in(lab: ServerThread, page) -> None:
-    page.goto(lab.http_url("/session?then=/playground"))
-    page.fill("input[name=token]", lab.token)
+def sign_in(server: ServerThread, page) -> None:
+    page.goto(server.http_url("/session?then=/playground"))
+    page.fill("input[name=token]", server.token)
     page.click("#token-signin button[type=submit]")
     page.wait_for_url("**/playground")
 
 
-def driver(lab: ServerThread) -> str:
-    current = lab.lab.drives["icreate-1"].current
+def driver(server: ServerThread) -> str:
+    current = server.lab.drives["icreate-1"].current
     return current.user if current is not None else ""
 
 
-def test_run_live_drives_the_robot_and_prints_beside_the_camera(lab, watched):
+def test_run_live_drives_the_robot_and_prints_beside_the_camera(server, watched):
     """An anonymous visitor runs the maze's script live: it becomes the driver, its
     lines appear beside the camera, and Stop ends the drive; a syntax error is marked at
     its line and nothing runs; an error thrown at run time is shown with its line."""
     page = watched.page
-    page.goto(lab.http_url("/robots/icreate-1"))
+    page.goto(server.http_url("/robots/icreate-1"))
     page.click("#playground-link")
     page.wait_for_url("**/playground?robot=icreate-1")
     page.wait_for_function("document.body.dataset.ready === 'yes'")
@@ -85,11 +85,13 @@ def test_run_live_drives_the_robot_and_prints_beside_the_camera(lab, watched):
     page.click("#run-live")
     page.wait_for_function("Number(document.getElementById('console').dataset.lines || 0) >= 1")
     assert page.locator("#console").inner_text().startswith("live: on the robot's clock")
-    lab.wait_until(lambda: driver(lab) != "", timeout=20)  # its /cmd_vel made it the driver
+    server.wait_until(lambda: driver(server) != "", timeout=20)  # its /cmd_vel made it the driver
     page.wait_for_function("Number(document.getElementById('camera').dataset.frames || 0) > 2")
     shot(watched, "playground-live")
     page.click("#stop")
-    lab.wait_until(lambda: driver(lab) == "", timeout=20)  # its connection went with the frame
+    server.wait_until(
+        lambda: driver(server) == "", timeout=20
+    )  # its connection went with the frame
     assert page.locator("#run-live").is_enabled()
 
     set_script(page, "const a = 1;\nconst b = (a;\n")
@@ -110,15 +112,15 @@ def test_run_live_drives_the_robot_and_prints_beside_the_camera(lab, watched):
     watched.check()
 
 
-def test_a_script_becomes_a_trial_that_reproduces_and_clones(lab, watched, cache, tmp_path):
+def test_a_script_becomes_a_trial_that_reproduces_and_clones(server, watched, cache, tmp_path):
     """Alice's script that does not parse is refused at its line, nothing committed; the
     one that parses becomes a commit of her hosted repository and a trial of it, whose
     page links back to the script; its rerun reads "reproduced"; a clone over git's HTTP,
     run with labd run, gives the trial's data digest."""
-    service = lab.lab.service
+    service = server.lab.service
     page = watched.page
-    sign_in(lab, page)
-    page.goto(lab.http_url("/tasks/icreate-maze"))
+    sign_in(server, page)
+    page.goto(server.http_url("/tasks/icreate-maze"))
     page.click("#playground-link")
     page.wait_for_function("document.body.dataset.ready === 'yes'")
     page.fill("#name", "wanderer")
@@ -137,7 +139,7 @@ def test_a_script_becomes_a_trial_that_reproduces_and_clones(lab, watched, cache
     trial_id = int(page.locator("#result").get_attribute("data-trial"))
     commit = page.locator("#result").get_attribute("data-commit")
     assert service.hosted.head("alice", "wanderer") == commit
-    trial = wait_ended(lab, trial_id)
+    trial = wait_ended(server, trial_id)
     assert (trial.commit, trial.repository) == (commit, f"{service.git_url}/alice/wanderer.git")
     assert trial.outcome.value == "fail", trial.reason  # it left after 40 ticks, as written
     assert "before the episode ended" in trial.reason
@@ -155,12 +157,12 @@ def test_a_script_becomes_a_trial_that_reproduces_and_clones(lab, watched, cache
     assert commit[:12] in page.locator("#opened").inner_text()
 
     rerun = httpx.post(
-        lab.http_url(f"/api/trials/{trial_id}/rerun"),
-        headers={"Authorization": f"Bearer {lab.token}"},
+        server.http_url(f"/api/trials/{trial_id}/rerun"),
+        headers={"Authorization": f"Bearer {server.token}"},
     )
     assert rerun.status_code == 201, rerun.text
-    again = wait_ended(lab, rerun.json()["id"])
-    page.goto(lab.http_url(f"/trials/{again.id}"))
+    again = wait_ended(server, rerun.json()["id"])
+    page.goto(server.http_url(f"/trials/{again.id}"))
     assert page.locator(".reproduced").first.inner_text() == "reproduced"
     watched.check()
 
@@ -182,18 +184,18 @@ def test_a_script_becomes_a_trial_that_reproduces_and_clones(lab, watched, cache
     )
 
 
-def test_a_script_is_evaluated_on_a_suite_of_its_task(lab, watched):
+def test_a_script_is_evaluated_on_a_suite_of_its_task(server, watched):
     """The page's Evaluate commits the script and queues an evaluation of that commit on
     every episode of the chosen suite; an unknown suite commits nothing."""
-    service = lab.lab.service
-    auth = {"Authorization": f"Bearer {lab.token}"}
+    service = server.lab.service
+    auth = {"Authorization": f"Bearer {server.token}"}
     body = {"name": "evaluated", "task": "icreate-maze", "script": SHORT, "suite": "nope"}
-    missing = httpx.post(lab.http_url("/api/playground/evaluations"), json=body, headers=auth)
+    missing = httpx.post(server.http_url("/api/playground/evaluations"), json=body, headers=auth)
     assert missing.status_code == 404 and "no suite 'nope'" in missing.json()["error"]
     assert service.hosted.head("alice", "evaluated") is None
 
     page = watched.page
-    sign_in(lab, page)
+    sign_in(server, page)
     page.wait_for_function("document.body.dataset.ready === 'yes'")
     page.fill("#name", "evaluated")
     set_script(page, SHORT)
@@ -207,7 +209,7 @@ def test_a_script_is_evaluated_on_a_suite_of_its_task(lab, watched):
     assert evaluation.commit == service.hosted.head("alice", "evaluated")
     shot(watched, "playground-evaluation")
     cancelled = httpx.post(
-        lab.http_url(f"/api/evaluations/{evaluation_id}/cancel"), headers=auth, timeout=60
+        server.http_url(f"/api/evaluations/{evaluation_id}/cancel"), headers=auth, timeout=60
     )
     assert cancelled.status_code == 200, cancelled.text
     page.click("#evaluation-link")

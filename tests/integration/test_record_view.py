@@ -21,9 +21,9 @@ from labd.recorder.summary import decode
 from repository.well_known import SUMMARY
 from tests.helpers.githttp import GitRepo
 from tests.integration.browser import browser, watched
-from tests.integration.test_browser import lab, shot, wait_ended
+from tests.integration.test_browser import server, shot, wait_ended
 
-__all__ = ["browser", "lab", "watched"]
+__all__ = ["browser", "server", "watched"]
 pytestmark = [pytest.mark.integration, pytest.mark.timeout(400)]
 
 MAZE = """\
@@ -68,9 +68,9 @@ def repository(tmp_path, name, task, code):
     return GitRepo.create(tmp_path / name, {"lab.toml": toml, "c.py": code})
 
 
-def submit(lab, watched, path):
+def submit(server, watched, path):
     page = watched.page
-    page.goto(lab.http_url("/submit"))
+    page.goto(server.http_url("/submit"))
     page.fill("#repository", str(path))
     page.click("form.card button[type=submit]")
     page.wait_for_url("**/trials/*")
@@ -94,9 +94,9 @@ def pixels(page, selector):
     )
 
 
-def assert_posed_as_mujoco_poses(page, lab, trial_id, body, point):
+def assert_posed_as_mujoco_poses(page, server, trial_id, body, point):
     """The page's forward kinematics of ``body`` at ``point`` is MuJoCo's."""
-    service = lab.lab.service
+    service = server.lab.service
     summary = decode(service.store.read_bytes(service.index.derived(trial_id)[SUMMARY].digest))
     scene = summary["scene"]
     page.evaluate("t => window.labRecord.seek(t)", summary["t"][point])
@@ -122,21 +122,21 @@ def model_of(service, trial):
     return mujoco.MjModel.from_xml_string(attachments["model.xml"].decode(), assets)
 
 
-def test_a_trials_record_in_its_page(lab, watched, tmp_path):
+def test_a_trials_record_in_its_page(server, watched, tmp_path):
     """A person opens a maze trial that watched its camera and a PR2 trial: plots, camera
     frames, the map and the path, and the 3D scene appear, move with the scrubber, come
     from the summary (a small fraction of the record), and nothing leaves the machine."""
-    service = lab.lab.service
+    service = server.lab.service
     token = service.index.add_user("alice")
     page = watched.page
-    page.goto(lab.http_url("/session?then=/submit"))
+    page.goto(server.http_url("/session?then=/submit"))
     page.fill("input[name=token]", token)
     page.click("#token-signin button[type=submit]")
     page.wait_for_url("**/submit")
-    maze = submit(lab, watched, repository(tmp_path, "maze", "icreate-maze", MAZE).path)
-    pr2 = submit(lab, watched, repository(tmp_path, "pr2", "pr2-table", PR2).path)
+    maze = submit(server, watched, repository(tmp_path, "maze", "icreate-maze", MAZE).path)
+    pr2 = submit(server, watched, repository(tmp_path, "pr2", "pr2-table", PR2).path)
     for trial_id in (maze, pr2):
-        assert wait_ended(lab, trial_id, timeout=180).mcap
+        assert wait_ended(server, trial_id, timeout=180).mcap
         deadline = time.monotonic() + 60  # the worker files the summary right after
         while SUMMARY not in service.index.derived(trial_id):
             assert time.monotonic() < deadline, f"trial {trial_id} has no summary"
@@ -144,7 +144,7 @@ def test_a_trials_record_in_its_page(lab, watched, tmp_path):
 
     sizes = {}
     page.on("response", lambda r: sizes.__setitem__(r.url, r.headers.get("content-length")))
-    page.goto(lab.http_url(f"/trials/{maze}"))
+    page.goto(server.http_url(f"/trials/{maze}"))
     drawn(page, ["plots", "camera", "map", "scene"])
     assert page.locator("#record .plot canvas").count() >= 8
     titles = page.locator("#record .u-title").all_inner_texts()
@@ -162,15 +162,15 @@ def test_a_trials_record_in_its_page(lab, watched, tmp_path):
     path = page.evaluate("window.labRecord.summary.map.path")
     assert len(path["x"]) > 10 and (path["x"][0], path["y"][0]) == (0, 0)
     points = page.evaluate("window.labRecord.summary.t.length")
-    assert_posed_as_mujoco_poses(page, lab, maze, "base_link", points - 1)
-    summary_url = lab.http_url(f"/api/trials/{maze}/summary")
+    assert_posed_as_mujoco_poses(page, server, maze, "base_link", points - 1)
+    summary_url = server.http_url(f"/api/trials/{maze}/summary")
     record_size = service.index.trial(maze).mcap_size
     assert int(sizes[summary_url]) < record_size / 10
     assert not any("data.mcap" in u for u in sizes)  # the page never fetched the record
     page.evaluate("window.labRecord.seek(window.labRecord.summary.duration * 0.7)")
     shot(watched, "record-maze")
 
-    page.goto(lab.http_url(f"/trials/{pr2}"))
+    page.goto(server.http_url(f"/trials/{pr2}"))
     drawn(page, ["plots", "scene"])
     titles = page.locator("#record .u-title").all_inner_texts()
     assert "/joint_states · position (observation)" in titles
@@ -178,7 +178,7 @@ def test_a_trials_record_in_its_page(lab, watched, tmp_path):
     assert page.locator("#record-scene").is_visible()
     points = page.evaluate("window.labRecord.summary.t.length")
     for point in (0, points // 2, points - 1):  # the arm moves through the ready pose
-        assert_posed_as_mujoco_poses(page, lab, pr2, "l_wrist_roll_link", point)
+        assert_posed_as_mujoco_poses(page, server, pr2, "l_wrist_roll_link", point)
     page.evaluate("window.labRecord.seek(window.labRecord.summary.duration)")
     shot(watched, "record-pr2")
     watched.check()

@@ -26,21 +26,26 @@ WAIT = 10
 
 
 @pytest.fixture
-def lab(tmp_path):
+def server(tmp_path):
     bridge = BridgeConfig(port=0, expiry_warning=2.0)
     config = lab_config(tmp_path / "data", (MAZE, PR2), bridge=bridge, reservations=True)
     with running(config) as server:
         yield server
 
 
-def robot_url(lab: ServerThread, robot: str = "icreate-1") -> str:
-    return lab.url + f"/robots/{robot}"
+def robot_url(server: ServerThread, robot: str = "icreate-1") -> str:
+    return server.url + f"/robots/{robot}"
 
 
 def book(
-    lab: ServerThread, user: str, seconds: float, *, start: float | None = None, robot="icreate-1"
+    server: ServerThread,
+    user: str,
+    seconds: float,
+    *,
+    start: float | None = None,
+    robot="icreate-1",
 ):
-    desk = lab.lab.service.reservations
+    desk = server.lab.service.reservations
     begin = time.time() if start is None else start
     return desk.book(user, robot, begin, begin + seconds)
 
@@ -69,27 +74,27 @@ def drive(ws, x=0.2):
     ws.send(json.dumps({"op": "publish", "topic": "/cmd_vel", "msg": {"linear": {"x": x}}}))
 
 
-def test_a_key_drives_is_warned_and_closed_when_its_slot_ends(lab):
+def test_a_key_drives_is_warned_and_closed_when_its_slot_ends(server):
     """Alice's key drives icreate-1 (the robot says she drives); a minute-like warning
     (2 s here) comes before her 4 s slot ends, then the connection closes, and her drive
     is filed as a demonstration under her name."""
     for name in ("alice", "bob"):
-        lab.lab.service.index.add_user(name)
-    made = book(lab, "alice", 4.0)
-    drives = lab.lab.drives["icreate-1"]
-    with connect_ws(robot_url(lab)) as ws:
+        server.lab.service.index.add_user(name)
+    made = book(server, "alice", 4.0)
+    drives = server.lab.drives["icreate-1"]
+    with connect_ws(robot_url(server)) as ws:
         ws.send(json.dumps({"op": "auth", "key": made.key}))
         ws.send(json.dumps({"op": "set_level", "level": "warning"}))
         ws.send(json.dumps({"op": "advertise", "topic": "/cmd_vel", "type": TWIST}))
         drive(ws)
-        lab.wait_until(lambda: drives.current is not None)
+        server.wait_until(lambda: drives.current is not None)
         assert drives.current.user == "alice"
         seen = frames_until(ws, lambda f: f.get("op") == "status")
         assert seen[-1]["level"] == "warning"
         assert seen[-1]["msg"].startswith("the time of your key ends in 2 s")
         code, reason = closed_reason(ws)
     assert (code, reason) == (1008, "the authorization has expired")
-    service = lab.lab.service
+    service = server.lab.service
     deadline = time.monotonic() + 30
     while not (found := service.index.find(Filters(kind=Kind.DEMONSTRATION)).items):
         assert time.monotonic() < deadline, "no demonstration filed"
@@ -97,10 +102,10 @@ def test_a_key_drives_is_warned_and_closed_when_its_slot_ends(lab):
     assert [d.submitter for d in found] == ["alice"]
 
 
-def test_without_a_key_a_client_watches_and_cannot_drive(lab):
+def test_without_a_key_a_client_watches_and_cannot_drive(server):
     """A client without a key connects and sees the robot, but its commands are refused
     with how to book."""
-    with connect_ws(robot_url(lab)) as ws:
+    with connect_ws(robot_url(server)) as ws:
         ws.send(json.dumps({"op": "set_level", "level": "error"}))
         ws.send(json.dumps({"op": "subscribe", "topic": "/odom", "type": "nav_msgs/msg/Odometry"}))
         frames_until(ws, lambda f: f.get("topic") == "/odom")
@@ -108,48 +113,48 @@ def test_without_a_key_a_client_watches_and_cannot_drive(lab):
         drive(ws)
         seen = frames_until(ws, lambda f: f.get("op") == "status")
     assert "icreate-1 is driven only in a reserved slot; you are watching" in seen[-1]["msg"]
-    assert lab.lab.drives["icreate-1"].current is None
+    assert server.lab.drives["icreate-1"].current is None
 
 
 @pytest.mark.parametrize("case", ["expired", "early", "other robot", "forged"])
-def test_keys_that_open_nothing_now_are_refused_saying_why(lab, case):
+def test_keys_that_open_nothing_now_are_refused_saying_why(server, case):
     """An expired key, a key of a later slot, another robot's key and a forged key each
     close the connection with a reason its holder can act on."""
-    lab.lab.service.index.add_user("bob")
+    server.lab.service.index.add_user("bob")
     now = time.time()
     if case == "expired":
-        made = book(lab, "bob", 0.2)
+        made = book(server, "bob", 0.2)
         while time.time() <= made.reservation.end:  # until the slot has ended
             time.sleep(0.01)
         expected = "this key's slot on icreate-1 ended at"
     elif case == "early":
-        made = book(lab, "bob", 60, start=now + 600)
+        made = book(server, "bob", 60, start=now + 600)
         expected = "this key's slot on icreate-1 starts at"
     elif case == "other robot":
-        made = book(lab, "bob", 60, robot="pr2-1")
+        made = book(server, "bob", 60, robot="pr2-1")
         expected = "this key is for pr2-1, not icreate-1"
     else:
-        made = book(lab, "bob", 60)
+        made = book(server, "bob", 60)
         made = type(made)(made.reservation, made.key[:-3] + "xyz")
         expected = "the lab knows no such key"
-    with connect_ws(robot_url(lab) + f"?key={made.key}") as ws:
+    with connect_ws(robot_url(server) + f"?key={made.key}") as ws:
         code, reason = closed_reason(ws)
     assert code == 1008 and reason.startswith(f"authorization refused: {expected}")
 
 
-def test_a_slot_released_through_the_api_disconnects_its_client(lab):
+def test_a_slot_released_through_the_api_disconnects_its_client(server):
     """Alice releases her slot through the API while connected with its key: she is
     disconnected at once, told why, and Bob can book the rest."""
-    service = lab.lab.service
+    service = server.lab.service
     token = service.index.add_user("alice")
     bob = service.index.add_user("bob")
-    http = lab.lab.http.url()
+    http = server.lab.http.url()
     with httpx.Client(base_url=http, headers={"Authorization": f"Bearer {token}"}) as api:
         made = api.post("/api/reservations", json={"robot": "icreate-1", "minutes": 30})
         assert made.status_code == 201, made.text
         key = made.json()["key"]["key"]
         slot = made.json()["reservation"]["id"]
-        with connect_ws(robot_url(lab)) as ws:
+        with connect_ws(robot_url(server)) as ws:
             ws.send(json.dumps({"op": "auth", "key": key}))
             ws.send(json.dumps({"op": "call_service", "id": 1, "service": "/rosapi/nodes"}))
             frames_until(ws, lambda f: f.get("id") == 1)
@@ -164,27 +169,27 @@ def test_a_slot_released_through_the_api_disconnects_its_client(lab):
     assert taken.status_code == 201, taken.text
 
 
-def test_two_people_each_drive_only_in_their_own_slot(lab):
+def test_two_people_each_drive_only_in_their_own_slot(server):
     """Alice and Bob book back-to-back slots: during Alice's, Bob's key is refused and
     Alice drives; when hers ends, Bob's key opens the robot and he drives."""
     for name in ("alice", "bob"):
-        lab.lab.service.index.add_user(name)
+        server.lab.service.index.add_user(name)
     start = time.time()
-    alice = book(lab, "alice", 3.0, start=start)
-    bob = book(lab, "bob", 30.0, start=start + 3.0)
-    drives = lab.lab.drives["icreate-1"]
-    with connect_ws(robot_url(lab) + f"?key={bob.key}") as early:
+    alice = book(server, "alice", 3.0, start=start)
+    bob = book(server, "bob", 30.0, start=start + 3.0)
+    drives = server.lab.drives["icreate-1"]
+    with connect_ws(robot_url(server) + f"?key={bob.key}") as early:
         assert "starts at" in closed_reason(early)[1]
-    with connect_ws(robot_url(lab) + f"?key={alice.key}") as ws:
+    with connect_ws(robot_url(server) + f"?key={alice.key}") as ws:
         ws.send(json.dumps({"op": "advertise", "topic": "/cmd_vel", "type": TWIST}))
         drive(ws)
-        lab.wait_until(lambda: drives.current is not None and drives.current.user == "alice")
+        server.wait_until(lambda: drives.current is not None and drives.current.user == "alice")
         assert closed_reason(ws) == (1008, "the authorization has expired")
-    lab.wait_until(lambda: drives.current is None)
-    with connect_ws(robot_url(lab) + f"?key={bob.key}") as ws:
+    server.wait_until(lambda: drives.current is None)
+    with connect_ws(robot_url(server) + f"?key={bob.key}") as ws:
         ws.send(json.dumps({"op": "advertise", "topic": "/cmd_vel", "type": TWIST}))
         drive(ws)
-        lab.wait_until(lambda: drives.current is not None and drives.current.user == "bob")
+        server.wait_until(lambda: drives.current is not None and drives.current.user == "bob")
 
 
 class Refusing:

@@ -29,7 +29,7 @@ WARNING = 6.0  # seconds before the end (a minute in a real lab)
 
 
 @pytest.fixture
-def lab(tmp_path):
+def server(tmp_path):
     bridge = BridgeConfig(port=0, expiry_warning=WARNING)
     with running(lab_config(tmp_path / "data", bridge=bridge, reservations=True)) as server:
         service = server.lab.service
@@ -41,8 +41,8 @@ def lab(tmp_path):
         yield server
 
 
-def sign_in(lab: ServerThread, page, name: str) -> None:
-    page.goto(lab.http_url("/session?then=/reservations"))
+def sign_in(server: ServerThread, page, name: str) -> None:
+    page.goto(server.http_url("/session?then=/reservations"))
     page.fill("#name", name)
     page.fill("#password", PASSWORD)
     page.click("#password-signin button[type=submit]")
@@ -56,17 +56,17 @@ def shot(page, name: str) -> None:
 
 
 def test_book_drive_be_warned_and_disconnected_while_another_cannot_drive(
-    lab, watched: Watched, browser
+    server, watched: Watched, browser
 ):
     """Alice books a slot and drives in it, is warned before it ends and disconnected
     when it does; Bob can neither book her slot nor drive in it; her drive is filed
     under her name."""
     alice = watched.page
-    sign_in(lab, alice, "alice")
+    sign_in(server, alice, "alice")
     bob_context = browser.new_context()
     bob = csp_safe(bob_context.new_page())
     try:
-        sign_in(lab, bob, "bob")
+        sign_in(server, bob, "bob")
 
         alice.fill("#minutes", str(SLOT_MINUTES))
         alice.click("#book-form button[type=submit]")
@@ -75,7 +75,7 @@ def test_book_drive_be_warned_and_disconnected_while_another_cannot_drive(
         assert "alice" in alice.locator("#robot-icreate-1").inner_text()
         shot(alice, "reservations-booked")
 
-        robot = lab.http_url("/robots/icreate-1?interface=perception")
+        robot = server.http_url("/robots/icreate-1?interface=perception")
         alice.goto(robot)
         alice.wait_for_function("document.body.dataset.ready === 'yes'", timeout=15_000)
         assert "connected with your slot's key" in alice.locator("#status").inner_text()
@@ -89,11 +89,11 @@ def test_book_drive_be_warned_and_disconnected_while_another_cannot_drive(
             )
         finally:
             alice.keyboard.up("ArrowUp")
-        drives = lab.lab.drives["icreate-1"]
+        drives = server.lab.drives["icreate-1"]
         assert drives.current is not None and drives.current.user == "alice"
 
         # Bob, meanwhile: the slot is taken, and his robot page only watches.
-        bob.goto(lab.http_url("/reservations"))
+        bob.goto(server.http_url("/reservations"))
         bob.fill("#minutes", "5")
         bob.click("#book-form button[type=submit]")
         assert "icreate-1 is booked from" in bob.locator("#problem").inner_text()
@@ -123,11 +123,11 @@ def test_book_drive_be_warned_and_disconnected_while_another_cannot_drive(
         )
     finally:
         bob_context.close()
-    lab.wait_until(lambda: drives.current is None)
+    server.wait_until(lambda: drives.current is None)
     watched.expected.update(
         f for f in watched.failed if "/api/robots/icreate-1/key" in f and f.startswith("404")
     )
     watched.check()
-    index = lab.lab.service.index
-    lab.wait_until(lambda: bool(index.find(Filters(kind=Kind.DEMONSTRATION)).items), 30)
+    index = server.lab.service.index
+    server.wait_until(lambda: bool(index.find(Filters(kind=Kind.DEMONSTRATION)).items), 30)
     assert [d.submitter for d in index.find(Filters(kind=Kind.DEMONSTRATION)).items] == ["alice"]

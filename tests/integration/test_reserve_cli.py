@@ -66,16 +66,16 @@ def test_users_add_list_password_revoke_rotate(tmp_path, capsys, monkeypatch):
 
 
 @pytest.fixture
-def lab(tmp_path):
+def server(tmp_path):
     with running(lab_config(tmp_path / "data", reservations=True)) as server:
         yield server
 
 
-def test_reserve_book_list_extend_key_release(lab, capsys, monkeypatch):
+def test_reserve_book_list_extend_key_release(server, capsys, monkeypatch):
     """A person books, lists, extends, reads the key of, and releases a slot with
     labd reserve; a refused booking exits 2 with the lab's message."""
-    service = lab.lab.service
-    monkeypatch.setenv("LABD_SERVER", lab.lab.http.url())
+    service = server.lab.service
+    monkeypatch.setenv("LABD_SERVER", server.lab.http.url())
     monkeypatch.setenv("LABD_TOKEN", service.index.add_user("alice"))
     code, out, _ = run(capsys, "reserve", "book", "icreate-1", "--minutes", "20", "--json")
     assert code == 0, out

@@ -8,13 +8,10 @@ repositories, the real CLI: submit, list, show, download, rerun by commit and re
 from __future__ import annotations
 
 import json
-import os
-import queue
 import re
 import signal
 import subprocess
 import sys
-import threading
 import time
 from pathlib import Path
 
@@ -56,156 +53,36 @@ def make_repo(path: Path, files: dict[str, str] | None = None, copy: Path | None
     return GitRepo.create(path, files, "a controller").path
 
 
-class Lab:
-    """A `labd serve` process and the `labd` command pointed at it."""
-
-    def __init__(self, data: Path, cache: Path, *extra: str) -> None:
-        self.data = data
-        self.cache = cache
-        self.extra = list(extra)
-        self.process: subprocess.Popen[str] | None = None
-        self.server = ""
-        self.token = ""
-
-    def start(self) -> None:
-        command = [
-            sys.executable, "-m", "labd", "--log-level", "INFO", "serve", "--data", str(self.data),
-            "--cache", str(self.cache), "--http-port", "0", "--bridge-port", "0",
-            "--no-robots", "--workers", "1", "--sandbox", "bwrap",
-            "--lease", "3", "--allow-local-repos", *self.extra,
-        ]  # fmt: skip
-        self.process = subprocess.Popen(
-            command,
-            stdout=subprocess.PIPE,
-            stderr=subprocess.STDOUT,
-            text=True,
-            start_new_session=True,
-        )
-        lines: queue.Queue[str] = queue.Queue()
-        self.output: list[str] = []
-
-        def read() -> None:
-            assert self.process is not None and self.process.stdout is not None
-            for line in self.process.stdout:
-                self.output.append(line)
-                lines.put(line)
-            lines.put("")
-
-        self.reader = threading.Thread(target=read, daemon=True)
-        self.reader.start()
-        deadline = time.monotonic() + 300
-        while time.monotonic() < deadline:
-            line = lines.get(timeout=max(0.1, deadline - time.monotonic()))
-            if not line:
-                pytest.fail("labd serve exited:\n" + "".join(self.output))
-            found = re.search(r"HTTP API on (http://\S+?)/api", line)
-            if found:
-                self.server = found.group(1)
-                return
-        pytest.fail("labd serve did not start:\n" + "".join(self.output))
-
-    def kill(self) -> None:
-        assert self.process is not None
-        self.process.send_signal(signal.SIGKILL)
-        self.process.wait(10)
-        self._closed()
-
-    def _closed(self) -> None:
-        assert self.process is not None and self.process.stdout is not None
-        self.reader.join(30)
-        self.process.stdout.close()
-
-    def stop(self) -> None:
-        if self.process is not None and self.process.poll() is None:
-            self.process.send_signal(signal.SIGTERM)
-            try:
-                self.process.wait(30)
-            except subprocess.TimeoutExpired:
-                os.killpg(self.process.pid, signal.SIGKILL)
-                self.process.wait(10)
-            self._closed()
-
-    def labd(self, *args: str, check: bool = True) -> subprocess.CompletedProcess[str]:
-        env = {**os.environ, "LABD_SERVER": self.server, "LABD_TOKEN": self.token}
-        try:
-            done = subprocess.run(
-                [sys.executable, "-m", "labd", *args],
-                capture_output=True,
-                text=True,
-                env=env,
-                timeout=300,
-                check=False,
-            )
-        except subprocess.TimeoutExpired as err:  # say what the lab was doing meanwhile
-            if self.process is not None and self.process.poll() is None:
-                self.process.send_signal(signal.SIGUSR1)  # its threads' stacks, to its log
-                time.sleep(2)
-            status = subprocess.run(
-                [sys.executable, "-m", "labd", "status"],
-                capture_output=True, text=True, env=env, timeout=60, check=False,
-            )  # fmt: skip
-            pytest.fail(
-                f"labd {' '.join(args)} did not end within 300 s; it said:\n"
-                f"{err.stderr if isinstance(err.stderr, str) else (err.stderr or b'').decode()}\n"
-                f"labd status:\n{status.stdout}{status.stderr}\n"
-                f"the lab's log, its end:\n{''.join(self.output[-400:])}"
-            )
-        if check and done.returncode != 0:
-            pytest.fail(f"labd {' '.join(args)} exited {done.returncode}:\n{done.stderr}")
-        return done
-
-    def json(self, *args: str, code: int = 0) -> object:
-        """Run a command with --json; it must exit with ``code`` (1: a trial's fail)."""
-        done = self.labd(*args, "--json", check=code == 0)
-        assert done.returncode == code, done.stdout + done.stderr
-        return json.loads(done.stdout)
-
-
 @pytest.fixture
-def make_lab(tmp_path, cache):
-    labs = []
-
-    def make(*extra: str) -> Lab:
-        lab = Lab(tmp_path / "data", cache, *extra)
-        user = lab.labd("users", "add", "alice", "--data", str(lab.data), "--json")
-        lab.token = json.loads(user.stdout)["token"]
-        lab.start()
-        labs.append(lab)
-        return lab
-
-    yield make
-    for lab in labs:
-        lab.stop()
+def served_lab(make_served_lab):
+    return make_served_lab()
 
 
-@pytest.fixture
-def lab(make_lab):
-    return make_lab()
-
-
-def test_submit_list_download_and_rerun_by_commit(lab, tmp_path):
+def test_submit_list_download_and_rerun_by_commit(served_lab, tmp_path):
     """A newcomer's path: submit by path and ref, list, download the MCAP, rerun, reproduced."""
     repo = make_repo(tmp_path / "maze", copy=EXAMPLES / "icreate-maze")
     commit = GitRepo(repo).rev()
-    trial = lab.json("submit", str(repo), "--ref", "main", "--task", "icreate-maze", "--wait")
+    trial = served_lab.json(
+        "submit", str(repo), "--ref", "main", "--task", "icreate-maze", "--wait"
+    )
     assert (trial["status"], trial["outcome"]) == ("finished", "success"), trial
     assert trial["commit"] == commit
     assert trial["metrics"]["success"] is True
-    listed = lab.json("trials", "--commit", commit[:8])
+    listed = served_lab.json("trials", "--commit", commit[:8])
     assert [t["id"] for t in listed["trials"]] == [trial["id"]]
     mcap = tmp_path / "record.mcap"
-    lab.labd("download", str(trial["id"]), "-o", str(mcap))
+    served_lab.labd("download", str(trial["id"]), "-o", str(mcap))
     with mcap.open("rb") as stream:
         topics = {c.topic for c in make_reader(stream).get_summary().channels.values()}
     assert {"/odom", "/cmd_vel", "/clock"} <= topics
-    text = lab.labd("rerun", commit[:10], "--wait").stdout
+    text = served_lab.labd("rerun", commit[:10], "--wait").stdout
     assert re.search(r"trial \d+ \(rerun of \d+\): reproduced", text), text
-    page = lab.json("show", str(trial["id"]))
+    page = served_lab.json("show", str(trial["id"]))
     assert page["outcome"] == "success"
-    table = lab.labd("trials").stdout
+    table = served_lab.labd("trials").stdout
     assert re.search(rf"^\s*{trial['id']}\s+success\s+\S+\s+icreate-maze", table, re.M), table
     out = tmp_path / "lerobot"
-    exported = lab.json("export", str(trial["id"]), "--format", "lerobot", "-o", str(out))
+    exported = served_lab.json("export", str(trial["id"]), "--format", "lerobot", "-o", str(out))
     assert exported["frames"] > 100
     info = json.loads((out / "meta" / "info.json").read_text())
     assert exported["frames"] == info["total_frames"] == trial["metrics"]["ticks"]  # every tick
@@ -219,40 +96,40 @@ def test_submit_list_download_and_rerun_by_commit(lab, tmp_path):
 
     # the three ways to check a record: rerun (above), and the lab's signature, offline
     keys = tmp_path / "lab-keys.json"
-    keys.write_text(httpx.get(f"{lab.server}/api/keys").text)
-    verified = lab.labd("verify", str(mcap), "--key", str(keys)).stdout
+    keys.write_text(httpx.get(f"{served_lab.server}/api/keys").text)
+    verified = served_lab.labd("verify", str(mcap), "--key", str(keys)).stdout
     assert f"verified: trial {trial['id']} (icreate-maze, success)" in verified
-    assert lab.labd("verify", str(out), "--key", str(keys)).returncode == 0
+    assert served_lab.labd("verify", str(out), "--key", str(keys)).returncode == 0
     data = bytearray(mcap.read_bytes())
     data[len(data) // 2] ^= 0x01  # one bit, in the middle of the messages
     mcap.write_bytes(bytes(data))
-    broken = lab.labd("verify", str(mcap), "--key", str(keys), check=False)
+    broken = served_lab.labd("verify", str(mcap), "--key", str(keys), check=False)
     assert broken.returncode == 6 and "was changed after the lab signed it" in broken.stderr
     info_file = out / "meta" / "info.json"
     info_file.write_text(info_file.read_text().replace('"total_frames"', '"total_frames" '))
-    edited = lab.labd("verify", str(out), "--key", str(keys), check=False)
+    edited = served_lab.labd("verify", str(out), "--key", str(keys), check=False)
     assert edited.returncode == 6 and "changed: meta/info.json" in edited.stderr
 
 
-def test_a_sigkill_mid_trial_loses_nothing(lab, tmp_path):
+def test_a_sigkill_mid_trial_loses_nothing(served_lab, tmp_path):
     """`labd serve` killed while a trial runs: after a restart every trial still ends."""
     repo = make_repo(
         tmp_path / "slow",
         {"lab.toml": '[controller]\ncommand = ["python", "slow.py"]\n', "slow.py": SLOW},
     )
-    first = lab.json("submit", str(repo), "--task", "icreate-maze")
-    second = lab.json("submit", str(repo), "--task", "icreate-maze", "--seed", "1")
-    record = lab.data / "work" / f"trial-{first['id']}-1" / "trial.mcap"
+    first = served_lab.json("submit", str(repo), "--task", "icreate-maze")
+    second = served_lab.json("submit", str(repo), "--task", "icreate-maze", "--seed", "1")
+    record = served_lab.data / "work" / f"trial-{first['id']}-1" / "trial.mcap"
     deadline = time.monotonic() + 120
     while not record.exists():  # the recording has begun: the trial is under way
-        assert time.monotonic() < deadline, "".join(lab.output)
+        assert time.monotonic() < deadline, "".join(served_lab.output)
         time.sleep(0.05)
-    assert httpx.get(f"{lab.server}/api/trials/{first['id']}").json()["status"] == "running"
-    lab.kill()
-    lab.start()
+    assert httpx.get(f"{served_lab.server}/api/trials/{first['id']}").json()["status"] == "running"
+    served_lab.kill()
+    served_lab.start()
     deadline = time.monotonic() + 180
     while True:
-        rows = [lab.json("show", str(t["id"])) for t in (first, second)]
+        rows = [served_lab.json("show", str(t["id"])) for t in (first, second)]
         if all(r["status"] in ("finished", "cancelled") for r in rows):
             break
         assert time.monotonic() < deadline, rows
@@ -276,7 +153,7 @@ with Lab.connect() as lab:
 """
 
 
-def test_public_and_private_repositories_over_smart_http(make_lab, tmp_path):
+def test_public_and_private_repositories_over_smart_http(make_served_lab, tmp_path):
     """Over a real git smart-HTTP server: a public repository, and a private one fetched
     with the operator's token, which the controller never sees."""
     token = "tok-" + "s3cret" * 4
@@ -289,7 +166,7 @@ def test_public_and_private_repositories_over_smart_http(make_lab, tmp_path):
     ) as git_server:
         token_file = tmp_path / "token"
         token_file.write_text(token + "\n")
-        lab = make_lab(
+        lab = make_served_lab(
             "--allow-scheme",
             "http",
             "--git-token",
@@ -317,9 +194,9 @@ def test_public_and_private_repositories_over_smart_http(make_lab, tmp_path):
         assert "not allowed" in refused.stderr
 
 
-def test_a_worker_on_another_machine(make_lab, tmp_path, cache):
+def test_a_worker_on_another_machine(make_served_lab, tmp_path, cache):
     """`labd worker --server` runs the queue's trials over the HTTP API and files them."""
-    lab = make_lab("--workers", "0")
+    lab = make_served_lab("--workers", "0")
     made = lab.labd("users", "add", "w1", "--worker", "--data", str(lab.data), "--json")
     worker_token = json.loads(made.stdout)["token"]
     denied = httpx.post(
@@ -360,7 +237,7 @@ def test_a_worker_on_another_machine(make_lab, tmp_path, cache):
     assert "replay" not in output, output
 
 
-def test_cancel_a_running_trial(lab, tmp_path):
+def test_cancel_a_running_trial(served_lab, tmp_path):
     """`labd cancel` stops a running trial at its worker's next heartbeat; it is filed as
     cancelled, and the queue goes on to the next trial."""
     slower = SLOW.replace("range(200)", "range(2000)")  # ends by the cancel, however loaded
@@ -368,28 +245,28 @@ def test_cancel_a_running_trial(lab, tmp_path):
         tmp_path / "slow",
         {"lab.toml": '[controller]\ncommand = ["python", "slow.py"]\n', "slow.py": slower},
     )
-    first = lab.json("submit", str(repo), "--task", "icreate-maze")
+    first = served_lab.json("submit", str(repo), "--task", "icreate-maze")
     quick = make_repo(tmp_path / "quick", {"lab.toml": TELLTALE_TOML, "c.py": TELLTALE})
-    second = lab.json("submit", str(quick), "--task", "icreate-maze")
-    record = lab.data / "work" / f"trial-{first['id']}-1" / "trial.mcap"
+    second = served_lab.json("submit", str(quick), "--task", "icreate-maze")
+    record = served_lab.data / "work" / f"trial-{first['id']}-1" / "trial.mcap"
     deadline = time.monotonic() + 120
     while not record.exists():
-        assert time.monotonic() < deadline, "".join(lab.output)
+        assert time.monotonic() < deadline, "".join(served_lab.output)
         time.sleep(0.05)
-    asked = lab.json("cancel", str(first["id"]))
+    asked = served_lab.json("cancel", str(first["id"]))
     assert asked["status"] == "running" and asked["cancel_requested"] is True
-    [cancelled, after] = lab_wait(lab, [first["id"], second["id"]])
+    [cancelled, after] = lab_wait(served_lab, [first["id"], second["id"]])
     assert (cancelled["status"], cancelled["outcome"]) == ("cancelled", None)
     assert "cancelled while it ran" in cancelled["reason"]
     assert after["status"] == "finished"
-    again = lab.labd("cancel", str(first["id"]), check=False)
+    again = served_lab.labd("cancel", str(first["id"]), check=False)
     assert again.returncode == 2 and "had already ended" in again.stderr
 
 
-def lab_wait(lab, ids, timeout=180):
+def lab_wait(served_lab, ids, timeout=180):
     deadline = time.monotonic() + timeout
     while True:
-        rows = [httpx.get(f"{lab.server}/api/trials/{i}").json() for i in ids]
+        rows = [httpx.get(f"{served_lab.server}/api/trials/{i}").json() for i in ids]
         if all(r["status"] in ("finished", "cancelled") for r in rows):
             return rows
         assert time.monotonic() < deadline, rows
@@ -400,7 +277,7 @@ TELLTALE_TOML = '[controller]\ncommand = ["python", "c.py"]\n'
 
 
 @pytest.fixture
-def s3(monkeypatch):
+def s3_bucket(monkeypatch):
     """A real S3-compatible server (moto) on 127.0.0.1, with a bucket for the archive."""
     server = ThreadedMotoServer(ip_address="127.0.0.1", port=0, verbose=False)
     server.start()
@@ -414,10 +291,10 @@ def s3(monkeypatch):
     server.stop()
 
 
-def test_the_archive_in_an_s3_bucket(make_lab, s3, tmp_path):
+def test_the_archive_in_an_s3_bucket(make_served_lab, s3_bucket, tmp_path):
     """With --blobs s3://..., records go to the bucket and come back checked."""
-    endpoint, fs = s3
-    lab = make_lab(
+    endpoint, fs = s3_bucket
+    lab = make_served_lab(
         "--blobs", "s3://lab-archive/records", "--blobs-option", f"endpoint_url={endpoint}"
     )
     repo = make_repo(tmp_path / "quick", {"lab.toml": TELLTALE_TOML, "c.py": TELLTALE})

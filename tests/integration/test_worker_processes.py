@@ -12,7 +12,7 @@ from pathlib import Path
 import httpx
 import pytest
 
-from tests.integration.test_service import EXAMPLES, make_lab, make_repo  # noqa: F401
+from tests.integration.test_service import EXAMPLES, make_repo
 
 pytestmark = [pytest.mark.integration, pytest.mark.timeout(300)]
 
@@ -42,8 +42,8 @@ def wait_for(what, condition, seconds=90.0):
     return found
 
 
-def test_trials_run_in_worker_processes_of_the_lab(make_lab, tmp_path):  # noqa: F811
-    lab = make_lab("--workers", "0", "--worker-processes", "2")
+def test_trials_run_in_worker_processes_of_the_lab(make_served_lab, tmp_path):
+    lab = make_served_lab("--workers", "0", "--worker-processes", "2")
     assert lab.process is not None
     first = wait_for("two worker processes", lambda: len(children(lab.process.pid)) == 2 and children(lab.process.pid))  # fmt: skip
     for command in first.values():

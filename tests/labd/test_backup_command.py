@@ -34,7 +34,7 @@ def labd(capsys: pytest.CaptureFixture[str], *argv: str) -> tuple[int, str, str]
 
 
 @pytest.fixture
-def lab(tmp_path: Path) -> tuple[Path, dict[str, str]]:
+def data_and_blobs(tmp_path: Path) -> tuple[Path, dict[str, str]]:
     """A lab's data folder: its index and blobs (``fill``, its filed trial signed with
     the lab's key), keys, a hosted repository."""
     data = tmp_path / "lab"
@@ -49,12 +49,12 @@ def lab(tmp_path: Path) -> tuple[Path, dict[str, str]]:
     return data, blobs
 
 
-def test_keys_and_repositories_come_back_as_they_were(lab, tmp_path, capsys):
+def test_keys_and_repositories_come_back_as_they_were(data_and_blobs, tmp_path, capsys):
     """The signing key stays the lab's alone (0600, in a 0700 folder) in the backup and
     the restored lab; the secrets and the public key are the same bytes; the hosted
     repository has the same head; the backup checks against the lab's public keys as
     its /api/keys gives them (``--key``)."""
-    data, blobs = lab
+    data, blobs = data_and_blobs
     dest, restored = tmp_path / "backup", tmp_path / "restored"
     code, out, err = labd(capsys, "backup", str(dest), "--data", str(data))
     assert code == 0, err
@@ -84,11 +84,13 @@ def test_keys_and_repositories_come_back_as_they_were(lab, tmp_path, capsys):
     assert BlobStore(str(restored / "blobs")).read_bytes(blobs["mcap"]) == b"a record" * 1000
 
 
-def test_an_unreadable_blob_fails_in_one_line_and_the_backup_is_not_finished(lab, tmp_path, capsys):
+def test_an_unreadable_blob_fails_in_one_line_and_the_backup_is_not_finished(
+    data_and_blobs, tmp_path, capsys
+):
     """A record damaged in the lab's store: the backup exits 3 with one line naming the
     blob and its trial, and the folder of an earlier, finished backup has no manifest
     any more (a restore refuses it)."""
-    data, blobs = lab
+    data, blobs = data_and_blobs
     dest = tmp_path / "backup"
     assert labd(capsys, "backup", str(dest), "--data", str(data))[0] == 0
     damaged = Path(BlobStore(str(data / "blobs")).path(blobs["mcap"]))
@@ -107,14 +109,14 @@ def test_an_unreadable_blob_fails_in_one_line_and_the_backup_is_not_finished(lab
 
 @pytest.mark.integration
 def test_a_full_disk_fails_in_one_line_and_the_backup_is_not_finished(
-    lab,
+    data_and_blobs,
     tmp_path,
     capsys,
     small_disk,  # noqa: F811 (the fixture)
 ):
     """A backup folder on a disk too small for a record: exit 3, one line saying the
     disk is full, and no manifest."""
-    data, _blobs = lab
+    data, _blobs = data_and_blobs
     big = BlobStore(str(data / "blobs")).put_bytes(os.urandom(2 << 20))
     index = Index.open(backup.sqlite_url(data / "index.sqlite"))
     index.update(1, stdout=big)
@@ -127,10 +129,12 @@ def test_a_full_disk_fails_in_one_line_and_the_backup_is_not_finished(
     assert not (dest / "b" / backup.MANIFEST_FILE).exists()
 
 
-def test_a_restore_refuses_a_changed_backup_and_a_lab_that_holds_trials(lab, tmp_path, capsys):
+def test_a_restore_refuses_a_changed_backup_and_a_lab_that_holds_trials(
+    data_and_blobs, tmp_path, capsys
+):
     """A backup whose index changed since (exit 3), into a lab that holds trials (exit
     2), without --data (exit 2): one line each, and the target is left as it was."""
-    data, _ = lab
+    data, _ = data_and_blobs
     dest = tmp_path / "backup"
     assert labd(capsys, "backup", str(dest), "--data", str(data))[0] == 0
     code, _, err = labd(capsys, "restore", str(dest))
@@ -145,9 +149,9 @@ def test_a_restore_refuses_a_changed_backup_and_a_lab_that_holds_trials(lab, tmp
     assert not (tmp_path / "r").exists()
 
 
-def test_a_backup_never_writes_into_a_folder_of_other_files(lab, tmp_path, capsys):
+def test_a_backup_never_writes_into_a_folder_of_other_files(data_and_blobs, tmp_path, capsys):
     """DEST that holds other files, or is the lab's own folder, is refused (exit 2)."""
-    data, _ = lab
+    data, _ = data_and_blobs
     other = tmp_path / "documents"
     other.mkdir()
     (other / "notes.txt").write_text("mine")
@@ -158,11 +162,11 @@ def test_a_backup_never_writes_into_a_folder_of_other_files(lab, tmp_path, capsy
     assert code == 2 and "the lab's own data folder" in err
 
 
-def test_a_restore_that_failed_can_be_run_again(lab, tmp_path, capsys):
+def test_a_restore_that_failed_can_be_run_again(data_and_blobs, tmp_path, capsys):
     """A record damaged in the backup: the restore exits 3 naming it, the new lab's
     index stays empty and its DATA/git holds nothing; once the blob is whole again the
     same restore succeeds into the same folder."""
-    data, blobs = lab
+    data, blobs = data_and_blobs
     dest, restored = tmp_path / "backup", tmp_path / "restored"
     assert labd(capsys, "backup", str(dest), "--data", str(data))[0] == 0
     record = Path(BlobStore(str(dest / "blobs")).path(blobs["mcap"]))

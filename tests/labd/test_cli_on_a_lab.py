@@ -31,7 +31,7 @@ WAIT = 60.0  # seconds a test waits for what the command or the lab does
 
 
 @pytest.fixture
-def lab(tmp_path, monkeypatch) -> Iterator[Any]:
+def server(tmp_path, monkeypatch) -> Iterator[Any]:
     """A lab without workers that takes local repositories; the commands find it (and
     alice's token) in the environment, as a user's shell gives them."""
     fetch = FetchPolicy(schemes=frozenset({"file"}))
@@ -104,11 +104,11 @@ def in_background(*argv: str) -> tuple[ThreadPoolExecutor, Future[int]]:
     return pool, pool.submit(main, list(argv))
 
 
-def test_min_success_without_wait_waits_and_a_failed_gate_says_so(lab, repo, capsys):
+def test_min_success_without_wait_waits_and_a_failed_gate_says_so(server, repo, capsys):
     """``labd evaluate --min-success 90%`` without ``--wait`` waits for every episode
     (saying so once), and a gate that fails exits 1 with one line saying it failed: a
     user's CI that forgot ``--wait`` is not green for a score it never checked."""
-    service = lab.lab.service
+    service = server.lab.service
     pool, command = in_background("evaluate", str(repo), "--min-success", "90%")
     with pool:
         for n, claim in enumerate(claims(service, DEV, command)):
@@ -159,11 +159,11 @@ def test_min_success_without_wait_waits_and_a_failed_gate_says_so(lab, repo, cap
         ),
     ],
 )
-def test_every_gate_outcome_says_itself_in_one_line(lab, repo, capsys, case, code, said):
+def test_every_gate_outcome_says_itself_in_one_line(server, repo, capsys, case, code, said):
     """Each way an evaluation can end gives its exit code and one line that says why:
     passed, failed, cancelled, partial (the lab broke an episode), and a held-out
     evaluation, whose score is hidden until it has ended, gated once it has."""
-    service = lab.lab.service
+    service = server.lab.service
     suite = "test" if case == "held out" else "dev"
     done, _, err = run(capsys, "evaluate", str(repo), "--suite", suite)
     assert done == 0, err
@@ -179,7 +179,7 @@ def test_every_gate_outcome_says_itself_in_one_line(lab, repo, capsys, case, cod
         file_suite(service, 10, lab_fault=True)
     else:
         file_suite(service, 40, TEST)
-    with ApiClient(lab.http_url()) as client:
+    with ApiClient(server.http_url()) as client:
         evaluation = client.get("/api/evaluations/1", EvaluationView)
     assert evaluate.gate(evaluation, 0.8) == (code, said)
 
@@ -199,15 +199,15 @@ def test_a_rate_and_its_gate_never_print_alike_unless_they_are(rate, bound, said
     assert evaluate._percents(rate, bound) == said
 
 
-def test_waiting_without_a_gate_says_nothing_more_of_a_whole_evaluation(lab, repo, capsys):
+def test_waiting_without_a_gate_says_nothing_more_of_a_whole_evaluation(server, repo, capsys):
     """``--wait`` alone gates nothing: a finished evaluation exits 0 with no gate line,
     while a cancelled one still says why it exits 4."""
-    service = lab.lab.service
+    service = server.lab.service
     run(capsys, "evaluate", str(repo))
     file_suite(service, 2)
     run(capsys, "evaluate", str(repo))
     assert run(capsys, "cancel", "--evaluation", "2")[0] == 0
-    with ApiClient(lab.http_url()) as client:
+    with ApiClient(server.http_url()) as client:
         whole = client.get("/api/evaluations/1", EvaluationView)
         cancelled = client.get("/api/evaluations/2", EvaluationView)
     assert evaluate.gate(whole, None) == (ExitCode.SUCCESS, None)
@@ -217,24 +217,24 @@ def test_waiting_without_a_gate_says_nothing_more_of_a_whole_evaluation(lab, rep
     )
 
 
-def test_a_reward_without_an_interval_says_why(lab, repo, capsys):
+def test_a_reward_without_an_interval_says_why(server, repo, capsys):
     """Rewards all alike give no 95 % interval (``repository.stats.mean_interval``): the
     result says the mean alone, and why, rather than a zero-width interval."""
-    service = lab.lab.service
+    service = server.lab.service
     run(capsys, "evaluate", str(repo))
     file_suite(service, DEV)  # every episode a success of reward 1
-    with ApiClient(lab.http_url()) as client:
+    with ApiClient(server.http_url()) as client:
         alike = client.get("/api/evaluations/1", EvaluationView)
     assert (alike.mean_reward, alike.reward_interval) == (1.0, None)
     said = "\n".join(evaluate._lines(alike))
     assert "  mean reward 1 (no 95 % interval: the rewards are all alike, or fewer than 6)" in said
 
 
-def test_cancel_an_evaluation_from_the_command_line(lab, repo, capsys):
+def test_cancel_an_evaluation_from_the_command_line(server, repo, capsys):
     """``labd cancel --evaluation ID`` cancels an evaluation's episodes that have not
     ended and says so; again, it exits 2 saying there was nothing left to cancel; an
     episode cancelled alone is refused with the command that cancels its evaluation."""
-    service = lab.lab.service
+    service = server.lab.service
     run(capsys, "evaluate", str(repo))
     [first] = claims(service, 1)
     file(service, first, "success")
@@ -255,10 +255,10 @@ def test_cancel_an_evaluation_from_the_command_line(lab, repo, capsys):
     assert service.evaluations.get(1).status == "cancelled"
 
 
-def test_a_rerun_that_erred_says_its_outcome_and_reason(lab, repo, capsys):
+def test_a_rerun_that_erred_says_its_outcome_and_reason(server, repo, capsys):
     """``labd rerun TRIAL --wait`` on a rerun that broke says how it ended and why, not
     only that it made no record, and exits 5: it did not reproduce its original."""
-    service = lab.lab.service
+    service = server.lab.service
     code, _, err = run(capsys, "submit", str(repo))
     assert code == 0, err
     [original] = claims(service, 1)

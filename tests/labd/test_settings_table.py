@@ -44,18 +44,18 @@ OBJECTS = [
 ]
 
 
-def served(*argv: str) -> argparse.Namespace:
+def serve_args(*argv: str) -> argparse.Namespace:
     parser = argparse.ArgumentParser()
     serve.add_parser(parser.add_subparsers(dest="command"))
     return parser.parse_args(["serve", *argv])
 
 
-def lab(*argv: str) -> LabConfig:
-    return serve.config(served(*argv))
+def serve_config(*argv: str) -> LabConfig:
+    return serve.config(serve_args(*argv))
 
 
-def service(*argv: str) -> ServiceConfig:
-    found = lab(*argv).service
+def service_config(*argv: str) -> ServiceConfig:
+    found = serve_config(*argv).service
     assert found is not None
     return found
 
@@ -120,20 +120,20 @@ def test_a_rows_default_is_each_of_its_fields_defaults_in_its_unit(row):
 def test_labd_serve_with_no_flags_runs_with_each_objects_own_defaults(cls):
     """The objects built from the settings' defaults hold, in every field a setting sets,
     the object's own default: no value is changed on its way through a flag."""
-    args = served()
+    args = serve_args()
     fields = settings.values(cls, args)
     built = {
-        LabConfig: lab,
-        RobotConfig: lambda: lab().robots[0],
-        BridgeConfig: lambda: lab().bridge,
-        HttpConfig: lambda: lab().http,
-        DriveLimits: lambda: lab().drives,
-        ServiceConfig: service,
-        QueueConfig: lambda: service().queue,
-        FetchPolicy: lambda: service().fetch,
-        DataPolicy: lambda: service().data_policy,
-        HeldOutBudget: lambda: service().held_out,
-        Rules: lambda: service().rules,
+        LabConfig: serve_config,
+        RobotConfig: lambda: serve_config().robots[0],
+        BridgeConfig: lambda: serve_config().bridge,
+        HttpConfig: lambda: serve_config().http,
+        DriveLimits: lambda: serve_config().drives,
+        ServiceConfig: service_config,
+        QueueConfig: lambda: service_config().queue,
+        FetchPolicy: lambda: service_config().fetch,
+        DataPolicy: lambda: service_config().data_policy,
+        HeldOutBudget: lambda: service_config().held_out,
+        Rules: lambda: service_config().rules,
     }[cls]()
     own = {
         f.name: settings.field_default(settings.Field(cls.__name__, f.name))
@@ -190,13 +190,13 @@ def test_labd_serve_with_no_flags_runs_with_each_objects_own_defaults(cls):
 def test_a_setting_in_its_unit_becomes_its_field_in_the_fields_unit(argv, found, expected):
     """MiB become bytes, minutes and days seconds, 0 no limit, a switch its field's
     opposite where the field says the opposite; a repeatable flag replaces its default."""
-    assert found(lab(*argv)) == expected
+    assert found(serve_config(*argv)) == expected
 
 
 def test_a_field_is_set_by_a_setting_or_worked_out_never_both():
     """``build`` refuses a field given both ways: no setting is mapped twice by hand."""
     with pytest.raises(TypeError, match="max_record"):
-        settings.build(DriveLimits, served(), max_record=1)
+        settings.build(DriveLimits, serve_args(), max_record=1)
 
 
 def test_the_worker_processes_fetch_what_labd_serve_would(tmp_path):
@@ -204,7 +204,7 @@ def test_the_worker_processes_fetch_what_labd_serve_would(tmp_path):
     fetch policy there (what ``--worker-processes`` start)."""
     token = tmp_path / "token"
     token.write_text("t0ken\n")
-    args = served(
+    args = serve_args(
         "--allow-scheme", "https", "--allow-scheme", "http", "--allow-private-hosts",
         "--max-repo-mb", "3", "--fetch-timeout", "2.5", "--submodule-allow", "https://x/",
         "--git-token", f"https://x/={token}",

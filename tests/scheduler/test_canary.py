@@ -38,7 +38,7 @@ class DriftedHost(LabHost):
 
 
 @pytest.fixture
-def lab(tmp_path, cache, backend):
+def queue_store_repo(tmp_path, cache, backend):
     index = Index.open(f"sqlite:///{tmp_path / 'index.sqlite'}")
     index.add_user("alice", max_running=5)
     queue = Queue(index)
@@ -88,11 +88,11 @@ async def run_until(w, condition, timeout=90):
         await asyncio.wait_for(task, 30)
 
 
-async def test_a_drifted_worker_takes_itself_out(lab, backend, cache, tmp_path):
+async def test_a_drifted_worker_takes_itself_out(queue_store_repo, backend, cache, tmp_path):
     """A reference trial reproduces on a sound worker, which goes on claiming; on a worker
     whose physics drifted it diverges: that worker reports itself out, naming the first
     difference, and claims nothing."""
-    queue, store, repo = lab
+    queue, store, repo = queue_store_repo
     reference = submit(queue, repo)
     first = worker("w1", queue, store, backend, LabHost(), tmp_path, cache)
     await run_until(first, lambda: queue.trial(reference).status.ended)
