@@ -22,6 +22,7 @@ TWIST = "geometry_msgs/msg/Twist"
 
 @pytest.fixture
 def server(tmp_path):
+    """A lab with the live maze robot and the archive, no worker."""
     with running(lab_config(tmp_path / "data")) as server:
         yield server
 

@@ -18,6 +18,7 @@ CART = RobotConfig("cart-1", "dmc-cartpole-swingup")
 
 @pytest.fixture(scope="module")
 def server(tmp_path_factory):
+    """One lab for the module: the cart-pole swing-up live (cart-1), the archive."""
     with running(lab_config(tmp_path_factory.mktemp("generic") / "data", (CART,))) as server:
         yield server
 

@@ -27,6 +27,8 @@ WAIT = 10
 
 @pytest.fixture
 def server(tmp_path):
+    """A lab whose live robots (icreate-1, pr2-1) are driven only in a reserved slot,
+    warned 2 s before the slot ends."""
     bridge = BridgeConfig(port=0, expiry_warning=2.0)
     config = lab_config(tmp_path / "data", (MAZE, PR2), bridge=bridge, reservations=True)
     with running(config) as server:

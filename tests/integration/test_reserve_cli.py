@@ -67,6 +67,7 @@ def test_users_add_list_password_revoke_rotate(tmp_path, capsys, monkeypatch):
 
 @pytest.fixture
 def server(tmp_path):
+    """A lab whose live maze robot is driven only in a reserved slot."""
     with running(lab_config(tmp_path / "data", reservations=True)) as server:
         yield server
 
