@@ -20,6 +20,7 @@ import signal
 import subprocess
 import sys
 import tempfile
+import threading
 import time
 from pathlib import Path
 
@@ -73,6 +74,8 @@ def main() -> int:
     if not server:
         print("labd serve did not start", file=sys.stderr)
         return 1
+    drain = threading.Thread(target=serve.stdout.read, daemon=True)  # its log, unread:
+    drain.start()  # a full pipe would stop the lab at its next line
     print(f"busy lab on {server}: {args.workers} {args.sandbox} worker(s)", flush=True)
     client = httpx.Client(base_url=server, headers={"Authorization": f"Bearer {token[1]}"})
     pending: list[int] = []
