@@ -12,7 +12,7 @@ trial deployment, the S3-compatible store, one image for all three:
 
 - the host's Python at its own absolute path (so its RUNPATH still holds), without its
   site-packages, and ``/opt/labd/venv``: a virtual environment of labd and its
-  dependencies (``.[postgres,s3]``), held to the versions of the development venv
+  dependencies (``.[postgres,s3,cluster]``), held to the versions of the development venv
   (``pip freeze`` of ``.venv`` as constraints), without the packages' own test suites;
 - ``/opt/labd/s3``: a second venv with moto's S3 service (``moto_server``), a stand-in
   store for the smoke test and trials of the compose file, never for production;
@@ -201,7 +201,7 @@ def build_lab(rootfs: Path, version: str) -> list[str]:
     _log("the lab's virtual environment (pip)")
     constraints = rootfs.parent / "constraints.txt"
     constraints.write_text(_freeze())
-    _venv(rootfs, VENV, [f"{REPO}[postgres,s3]"], constraints)
+    _venv(rootfs, VENV, [f"{REPO}[postgres,s3,cluster]"], constraints)
     _venv(rootfs, S3_VENV, list(MOTO), constraints)
     (rootfs / "usr/local/bin").mkdir(parents=True, exist_ok=True)
     (rootfs / "usr/local/bin/moto_server").symlink_to(f"{S3_VENV}/bin/moto_server")

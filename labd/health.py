@@ -31,11 +31,12 @@ import sqlalchemy as sa
 
 from labd.workers import LOCAL_WORKERS
 from repository.errors import IndexLost
-from repository.masking import mask_text
+from repository.masking import mask_text, mask_url
 from repository.tables import meta
 from scheduler.states import State
 
 if TYPE_CHECKING:
+    from labd.cluster import Cluster
     from labd.service import Service
 
 FORGET_LEASES = 10  # a worker not heard from for this many leases is forgotten
@@ -71,7 +72,7 @@ def workers(service: Service) -> Counter[tuple[str, str]]:
     now = queue.clock()
     lease = queue.config.lease
     for name, when in list(queue.seen.items()):  # a copy: workers' threads add to it
-        if name in local:
+        if name in local or name == f"{service.name}/ray":  # the cluster's: its own check
             continue
         if now - when > FORGET_LEASES * lease:
             queue.seen.pop(name, None)
@@ -90,7 +91,27 @@ def workers(service: Service) -> Counter[tuple[str, str]]:
 
 def readiness(service: Service) -> list[Check]:
     """The checks of ``/readyz``: the index, the blob store, the workers."""
-    return [_index(service), _store(service), _workers(service)]
+    checks = [_index(service), _store(service), _workers(service)]
+    if service.cluster is not None:
+        checks.append(_cluster(service.cluster))
+    return checks
+
+
+def _cluster(cluster: Cluster) -> Check:
+    """The Ray cluster's nodes and slots, as the dispatcher last counted them."""
+    slots = cluster.slots
+    where = f"the Ray cluster at {mask_url(cluster.config.address)}"
+    if not cluster.connected:
+        return Check("cluster", False, f"{where} is not joined yet")
+    if slots.total <= 0:
+        resource = cluster.config.resource
+        return Check("cluster", False, f"{where} has no node with {resource}: no trial can run")
+    return Check(
+        "cluster",
+        True,
+        f"{where}: {slots.nodes} node(s), {slots.free} of {slots.total} slot(s) free,"
+        f" {slots.in_flight} trial(s) of this lab running there",
+    )
 
 
 def _index(service: Service) -> Check:

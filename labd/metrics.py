@@ -44,6 +44,7 @@ from repository.well_known import REPLAY
 
 if TYPE_CHECKING:
     from labd.bridge.server import Traffic
+    from labd.cluster import Cluster
     from labd.live import Driving
     from labd.service import Service
 
@@ -159,6 +160,27 @@ class _Collector(Collector):
         for kind in STORE_ERRORS:
             errors.add_metric([kind], service.store.errors[kind])
         yield errors
+        if service.cluster is not None:
+            yield from _cluster(service.cluster)
+
+
+def _cluster(cluster: Cluster) -> Iterator[Metric]:
+    """The Ray cluster's nodes and slots, as the dispatcher last counted them."""
+    slots = cluster.slots
+    nodes = GaugeMetricFamily(
+        "labd_cluster_nodes", "Live nodes of the Ray cluster with the lab's resource"
+    )
+    nodes.add_metric([], slots.nodes)
+    yield nodes
+    found = GaugeMetricFamily(
+        "labd_cluster_slots",
+        "The Ray cluster's slots for trials: total, free, and running this lab's trials",
+        labels=["state"],
+    )
+    found.add_metric(["total"], slots.total)
+    found.add_metric(["free"], slots.free)
+    found.add_metric(["running"], slots.in_flight)
+    yield found
 
 
 def _bridge(traffic: Mapping[str, Traffic]) -> Iterator[Metric]:

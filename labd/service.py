@@ -27,6 +27,7 @@ from pathlib import Path
 from typing import Any
 
 import sandbox
+from labd.cluster import Cluster, ClusterConfig, NodeSetup
 from labd.config import DATA, database_url
 from labd.graph.types import TypeRegistry
 from labd.hosted import HostedRepos
@@ -85,6 +86,7 @@ class ServiceConfig:
     # recorded under it); None: the address the lab listens on
     public_url: str | None = None
     held_out: HeldOutBudget = field(default_factory=HeldOutBudget)  # evaluations of held-out suites
+    ray_address: str | None = None  # run trials on this Ray cluster too (labd.cluster)
 
     @property
     def database_url(self) -> str:
@@ -222,17 +224,40 @@ class Service:
             on_verdict=self.metrics.replayed,
         )
         self.queue.on_filed.append(self.replays.wake)
+        self.cluster: Cluster | None = None
+        if config.ray_address:
+            self.cluster = Cluster(
+                self.queue, ClusterConfig(config.ray_address), self._node_setup(), name=self.name
+            )
+            self.replays.elsewhere = self.cluster  # replayed on another of its nodes
+
+    def _node_setup(self) -> NodeSetup:
+        """What a cluster's node needs to run this lab's trials as its workers do."""
+        return NodeSetup(
+            blobs=self.config.blobs_url,
+            blob_options=dict(self.config.blob_options),
+            work=(self.config.data / "work").resolve(),
+            cache=self.cache,
+            sandbox=self.config.sandbox,
+            options=self.run_options,
+            heartbeat=self.config.heartbeat,
+        )
 
     async def start(self) -> None:
         """Start rendering videos; requeue what a killed predecessor left running; start
         the workers."""
         self._tasks.append(asyncio.create_task(self.videos.run(self._stop), name="videos"))
         self._tasks.append(asyncio.create_task(self.replays.run(self._stop), name="replays"))
-        if self.config.workers <= 0:
+        if self.config.workers <= 0 and self.cluster is None:
             return
         released = await asyncio.to_thread(self._release_dead_workers)
         if released:
             log.warning("requeued trials a killed labd left running: %s", released)
+        if self.cluster is not None:
+            await asyncio.to_thread(self.cluster.connect)  # ClusterError: serve says why
+            self._tasks.append(asyncio.create_task(self.cluster.run(self._stop), name="cluster"))
+        if self.config.workers <= 0:
+            return
         backend = await asyncio.to_thread(
             sandbox.backend, self.config.sandbox, self.cache, [client_library()]
         )
@@ -275,6 +300,8 @@ class Service:
         if self.run_options.fetch is not None:
             fetch = replace(self.run_options.fetch, hosted=hosted, hosted_at=at)
             self.run_options = replace(self.run_options, fetch=fetch)
+        if self.cluster is not None:
+            self.cluster.node = self._node_setup()
 
     async def start_processes(self, server: str, env: dict[str, str] | None = None) -> None:
         """Start the worker processes, against this lab's HTTP API at ``server``, with
@@ -348,6 +375,8 @@ class Service:
         """A trial was queued: let idle workers claim it now."""
         for worker in self.workers:
             worker.wake.set()
+        if self.cluster is not None:
+            self.cluster.wake.set()
 
     async def close(self) -> None:
         """Stop the workers; trials they held go back to the queue at once."""
@@ -360,8 +389,10 @@ class Service:
             with contextlib.suppress(asyncio.CancelledError):
                 await task
         await self.videos.close()
-        if self.workers:
+        if self.workers or self.cluster is not None:
             await asyncio.to_thread(self.queue.release_worker, self.name + "/")
+        if self.cluster is not None:
+            await asyncio.to_thread(self.cluster.close)
         self.submissions.close()
         self.index.close()
 

@@ -38,6 +38,7 @@ LAYERS = [
         "labd.authorizer",
         "labd.videos",
         "labd.replays",
+        "labd.cluster",
         "labd.workers",
         "labd.hosted",
         "labd.playground",

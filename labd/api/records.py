@@ -313,6 +313,11 @@ class ReplayVerdict(BaseModel):
     divergence: dict[str, Any] | None = Field(description="tick, topic, what differed")
     said: str = Field(description="the verdict in words")
     video: dict[str, Any] | None = Field(description="camera, frames, fps of the video")
+    node: str | None = Field(
+        default=None,
+        description="where it was replayed: the cluster's node (ray:ID) for a trial a node"
+        " of the lab's Ray cluster ran (null: in the lab, or by the worker that ran it)",
+    )
 
 
 @router.get("/api/trials/{trial_id}/replay", responses=responses(403, 404, 500))

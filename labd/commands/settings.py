@@ -255,6 +255,10 @@ SETTINGS: tuple[Setting, ...] = (
             into=(at("LabConfig.trusted_proxies"),)),
     Setting("workers", "trials run at once (default: {default}; 0: none)", ARCHIVE, int, COUNT,
             into=(at("ServiceConfig.workers"),)),
+    Setting("ray_address", "run trials, evaluations' episodes, reruns and replays on the Ray"
+            " cluster at ADDRESS too (as ray.init takes it: HOST:PORT, or auto; needs"
+            " labd[cluster]; docs/operate.md#a-cluster) (default: none)", ARCHIVE,
+            metavar="ADDRESS", default=None, into=(at("ServiceConfig.ray_address"),)),
     Setting("worker_processes", "trials run at once by worker processes of their own (labd"
             " worker against this lab), beside --workers in this process: a trial's lab side"
             " gets a core of its own (default: {default})", ARCHIVE, int, COUNT,

@@ -1,0 +1,458 @@
+"""The lab's trials on a Ray cluster (``labd serve --ray-address ADDRESS``).
+
+The queue stays the truth: submissions, fair share, quotas, cancels and leases are the
+index's, as for every worker. A dispatcher here claims runnable trials with the queue's
+own conditional claim, never more at once than the cluster has slots (its nodes'
+``labd_sim`` resource: an operator gives each node as many as it should run trials),
+and runs each as one Ray task:
+
+    Queue.claim ─▶ a Ray task on some node ─▶ Worker.execute there (fetch the pinned
+    commit, build, sandbox with no network, lockstep, record; the record and logs go to
+    the lab's blob store, content-addressed) ─▶ what a worker files, handed back
+    ─▶ Queue.hand_over to ray:NODE ─▶ Queue.finish (held to its record, signed)
+
+While a task runs, the dispatcher renews the trial's lease; a cancelled trial has its
+task cancelled. A task whose node dies is run again elsewhere by Ray (``max_retries``)
+and filed once, since only the dispatcher files, and a retried task rewrites the same
+blob keys; a controller's own crash is an outcome, never retried. Should the lab itself
+stop, its tasks stop with it (they are its driver's) and the leases run out: the queue
+gives the trials to the next dispatcher.
+
+The untrusted controller runs in the node's sandbox inside the task, as on a worker,
+never as Ray code. The records a trial learns from, and the records it makes, travel
+through the lab's blob store, so every node must reach it (an S3 bucket, or a folder
+every node mounts at the same path).
+
+Each record a node filed is replayed (``labd.replays``) by a task of its own, placed on
+another node than the one that ran the trial when the cluster has one, and the verdict
+says where (``node``).
+
+Ray is imported only here, and only when a cluster is asked for (``pip install
+'labd[cluster]'``).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import json
+import logging
+import shutil
+import socket
+import tempfile
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import sandbox
+from labd.errors import LabError
+from labd.trial import LabHost, client_library
+from repository.blobs import BlobStore
+from repository.index import Derived
+from repository.trial import Claim, Ending, Filing, Trial
+from repository.well_known import RECORD_FILE
+from scheduler.canary import Health
+from scheduler.errors import FilingRefused, QueueError
+from scheduler.queue import Queue
+from scheduler.runner import RunOptions
+from scheduler.worker import Worker, WorkerConfig
+
+log = logging.getLogger("labd.cluster")
+RESOURCE = "labd_sim"  # a node's slots for trials and replays
+PREFIX = "ray:"  # a trial's worker when a node of the cluster ran it: ray:NODE
+NODE_ID = 12  # hex digits of Ray's node id that name a node
+
+
+class ClusterError(LabError):
+    """The cluster cannot be used: Ray is not installed, or does not answer."""
+
+
+@dataclass(frozen=True)
+class NodeSetup:
+    """What a node needs to run a trial as the lab's workers do (sent with each task)."""
+
+    blobs: str  # the lab's blob store: a folder every node mounts, or an fsspec URL
+    blob_options: dict[str, Any]
+    work: Path  # where the node runs trials (made if missing)
+    cache: Path  # the node's mirrors, runtimes and requirements
+    sandbox: str | None
+    options: RunOptions
+    heartbeat: float = 10.0
+
+
+@dataclass(frozen=True)
+class ClusterConfig:
+    address: str  # as ray.init takes it: HOST:PORT, ray://HOST:PORT, or "auto"
+    resource: str = RESOURCE
+    max_retries: int = 3  # runs of a task whose node died, before the trial is an error
+    poll: float = 2.0  # seconds between claims while the queue is empty or the cluster full
+    replay: float = 1800.0  # one replay's limit, in seconds
+
+
+def node_name(node_id: str) -> str:
+    """The worker name of the node ``node_id`` (Ray's hex id)."""
+    return PREFIX + node_id[:NODE_ID]
+
+
+# -- on a node ----------------------------------------------------------------------------
+
+
+class _OneClaim:
+    """The queue as a node's worker sees it for its one trial: its lease is the
+    dispatcher's to renew, and what it files is kept to hand back (``Jobs``)."""
+
+    def __init__(self, original: Trial | None) -> None:
+        self.original = original
+        self.filing: Filing | None = None
+        self.derived: list[Derived] = []
+
+    def claim(self, worker: str) -> Claim | None:
+        return None
+
+    def heartbeat(self, trial_id: int, worker: str) -> bool:
+        return True  # the dispatcher holds the lease; a cancel cancels this task
+
+    def finish(self, trial_id: int, worker: str, filing: Filing) -> bool:
+        self.filing = filing
+        return True
+
+    def trial(self, trial_id: int) -> Trial:
+        if self.original is None or self.original.id != trial_id:
+            raise QueueError(f"trial {trial_id} is not the one this trial reruns")
+        return self.original
+
+    def derive(self, trial_id: int, worker: str, item: Derived) -> bool:
+        self.derived.append(item)
+        return True
+
+    def report(self, health: Health) -> None:
+        return None
+
+
+_backends: dict[tuple[str | None, Path], Any] = {}  # one per Ray worker process
+
+
+def _backend(setup: NodeSetup) -> Any:
+    key = (setup.sandbox, setup.cache)
+    if key not in _backends:
+        _backends[key] = sandbox.backend(setup.sandbox, setup.cache, [client_library()])
+    return _backends[key]
+
+
+def _this_node() -> str:
+    import ray  # noqa: PLC0415 (only where a cluster runs)
+
+    return node_name(ray.get_runtime_context().get_node_id())
+
+
+def run_on_node(claim_json: str, original_json: str | None, setup: NodeSetup) -> dict[str, Any]:
+    """A Ray task's body: run the claimed trial as a worker does, on this node, with the
+    record and logs put in the lab's store; what to file, and which node ran it."""
+    claim = Claim.model_validate_json(claim_json)
+    original = Trial.model_validate_json(original_json) if original_json else None
+    name = _this_node()
+    setup.work.mkdir(parents=True, exist_ok=True)
+    held = _OneClaim(original)
+    worker = Worker(
+        held,
+        BlobStore(setup.blobs, setup.blob_options or None),
+        _backend(setup),
+        LabHost(),
+        WorkerConfig(
+            name=name,
+            work=setup.work,
+            cache=setup.cache,
+            heartbeat=setup.heartbeat,
+            replay=0.0,  # replayed by another task, on another node (``replay_on_node``)
+            options=setup.options,
+        ),
+    )
+
+    async def run() -> None:
+        await worker.execute(claim)
+        await worker.settled()  # the record's page summary, filed beside it
+
+    asyncio.run(run())
+    if held.filing is None:  # execute always files; a bug otherwise
+        raise RuntimeError(f"trial {claim.id}: the node's worker filed nothing")
+    return {
+        "node": name,
+        "filing": held.filing.model_dump(mode="json"),
+        "derived": [vars(item) for item in held.derived],
+    }
+
+
+def replay_on_node(mcap: str, setup: NodeSetup, seconds: float) -> dict[str, Any]:
+    """A Ray task's body: replay the record ``mcap`` (a digest in the lab's store) on
+    this node; the verdict (JSON bytes) with ``node`` added."""
+    store = BlobStore(setup.blobs, setup.blob_options or None)
+    setup.work.mkdir(parents=True, exist_ok=True)
+    folder = Path(tempfile.mkdtemp(prefix="replay-", dir=setup.work))
+    try:
+        record = store.copy_to(mcap, folder / RECORD_FILE)
+        done = LabHost().replay(record, folder / "replay", seconds=seconds)
+        verdict = {**json.loads(done.verdict), "node": _this_node()}
+        return {"verdict": json.dumps(verdict, indent=2, sort_keys=True).encode()}
+    finally:
+        shutil.rmtree(folder, ignore_errors=True)
+
+
+# -- in the lab ---------------------------------------------------------------------------
+
+
+@dataclass
+class Slots:
+    """What the cluster has for the lab: its nodes with the resource, and its slots."""
+
+    nodes: int = 0
+    total: int = 0
+    free: int = 0
+    in_flight: int = 0  # the lab's trials running there now
+
+
+@dataclass
+class _Running:
+    claim: Claim
+    name: str  # the worker name the lease is held under until a node is known
+    task: asyncio.Task[None] = field(repr=False)
+
+
+class Cluster:
+    """Claims trials from ``queue`` and runs them on the Ray cluster at ``config.address``."""
+
+    def __init__(self, queue: Queue, config: ClusterConfig, node: NodeSetup, *, name: str) -> None:
+        self.queue = queue
+        self.config = config
+        self.node = node  # sent with each task (the lab changes it once it serves)
+        self.name = name  # the lab's: leases are held as NAME/ray until a node is known
+        self.wake = asyncio.Event()
+        self.slots = Slots()
+        self._running: dict[int, _Running] = {}
+        self._ray: Any = None
+        self._trial_task: Any = None
+        self._replay_task: Any = None
+        self._replay_options: dict[str, Any] = {}
+
+    # -- connecting ------------------------------------------------------------------
+
+    def connect(self) -> None:
+        """Join the cluster (``ClusterError`` naming what is missing)."""
+        try:
+            import ray  # noqa: PLC0415 (the extra's)
+        except ImportError:
+            raise ClusterError("--ray-address needs Ray: pip install 'labd[cluster]'") from None
+        _probe(self.config.address)
+        try:
+            ray.init(
+                address=self.config.address,
+                namespace="labd",
+                log_to_driver=False,
+                ignore_reinit_error=True,
+                configure_logging=False,
+            )
+        except (ConnectionError, RuntimeError, ValueError, TimeoutError) as err:
+            raise ClusterError(f"no Ray cluster answers at {self.config.address}: {err}") from None
+        self._ray = ray
+        resources = {self.config.resource: 1}
+        self._trial_task = ray.remote(run_on_node).options(
+            num_cpus=1,
+            resources=resources,
+            max_retries=self.config.max_retries,
+            retry_exceptions=False,
+            name="labd trial",
+        )
+        self._replay_task = ray.remote(replay_on_node)
+        self._replay_options = {
+            "num_cpus": 1,
+            "resources": resources,
+            "max_retries": self.config.max_retries,
+            "name": "labd replay",
+        }
+        self.refresh()
+        log.info(
+            "Ray cluster at %s: %d node(s), %d slot(s) of %s",
+            self.config.address,
+            self.slots.nodes,
+            self.slots.total,
+            self.config.resource,
+        )
+
+    @property
+    def connected(self) -> bool:
+        return self._ray is not None
+
+    def close(self) -> None:
+        if self._ray is not None:
+            self._ray.shutdown()
+            self._ray = None
+
+    def nodes(self) -> dict[str, str]:
+        """The live nodes that have the resource: worker name -> Ray's node id."""
+        assert self._ray is not None
+        return {
+            node_name(node["NodeID"]): node["NodeID"]
+            for node in self._ray.nodes()
+            if node["Alive"] and node["Resources"].get(self.config.resource, 0) > 0
+        }
+
+    def refresh(self) -> Slots:
+        """Count the cluster's nodes and slots now (for claims, /readyz and /metrics)."""
+        assert self._ray is not None
+        total = self._ray.cluster_resources().get(self.config.resource, 0)
+        free = self._ray.available_resources().get(self.config.resource, 0)
+        self.slots = Slots(len(self.nodes()), int(total), int(free), len(self._running))
+        return self.slots
+
+    # -- dispatching -------------------------------------------------------------------
+
+    async def run(self, stop: asyncio.Event) -> None:
+        """Claim and dispatch trials until ``stop`` is set; then cancel what runs."""
+        stopping = asyncio.create_task(stop.wait())
+        try:
+            while not stop.is_set():
+                claimed = False
+                try:
+                    slots = await asyncio.to_thread(self.refresh)
+                    if len(self._running) < slots.total:
+                        claimed = await self._claim_one()
+                except Exception:  # the cluster or the database away for a moment
+                    log.exception("could not dispatch a trial to the cluster")
+                if claimed:
+                    continue
+                self.wake.clear()
+                waker = asyncio.create_task(self.wake.wait())
+                await asyncio.wait(
+                    {waker, stopping}, timeout=self.config.poll, return_when=asyncio.FIRST_COMPLETED
+                )
+                waker.cancel()
+        finally:
+            stopping.cancel()
+            for running in list(self._running.values()):
+                running.task.cancel()
+            for running in list(self._running.values()):
+                with contextlib.suppress(asyncio.CancelledError, Exception):
+                    await running.task
+
+    async def _claim_one(self) -> bool:
+        name = f"{self.name}/ray"
+        claim = await asyncio.to_thread(self.queue.claim, name)
+        if claim is None:
+            return False
+        task = asyncio.create_task(self._dispatch(claim, name), name=f"ray trial {claim.id}")
+        self._running[claim.id] = _Running(claim, name, task)
+        task.add_done_callback(lambda _: self._running.pop(claim.id, None))
+        return True
+
+    async def _dispatch(self, claim: Claim, name: str) -> None:
+        """Run one claimed trial on the cluster and file it."""
+        rerun_of = claim.order.rerun_of
+        original = None
+        if rerun_of is not None:
+            original = (await asyncio.to_thread(self.queue.trial, rerun_of)).model_dump_json()
+        ref = self._trial_task.remote(claim.model_dump_json(), original, self.node)
+        log.info("trial %d: sent to the cluster", claim.id)
+        outcome: dict[str, Any] | None = None
+        filing: Filing | None = None
+        try:
+            outcome = await self._held(claim.id, name, ref)
+        except _Stop as stop:
+            self._ray.cancel(ref, force=True)
+            filing = Filing(**Ending.cancelled(stop.reason).model_dump())
+        except asyncio.CancelledError:  # the lab stops: the lease will requeue the trial
+            self._ray.cancel(ref, force=True)
+            raise
+        except self._ray.exceptions.RayError as err:  # failed past its retries: the lab's fault
+            log.error("trial %d: the cluster lost it: %s", claim.id, err)
+            reason = f"the cluster could not run the trial ({type(err).__name__}: {err})"
+            filing = Filing.lab_error(reason[:500])
+        if outcome is not None:
+            node = outcome["node"]
+            if await asyncio.to_thread(self.queue.hand_over, claim.id, name, node):
+                name = node
+            filing = Filing.model_validate(outcome["filing"])
+        assert filing is not None
+        filed = await asyncio.to_thread(self._finish, claim.id, name, filing)
+        if filed and outcome is not None:
+            for item in outcome["derived"]:
+                await asyncio.to_thread(self.queue.derive, claim.id, name, Derived(**item))
+
+    async def _held(self, trial_id: int, name: str, ref: Any) -> dict[str, Any]:
+        """Wait for the task, renewing the trial's lease; ``_Stop`` if it must stop."""
+        future = asyncio.wrap_future(ref.future())
+        beat = self.node.heartbeat
+        while True:
+            done, _ = await asyncio.wait({future}, timeout=beat)
+            if done:
+                result: dict[str, Any] = future.result()
+                return result
+            try:
+                keep = await asyncio.to_thread(self.queue.heartbeat, trial_id, name)
+            except Exception:  # the database away for a moment: the lease may hold
+                log.exception("trial %d: heartbeat failed", trial_id)
+                continue
+            if not keep:
+                raise _Stop("cancelled while it ran")
+
+    def _finish(self, trial_id: int, worker: str, filing: Filing) -> bool:
+        """File the trial; one the lab refuses is filed as an error saying why."""
+        try:
+            filed = self.queue.finish(trial_id, worker, filing)
+        except FilingRefused as err:
+            log.error("trial %d: %s", trial_id, err)
+            problems = "; ".join(err.problems)
+            refused = Filing.error(f"the lab refused the node's record of the trial: {problems}")
+            filed = self.queue.finish(trial_id, worker, refused)
+        log.info("trial %d %s on %s: %s", trial_id, filing.outcome or filing.status, worker,
+                 filing.reason)  # fmt: skip
+        return filed
+
+    # -- replaying ---------------------------------------------------------------------
+
+    def ran_here(self, worker: str | None) -> bool:
+        """Whether a trial filed by ``worker`` ran on this cluster."""
+        return bool(worker) and str(worker).startswith(PREFIX)
+
+    async def replay(self, trial: Trial) -> bytes:
+        """Replay ``trial``'s record on another node than the one that ran it (the same
+        one only when no other has the resource); the verdict, saying where."""
+        assert trial.mcap is not None and self._ray is not None
+        from ray.util.scheduling_strategies import (  # noqa: PLC0415 (the extra's)
+            NodeAffinitySchedulingStrategy,
+        )
+
+        others = [node for name, node in self.nodes().items() if name != trial.worker]
+        options = dict(self._replay_options)
+        if others:  # soft: should that node die meanwhile, Ray places it on another
+            chosen = others[trial.id % len(others)]
+            options["scheduling_strategy"] = NodeAffinitySchedulingStrategy(chosen, soft=True)
+        ref = self._replay_task.options(**options).remote(trial.mcap, self.node, self.config.replay)
+        done: dict[str, Any] = await asyncio.wrap_future(ref.future())
+        verdict: bytes = done["verdict"]
+        return verdict
+
+
+def _probe(address: str, seconds: float = 5.0) -> None:
+    """Refuse at once an address where nothing listens (``ray.init`` would wait on it for
+    minutes); ``auto`` and the like are Ray's to find."""
+    host, colon, port = address.removeprefix("ray://").rpartition(":")
+    if not colon or not port.isdigit():
+        return
+    try:
+        socket.create_connection((host.strip("[]"), int(port)), timeout=seconds).close()
+    except OSError as err:
+        raise ClusterError(f"no Ray cluster answers at {address}: {err}") from None
+
+
+class _Stop(Exception):
+    def __init__(self, reason: str) -> None:
+        super().__init__(reason)
+        self.reason = reason
+
+
+def verdict_node(verdict: bytes) -> str | None:
+    """Where a replay verdict says it was replayed (None: not said)."""
+    try:
+        node = json.loads(verdict).get("node")
+    except (ValueError, AttributeError):
+        return None
+    return node if isinstance(node, str) else None
