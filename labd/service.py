@@ -105,17 +105,28 @@ class Verdicts:
 
     def __init__(self, store: BlobStore) -> None:
         self.store = store
-        self._known: dict[str, bool | None] = {}
+        self._known: dict[str, tuple[bool | None, str | None]] = {}
 
     def __call__(self, digest: str) -> bool | None:
+        return self._read(digest)[0]
+
+    def node(self, digest: str) -> str | None:
+        """The cluster's node the verdict says it was replayed on (None: not said)."""
+        return self._read(digest)[1]
+
+    def _read(self, digest: str) -> tuple[bool | None, str | None]:
         if digest in self._known:
             return self._known[digest]
         try:
-            verified = json.loads(self.store.read_bytes(digest)).get("verified")
+            verdict = json.loads(self.store.read_bytes(digest))
+            verified, node = verdict.get("verified"), verdict.get("node")
         except (ArchiveError, ValueError, AttributeError) as err:
             log.warning("replay verdict %s cannot be read: %s", digest, err)
-            return None  # not remembered: the store may answer later
-        found = verified if isinstance(verified, bool) else None
+            return None, None  # not remembered: the store may answer later
+        found = (
+            verified if isinstance(verified, bool) else None,
+            node if isinstance(node, str) else None,
+        )
         if len(self._known) >= self.LIMIT:
             self._known.clear()
         self._known[digest] = found
@@ -179,7 +190,8 @@ class Service:
             threads=config.submit_threads,
             waiting=config.submit_waiting,
         )
-        self.evaluations = Evaluations(self.index, Verdicts(self.store))
+        verdicts = Verdicts(self.store)
+        self.evaluations = Evaluations(self.index, verdicts, replayed_on=verdicts.node)
         self.evaluator = Evaluator(
             self.submissions,
             self.evaluations,

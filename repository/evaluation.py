@@ -161,6 +161,11 @@ class EpisodeRow(BaseModel):
     verified: bool | None = Field(
         default=None, description="its replay verified; None: not (yet) replayed"
     )
+    replayed_elsewhere: bool | None = Field(
+        default=None,
+        description="its replay ran on another node of the lab's cluster than the episode;"
+        " None: not replayed by the cluster",
+    )
     compute_seconds: float | None = None
     reproduced: bool | None = Field(
         default=None, description="reruns: an identical data digest to the original episode's"
@@ -206,6 +211,11 @@ class Score(BaseModel):
         f" {MIN_BOOTSTRAP} rewards or all alike, where a bootstrap is no 95 % interval"
     )
     verified: bool = Field(description="every episode finished and the lab's replay verified it")
+    verified_elsewhere: int | None = Field(
+        default=None,
+        description="episodes whose replay verified on another machine of the lab's cluster"
+        " than the one that ran them; None: none was replayed by a cluster",
+    )
     compute_seconds: float | None = Field(
         description="the episodes' wall time added up; None for a hidden evaluation"
     )
@@ -280,8 +290,16 @@ def score(rows: Sequence[EpisodeRow], *, seed: int) -> Score:
         mean_reward=sum(rewards) / len(rewards) if rewards else None,
         reward_interval=_pair(spread),
         verified=bool(rows) and all(r.verified for r in rows),
+        verified_elsewhere=_elsewhere(rows),
         compute_seconds=round(sum(r.compute_seconds or 0.0 for r in rows), 3),
     )
+
+
+def _elsewhere(rows: Sequence[EpisodeRow]) -> int | None:
+    """Episodes verified on another machine than their own (None: no cluster replayed)."""
+    if all(r.replayed_elsewhere is None for r in rows):
+        return None
+    return sum(bool(r.verified and r.replayed_elsewhere) for r in rows)
 
 
 def reproduced(rows: Sequence[EpisodeRow]) -> str:
@@ -356,6 +374,7 @@ def hide(evaluation: Evaluation) -> Evaluation:
             "mean_reward": evaluation.mean_reward if ended else None,
             "reward_interval": evaluation.reward_interval if ended else None,
             "compute_seconds": None,
+            "verified_elsewhere": evaluation.verified_elsewhere if ended else None,
             "rows": [],
             "hidden": True,
             # which episodes: theirs to know once the suite version is retired

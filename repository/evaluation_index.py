@@ -58,9 +58,16 @@ class EvaluationPage:
 class Evaluations:
     """The evaluations on ``index``."""
 
-    def __init__(self, index: Index, replayed: Replayed) -> None:
+    def __init__(
+        self,
+        index: Index,
+        replayed: Replayed,
+        *,
+        replayed_on: Callable[[str], str | None] = lambda _: None,
+    ) -> None:
         self.index = index
         self.replayed = replayed
+        self.replayed_on = replayed_on  # a verdict's digest -> the cluster's node it says
 
     def add(
         self,
@@ -289,6 +296,7 @@ class Evaluations:
                 t.finished,
                 t.reproduced,
                 t.lab_fault,
+                t.worker,
             )
             .join(trials, trials.c.id == episodes.c.trial_id)
             .where(episodes.c.evaluation_id.in_(ids))
@@ -308,7 +316,8 @@ class Evaluations:
                         outcome=Outcome(f.outcome) if f.outcome else None,
                         reward=f.reward,
                         data_digest=f.data_digest,
-                        verified=verdicts.get(f.id),
+                        verified=verdicts.get(f.id, (None, None))[0],
+                        replayed_elsewhere=_elsewhere(f.worker, verdicts.get(f.id)),
                         compute_seconds=f.wall_seconds,
                         reproduced=f.reproduced,
                         lab_fault=f.lab_fault,
@@ -319,7 +328,10 @@ class Evaluations:
         built = [_evaluation(r, by_evaluation[r.id]) for r in rows]
         return [hide(e) if e.id in hidden and not reveal else e for e in built]
 
-    def _verdicts(self, db: Connection, trial_ids: Iterable[int]) -> dict[int, bool | None]:
+    def _verdicts(
+        self, db: Connection, trial_ids: Iterable[int]
+    ) -> dict[int, tuple[bool | None, str | None]]:
+        """Each replayed trial's verdict: verified, and the node it says it ran on."""
         ids = list(trial_ids)
         if not ids:
             return {}
@@ -328,7 +340,15 @@ class Evaluations:
                 derived.c.trial_id.in_(ids), derived.c.name == REPLAY
             )
         ).all()
-        return {r.trial_id: self.replayed(r.digest) for r in rows}
+        return {r.trial_id: (self.replayed(r.digest), self.replayed_on(r.digest)) for r in rows}
+
+
+def _elsewhere(worker: str | None, verdict: tuple[bool | None, str | None] | None) -> bool | None:
+    """Whether a replay ran on another node of the cluster than its trial (None: not
+    replayed, or not by the cluster)."""
+    if verdict is None or verdict[1] is None:
+        return None
+    return verdict[1] != worker
 
 
 def _evaluation(row: Any, found: list[tuple[EpisodeRow, float | None]]) -> Evaluation:

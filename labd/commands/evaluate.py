@@ -265,6 +265,8 @@ def _lines(e: EvaluationView) -> Iterator[str]:
         yield "  not verified: not every episode's replay verified (yet)"
     elif e.status.ended:
         yield f"  not verified: {_episodes(len(unverified))} without a verified replay"
+    if s.verified_elsewhere is not None:
+        yield f"  verified on another machine: {s.verified_elsewhere} of {s.episodes}"
     if e.reproduced:
         yield f"  {e.reproduced}"
     if e.signature:

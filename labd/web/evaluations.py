@@ -134,6 +134,14 @@ def replay_words(rows: Sequence[EpisodeRow], verified: bool, episodes: int) -> s
     return "not verified: " + "; ".join(parts)
 
 
+def elsewhere_words(elsewhere: int | None, episodes: int) -> str:
+    """How many episodes verified on another machine of the lab's cluster than the one
+    that ran them ("" where no cluster replayed any)."""
+    if elsewhere is None:
+        return ""
+    return f"verified on another machine: {elsewhere} of {episodes}"
+
+
 def duration(seconds: float | None) -> str:
     if seconds is None:
         return "held out"
@@ -186,6 +194,7 @@ class Said:
     reward: str
     verified: bool
     replays: str
+    elsewhere: str
     compute: str
     counts: dict[str, int]
     signed: str
@@ -199,6 +208,7 @@ class Said:
             reward=reward_words(e.score),
             verified=e.score.verified,
             replays=replay_words(e.rows, e.score.verified, e.episodes),
+            elsewhere=elsewhere_words(e.score.verified_elsewhere, e.episodes),
             compute=duration(e.score.compute_seconds),
             counts={s: counted[s] for s in STATES},
             signed=signed_words(e),

@@ -11,7 +11,7 @@ from typing import Any
 
 import pytest
 
-from labd.web.evaluations import reward_words
+from labd.web.evaluations import elsewhere_words, reward_words
 from repository.evaluation import Score
 
 SCRIPT = Path(__file__).resolve().parents[2] / "labd" / "web" / "static" / "evaluation-words.js"
@@ -84,3 +84,33 @@ def test_the_pages_script_says_what_the_python_says() -> None:
         check=True,
     )
     assert json.loads(done.stdout) == [reward_words(s) for s in SCORES]
+
+
+ELSEWHERE = """
+const { pathToFileURL } = require("node:url");
+import(pathToFileURL(process.argv[1]).href).then(({ elsewhereWords }) => {
+  const cases = JSON.parse(require("node:fs").readFileSync(0, "utf8"));
+  console.log(JSON.stringify(cases.map(([n, of]) => elsewhereWords(n, of))));
+});
+"""
+
+
+def test_verified_elsewhere_is_said_alike_by_the_page_and_the_python() -> None:
+    """'verified on another machine: N of M' where a cluster replayed, nothing otherwise,
+    in the page's script as in labd.web.evaluations."""
+    cases: list[tuple[int | None, int]] = [(18, 20), (0, 3), (None, 20)]
+    done = subprocess.run(
+        ["node", "-e", ELSEWHERE, str(SCRIPT)],
+        input=json.dumps(cases),
+        capture_output=True,
+        text=True,
+        timeout=30,
+        check=True,
+    )
+    said = [elsewhere_words(n, of) for n, of in cases]
+    assert json.loads(done.stdout) == said
+    assert said == [
+        "verified on another machine: 18 of 20",
+        "verified on another machine: 0 of 3",
+        "",
+    ]

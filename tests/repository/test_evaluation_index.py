@@ -5,10 +5,12 @@ a held-out suite's trials kept out of the archive's reads until the suite is ret
 from __future__ import annotations
 
 import pytest
+import sqlalchemy as sa
 
 from repository.errors import HeldOut, RecordNotFound
 from repository.evaluation_index import EvaluationFilters, Evaluations
 from repository.index import Derived, Filters, Index
+from repository.tables import trials as T
 from repository.trial import Order, Status
 from repository.well_known import REPLAY
 
@@ -95,3 +97,27 @@ def test_a_held_out_suites_trials_are_the_operators_until_it_is_retired(index):
     assert [r.seed for r in evaluations.get(held).rows] == [123456789, 987654321]
     later = add(index, evaluations, held_out=True, seeds=[5])  # a retired version is public
     assert evaluations.get(later).rows[0].seed == 5
+
+
+def test_episodes_verified_on_another_machine_are_counted(index):
+    """A cluster's replay says where it ran: an episode replayed on another node than
+    the one that ran it counts as verified elsewhere; one replayed on its own node, or
+    not verified, does not; without a cluster's verdict there is no count at all."""
+    said = {  # verdict digest -> (verified, node)
+        "sha256:" + "1" * 64: (True, "ray:bbbb"),
+        "sha256:" + "2" * 64: (True, "ray:aaaa"),  # on the node that ran it
+        "sha256:" + "3" * 64: (False, "ray:aaaa"),  # elsewhere, but diverged
+    }
+    evaluations = Evaluations(index, lambda d: said[d][0], replayed_on=lambda d: said[d][1])
+    plain = add(index, evaluations, held_out=False, seeds=[7])
+    clustered = add(index, evaluations, held_out=False, seeds=[0, 1, 2])
+    trials = evaluations.trials(clustered)
+    with index.begin() as db:
+        for trial, worker in zip(trials, ["ray:aaaa", "ray:aaaa", "ray:bbbb"], strict=True):
+            db.execute(sa.update(T).where(T.c.id == trial).values(worker=worker))
+    for trial, digest in zip(trials, said, strict=True):
+        index.put_derived(trial, Derived(REPLAY, digest, 10, "application/json"))
+    rows = evaluations.get(clustered).rows
+    assert [r.replayed_elsewhere for r in rows] == [True, False, True]
+    assert evaluations.get(clustered).verified_elsewhere == 1
+    assert evaluations.get(plain).verified_elsewhere is None

@@ -43,6 +43,11 @@ export function rewardWords(score) {
   return `${words} (no 95 % interval: the rewards are all the same, or fewer than ${MIN_BOOTSTRAP})`;
 }
 
+export function elsewhereWords(elsewhere, episodes) {
+  if (elsewhere === null || elsewhere === undefined) return "";
+  return `verified on another machine: ${elsewhere} of ${episodes}`;
+}
+
 export function replayWords(rows, verified, episodes) {
   const n = episodes;
   if (verified) return `✓ verified: all ${plural(n, "episode")} replayed identically`;

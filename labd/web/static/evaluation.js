@@ -6,8 +6,8 @@
 // The root's data-status is the status last seen (tests wait on it).
 
 import {
-  ENDED, cellTitle, countStates, duration, rateWords, replayWords, rewardWords, signedWords,
-  stateOf, verdictClass, when,
+  ENDED, cellTitle, countStates, duration, elsewhereWords, rateWords, replayWords, rewardWords,
+  signedWords, stateOf, verdictClass, when,
 } from "./evaluation-words.js";
 import { $ } from "./page.js";
 
@@ -25,6 +25,9 @@ function show(e) {
   const verified = $("verified");
   verified.textContent = replayWords(e.rows, score.verified, score.episodes);
   verified.className = score.verified ? "reproduced" : "muted";
+  const elsewhere = $("elsewhere");
+  elsewhere.textContent = elsewhereWords(score.verified_elsewhere, score.episodes);
+  elsewhere.hidden = !elsewhere.textContent;
   const partial = $("partial");
   partial.textContent = `partial: ${e.partial_reason}; not every episode counted, so the`
     + " leaderboard leaves it out";

@@ -4,8 +4,8 @@ import assert from "node:assert/strict";
 import { describe, it } from "node:test";
 
 import {
-  cellTitle, countStates, duration, percent, rateWords, replayWords, rounded, signedWords,
-  verdictClass, when,
+  cellTitle, countStates, duration, elsewhereWords, percent, rateWords, replayWords, rounded,
+  signedWords, verdictClass, when,
 } from "../../../labd/web/static/evaluation-words.js";
 
 const row = (episode, fields) => ({ episode, seed: null, reward: null, outcome: null, status: "finished", verified: null, ...fields });
@@ -46,6 +46,12 @@ describe("the score", () => {
 });
 
 describe("replays", () => {
+  it("on another machine of the cluster, only when a cluster replayed", () => {
+    assert.equal(elsewhereWords(18, 20), "verified on another machine: 18 of 20");
+    assert.equal(elsewhereWords(null, 20), "");
+    assert.equal(elsewhereWords(undefined, 20), "");
+  });
+
   it("verified says all", () => {
     assert.equal(replayWords([], true, 1), "✓ verified: all 1 episode replayed identically");
   });
