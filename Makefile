@@ -80,6 +80,7 @@ bench: $(STAMP) $(WEBSTAMP)
 	$(PY) bench/cli.py
 	$(PY) bench/knn.py
 	$(PY) bench/evaluate.py
+	$(PY) bench/cluster.py
 	$(PY) bench/crowds.py
 
 clean:
