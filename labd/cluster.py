@@ -340,8 +340,14 @@ class Cluster:
             return False
         task = asyncio.create_task(self._dispatch(claim, name), name=f"ray trial {claim.id}")
         self._running[claim.id] = _Running(claim, name, task)
-        task.add_done_callback(lambda _: self._running.pop(claim.id, None))
+        task.add_done_callback(lambda _: self._freed(claim.id))
         return True
+
+    def _freed(self, trial_id: int) -> None:
+        """A trial's task ended: its slot is free, so claim the next trial now rather than
+        at the next poll."""
+        self._running.pop(trial_id, None)
+        self.wake.set()
 
     async def _dispatch(self, claim: Claim, name: str) -> None:
         """Run one claimed trial on the cluster and file it."""
