@@ -1,7 +1,10 @@
 #!/usr/bin/env python3
 """The deployment's smoke test: deploy/'s compose stack, used as a team would use it.
 
-    .venv/bin/python deploy/smoke.py [--no-build] [--keep]      (make deploy-smoke)
+    .venv/bin/python deploy/smoke.py [--no-build] [--keep] [--ray]    (make deploy-smoke)
+
+(``--ray``: the stack on its Ray cluster, deploy/docker-compose.ray.yml: a trial, an
+evaluation over both nodes with most replays on the other node, a rerun.)
 
 1. builds the images (``deploy/build_image.py``; ``--no-build`` takes ``labd:VERSION`` and
    ``labd-postgres:VERSION`` as they are);
@@ -62,15 +65,24 @@ def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--no-build", action="store_true", help="use the images as they are")
     parser.add_argument("--keep", action="store_true", help="leave the stack up at the end")
+    parser.add_argument(
+        "--ray",
+        action="store_true",
+        help="the stack on a Ray cluster (deploy/docker-compose.ray.yml): a trial, an"
+        " evaluation over both nodes, a rerun",
+    )
     args = parser.parse_args()
     work = Path(tempfile.mkdtemp(prefix="labd-smoke-"))
-    stack = Stack(f"labd-smoke-{os.getpid()}", work)
+    stack = Stack(f"labd-smoke-{os.getpid()}", work, ray=args.ray)
     try:
         version = build() if not args.no_build else _version()
         stack.env["LABD_VERSION"] = version
         example_repository(work / "git")
         stack.up()
-        run_the_lab(stack, work)
+        if args.ray:
+            run_the_cluster(stack)
+        else:
+            run_the_lab(stack, work)
     except SmokeError as err:
         stack.logs()
         say(f"FAILED: {err}")
@@ -118,9 +130,12 @@ def example_repository(root: Path) -> None:
 class Stack:
     """deploy/docker-compose.yml (with deploy/smoke.yml) under a project name of its own."""
 
-    def __init__(self, project: str, work: Path) -> None:
+    def __init__(self, project: str, work: Path, *, ray: bool = False) -> None:
         self.project = project
+        self.ray = ray
         self.files = ["-f", str(DEPLOY / "docker-compose.yml"), "-f", str(DEPLOY / "smoke.yml")]
+        if ray:
+            self.files += ["-f", str(DEPLOY / "docker-compose.ray.yml")]
         http, bridge = free_ports(2)
         self.server = f"http://127.0.0.1:{http}"
         self.env = {
@@ -130,6 +145,8 @@ class Stack:
             "PUBLIC_URL": self.server,
             "SMOKE_GIT": str(work / "git"),
         }
+        if ray:
+            self.env["RAY_AUTH_TOKEN"] = os.urandom(32).hex()
         self.started = False
 
     def compose(self, *command: str, check: bool = True) -> str:
@@ -149,8 +166,9 @@ class Stack:
         self.started = True
         self.compose("up", "-d")
         say("containers: " + " ".join(sorted(self.compose("ps", "--services").split())))
-        step("waiting for the lab to be ready with both workers (/readyz)")
-        ready = wait_for(self.readiness, UP_TIMEOUT, "the lab ready with 2 remote workers")
+        what = "two Ray nodes" if self.ray else "both workers"
+        step(f"waiting for the lab to be ready with {what} (/readyz)")
+        ready = wait_for(self.readiness, UP_TIMEOUT, f"the lab ready with {what}")
         say(f"ready: {ready}")
 
     def readiness(self) -> str | None:
@@ -159,8 +177,10 @@ class Stack:
                 body = json.load(answer)
         except (OSError, ValueError):
             return None  # not listening yet, or not ready (503)
-        workers = str(body.get("checks", {}).get("workers", ""))
-        return json.dumps(body["checks"]) if "2 remote" in workers else None
+        checks = body.get("checks", {})
+        if self.ray:
+            return json.dumps(checks) if "2 node(s)" in str(checks.get("cluster", "")) else None
+        return json.dumps(checks) if "2 remote" in str(checks.get("workers", "")) else None
 
     def database_ready(self) -> str | None:
         ready = ["exec", "-T", "postgres", "pg_isready", "-q", "-h", "127.0.0.1", "-U", "labd"]
@@ -236,6 +256,54 @@ def run_the_lab(stack: Stack, work: Path) -> None:
     say(f"{len(metrics.splitlines())} lines, for example {finished[0]}")
 
     back_up_and_restore(stack, work, env, trial, record)
+
+
+def run_the_cluster(stack: Stack) -> None:
+    """The lab on its Ray cluster: a trial and an evaluation run by the nodes, each record
+    replayed on the other node, a rerun reproduced."""
+    step("labd users add smoke (in the lab's container, reading its configuration)")
+    added = json.loads(
+        stack.compose("exec", "-T", "lab", "labd", "users", "add", "smoke", "--json")
+    )
+    env = {**os.environ, "LABD_SERVER": stack.server, "LABD_TOKEN": added["token"]}
+    for name in [
+        k for k in env if k.startswith("LABD_") and k not in ("LABD_SERVER", "LABD_TOKEN")
+    ]:
+        del env[name]
+
+    step(f"labd submit {EXAMPLE_URL} --ref main --wait (on a node of the cluster)")
+    trial = labd(env, "submit", EXAMPLE_URL, "--ref", "main", "--wait")
+    expect(trial.get("outcome") == "success", "the example to succeed", trial)
+    expect(str(trial.get("worker")).startswith("ray:"), "a node of the cluster ran it", trial)
+    say(f"trial {trial['id']}: {trial['outcome']}, run by {trial['worker']}")
+
+    step("labd evaluate --suite dev --wait (20 episodes over the two nodes)")
+    evaluation = labd(env, "evaluate", EXAMPLE_URL, "--ref", "main", "--suite", "dev", "--wait")
+    expect(evaluation.get("status") == "finished", "the evaluation finished", evaluation)
+    expect(
+        evaluation.get("successes") == evaluation.get("episodes"),
+        "every episode a success",
+        evaluation,
+    )
+    expect(evaluation.get("verified") is True, "every episode's replay verified", evaluation)
+    nodes = set()
+    for row in evaluation["rows"]:
+        detail = json.loads(http_get(f"{stack.server}/api/trials/{row['trial']}"))
+        nodes.add(str(detail.get("worker")))
+    expect(
+        len(nodes) == 2 and all(n.startswith("ray:") for n in nodes), "both nodes ran some", nodes
+    )
+    elsewhere = evaluation.get("verified_elsewhere") or 0
+    expect(elsewhere * 2 > evaluation["episodes"], "most replays on the other node", evaluation)
+    say(
+        f"evaluation {evaluation['id']}: {evaluation['successes']} of {evaluation['episodes']}"
+        f" succeeded on {len(nodes)} nodes; verified on another machine: {elsewhere}"
+    )
+
+    step(f"labd rerun {trial['id']} --wait")
+    reruns = labd(env, "rerun", str(trial["id"]), "--wait")
+    expect(len(reruns) == 1 and reruns[0].get("reproduced") is True, "reproduced", reruns)
+    say(f"rerun of trial {trial['id']}: reproduced, by {reruns[0].get('worker')}")
 
 
 def playground_trial(stack: Stack, token: str) -> None:

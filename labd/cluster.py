@@ -37,10 +37,11 @@ import asyncio
 import contextlib
 import json
 import logging
+import os
 import shutil
 import socket
 import tempfile
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -151,6 +152,7 @@ def run_on_node(claim_json: str, original_json: str | None, setup: NodeSetup) ->
     claim = Claim.model_validate_json(claim_json)
     original = Trial.model_validate_json(original_json) if original_json else None
     name = _this_node()
+    setup = _here(setup)
     setup.work.mkdir(parents=True, exist_ok=True)
     held = _OneClaim(original)
     worker = Worker(
@@ -180,6 +182,13 @@ def run_on_node(claim_json: str, original_json: str | None, setup: NodeSetup) ->
         "filing": held.filing.model_dump(mode="json"),
         "derived": [vars(item) for item in held.derived],
     }
+
+
+def _here(setup: NodeSetup) -> NodeSetup:
+    """The setup as this node runs it: its own cache where it says one (``LABD_CACHE``
+    in its environment: a runtime built into its image), else the lab's path."""
+    own = os.environ.get("LABD_CACHE")
+    return replace(setup, cache=Path(own)) if own else setup
 
 
 def replay_on_node(mcap: str, setup: NodeSetup, seconds: float) -> dict[str, Any]:
