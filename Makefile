@@ -60,13 +60,15 @@ test: lint $(JSSTAMP) $(WEBSTAMP)
 
 # The container images (labd:VERSION, labd-postgres:VERSION), built from this machine, and
 # the deployment's smoke test: deploy/docker-compose.yml brought up on free ports, a
-# submission, an evaluation, a rerun and a verified download through it, then torn down.
+# submission, an evaluation, a rerun and a verified download through it, then torn down;
+# then the same stack on a Ray cluster (deploy/docker-compose.ray.yml).
 # About 4 minutes, so not part of `make test`; docs/operate.md. Both need root and Docker.
 deploy-image: $(STAMP) $(WEBSTAMP)
 	$(PY) deploy/build_image.py
 
 deploy-smoke: $(STAMP) $(WEBSTAMP)
 	$(PY) deploy/smoke.py
+	$(PY) deploy/smoke.py --no-build --ray
 
 bench: $(STAMP) $(WEBSTAMP)
 	$(PY) bench/sim.py
