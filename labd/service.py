@@ -259,8 +259,8 @@ class Service:
         """Start rendering videos; requeue what a killed predecessor left running; start
         the workers."""
         self._tasks.append(asyncio.create_task(self.videos.run(self._stop), name="videos"))
-        self._tasks.append(asyncio.create_task(self.replays.run(self._stop), name="replays"))
         if self.config.workers <= 0 and self.cluster is None:
+            self._start_replays()
             return
         released = await asyncio.to_thread(self._release_dead_workers)
         if released:
@@ -268,6 +268,7 @@ class Service:
         if self.cluster is not None:
             await asyncio.to_thread(self.cluster.connect)  # ClusterError: serve says why
             self._tasks.append(asyncio.create_task(self.cluster.run(self._stop), name="cluster"))
+        self._start_replays()  # after the cluster is joined: it replays what its nodes ran
         if self.config.workers <= 0:
             return
         backend = await asyncio.to_thread(
@@ -296,6 +297,9 @@ class Service:
             task.add_done_callback(self._worker_ended)
             self._tasks.append(task)
         log.info("%d worker(s) on %s", len(self.workers), backend.name)
+
+    def _start_replays(self) -> None:
+        self._tasks.append(asyncio.create_task(self.replays.run(self._stop), name="replays"))
 
     def serving_at(self, url: str) -> None:
         """The lab's HTTP port answers at ``url`` (known once it listens): its hosted

@@ -130,12 +130,6 @@ def test_an_evaluation_runs_on_the_cluster_and_survives_a_lost_node(
     assert elsewhere >= 15, (nodes, ran_on)  # most: a node may have been alone a while
 
 
-@pytest.mark.xfail(
-    raises=pytest.fail.Exception,  # the replays' wait alone; any assert fails the test
-    strict=True,
-    reason="labd.service starts its replays before Cluster.connect: the records a killed lab"
-    " left unreplayed meet Cluster.replay's assert on _ray and wait for the next restart",
-)
 def test_a_lab_restarted_mid_evaluation_picks_up(cluster, make_served_lab, tmp_path):
     """A lab killed while episodes run on the cluster and records wait for their replays,
     then started again on the same data: the episodes it had under way run again once
