@@ -3,7 +3,7 @@
     python bench/busy.py [--sandbox docker] [--workers 1] [--minutes 40]
 
 starts ``labd serve`` on a data folder of its own (ports chosen by the system), and keeps
-one trial of the maze example queued behind each worker until it is stopped (Ctrl-C,
+one trial of an example controller queued behind each worker until it is stopped (Ctrl-C,
 SIGTERM) or ``--minutes`` pass; every minute it prints the trials it saw end. Run it,
 then the suite (``make test`` or ``.ci/run`` from a fresh clone) beside it: the suite's
 tests decide on behaviour, never on the machine's speed, so they pass beside it too
@@ -27,7 +27,7 @@ from pathlib import Path
 import httpx
 
 ROOT = Path(__file__).resolve().parents[1]
-EXAMPLE = ROOT / "controllers" / "examples" / "icreate-maze"
+EXAMPLES = ROOT / "controllers" / "examples"
 
 
 def main() -> int:
@@ -35,13 +35,19 @@ def main() -> int:
     parser.add_argument("--sandbox", default="docker", choices=["docker", "bwrap"])
     parser.add_argument("--workers", type=int, default=1)
     parser.add_argument("--minutes", type=float, default=40.0)
+    parser.add_argument(
+        "--example",
+        default="dmc-cartpole-balance",
+        help="the example controller its trials run (default: %(default)s, a 1,000-step"
+        " episode; icreate-maze's are short, so its lab starts containers back to back)",
+    )
     args = parser.parse_args()
     work = Path(tempfile.mkdtemp(prefix="labd-busy-"))
-    repo = work / "maze"
-    shutil.copytree(EXAMPLE, repo)
+    repo = work / "controller"
+    shutil.copytree(EXAMPLES / args.example, repo)
     env = {**os.environ, "GIT_AUTHOR_NAME": "busy", "GIT_AUTHOR_EMAIL": "busy@example.org"}
     env |= {"GIT_COMMITTER_NAME": "busy", "GIT_COMMITTER_EMAIL": "busy@example.org"}
-    for git in (["init", "-q", "-b", "main"], ["add", "-A"], ["commit", "-q", "-m", "maze"]):
+    for git in (["init", "-q", "-b", "main"], ["add", "-A"], ["commit", "-q", "-m", "example"]):
         subprocess.run(["git", *git], cwd=repo, env=env, check=True)
     data = work / "data"
     made = subprocess.run(
@@ -85,7 +91,7 @@ def main() -> int:
     try:
         while not stop and time.monotonic() - started < args.minutes * 60:
             while len(pending) < args.workers + 1:
-                body = {"repository": str(repo), "task": "icreate-maze", "seed": seed}
+                body = {"repository": str(repo), "seed": seed}  # the task lab.toml names
                 pending.append(client.post("/api/trials", json=body, timeout=60).json()["id"])
                 seed += 1
             for trial in list(pending):
