@@ -13,6 +13,7 @@ tests decide on behaviour, never on the machine's speed, so they pass beside it 
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import re
 import shutil
@@ -40,6 +41,12 @@ def main() -> int:
         default="dmc-cartpole-balance",
         help="the example controller its trials run (default: %(default)s, a 1,000-step"
         " episode; icreate-maze's are short, so its lab starts containers back to back)",
+    )
+    parser.add_argument(
+        "--params",
+        type=json.loads,
+        default={},
+        help="the task parameters of its trials, as JSON (e.g. '{\"maze_size\": 21}')",
     )
     args = parser.parse_args()
     work = Path(tempfile.mkdtemp(prefix="labd-busy-"))
@@ -91,7 +98,7 @@ def main() -> int:
     try:
         while not stop and time.monotonic() - started < args.minutes * 60:
             while len(pending) < args.workers + 1:
-                body = {"repository": str(repo), "seed": seed}  # the task lab.toml names
+                body = {"repository": str(repo), "seed": seed, "params": args.params}
                 pending.append(client.post("/api/trials", json=body, timeout=60).json()["id"])
                 seed += 1
             for trial in list(pending):
