@@ -200,32 +200,17 @@ class Stack:
 
 
 def run_the_lab(stack: Stack, work: Path) -> None:
-    step("labd users add smoke (in the lab's container, reading its configuration)")
-    added = json.loads(
-        stack.compose("exec", "-T", "lab", "labd", "users", "add", "smoke", "--json")
-    )
-    env = {**os.environ, "LABD_SERVER": stack.server, "LABD_TOKEN": added["token"]}
-    for name in [
-        k for k in env if k.startswith("LABD_") and k not in ("LABD_SERVER", "LABD_TOKEN")
-    ]:
-        del env[name]  # a developer's own settings must not reach the commands below
+    token, env = smoke_user(stack)
 
     step(f"labd submit {EXAMPLE_URL} --ref main --wait")
     trial = labd(env, "submit", EXAMPLE_URL, "--ref", "main", "--wait")
     expect(trial.get("outcome") == "success", "the example to succeed", trial)
     say(f"trial {trial['id']}: {trial['outcome']} ({trial.get('reason')})")
 
-    playground_trial(stack, added["token"])
+    playground_trial(stack, token)
 
     step("labd evaluate --suite dev --wait (the maze's 20 public episodes, on two workers)")
-    evaluation = labd(env, "evaluate", EXAMPLE_URL, "--ref", "main", "--suite", "dev", "--wait")
-    expect(evaluation.get("status") == "finished", "the evaluation finished", evaluation)
-    expect(
-        evaluation.get("successes") == evaluation.get("episodes"),
-        "every episode a success",
-        evaluation,
-    )
-    expect(evaluation.get("verified") is True, "every episode's replay verified", evaluation)
+    evaluation = evaluate_dev(env)
     workers = set()
     for row in evaluation["rows"]:
         detail = json.loads(http_get(f"{stack.server}/api/trials/{row['trial']}"))
@@ -258,9 +243,9 @@ def run_the_lab(stack: Stack, work: Path) -> None:
     back_up_and_restore(stack, work, env, trial, record)
 
 
-def run_the_cluster(stack: Stack) -> None:
-    """The lab on its Ray cluster: a trial and an evaluation run by the nodes, each record
-    replayed on the other node, a rerun reproduced."""
+def smoke_user(stack: Stack) -> tuple[str, dict[str, str]]:
+    """The user ``smoke``, added in the lab's container: its token, and the environment
+    the ``labd`` commands below run in (a developer's own settings kept out of it)."""
     step("labd users add smoke (in the lab's container, reading its configuration)")
     added = json.loads(
         stack.compose("exec", "-T", "lab", "labd", "users", "add", "smoke", "--json")
@@ -270,6 +255,29 @@ def run_the_cluster(stack: Stack) -> None:
         k for k in env if k.startswith("LABD_") and k not in ("LABD_SERVER", "LABD_TOKEN")
     ]:
         del env[name]
+    return str(added["token"]), env
+
+
+def evaluate_dev(env: dict[str, str]) -> dict[str, Any]:
+    """The example evaluated on the maze's dev suite, to its end: every episode a
+    success, every replay verified."""
+    evaluation: dict[str, Any] = labd(
+        env, "evaluate", EXAMPLE_URL, "--ref", "main", "--suite", "dev", "--wait"
+    )
+    expect(evaluation.get("status") == "finished", "the evaluation finished", evaluation)
+    expect(
+        evaluation.get("successes") == evaluation.get("episodes"),
+        "every episode a success",
+        evaluation,
+    )
+    expect(evaluation.get("verified") is True, "every episode's replay verified", evaluation)
+    return evaluation
+
+
+def run_the_cluster(stack: Stack) -> None:
+    """The lab on its Ray cluster: a trial and an evaluation run by the nodes, each record
+    replayed on the other node, a rerun reproduced."""
+    _, env = smoke_user(stack)
 
     step(f"labd submit {EXAMPLE_URL} --ref main --wait (on a node of the cluster)")
     trial = labd(env, "submit", EXAMPLE_URL, "--ref", "main", "--wait")
@@ -278,14 +286,7 @@ def run_the_cluster(stack: Stack) -> None:
     say(f"trial {trial['id']}: {trial['outcome']}, run by {trial['worker']}")
 
     step("labd evaluate --suite dev --wait (20 episodes over the two nodes)")
-    evaluation = labd(env, "evaluate", EXAMPLE_URL, "--ref", "main", "--suite", "dev", "--wait")
-    expect(evaluation.get("status") == "finished", "the evaluation finished", evaluation)
-    expect(
-        evaluation.get("successes") == evaluation.get("episodes"),
-        "every episode a success",
-        evaluation,
-    )
-    expect(evaluation.get("verified") is True, "every episode's replay verified", evaluation)
+    evaluation = evaluate_dev(env)
     nodes = set()
     for row in evaluation["rows"]:
         detail = json.loads(http_get(f"{stack.server}/api/trials/{row['trial']}"))
