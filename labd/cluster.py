@@ -10,6 +10,7 @@ and runs each as one Ray task:
     commit, build, sandbox with no network, lockstep, record; the record and logs go to
     the lab's blob store, content-addressed) ─▶ what a worker files, handed back
     ─▶ Queue.hand_over to ray:NODE ─▶ Queue.finish (held to its record, signed)
+    ─▶ its slot is free ─▶ the record's page summary, a task on the same node
 
 While a task runs, the dispatcher renews the trial's lease; a cancelled trial has its
 task cancelled. A task whose node dies is run again elsewhere by Ray (``max_retries``)
@@ -25,7 +26,9 @@ every node mounts at the same path).
 
 Each record a node filed is replayed (``labd.replays``) by a task of its own, placed on
 another node than the one that ran the trial when the cluster has one, and the verdict
-says where (``node``).
+says where (``node``). Summaries and replays hold no slot: like a worker's, they run in
+a helper process beside the node's next trial, as many replays at once as the cluster
+has slots.
 
 Ray is imported only here, and only when a cluster is asked for (``pip install
 'labd[cluster]'``).
@@ -51,7 +54,7 @@ from labd.trial import LabHost, client_library
 from repository.blobs import BlobStore
 from repository.index import Derived
 from repository.trial import Claim, Ending, Filing, Trial
-from repository.well_known import RECORD_FILE
+from repository.well_known import RECORD_FILE, SUMMARY, SUMMARY_MEDIA_TYPE
 from scheduler.canary import Health
 from scheduler.errors import FilingRefused, QueueError
 from scheduler.queue import Queue
@@ -88,6 +91,7 @@ class ClusterConfig:
     max_retries: int = 3  # runs of a task whose node died, before the trial is an error
     poll: float = 2.0  # seconds between claims while the queue is empty or the cluster full
     replay: float = 1800.0  # one replay's limit, in seconds
+    summary: float = 120.0  # one record's page summary's limit, in seconds
 
 
 def node_name(node_id: str) -> str:
@@ -165,6 +169,7 @@ def run_on_node(claim_json: str, original_json: str | None, setup: NodeSetup) ->
             work=setup.work,
             cache=setup.cache,
             heartbeat=setup.heartbeat,
+            summary=0.0,  # made once the trial is filed and its slot free (``summarize_on_node``)
             replay=0.0,  # replayed by another task, on another node (``replay_on_node``)
             options=setup.options,
         ),
@@ -172,7 +177,7 @@ def run_on_node(claim_json: str, original_json: str | None, setup: NodeSetup) ->
 
     async def run() -> None:
         await worker.execute(claim)
-        await worker.settled()  # the record's page summary, filed beside it
+        await worker.settled()  # the trial's folder removed
 
     asyncio.run(run())
     if held.filing is None:  # execute always files; a bug otherwise
@@ -189,6 +194,22 @@ def _here(setup: NodeSetup) -> NodeSetup:
     in its environment: a runtime built into its image), else the lab's path."""
     own = os.environ.get("LABD_CACHE")
     return replace(setup, cache=Path(own)) if own else setup
+
+
+def summarize_on_node(mcap: str, setup: NodeSetup, seconds: float) -> dict[str, Any]:
+    """A Ray task's body: the page summary of the record ``mcap`` (a digest in the lab's
+    store), put in the store; what to file beside the trial (``Derived``'s fields)."""
+    store = BlobStore(setup.blobs, setup.blob_options or None)
+    setup.work.mkdir(parents=True, exist_ok=True)
+    folder = Path(tempfile.mkdtemp(prefix="summary-", dir=setup.work))
+    try:
+        record = store.copy_to(mcap, folder / RECORD_FILE)
+        blob = LabHost().summarize(record, seconds=seconds)
+        path = folder / SUMMARY
+        path.write_bytes(blob)
+        return vars(Derived(SUMMARY, store.put_file(path), len(blob), SUMMARY_MEDIA_TYPE))
+    finally:
+        shutil.rmtree(folder, ignore_errors=True)
 
 
 def replay_on_node(mcap: str, setup: NodeSetup, seconds: float) -> dict[str, Any]:
@@ -216,7 +237,7 @@ class Slots:
     nodes: int = 0
     total: int = 0
     free: int = 0
-    in_flight: int = 0  # the lab's trials running there now
+    in_flight: int = 0  # the lab's trials running there now (each holding a slot)
 
 
 @dataclass
@@ -224,6 +245,7 @@ class _Running:
     claim: Claim
     name: str  # the worker name the lease is held under until a node is known
     task: asyncio.Task[None] = field(repr=False)
+    holds_slot: bool = True  # until the trial is filed (its summary is made on no slot)
 
 
 class Cluster:
@@ -239,8 +261,9 @@ class Cluster:
         self._running: dict[int, _Running] = {}
         self._ray: Any = None
         self._trial_task: Any = None
+        self._summary_task: Any = None
         self._replay_task: Any = None
-        self._replay_options: dict[str, Any] = {}
+        self._helper_options: dict[str, Any] = {}
 
     # -- connecting ------------------------------------------------------------------
 
@@ -270,13 +293,11 @@ class Cluster:
             retry_exceptions=False,
             name="labd trial",
         )
+        # a summary or a replay holds no slot: it runs beside the node's next trial, in a
+        # helper process, as a worker's does; where is the dispatcher's to say
+        self._summary_task = ray.remote(summarize_on_node)
         self._replay_task = ray.remote(replay_on_node)
-        self._replay_options = {
-            "num_cpus": 1,
-            "resources": resources,
-            "max_retries": self.config.max_retries,
-            "name": "labd replay",
-        }
+        self._helper_options = {"num_cpus": 0, "max_retries": self.config.max_retries}
         self.refresh()
         log.info(
             "Ray cluster at %s: %d node(s), %d slot(s) of %s",
@@ -309,8 +330,17 @@ class Cluster:
         assert self._ray is not None
         total = self._ray.cluster_resources().get(self.config.resource, 0)
         free = self._ray.available_resources().get(self.config.resource, 0)
-        self.slots = Slots(len(self.nodes()), int(total), int(free), len(self._running))
+        self.slots = Slots(len(self.nodes()), int(total), int(free), self._holding())
         return self.slots
+
+    def _holding(self) -> int:
+        """The lab's trials holding a slot of the cluster now."""
+        return sum(running.holds_slot for running in self._running.values())
+
+    @property
+    def parallel(self) -> int:
+        """Replays of what the nodes ran at once: as many as the cluster has slots."""
+        return max(1, self.slots.total)
 
     # -- dispatching -------------------------------------------------------------------
 
@@ -322,7 +352,7 @@ class Cluster:
                 claimed = False
                 try:
                     slots = await asyncio.to_thread(self.refresh)
-                    if len(self._running) < slots.total:
+                    if self._holding() < slots.total:
                         claimed = await self._claim_one()
                 except Exception:  # the cluster or the database away for a moment
                     log.exception("could not dispatch a trial to the cluster")
@@ -387,9 +417,31 @@ class Cluster:
             filing = Filing.model_validate(outcome["filing"])
         assert filing is not None
         filed = await asyncio.to_thread(self._finish, claim.id, name, filing)
+        if (running := self._running.get(claim.id)) is not None:
+            running.holds_slot = False  # claim the next trial while the summary is made
+            self.wake.set()
         if filed and outcome is not None:
             for item in outcome["derived"]:
                 await asyncio.to_thread(self.queue.derive, claim.id, name, Derived(**item))
+            if filing.mcap:
+                await self._summarize(claim.id, name, filing.mcap)
+
+    async def _summarize(self, trial_id: int, node: str, mcap: str) -> None:
+        """File the record's page summary, made on the node that ran the trial (or any,
+        should it be gone); never fails the filed trial (its page makes one later)."""
+        options = dict(self._helper_options, name="labd summary")
+        if (node_id := self.nodes().get(node)) is not None:
+            options["scheduling_strategy"] = _near(node_id)
+        seconds = self.config.summary
+        ref = self._summary_task.options(**options).remote(mcap, self.node, seconds)
+        try:
+            made = await asyncio.wait_for(asyncio.wrap_future(ref.future()), seconds + 30)
+            await asyncio.to_thread(self.queue.derive, trial_id, node, Derived(**made))
+        except Exception as err:  # noqa: BLE001 (logged; the trial stays filed)
+            with contextlib.suppress(Exception):
+                self._ray.cancel(ref, force=True)
+            log.error("trial %d: its summary could not be made on the cluster: %s", trial_id,
+                      str(err).splitlines()[0] if str(err) else type(err).__name__)  # fmt: skip
 
     async def _held(self, trial_id: int, name: str, ref: Any) -> dict[str, Any]:
         """Wait for the task, renewing the trial's lease; ``_Stop`` if it must stop."""
@@ -431,19 +483,26 @@ class Cluster:
         """Replay ``trial``'s record on another node than the one that ran it (the same
         one only when no other has the resource); the verdict, saying where."""
         assert trial.mcap is not None and self._ray is not None
-        from ray.util.scheduling_strategies import (  # noqa: PLC0415 (the extra's)
-            NodeAffinitySchedulingStrategy,
-        )
-
-        others = [node for name, node in self.nodes().items() if name != trial.worker]
-        options = dict(self._replay_options)
-        if others:  # soft: should that node die meanwhile, Ray places it on another
-            chosen = others[trial.id % len(others)]
-            options["scheduling_strategy"] = NodeAffinitySchedulingStrategy(chosen, soft=True)
+        nodes = self.nodes()
+        others = [node for name, node in nodes.items() if name != trial.worker]
+        candidates = others or list(nodes.values())
+        options = dict(self._helper_options, name="labd replay")
+        if candidates:
+            options["scheduling_strategy"] = _near(candidates[trial.id % len(candidates)])
         ref = self._replay_task.options(**options).remote(trial.mcap, self.node, self.config.replay)
         done: dict[str, Any] = await asyncio.wrap_future(ref.future())
         verdict: bytes = done["verdict"]
         return verdict
+
+
+def _near(node_id: str) -> Any:
+    """Ray's placement on the node ``node_id``; soft: should it die meanwhile, or be
+    full, Ray places the task on another."""
+    from ray.util.scheduling_strategies import (  # noqa: PLC0415 (the extra's)
+        NodeAffinitySchedulingStrategy,
+    )
+
+    return NodeAffinitySchedulingStrategy(node_id, soft=True)
 
 
 def _probe(address: str, seconds: float = 5.0) -> None:

@@ -6,8 +6,10 @@ workers (in its process, or its worker processes: ``labd.workers``) replay each 
 they file. A worker on another machine could say anything, so the lab does not take its
 word: such a worker files no verdict (the API refuses one, ``labd.api.workers``), and
 the lab replays what it filed here, from the record it holds, one record at a time in a
-helper process, oldest first. Until then the record is "not replayed yet", and an
-evaluation with it is not verified (so not ranked).
+helper process, oldest first. What a cluster's nodes ran is replayed on another of its
+nodes, as many at once as the cluster has slots (``Elsewhere.parallel``). Until then
+the record is "not replayed yet", and an evaluation with it is not verified (so not
+ranked).
 
 A record that cannot be replayed here gets a verdict saying why (``LabHost.replay``);
 one whose replay failed for another reason (the store, a bug) is retried after the
@@ -18,6 +20,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import functools
 import json
 import logging
 import shutil
@@ -38,6 +41,11 @@ log = logging.getLogger("labd.replays")
 class Elsewhere(Protocol):
     """Where some records are replayed instead of here: a cluster replays what its
     nodes ran on another of its nodes (``labd.cluster.Cluster``)."""
+
+    @property
+    def parallel(self) -> int:
+        """How many of its replays may run at once."""
+        ...
 
     def ran_here(self, worker: str | None) -> bool: ...
     async def replay(self, trial: Trial) -> bytes: ...
@@ -69,6 +77,8 @@ class LabReplays:
         self.on_verdict = on_verdict
         self.elsewhere = elsewhere  # replays what a cluster's nodes ran (labd.cluster)
         self._failed: set[int] = set()
+        self._running: dict[int, asyncio.Task[None]] = {}
+        self._here = asyncio.Semaphore(1)  # this machine's replays: one at a time
         self._wake = asyncio.Event()
         self._loop: asyncio.AbstractEventLoop | None = None
 
@@ -79,26 +89,47 @@ class LabReplays:
             self._loop.call_soon_threadsafe(self._wake.set)
 
     async def run(self, stop: asyncio.Event) -> None:
-        """Replay records until ``stop`` is set."""
+        """Replay records until ``stop`` is set: one at a time here, and as many at once
+        as a cluster has slots for what its nodes ran."""
         self._loop = asyncio.get_running_loop()
-        while not stop.is_set():
-            try:
-                trial_id = await asyncio.to_thread(
-                    self.index.unreplayed, self.trusted, self._failed
-                )
-            except Exception:  # the database away for a moment: try again later
-                log.exception("could not look for records to replay")
+        try:
+            while not stop.is_set():
                 trial_id = None
-            if trial_id is None:
-                self._wake.clear()
-                with contextlib.suppress(TimeoutError):
-                    await asyncio.wait_for(self._wake.wait(), self.poll)
-                continue
-            try:
-                await self.replay(trial_id)
-            except Exception:  # never let one record stop the others; it waits for a restart
-                log.exception("trial %d: the lab could not replay its record", trial_id)
-                self._failed.add(trial_id)
+                if len(self._running) < self._room():
+                    try:
+                        trial_id = await asyncio.to_thread(
+                            self.index.unreplayed, self.trusted, self._failed | set(self._running)
+                        )
+                    except Exception:  # the database away for a moment: try again later
+                        log.exception("could not look for records to replay")
+                if trial_id is None:  # nothing to replay, or no room: until one ends
+                    self._wake.clear()
+                    with contextlib.suppress(TimeoutError):
+                        await asyncio.wait_for(self._wake.wait(), self.poll)
+                    continue
+                task = asyncio.create_task(self._replay_one(trial_id), name=f"replay {trial_id}")
+                self._running[trial_id] = task
+                task.add_done_callback(functools.partial(self._ended, trial_id))
+        finally:
+            for task in list(self._running.values()):
+                task.cancel()
+            for task in list(self._running.values()):
+                with contextlib.suppress(asyncio.CancelledError):
+                    await task
+
+    def _room(self) -> int:
+        return 1 if self.elsewhere is None else max(1, self.elsewhere.parallel)
+
+    def _ended(self, trial_id: int, _: object) -> None:
+        self._running.pop(trial_id, None)
+        self._wake.set()
+
+    async def _replay_one(self, trial_id: int) -> None:
+        try:
+            await self.replay(trial_id)
+        except Exception:  # never let one record stop the others; it waits for a restart
+            log.exception("trial %d: the lab could not replay its record", trial_id)
+            self._failed.add(trial_id)
 
     async def replay(self, trial_id: int) -> Derived:
         """Replay trial ``trial_id``'s record here and file the verdict beside it."""
@@ -111,10 +142,13 @@ class LabReplays:
             if self.elsewhere is not None and self.elsewhere.ran_here(trial.worker):
                 verdict = await self.elsewhere.replay(trial)
             else:
-                mcap = await asyncio.to_thread(self.store.copy_to, trial.mcap, folder / RECORD_FILE)
-                done = await asyncio.to_thread(
-                    self.host.replay, mcap, folder / "replay", seconds=self.seconds
-                )
+                async with self._here:
+                    mcap = await asyncio.to_thread(
+                        self.store.copy_to, trial.mcap, folder / RECORD_FILE
+                    )
+                    done = await asyncio.to_thread(
+                        self.host.replay, mcap, folder / "replay", seconds=self.seconds
+                    )
                 verdict = done.verdict
             path = folder / REPLAY
             path.write_bytes(verdict)

@@ -74,7 +74,7 @@ class WorkerConfig:
     heartbeat: float = 10.0  # seconds between lease renewals
     poll: float = 2.0  # seconds between claims while the queue is empty
     filing: float = 300.0  # seconds to store a record and file it
-    summary: float = 120.0  # seconds to summarize a filed record for its page
+    summary: float = 120.0  # seconds to summarize a filed record for its page (0: none)
     replay: float = 600.0  # seconds to replay a filed record (0: no replay)
     canaries: tuple[int, ...] = ()  # reference trials to rerun at start and every ...
     canary_every: float = 3600.0  # ... seconds; one that diverges takes the worker out
@@ -370,6 +370,8 @@ class Worker:
     async def _summarize(self, trial_id: int, mcap: Path) -> None:
         """File the record's page summary beside it; never fails the filed trial."""
         seconds = self.config.summary
+        if seconds <= 0:
+            return
         try:
             blob = await asyncio.wait_for(
                 asyncio.to_thread(self.host.summarize, mcap, seconds=seconds), seconds + 1

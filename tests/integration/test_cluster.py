@@ -21,9 +21,12 @@ import httpx
 import pytest
 
 from labd.cluster import node_name
+from repository.index import Index
+from repository.well_known import SUMMARY
 from tests.helpers.timing import SECOND
 from tests.integration.test_evaluate import BRIEF, LAB_TOML
 from tests.integration.test_service import make_repo
+from tests.labd.test_metrics import samples
 
 ray = pytest.importorskip("ray", reason="the cluster's tests need labd[cluster] (make setup)")
 from ray.cluster_utils import Cluster  # noqa: E402
@@ -99,6 +102,13 @@ def test_an_evaluation_runs_on_the_cluster_and_survives_a_lost_node(
         return [r for r in rows if r["outcome"] is not None]
 
     wait("three episodes filed", lambda: len(filed()) >= 3, 300 * SECOND, lab)
+    # what an operator watches: two nodes, two slots, this lab's trials running there
+    metrics = samples(httpx.get(lab.server + "/metrics", timeout=30).text)
+    assert metrics["labd_cluster_nodes"][()] == 2, metrics
+    slots = {labels[0][1]: value for labels, value in metrics["labd_cluster_slots"].items()}
+    assert slots["total"] == 2 and 0 <= slots["free"] <= 2 and 0 <= slots["running"] <= 2
+    ready = httpx.get(lab.server + "/readyz", timeout=30)
+    assert ready.status_code == 200 and "2 node(s)" in ready.json()["checks"]["cluster"], ready.text
     lost = next(node for node in cluster.worker_nodes)
     cluster.remove_node(lost)  # as a machine that dies: its tasks are run again elsewhere
     added = cluster.add_node(num_cpus=1, resources={"labd_sim": 1})
@@ -128,6 +138,16 @@ def test_an_evaluation_runs_on_the_cluster_and_survives_a_lost_node(
     nodes = replay_nodes(lab, rows)
     elsewhere = sum(nodes[t] != ran_on[t] for t in trials)
     assert elsewhere >= 15, (nodes, ran_on)  # most: a node may have been alone a while
+    # each record's page summary, made on the cluster once its trial was filed (a task
+    # the trial's node may have died under is made on another)
+    index = Index.open(f"sqlite:///{lab.data / 'index.sqlite'}")
+    summarized = wait(
+        "every page summary",
+        lambda: all(SUMMARY in index.derived(t) for t in trials) or None,
+        120 * SECOND,
+        lab,
+    )
+    assert summarized and "could not be made on the cluster" not in "".join(lab.output)
 
 
 def test_a_lab_restarted_mid_evaluation_picks_up(cluster, make_served_lab, tmp_path):
