@@ -30,10 +30,15 @@ back from its stdout log; bubblewrap shares the host's clock):
 - a slot's time per episode (seconds to the last filed times slots, over episodes) minus
   the trial's own run: what each episode costs a slot beyond running, idle gaps between
   claims included;
-- a slot freed (an episode filed) to the next claim, while every slot was busy.
+- a slot freed (an episode filed) to the next claim, while every slot was busy;
+- on the cluster, a task sent to its start on the node (the lab's log: ``began on NODE
+  S s after it was sent``).
 
 Each as the cluster's extra over local, and as a share of an episode's time (the local
-claim to filed); the issue's target is at most 5 %.
+claim to filed). The dispatch overhead is what the cluster adds to an episode beyond
+what a worker does: the task's way to its node (sent to its start) and back (claim to
+filed beyond the trial's own run, the cluster's extra); the issue's target is at most
+5 % of an episode's time.
 
     .venv/bin/python bench/cluster.py [--suite dev] [--rounds 3] [--json]
 """
@@ -196,6 +201,8 @@ def evaluate(served: Served, repo: Path, suite: str) -> dict[str, Any]:
         verified = time.time()
         print(file=sys.stderr)
         episodes = [episode(client, row) for row in evaluation["rows"]]
+    began = [float(s) for s in re.findall(r"began on \S+ (-?[\d.]+) s after it was sent",
+                                          "".join(served.output))]  # fmt: skip
     # from queueing (the index's time: not the command's start) to the last episode filed
     # (the index's time, no poll in it) and to the last verdict (seen by the poll)
     queued = min(e["created"] for e in episodes)
@@ -212,6 +219,7 @@ def evaluate(served: Served, repo: Path, suite: str) -> dict[str, Any]:
         "per_hour_filed": 3600 * n / to_filed,
         "per_hour_verified": 3600 * n / to_verified,
         "claim_wait": claim_wait(episodes),
+        "sent_to_began": statistics.median(began) if began else 0.0,
     }
     for name in ("claim_to_first_step", "claim_to_filed", "own_run", "beyond_run"):
         values = [e[name] for e in episodes if e[name] is not None]
@@ -303,7 +311,7 @@ def summary(runs: dict[str, list[dict[str, Any]]]) -> dict[str, Any]:
 
     names = ("per_hour_filed", "per_hour_verified", "claim_to_first_step", "claim_to_filed",
              "own_run", "beyond_run", "beyond_run_mean", "slot_beyond_run",
-             "claim_wait")  # fmt: skip
+             "claim_wait", "sent_to_began")  # fmt: skip
     out: dict[str, Any] = {way: {n: median(way, n) for n in names} for way in runs}
     local, cluster = out["local"], out["cluster"]
     out["ratio_filed"] = cluster["per_hour_filed"] / local["per_hour_filed"]
@@ -317,8 +325,11 @@ def summary(runs: dict[str, list[dict[str, Any]]]) -> dict[str, Any]:
         }
         for name in ("claim_to_first_step", "beyond_run", "slot_beyond_run", "claim_wait")
     }
-    # the shortest episode (claim to filed, locally) for which the extra is within target
-    out["target_met_from_seconds"] = max(0.0, out["extra"]["beyond_run"]["seconds"]) / TARGET
+    # the dispatch overhead: the task's way to its node and back
+    dispatch = cluster["sent_to_began"] + max(0.0, out["extra"]["beyond_run"]["seconds"])
+    out["dispatch"] = {"seconds": dispatch, "of_episode": dispatch / episode_time}
+    # the shortest episode (claim to filed, locally) for which it is within target
+    out["target_met_from_seconds"] = dispatch / TARGET
     return out
 
 
@@ -352,11 +363,14 @@ def report(results: dict[str, Any]) -> None:
     own = "the trial's own run (checkout to record)"
     print(f"  {own:44} {s['local']['own_run']:7.2f}"
           f" {s['cluster']['own_run']:8.2f}")  # fmt: skip
+    sent = "a task sent to its start on the node"
+    print(f"  {sent:44} {'':7} {s['cluster']['sent_to_began']:8.2f}")
     print(f"  {'an episode (local claim to filed)':44} {s['episode_seconds']:7.2f}\n")
-    extra = s["extra"]["beyond_run"]["of_episode"]
+    extra = s["dispatch"]["of_episode"]
     verdict = "PASS" if extra <= TARGET else "FAIL"
-    print(f"  {verdict}  the cluster's dispatch overhead per episode <= {TARGET:.0%} of an"
-          f" episode's time ({extra:.1%}; met by episodes of"
+    print(f"  {verdict}  the cluster's dispatch overhead per episode (to the node and back)"
+          f" <= {TARGET:.0%} of an episode's time ({s['dispatch']['seconds']:.3f} s,"
+          f" {extra:.1%}; met by episodes of"
           f" {s['target_met_from_seconds']:.1f} s or more)")  # fmt: skip
 
 

@@ -10,7 +10,7 @@ and runs each as one Ray task:
     commit, build, sandbox with no network, lockstep, record; the record and logs go to
     the lab's blob store, content-addressed) ─▶ what a worker files, handed back
     ─▶ Queue.hand_over to ray:NODE ─▶ Queue.finish (held to its record, signed)
-    ─▶ its slot is free ─▶ the record's page summary, a task on the same node
+    ─▶ its slot is free ─▶ the record's page summary, made by the node's helper
 
 While a task runs, the dispatcher renews the trial's lease; a cancelled trial has its
 task cancelled. A task whose node dies is run again elsewhere by Ray (``max_retries``)
@@ -26,9 +26,11 @@ every node mounts at the same path).
 
 Each record a node filed is replayed (``labd.replays``) by a task of its own, placed on
 another node than the one that ran the trial when the cluster has one, and the verdict
-says where (``node``). Summaries and replays hold no slot: like a worker's, they run in
-a helper process beside the node's next trial, as many replays at once as the cluster
-has slots.
+says where (``node``). Summaries and replays hold no slot: each node has a helper (a Ray
+actor asking for no CPU, ``NodeHelper``) that makes them in helper processes it keeps
+warm, beside the node's next trial, as a worker's helpers do; the lab keeps as many
+replays under way as the cluster has slots. A helper whose node dies is made again on
+another node, and what it was doing is asked of that one.
 
 Ray is imported only here, and only when a cluster is asked for (``pip install
 'labd[cluster]'``).
@@ -38,12 +40,15 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import functools
 import json
 import logging
 import os
 import shutil
 import socket
 import tempfile
+import time
+from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
@@ -144,6 +149,12 @@ def _backend(setup: NodeSetup) -> Any:
     return _backends[key]
 
 
+@functools.cache
+def _host() -> LabHost:
+    """The process's host (one: it reads the message types once)."""
+    return LabHost()
+
+
 def _this_node() -> str:
     import ray  # noqa: PLC0415 (only where a cluster runs)
 
@@ -152,7 +163,9 @@ def _this_node() -> str:
 
 def run_on_node(claim_json: str, original_json: str | None, setup: NodeSetup) -> dict[str, Any]:
     """A Ray task's body: run the claimed trial as a worker does, on this node, with the
-    record and logs put in the lab's store; what to file, and which node ran it."""
+    record and logs put in the lab's store; what to file, which node ran it, and when
+    the task began (by the node's clock)."""
+    began = time.time()
     claim = Claim.model_validate_json(claim_json)
     original = Trial.model_validate_json(original_json) if original_json else None
     name = _this_node()
@@ -163,13 +176,13 @@ def run_on_node(claim_json: str, original_json: str | None, setup: NodeSetup) ->
         held,
         BlobStore(setup.blobs, setup.blob_options or None),
         _backend(setup),
-        LabHost(),
+        _host(),
         WorkerConfig(
             name=name,
             work=setup.work,
             cache=setup.cache,
             heartbeat=setup.heartbeat,
-            summary=0.0,  # made once the trial is filed and its slot free (``summarize_on_node``)
+            summary=0.0,  # made once the trial is filed and its slot free (``NodeHelper``)
             replay=0.0,  # replayed by another task, on another node (``replay_on_node``)
             options=setup.options,
         ),
@@ -184,6 +197,7 @@ def run_on_node(claim_json: str, original_json: str | None, setup: NodeSetup) ->
         raise RuntimeError(f"trial {claim.id}: the node's worker filed nothing")
     return {
         "node": name,
+        "began": began,
         "filing": held.filing.model_dump(mode="json"),
         "derived": [vars(item) for item in held.derived],
     }
@@ -197,14 +211,14 @@ def _here(setup: NodeSetup) -> NodeSetup:
 
 
 def summarize_on_node(mcap: str, setup: NodeSetup, seconds: float) -> dict[str, Any]:
-    """A Ray task's body: the page summary of the record ``mcap`` (a digest in the lab's
+    """The page summary of the record ``mcap`` (a digest in the lab's
     store), put in the store; what to file beside the trial (``Derived``'s fields)."""
     store = BlobStore(setup.blobs, setup.blob_options or None)
     setup.work.mkdir(parents=True, exist_ok=True)
     folder = Path(tempfile.mkdtemp(prefix="summary-", dir=setup.work))
     try:
         record = store.copy_to(mcap, folder / RECORD_FILE)
-        blob = LabHost().summarize(record, seconds=seconds)
+        blob = _host().summarize(record, seconds=seconds)
         path = folder / SUMMARY
         path.write_bytes(blob)
         return vars(Derived(SUMMARY, store.put_file(path), len(blob), SUMMARY_MEDIA_TYPE))
@@ -213,18 +227,35 @@ def summarize_on_node(mcap: str, setup: NodeSetup, seconds: float) -> dict[str, 
 
 
 def replay_on_node(mcap: str, setup: NodeSetup, seconds: float) -> dict[str, Any]:
-    """A Ray task's body: replay the record ``mcap`` (a digest in the lab's store) on
+    """Replay the record ``mcap`` (a digest in the lab's store) on
     this node; the verdict (JSON bytes) with ``node`` added."""
     store = BlobStore(setup.blobs, setup.blob_options or None)
     setup.work.mkdir(parents=True, exist_ok=True)
     folder = Path(tempfile.mkdtemp(prefix="replay-", dir=setup.work))
     try:
         record = store.copy_to(mcap, folder / RECORD_FILE)
-        done = LabHost().replay(record, folder / "replay", seconds=seconds)
+        done = _host().replay(record, folder / "replay", seconds=seconds)
         verdict = {**json.loads(done.verdict), "node": _this_node()}
         return {"verdict": json.dumps(verdict, indent=2, sort_keys=True).encode()}
     finally:
         shutil.rmtree(folder, ignore_errors=True)
+
+
+class NodeHelper:
+    """A Ray actor on one node, for as long as the lab is joined: it makes the page
+    summaries and replays of filed records there, several at once, in the helper
+    processes of its own process (``labd.offload``), which stay warm between records.
+    It asks for no CPU and no slot: its work runs beside the node's trials."""
+
+    def summarize(self, mcap: str, setup: NodeSetup, seconds: float) -> dict[str, Any]:
+        return summarize_on_node(mcap, setup, seconds)
+
+    def replay(self, mcap: str, setup: NodeSetup, seconds: float) -> dict[str, Any]:
+        return replay_on_node(mcap, setup, seconds)
+
+
+HELPER_CALLS = 4  # a helper's calls under way at once (its helper processes share them)
+LOST = 60.0  # seconds a node whose helper died is not asked again (Ray may not know yet)
 
 
 # -- in the lab ---------------------------------------------------------------------------
@@ -261,9 +292,9 @@ class Cluster:
         self._running: dict[int, _Running] = {}
         self._ray: Any = None
         self._trial_task: Any = None
-        self._summary_task: Any = None
-        self._replay_task: Any = None
-        self._helper_options: dict[str, Any] = {}
+        self._helper_class: Any = None
+        self._helpers: dict[str, Any] = {}  # node id -> its NodeHelper
+        self._lost: dict[str, float] = {}  # nodes whose helper died -> when (not asked a while)
 
     # -- connecting ------------------------------------------------------------------
 
@@ -293,11 +324,7 @@ class Cluster:
             retry_exceptions=False,
             name="labd trial",
         )
-        # a summary or a replay holds no slot: it runs beside the node's next trial, in a
-        # helper process, as a worker's does; where is the dispatcher's to say
-        self._summary_task = ray.remote(summarize_on_node)
-        self._replay_task = ray.remote(replay_on_node)
-        self._helper_options = {"num_cpus": 0, "max_retries": self.config.max_retries}
+        self._helper_class = ray.remote(NodeHelper)
         self.refresh()
         log.info(
             "Ray cluster at %s: %d node(s), %d slot(s) of %s",
@@ -313,6 +340,7 @@ class Cluster:
 
     def close(self) -> None:
         if self._ray is not None:
+            self._helpers.clear()
             self._ray.shutdown()
             self._ray = None
 
@@ -394,6 +422,7 @@ class Cluster:
         original = None
         if rerun_of is not None:
             original = (await asyncio.to_thread(self.queue.trial, rerun_of)).model_dump_json()
+        sent = time.time()
         ref = self._trial_task.remote(claim.model_dump_json(), original, self.node)
         log.info("trial %d: sent to the cluster", claim.id)
         outcome: dict[str, Any] | None = None
@@ -412,6 +441,8 @@ class Cluster:
             filing = Filing.lab_error(reason[:500])
         if outcome is not None:
             node = outcome["node"]
+            log.info("trial %d: began on %s %.3f s after it was sent (by the two clocks)",
+                     claim.id, node, outcome["began"] - sent)  # fmt: skip
             if await asyncio.to_thread(self.queue.hand_over, claim.id, name, node):
                 name = node
             filing = Filing.model_validate(outcome["filing"])
@@ -427,21 +458,56 @@ class Cluster:
                 await self._summarize(claim.id, name, filing.mcap)
 
     async def _summarize(self, trial_id: int, node: str, mcap: str) -> None:
-        """File the record's page summary, made on the node that ran the trial (or any,
-        should it be gone); never fails the filed trial (its page makes one later)."""
-        options = dict(self._helper_options, name="labd summary")
-        if (node_id := self.nodes().get(node)) is not None:
-            options["scheduling_strategy"] = _near(node_id)
+        """File the record's page summary, made on the node that ran the trial (or
+        another, should it be gone); never fails the filed trial (its page makes one
+        later)."""
         seconds = self.config.summary
-        ref = self._summary_task.options(**options).remote(mcap, self.node, seconds)
         try:
-            made = await asyncio.wait_for(asyncio.wrap_future(ref.future()), seconds + 30)
+            made = await asyncio.wait_for(
+                self._on_a_node("summarize", lambda nodes: [nodes[node]] if node in nodes else [],
+                                mcap, seconds),
+                seconds + 30,
+            )  # fmt: skip
             await asyncio.to_thread(self.queue.derive, trial_id, node, Derived(**made))
         except Exception as err:  # noqa: BLE001 (logged; the trial stays filed)
-            with contextlib.suppress(Exception):
-                self._ray.cancel(ref, force=True)
-            log.error("trial %d: its summary could not be made on the cluster: %s", trial_id,
-                      str(err).splitlines()[0] if str(err) else type(err).__name__)  # fmt: skip
+            said = str(err).splitlines()[0] if str(err) else type(err).__name__
+            log.error("trial %d: its summary could not be made on the cluster: %s", trial_id, said)
+
+    async def _on_a_node(
+        self, call: str, preferred: Callable[[dict[str, str]], list[str]], mcap: str, seconds: float
+    ) -> dict[str, Any]:
+        """Ask a node's helper to ``call`` on the record ``mcap``: on the first of the
+        ``preferred`` live nodes, else any; a helper whose node died is dropped and the
+        next node asked, at most ``max_retries`` times."""
+        for _ in range(self.config.max_retries + 1):
+            live = await asyncio.to_thread(self.nodes)
+            now = time.monotonic()  # a node Ray has let go of, or that came back, is forgotten
+            self._lost = {n: t for n, t in self._lost.items() if n in live.values() and now < t}
+            nodes = {name: node for name, node in live.items() if node not in self._lost}
+            candidates = preferred(nodes) or list(nodes.values())
+            if not candidates:
+                raise ClusterError(f"no node of the cluster has {self.config.resource}")
+            chosen = candidates[0]
+            ref = getattr(self._helper(chosen), call).remote(mcap, self.node, seconds)
+            try:
+                done: dict[str, Any] = await asyncio.wrap_future(ref.future())
+                return done
+            except self._ray.exceptions.RayActorError as err:
+                log.warning("the helper on node %s is gone (%s): asking another", chosen[:NODE_ID],
+                            type(err).__name__)  # fmt: skip
+                self._helpers.pop(chosen, None)
+                self._lost[chosen] = time.monotonic() + LOST
+        raise ClusterError(f"no node's helper could {call} the record")
+
+    def _helper(self, node_id: str) -> Any:
+        """The node's helper, made at its first use: on that node only."""
+        if (helper := self._helpers.get(node_id)) is None:
+            helper = self._helpers[node_id] = self._helper_class.options(
+                num_cpus=0,
+                max_concurrency=HELPER_CALLS,
+                scheduling_strategy=_on(node_id),
+            ).remote()
+        return helper
 
     async def _held(self, trial_id: int, name: str, ref: Any) -> dict[str, Any]:
         """Wait for the task, renewing the trial's lease; ``_Stop`` if it must stop."""
@@ -483,26 +549,23 @@ class Cluster:
         """Replay ``trial``'s record on another node than the one that ran it (the same
         one only when no other has the resource); the verdict, saying where."""
         assert trial.mcap is not None and self._ray is not None
-        nodes = self.nodes()
-        others = [node for name, node in nodes.items() if name != trial.worker]
-        candidates = others or list(nodes.values())
-        options = dict(self._helper_options, name="labd replay")
-        if candidates:
-            options["scheduling_strategy"] = _near(candidates[trial.id % len(candidates)])
-        ref = self._replay_task.options(**options).remote(trial.mcap, self.node, self.config.replay)
-        done: dict[str, Any] = await asyncio.wrap_future(ref.future())
+
+        def others(nodes: dict[str, str]) -> list[str]:
+            elsewhere = [node for name, node in nodes.items() if name != trial.worker]
+            return elsewhere[trial.id % len(elsewhere) :] if elsewhere else []
+
+        done = await self._on_a_node("replay", others, trial.mcap, self.config.replay)
         verdict: bytes = done["verdict"]
         return verdict
 
 
-def _near(node_id: str) -> Any:
-    """Ray's placement on the node ``node_id``; soft: should it die meanwhile, or be
-    full, Ray places the task on another."""
+def _on(node_id: str) -> Any:
+    """Ray's placement on the node ``node_id`` and no other."""
     from ray.util.scheduling_strategies import (  # noqa: PLC0415 (the extra's)
         NodeAffinitySchedulingStrategy,
     )
 
-    return NodeAffinitySchedulingStrategy(node_id, soft=True)
+    return NodeAffinitySchedulingStrategy(node_id, soft=False)
 
 
 def _probe(address: str, seconds: float = 5.0) -> None:
