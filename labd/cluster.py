@@ -9,7 +9,7 @@ and runs each as one Ray task:
     Queue.claim ─▶ a Ray task on some node ─▶ Worker.execute there (fetch the pinned
     commit, build, sandbox with no network, lockstep, record; the record and logs go to
     the lab's blob store, content-addressed) ─▶ what a worker files, handed back
-    ─▶ Queue.hand_over to ray:NODE ─▶ Queue.finish (held to its record, signed)
+    ─▶ Queue.finish by ray:NODE (held to its record, signed)
     ─▶ its slot is free ─▶ the record's page summary, made by the node's helper
 
 While a task runs, the dispatcher renews the trial's lease; a cancelled trial has its
@@ -439,23 +439,22 @@ class Cluster:
             log.error("trial %d: the cluster lost it: %s", claim.id, err)
             reason = f"the cluster could not run the trial ({type(err).__name__}: {err})"
             filing = Filing.lab_error(reason[:500])
+        ran_on = name  # the lab's, until a node is known
         if outcome is not None:
-            node = outcome["node"]
+            ran_on = outcome["node"]
             log.info("trial %d: began on %s %.3f s after it was sent (by the two clocks)",
-                     claim.id, node, outcome["began"] - sent)  # fmt: skip
-            if await asyncio.to_thread(self.queue.hand_over, claim.id, name, node):
-                name = node
+                     claim.id, ran_on, outcome["began"] - sent)  # fmt: skip
             filing = Filing.model_validate(outcome["filing"])
         assert filing is not None
-        filed = await asyncio.to_thread(self._finish, claim.id, name, filing)
+        filed = await asyncio.to_thread(self._finish, claim.id, name, filing, ran_on)
         if (running := self._running.get(claim.id)) is not None:
             running.holds_slot = False  # claim the next trial while the summary is made
             self.wake.set()
         if filed and outcome is not None:
             for item in outcome["derived"]:
-                await asyncio.to_thread(self.queue.derive, claim.id, name, Derived(**item))
+                await asyncio.to_thread(self.queue.derive, claim.id, ran_on, Derived(**item))
             if filing.mcap:
-                await self._summarize(claim.id, name, filing.mcap)
+                await self._summarize(claim.id, ran_on, filing.mcap)
 
     async def _summarize(self, trial_id: int, node: str, mcap: str) -> None:
         """File the record's page summary, made on the node that ran the trial (or
@@ -526,16 +525,17 @@ class Cluster:
             if not keep:
                 raise _Stop("cancelled while it ran")
 
-    def _finish(self, trial_id: int, worker: str, filing: Filing) -> bool:
-        """File the trial; one the lab refuses is filed as an error saying why."""
+    def _finish(self, trial_id: int, worker: str, filing: Filing, ran_on: str) -> bool:
+        """File the trial ``worker`` holds, as run by ``ran_on``; one the lab refuses is
+        filed as an error saying why."""
         try:
-            filed = self.queue.finish(trial_id, worker, filing)
+            filed = self.queue.finish(trial_id, worker, filing, ran_on=ran_on)
         except FilingRefused as err:
             log.error("trial %d: %s", trial_id, err)
             problems = "; ".join(err.problems)
             refused = Filing.error(f"the lab refused the node's record of the trial: {problems}")
-            filed = self.queue.finish(trial_id, worker, refused)
-        log.info("trial %d %s on %s: %s", trial_id, filing.outcome or filing.status, worker,
+            filed = self.queue.finish(trial_id, worker, refused, ran_on=ran_on)
+        log.info("trial %d %s on %s: %s", trial_id, filing.outcome or filing.status, ran_on,
                  filing.reason)  # fmt: skip
         return filed
 

@@ -261,20 +261,13 @@ class Queue:
             stop = db.execute(sa.select(T.c.cancel_requested).where(T.c.id == trial_id)).scalar()
         return not stop
 
-    def hand_over(self, trial_id: int, worker: str, to: str) -> bool:
-        """Name ``to`` as the worker holding trial ``trial_id``, which ``worker`` holds: a
-        dispatcher claims a trial and learns only once it ran which node of a cluster ran
-        it (``labd.cluster``). False if ``worker`` no longer holds it."""
-        with self.index.begin() as db:
-            moved = db.execute(
-                sa.update(T)
-                .where(T.c.id == trial_id, T.c.worker == worker, T.c.status == RUNNING)
-                .values(worker=to)
-            ).rowcount
-        return moved == 1
-
-    def finish(self, trial_id: int, worker: str, filing: Filing) -> bool:
+    def finish(
+        self, trial_id: int, worker: str, filing: Filing, *, ran_on: str | None = None
+    ) -> bool:
         """Store the ending of a trial this worker holds; False if it lost the lease.
+        ``ran_on`` names the worker that ran it instead, in the same transaction: a
+        dispatcher claims a trial and learns only once it ran which node of a cluster
+        ran it (``labd.cluster``).
 
         With a ``check``, the filing is first held to the record it names, outside any
         transaction (reading a record takes a while): ``FilingRefused`` if the record
@@ -300,7 +293,7 @@ class Queue:
             done = db.execute(
                 sa.update(T)
                 .where(T.c.id == trial_id, T.c.worker == worker, T.c.status == RUNNING)
-                .values(lease_until=None, **values)
+                .values(lease_until=None, worker=ran_on or worker, **values)
             ).rowcount
             if done == 1:
                 self._sign(db, trial_id)

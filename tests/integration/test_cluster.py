@@ -10,6 +10,7 @@ in one line."""
 
 from __future__ import annotations
 
+import json
 import os
 import subprocess
 import sys
@@ -230,6 +231,28 @@ def test_a_rerun_on_the_other_node_has_the_same_data_digest(cluster, make_served
     assert rerun["worker"] in nodes and rerun["worker"] != original["worker"], (rerun, original)
     assert rerun["reproduced"] is True, rerun
     assert rerun["data_digest"] == original["data_digest"] is not None
+
+
+CRASH = """\
+from controllers.client import Lab
+
+with Lab.connect() as lab:
+    lab.step()
+    raise SystemExit(3)  # the controller's own crash, after its first step
+"""
+
+
+def test_a_controllers_crash_is_its_outcome_never_retried(cluster, make_served_lab, tmp_path):
+    """A controller that crashes on a node is filed once, as its error, on its first
+    attempt: Ray retries a task whose node died, never one whose controller did."""
+    lab = make_served_lab("--workers", "0", "--ray-address", cluster.address)
+    repo = make_repo(tmp_path / "crash", {"lab.toml": LAB_TOML, "c.py": CRASH})
+    done = lab.labd("submit", str(repo), "--wait", "--json", check=False)
+    trial = get(lab, f"/api/trials/{json.loads(done.stdout)['id']}")
+    assert trial["outcome"] == "error" and trial["worker"].startswith("ray:"), trial
+    assert "3" in trial["reason"] and trial["attempts"] == 1, trial
+    assert "the cluster could not run" not in trial["reason"], trial  # not the lab's fault
+    assert "".join(lab.output).count(f"trial {trial['id']} error on ray:") == 1
 
 
 def test_a_cancelled_evaluation_stops_its_tasks(cluster, make_served_lab, tmp_path):
