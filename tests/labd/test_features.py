@@ -8,9 +8,11 @@ from pathlib import Path
 from labd.sim import registry
 
 DOCS = Path(__file__).resolve().parents[2] / "docs" / "tasks.md"
-# the tasks' export layouts; the dm_control pack's follow one rule, documented once
+# the tasks' export layouts; the dm_control pack's and the soccer pack's each follow one
+# rule, documented once
 LAYOUTS = {name: spec.layout for name in registry.names() if (spec := registry.get(name)).layout}
-BESPOKE = {name: layout for name, layout in LAYOUTS.items() if not name.startswith("dmc-")}
+PACKS = ("dmc-", "soccer-")
+BESPOKE = {name: layout for name, layout in LAYOUTS.items() if not name.startswith(PACKS)}
 
 
 def test_every_task_has_a_layout_and_docs_list_it_in_order():

@@ -34,15 +34,19 @@ TICKS = 25
 SEED = 7
 
 
-def command_for(type_name: str, sim: Any, rng: random.Random) -> dict[str, Any] | None:
-    """A command of ``type_name`` with seeded numbers, or None to send none this tick."""
+def command_for(type_name: str, topic: str, sim: Any, rng: random.Random) -> dict[str, Any] | None:
+    """A command of ``type_name`` on ``topic`` with seeded numbers, or None to send none
+    this tick."""
     if type_name == "geometry_msgs/msg/Twist":
         return {
             "linear": {"x": rng.uniform(-0.3, 0.5), "y": 0.0, "z": 0.0},
             "angular": {"x": 0.0, "y": 0.0, "z": rng.uniform(-1.5, 1.5)},
         }
     if type_name == "std_msgs/msg/Float64MultiArray":
-        size = len(sim.task.minimum)
+        actions = sim.spec.actions  # as many values as the task's actions put there
+        size = sum(dimension.topic == topic for dimension in actions.dimensions)
+        if not size:  # not the task's actions (soccer's away side): it stands still
+            return None
         return {"data": [rng.uniform(-1.0, 1.0) for _ in range(size)]}
     if type_name == "std_msgs/msg/Float64":
         return {"data": rng.uniform(0.0, 0.08)}
@@ -73,7 +77,7 @@ def episode_digest(types: TypeRegistry, task: str) -> str:
             if not station.robot.sim.running:
                 break
             for command in commands:
-                value = command_for(command.type, station.robot.sim, rng)
+                value = command_for(command.type, command.name, station.robot.sim, rng)
                 if value is not None:
                     publishers[command.name].publish(value)
             station.robot.step()

@@ -94,7 +94,7 @@ def test_observations_are_built_in_normal_form(task: str) -> None:
             if not robot.sim.running:
                 break
             for command in commands:
-                value = command_for(command.type, robot.sim, rng)
+                value = command_for(command.type, command.name, robot.sim, rng)
                 if value is not None:
                     publishers[command.name].publish(value)
             robot.step()
