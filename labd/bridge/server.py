@@ -39,6 +39,7 @@ from labd.bridge.render import OutFrame
 from labd.bridge.session import Session
 from labd.config import BridgeConfig
 from labd.graph.graph import Graph
+from labd.graph.names import Namespace
 from repository.units import KiB
 
 log = logging.getLogger("labd.bridge.server")
@@ -68,9 +69,11 @@ class BridgeServer:
         authorizer: Authorizer | None = None,
         *,
         policies: Mapping[str, KeyPolicy] | None = None,
+        namespaces: Mapping[str, Namespace] | None = None,
     ) -> None:
         """``policies``: each graph's ``KeyPolicy`` (default: a key required on every
-        graph when there is an authorizer, else none)."""
+        graph when there is an authorizer, else none). ``namespaces``: a graph's view
+        for every client of this server (a match's side; default: the graph's names)."""
         if not graphs:
             raise ValueError("a bridge needs at least one graph")
         self.graphs = dict(graphs)
@@ -78,6 +81,7 @@ class BridgeServer:
         self.authorizer = authorizer
         default = KeyPolicy.REQUIRED if authorizer is not None else KeyPolicy.NONE
         self.policies = {name: (policies or {}).get(name, default) for name in self.graphs}
+        self.namespaces = dict(namespaces or {})
         if authorizer is None and any(p is not KeyPolicy.NONE for p in self.policies.values()):
             raise ValueError("a graph that takes keys needs an authorizer")
         self.failures = _Failures(config.auth_failures, config.auth_failure_window)
@@ -217,6 +221,7 @@ class BridgeServer:
             auth_required=policy is KeyPolicy.REQUIRED,
             auth_optional=policy is KeyPolicy.OPTIONAL,
             url_key=key if policy is not KeyPolicy.NONE else None,
+            namespace=self.namespaces.get(name),
         )
         conn.session = session
         session.node.address = address

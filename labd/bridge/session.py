@@ -33,7 +33,7 @@ from labd.config import BridgeConfig
 from labd.errors import FrameError, LabError, NameError_
 from labd.graph.codec import dumps
 from labd.graph.graph import Graph, Side
-from labd.graph.names import is_protected, resolve
+from labd.graph.names import Namespace, is_protected, resolve
 
 LEVELS = {"none": 0, "error": 1, "warning": 2, "info": 3}
 ROSOUT_LEVELS = {"error": 40, "warning": 30, "info": 20}
@@ -102,7 +102,10 @@ class Session:
         auth_required: bool = False,
         auth_optional: bool = False,
         url_key: str | None = None,
+        namespace: Namespace | None = None,
     ) -> None:
+        """``namespace``: the client's view of the graph (a match's side: its names are
+        mapped under it, ``names.Namespace``); None: the graph's own names."""
         self.graph = graph
         self.config = config
         self.timers = timers
@@ -112,6 +115,7 @@ class Session:
             logging.getLogger("labd.bridge.session"), {"client": client_id}
         )
         self.node = graph.create_node(f"/bridge/client_{client_id}", side=Side.CLIENT)
+        self.node.namespace = namespace
         self.outbox = Outbox(config.max_queue_bytes, transport.wake)
         self.status_level: int | None = None  # None until the client sends set_level
         self.closed = False
@@ -197,6 +201,12 @@ class Session:
             self.log.exception("internal error handling %s", name)
             self.report("error", f"{name}: internal error in the lab (logged)", op_id)
 
+    def resolve(self, name: object) -> str:
+        """The graph's absolute name for ``name`` as this client spells it: under its
+        namespace, if it has one (NameError_ if malformed)."""
+        namespace = self.node.namespace
+        return resolve(name) if namespace is None else namespace.inward(name)
+
     def _protected_name(self, op: Op) -> str | None:
         prefixes = self.config.protected_prefixes
         if not prefixes:
@@ -210,9 +220,11 @@ class Session:
             return None
         try:
             absolute = resolve(name)
+            inside = self.resolve(name)  # the graph's name, under a namespace
         except NameError_:
             return None  # malformed; the handler says so
-        return name if is_protected(absolute, prefixes) else None
+        protected = is_protected(absolute, prefixes) or is_protected(inside, prefixes)
+        return name if protected else None
 
     def _refuse_protected(self, op: Op, name: str, op_id: Id) -> None:
         if isinstance(op, CallService):
@@ -258,7 +270,7 @@ class Session:
         so a client that floods bad frames cannot flood the log.
         """
         if self.status_level is not None and LEVELS[level] <= self.status_level:
-            status: dict[str, Any] = {"op": "status", "level": level, "msg": text}
+            status: dict[str, Any] = {"op": "status", "level": level, "msg": self.told(text)}
             if op_id is not None:
                 status["id"] = op_id
             self.send(status)
@@ -270,6 +282,12 @@ class Session:
         log_level = logging.WARNING if level == "error" else logging.INFO
         self.log.log(log_level, "client %d: %s", self.client_id, text)
         self.graph.rosout(ROSOUT_LEVELS[level], self.node.name.lstrip("/").replace("/", "."), text)
+
+    def told(self, text: str) -> str:
+        """``text`` as this client may read it: the graph's names under its namespace
+        spelled as it spells them (a match's side is not told which it is)."""
+        namespace = self.node.namespace
+        return text if namespace is None else text.replace(namespace.prefix + "/", "/")
 
     def _take_log_token(self) -> bool:
         now = self.timers.time()

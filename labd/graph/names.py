@@ -15,6 +15,7 @@ from __future__ import annotations
 import functools
 import re
 from collections.abc import Iterable
+from dataclasses import dataclass
 
 from labd.errors import NameError_
 
@@ -59,3 +60,45 @@ def lab_namespace(name: str) -> str | None:
         if name.startswith(namespace):
             return namespace
     return None
+
+
+SHARED = ("/clock", "/lab/", "/rosapi/")  # what every side of a graph reaches as it is
+
+
+@dataclass(frozen=True)
+class Namespace:
+    """One client's view of a graph under a prefix: a match's side (``/home``), so each
+    team's controller names its own players ``/player_0/...`` and its score ``/score``
+    and cannot reach the other side's (``/away/score`` is ``/home/away/score`` to it).
+
+    Every name is put under the prefix but the ``shared`` ones (an entry ending in ``/``
+    covers the names under it, any other only itself): the lab's time, its services
+    and rosapi, which are the same for both sides. A name a client spells is mapped in
+    with ``inward``; a graph name is shown to it with ``outward`` (None: out of its view).
+    """
+
+    prefix: str  # an absolute name, without a trailing slash: /home
+    shared: tuple[str, ...] = SHARED
+
+    def __post_init__(self) -> None:
+        if resolve(self.prefix) != self.prefix:
+            raise NameError_(self.prefix, "a namespace is an absolute name, without a final /")
+
+    def _is_shared(self, absolute: str) -> bool:
+        return any(
+            absolute.startswith(entry) if entry.endswith("/") else absolute == entry
+            for entry in self.shared
+        )
+
+    def inward(self, name: object) -> str:
+        """The graph's name for ``name`` as this client spells it (NameError_ if malformed)."""
+        absolute = resolve(name)
+        return absolute if self._is_shared(absolute) else resolve(self.prefix + absolute)
+
+    def outward(self, name: str) -> str | None:
+        """How this client names the graph's absolute ``name``; None if it lies outside."""
+        if self._is_shared(name):
+            return name
+        if name.startswith(self.prefix + "/"):
+            return name[len(self.prefix) :]
+        return None

@@ -32,7 +32,6 @@ from labd.bridge.session import Capability, Handler, Session
 from labd.errors import GraphError, LimitError, MessageError
 from labd.graph.actions import UNKNOWN, Action, Goal, GoalResult
 from labd.graph.message import Message
-from labd.graph.names import resolve
 
 
 class Actions(Capability):
@@ -93,7 +92,7 @@ class Actions(Capability):
         goal_box: list[Goal | None] = [None]
         try:
             goal = session.node.send_goal(
-                op.action,
+                session.resolve(op.action),
                 op.args,
                 on_result,
                 on_feedback if op.feedback else None,
@@ -129,7 +128,7 @@ class Actions(Capability):
 
     def advertise(self, op: AdvertiseAction) -> None:
         config = self.session.config
-        name = resolve(op.action)
+        name = self.session.resolve(op.action)
         if name not in self.provided and len(self.provided) >= config.max_services:
             raise LimitError("advertised actions", config.max_services)
         spelling = op.action
@@ -159,7 +158,7 @@ class Actions(Capability):
         self.session.report("info", f"advertised action {name}", op.id)
 
     def unadvertise(self, op: UnadvertiseAction) -> None:
-        action = self.provided.pop(resolve(op.action), None)
+        action = self.provided.pop(self.session.resolve(op.action), None)
         if action is None:
             self.session.report(
                 "warning",

@@ -27,7 +27,6 @@ from labd.bridge.session import Capability, Handler, Session
 from labd.clock import TimerHandle
 from labd.errors import GraphError, LimitError, MessageError
 from labd.graph.codec import dumps
-from labd.graph.names import resolve
 from labd.graph.services import Service, ServiceCall, ServiceResult
 
 
@@ -67,7 +66,7 @@ class Services(Capability):
             frame: dict[str, Any] = {
                 "op": "service_response",
                 "service": op.service,
-                "values": values,
+                "values": values if ok else session.told(str(values)),  # why, as it spells it
                 "result": ok,
             }
             if op.id is not None:
@@ -91,7 +90,7 @@ class Services(Capability):
 
         self.waiting += 1
         try:
-            pending = session.node.call_service(op.service, op.args, on_result)
+            pending = session.node.call_service(session.resolve(op.service), op.args, on_result)
         except MessageError as err:
             self.waiting -= 1
             answer(False, f"call_service: {err.prefixed('args')}")  # the answer says why
@@ -113,7 +112,8 @@ class Services(Capability):
                         ServiceResult(
                             False,
                             None,
-                            f"{resolve(op.service)} did not answer within {timeout:g} s",
+                            f"{session.node.said(session.resolve(op.service))} did not"
+                            f" answer within {timeout:g} s",
                         )
                     )
 
@@ -123,7 +123,7 @@ class Services(Capability):
 
     def advertise(self, op: AdvertiseService) -> None:
         config = self.session.config
-        name = resolve(op.service)
+        name = self.session.resolve(op.service)
         if name not in self.provided and len(self.provided) >= config.max_services:
             raise LimitError("advertised services", config.max_services)
         spelling = op.service
@@ -149,7 +149,7 @@ class Services(Capability):
         self.session.report("info", f"advertised service {name}", op.id)
 
     def unadvertise(self, op: UnadvertiseService) -> None:
-        name = resolve(op.service)
+        name = self.session.resolve(op.service)
         service = self.provided.pop(name, None)
         if service is None:
             self.session.report(

@@ -35,7 +35,6 @@ from labd.clock import TimerHandle
 from labd.errors import LimitError, MessageError, NotFoundError, OwnedError
 from labd.graph.graph import Publisher, Subscription, Topic
 from labd.graph.message import Message
-from labd.graph.names import resolve
 
 
 @dataclass(frozen=True)
@@ -164,7 +163,7 @@ class Topics(Capability):
     # -- publishing -------------------------------------------------------------------
 
     def advertise(self, op: Advertise) -> None:
-        name = resolve(op.topic)
+        name = self.session.resolve(op.topic)
         pub = self.publishers.get(name)
         if pub is not None and pub.closed:  # revoked by the graph: ask it again
             self._forget(pub)
@@ -176,10 +175,10 @@ class Topics(Capability):
         if len(self.publishers) >= self.session.config.max_publishers:
             raise LimitError("advertised topics", self.session.config.max_publishers)
         self.publishers[name] = self.session.node.advertise(name, op.type, latch=op.latch)
-        self.session.report("info", f"advertised {name}", op.id)
+        self.session.report("info", f"advertised {self.session.node.said(name)}", op.id)
 
     def unadvertise(self, op: Unadvertise) -> None:
-        name = resolve(op.topic)
+        name = self.session.resolve(op.topic)
         pub = self.publishers.get(name)
         if pub is None:
             self.session.report("warning", f"unadvertise: {op.topic} is not advertised", op.id)
@@ -199,9 +198,10 @@ class Topics(Capability):
         bucket = self.buckets.get(pub.topic.name) if self.buckets else None
         if bucket is not None and not bucket.take():
             if bucket.dropped == 1:  # say it once per burst of drops, not per message
+                said = self.session.node.said(pub.topic.name)
                 self.session.report(
                     "warning",
-                    f"publish: {pub.topic.name} takes at most {bucket.rate:g} messages a"
+                    f"publish: {said} takes at most {bucket.rate:g} messages a"
                     " second from a client; the rest are dropped",
                     op.id,
                 )
@@ -215,12 +215,14 @@ class Topics(Capability):
             raise
 
     def _publisher_for(self, op: Publish) -> Publisher:
-        name = resolve(op.topic)
+        name = self.session.resolve(op.topic)
         pub = self.publishers.get(name)
         if pub is None or pub.closed:
             # Auto-advertise with the type the topic already has.
             if name not in self.session.graph.topics:
-                raise NotFoundError("topic", name, "advertise it with its type before publishing")
+                raise NotFoundError(
+                    "topic", op.topic, "advertise it with its type before publishing"
+                )
             self.advertise(
                 Advertise(topic=op.topic, type=self.session.graph.topics[name].type_name)
             )
@@ -233,7 +235,7 @@ class Topics(Capability):
 
     def subscribe(self, op: Subscribe) -> None:
         config = self.session.config
-        name = resolve(op.topic)
+        name = self.session.resolve(op.topic)
         topic = self.session.graph.topic(name, op.type)
         compression = op.compression or "none"
         if compression not in COMPRESSIONS:
@@ -267,7 +269,7 @@ class Topics(Capability):
         self.session.report("info", f"subscribed to {name}", op.id)
 
     def unsubscribe(self, op: Unsubscribe) -> None:
-        name = resolve(op.topic)
+        name = self.session.resolve(op.topic)
         candidates = (
             [self.streams[op.topic]]
             if op.topic in self.streams
