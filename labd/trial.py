@@ -33,6 +33,7 @@ from labd.config import BridgeConfig
 from labd.errors import InterfaceError, LabError, RecordError
 from labd.exports import write_dataset
 from labd.graph.definitions import trial_types
+from labd.graph.names import Namespace
 from labd.graph.types import TypeRegistry
 from labd.recorder import (
     Recorder,
@@ -226,7 +227,13 @@ class LabTrial:
             blind=setup.blind,
         )
         self.robot.on_tick = self._tick
-        self.bridge = BridgeServer({"trial": self.station.graph}, host.config)
+        # a task teams play: the lone controller plays the first side, and names its
+        # topics as a team does (/player_0/action), the record keeping the graph's
+        sides = sim.spec.sides
+        namespaces = {"trial": Namespace("/" + sides[0])} if sides else None
+        self.bridge = BridgeServer(
+            {"trial": self.station.graph}, host.config, namespaces=namespaces
+        )
         self.recorder: Recorder | None = None
         self.first_tick_at: float | None = None  # the loop's times of the first step,
         self.last_tick_at: float | None = None  # and of the newest

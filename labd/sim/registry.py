@@ -169,6 +169,10 @@ class TaskSpec:
     robot: str | None = None
     # Its commands as a vector of numbers (labd.gym, the generic live page); None: none.
     actions: Actions | None = None
+    # Its sides, when teams play it (soccer: home, away): each side's topics are under
+    # /SIDE, and a controller sees its side's as / (labd.graph.names.Namespace); a lone
+    # controller plays the first. Empty: one controller sees every topic as it is.
+    sides: tuple[str, ...] = ()
     # Its observations are built in normal form (labd.graph.codec: every field, in
     # order, of the exact type), so the robot publishes them without validating them
     # again. The lab's own tasks are held to it by tests/labd/sim/test_normal_form.py;

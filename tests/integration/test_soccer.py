@@ -1,7 +1,8 @@
 """Soccer, played alone: the example ball chaser (controllers/examples/soccer-chaser),
 run by ``labd run`` in a bubblewrap trial against an away side that stands still,
-scores as the same policy does in-process on the same seed, tick for tick; its record
-holds both sides' topics and replays identically from its actions."""
+scores as the same policy does in-process on the same seed, tick for tick (it spells
+its team's topics, ``/player_0/...``: alone it plays home); its record holds both
+sides' topics as the graph names them and replays identically from its actions."""
 
 from __future__ import annotations
 

@@ -13,8 +13,10 @@ line from the goal, going round the ball when it is in the way (pushing it from 
 wrong side scores for the other team). Against a side that stands still it scored in 11
 of the dev seeds 0 to 11 and lost none.
 
-It plays home's player 0 (a lone controller plays home). NumPy and the lab's client
-library only, nothing random or timed: the same seed gives the same leg.
+It plays its team's player 0, as a team sees its own topics: ``/player_0/...`` and
+``/score`` (alone, it plays home: the record names them ``/home/player_0/...``). NumPy
+and the lab's client library only, nothing random or timed: the same seed gives the
+same leg.
 """
 
 from __future__ import annotations
@@ -27,7 +29,7 @@ import numpy as np
 from controllers.client import EpisodeOver, Lab
 
 ARRAY = "std_msgs/msg/Float64MultiArray"
-PLAYER = "/home/player_0/"
+PLAYER = "/player_0/"  # this team's player 0 (its side's: home, alone)
 BEHIND = 2.0  # metres behind the ball to line up from
 LINED_UP = 0.85  # cosine between the way to the ball and the ball's way to the goal
 ROUND = 1.5  # metres: closer than this to the path, the ball is in the way

@@ -44,6 +44,7 @@ def spec_of(team_size: int) -> TaskSpec:
         camera=CAMERA,
         actions=actions_of(team_size),
         normal_form=True,
+        sides=SIDES,
     )
 
 

@@ -418,17 +418,18 @@ PARAMS = Params(
 
 def actions_of(team_size: int) -> Actions:
     """Home's players' three values each, as one vector: what a lone learner (Gymnasium,
-    the live page's sliders) plays, as the exports' ``action`` (the away side stands
-    still)."""
+    the live page's sliders) plays, as the exports' ``action``. The away side's messages
+    are zeros: it stands still."""
     template = {"layout": {"dim": [], "data_offset": 0}, "data": [0.0] * len(ACTUATORS)}
     dimensions = []
     templates = {}
-    for side in SIDES[:1]:
+    for side in SIDES:
         for i in range(team_size):
             topic = player(side, i) + "action"
             templates[topic] = (ARRAY, template)
-            dimensions += [
-                Dimension(f"{side}.player_{i}.{name}", topic, f"data.{k}", -1.0, 1.0)
-                for k, name in enumerate(ACTUATORS)
-            ]
+            if side == SIDES[0]:
+                dimensions += [
+                    Dimension(f"{side}.player_{i}.{name}", topic, f"data.{k}", -1.0, 1.0)
+                    for k, name in enumerate(ACTUATORS)
+                ]
     return Actions(dimensions=tuple(dimensions), templates=templates)
