@@ -87,7 +87,9 @@ def test_a_trial_a_bridge_client_and_a_driver_are_counted(tmp_path, cache):
     assert after["labd_trial_wall_seconds_count"] == {(): 1.0}
     assert after["labd_trial_wall_seconds_sum"][()] == pytest.approx(trial.wall_seconds)
     verdicts = {dict(k)["verdict"]: v for k, v in after["labd_replay_verdicts_total"].items()}
-    assert verdicts["verified"] == 1, verdicts
+    # the trial's (counted alone above); the drive's demonstration, once filed, is
+    # replayed by the lab too, and may be counted by now
+    assert verdicts["verified"] in (1, 2), verdicts
     assert after["labd_workers"][("kind", "in_process"), ("state", "ok")] == 1
 
     assert connected["labd_bridge_clients"][ROBOT] == 1
