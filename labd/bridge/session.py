@@ -115,7 +115,7 @@ class Session:
             logging.getLogger("labd.bridge.session"), {"client": client_id}
         )
         self.node = graph.create_node(f"/bridge/client_{client_id}", side=Side.CLIENT)
-        self.node.namespace = namespace
+        self.namespace = namespace
         self.outbox = Outbox(config.max_queue_bytes, transport.wake)
         self.status_level: int | None = None  # None until the client sends set_level
         self.closed = False
@@ -204,8 +204,7 @@ class Session:
     def resolve(self, name: object) -> str:
         """The graph's absolute name for ``name`` as this client spells it: under its
         namespace, if it has one (NameError_ if malformed)."""
-        namespace = self.node.namespace
-        return resolve(name) if namespace is None else namespace.inward(name)
+        return resolve(name) if self.namespace is None else self.namespace.inward(name)
 
     def _protected_name(self, op: Op) -> str | None:
         prefixes = self.config.protected_prefixes
@@ -219,12 +218,10 @@ class Session:
         if not isinstance(name, str):
             return None
         try:
-            absolute = resolve(name)
-            inside = self.resolve(name)  # the graph's name, under a namespace
+            absolute = self.resolve(name)  # the graph's name, under a namespace
         except NameError_:
             return None  # malformed; the handler says so
-        protected = is_protected(absolute, prefixes) or is_protected(inside, prefixes)
-        return name if protected else None
+        return name if is_protected(absolute, prefixes) else None
 
     def _refuse_protected(self, op: Op, name: str, op_id: Id) -> None:
         if isinstance(op, CallService):
@@ -285,9 +282,11 @@ class Session:
 
     def told(self, text: str) -> str:
         """``text`` as this client may read it: the graph's names under its namespace
-        spelled as it spells them (a match's side is not told which it is)."""
-        namespace = self.node.namespace
-        return text if namespace is None else text.replace(namespace.prefix + "/", "/")
+        spelled as it spells them (a match's side is not told which it is). Every
+        status and failed answer goes out through here, graph errors included."""
+        if self.namespace is None:
+            return text
+        return text.replace(self.namespace.prefix + "/", "/")
 
     def _take_log_token(self) -> bool:
         now = self.timers.time()

@@ -53,7 +53,7 @@ from labd.graph.actions import (
 )
 from labd.graph.codec import Codec, codec_for
 from labd.graph.message import Message
-from labd.graph.names import Namespace, lab_namespace, resolve
+from labd.graph.names import lab_namespace, resolve
 from labd.graph.services import Service, ServiceCall, ServiceHandler, ServiceResultCallback
 from labd.graph.types import TypeRegistry
 from repository.well_known import ROSOUT
@@ -332,18 +332,7 @@ class Node:
         self.user: str | None = None
         # Where a bridge client connects from (limits per address); None: in the lab.
         self.address: str | None = None
-        # The client's view of the graph (a match's side, ``names.Namespace``): its
-        # bridge session maps the names it spells into the graph's, and its errors
-        # name them as it spells them; None: the graph's own names.
-        self.namespace: Namespace | None = None
         self.destroyed = False
-
-    def said(self, absolute: str) -> str:
-        """The graph's name ``absolute`` as this node would spell it, for its errors (a
-        match's side must not learn which it is from them)."""
-        if self.namespace is None:
-            return absolute
-        return self.namespace.outward(absolute) or absolute
 
     def advertise(
         self, topic: str, type_name: str | None, *, latch: bool = False, own: bool = False
@@ -362,7 +351,7 @@ class Node:
             existing = self.graph.topics.get(absolute)
             owner = existing.owner if existing is not None else None
             if owner is not None:
-                raise OwnedError("topic", self.said(absolute), owner=owner.name)
+                raise OwnedError("topic", absolute, owner=owner.name)
             _refuse_lab_namespace("topic", absolute)
         t = self.graph.topic(absolute, type_name)
         pub = Publisher(self, t, latch)
@@ -422,9 +411,7 @@ class Node:
             existing.close()
 
     def provide_service(self, name: str, type_name: str, handler: ServiceHandler) -> Service:
-        return self._provide_service(resolve(name), type_name, handler)
-
-    def _provide_service(self, absolute: str, type_name: str, handler: ServiceHandler) -> Service:
+        absolute = resolve(name)
         stype = self.graph.types.service(type_name)
         self._claim(self.graph.services, "service", absolute)
         service = Service(self, absolute, stype, handler)
@@ -442,7 +429,7 @@ class Node:
         absolute = resolve(name)
         service = self.graph.services.get(absolute)
         if service is None:
-            raise NotFoundError("service", self.said(absolute))
+            raise NotFoundError("service", absolute)
         return service.call(self, request, on_result)
 
     def provide_action(self, name: str, type_name: str, handler: ActionHandler) -> Action:
@@ -459,7 +446,7 @@ class Node:
         def cancel(call: ServiceCall) -> None:
             call.reply(action.cancel_goals(call.request.data))
 
-        action.cancel_service = self._provide_service(cancel_name, CANCEL_GOAL, cancel)
+        action.cancel_service = self.provide_service(cancel_name, CANCEL_GOAL, cancel)
         return action
 
     def send_goal(
@@ -474,11 +461,11 @@ class Node:
         absolute = resolve(name)
         action = self.graph.actions.get(absolute)
         if action is None:
-            raise NotFoundError("action", self.said(absolute))
+            raise NotFoundError("action", absolute)
         if type_name is not None:
             want = self.graph.types.action(type_name).name
             if want != action.type.name:
-                raise TypeMismatchError("action", self.said(absolute), action.type.name, want)
+                raise TypeMismatchError("action", absolute, action.type.name, want)
         return action.send_goal(self, goal, on_result, on_feedback)
 
     def destroy(self) -> None:

@@ -78,8 +78,12 @@ class Here:
 
 
 class Cluster:
-    def __init__(self, parallel: int, failing: set[int] = frozenset()) -> None:
+    """A cluster whose replays each wait until ``parallel`` of them are under way (or
+    the last ones are): a loop that runs fewer at once never gets past the first."""
+
+    def __init__(self, parallel: int, records: int, failing: set[int] = frozenset()) -> None:
         self.parallel = parallel
+        self.records = records
         self.failing = failing
         self.counted = Counted()
 
@@ -89,7 +93,8 @@ class Cluster:
     async def replay(self, trial: SimpleNamespace) -> bytes:
         self.counted.enter()
         try:
-            await asyncio.sleep(0.1)
+            while self.counted.now < self.parallel and self.counted.calls < self.records:
+                await asyncio.sleep(0.005)
             if trial.id in self.failing:
                 raise ConnectionError("the node went away")
             return VERDICT
@@ -125,7 +130,7 @@ async def replay_all(records: Records, tmp_path: Path, cluster: Cluster | None) 
 async def test_a_clusters_records_are_replayed_as_many_at_once_as_it_has_slots(tmp_path):
     workers = {t: "ray:aaaa" for t in range(1, 10)} | {10: "site-b@box", 11: "site-b@box"}
     records = Records(workers)
-    cluster = Cluster(parallel=3, failing={4})
+    cluster = Cluster(parallel=3, records=9, failing={4})
     replays = await replay_all(records, tmp_path, cluster)
     assert cluster.counted.most == 3  # never more than the cluster's slots, and that many
     assert cluster.counted.calls == 9  # each once: the failed one is not tried again

@@ -112,8 +112,7 @@ class Services(Capability):
                         ServiceResult(
                             False,
                             None,
-                            f"{session.node.said(session.resolve(op.service))} did not"
-                            f" answer within {timeout:g} s",
+                            f"{session.resolve(op.service)} did not answer within {timeout:g} s",
                         )
                     )
 

@@ -175,7 +175,7 @@ class Topics(Capability):
         if len(self.publishers) >= self.session.config.max_publishers:
             raise LimitError("advertised topics", self.session.config.max_publishers)
         self.publishers[name] = self.session.node.advertise(name, op.type, latch=op.latch)
-        self.session.report("info", f"advertised {self.session.node.said(name)}", op.id)
+        self.session.report("info", f"advertised {name}", op.id)
 
     def unadvertise(self, op: Unadvertise) -> None:
         name = self.session.resolve(op.topic)
@@ -198,10 +198,9 @@ class Topics(Capability):
         bucket = self.buckets.get(pub.topic.name) if self.buckets else None
         if bucket is not None and not bucket.take():
             if bucket.dropped == 1:  # say it once per burst of drops, not per message
-                said = self.session.node.said(pub.topic.name)
                 self.session.report(
                     "warning",
-                    f"publish: {said} takes at most {bucket.rate:g} messages a"
+                    f"publish: {pub.topic.name} takes at most {bucket.rate:g} messages a"
                     " second from a client; the rest are dropped",
                     op.id,
                 )
@@ -220,9 +219,7 @@ class Topics(Capability):
         if pub is None or pub.closed:
             # Auto-advertise with the type the topic already has.
             if name not in self.session.graph.topics:
-                raise NotFoundError(
-                    "topic", op.topic, "advertise it with its type before publishing"
-                )
+                raise NotFoundError("topic", name, "advertise it with its type before publishing")
             self.advertise(
                 Advertise(topic=op.topic, type=self.session.graph.topics[name].type_name)
             )

@@ -205,6 +205,11 @@ class SoccerTask(LabTask):
         super().__init__(params, random_state(seed))  # never drawn: dm_control draws its own
         players = 2 * self.team_size
         self.held = np.zeros((players, len(ACTUATORS)))  # everyone still
+        self.slots = {  # each player's action topic -> its row of ``held``
+            f"{player(side, i)}action": k * self.team_size + i
+            for k, side in enumerate(SIDES)
+            for i in range(self.team_size)
+        }
         self.keys = observation_keys(self.team_size)
         self.observations_now: list[dict[str, np.ndarray]] = []
         self.goals = {"home": 0, "away": 0}
@@ -280,7 +285,7 @@ class SoccerTask(LabTask):
 
     def command(self, topic: str, data: dict[str, Any]) -> None:
         """Keep a player's action: three finite numbers, clipped to [-1, 1]."""
-        slot = self._slots.get(topic)
+        slot = self.slots.get(topic)
         if slot is None:
             raise MessageError(f"is not a command topic of {self.name}", [topic])
         values = data["data"]
@@ -336,14 +341,6 @@ class SoccerTask(LabTask):
             "away_goals": away,
             "steps": self.steps,
             "clipped_commands": sum(self.clipped.values()),
-        }
-
-    @property
-    def _slots(self) -> dict[str, int]:
-        return {
-            f"{player(side, i)}action": s * self.team_size + i
-            for s, side in enumerate(SIDES)
-            for i in range(self.team_size)
         }
 
 
