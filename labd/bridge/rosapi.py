@@ -4,6 +4,10 @@ Answered by the lab itself from its graph, under ``/rosapi/NAME`` (and so under 
 relative ``rosapi/NAME`` that roslibjs uses). Names under a protected prefix are left
 out of every list, so a client cannot even learn that they exist. Parameters are a
 flat store of JSON texts per graph, as roslibpy's and roslibjs' ``Param`` expect.
+
+A client that sees the graph under a namespace (a match's side) is answered from its
+own view: the bridge maps each service's names on the way in and out, as
+``labd.bridge.rosapi_view.VIEWS`` says, and every service here must have its entry.
 """
 
 from __future__ import annotations
@@ -13,6 +17,7 @@ from typing import Any
 
 import orjson
 
+from labd.bridge.rosapi_view import VIEWS
 from labd.errors import GraphError, UnknownTypeError
 from labd.graph.graph import Graph, Node
 from labd.graph.message import Message
@@ -59,6 +64,9 @@ class Rosapi:
             "get_time": ("GetTime", self.get_time),
             "get_ros_version": ("GetROSVersion", self.get_ros_version),
         }
+        unmapped = sorted(set(services) ^ set(VIEWS))
+        if unmapped:  # a namespaced client would be answered from the whole graph
+            raise ValueError(f"rosapi services and their views differ: {unmapped}")
         for name, (type_name, fn) in services.items():
             self.node.provide_service(
                 f"/rosapi/{name}", f"rosapi_msgs/srv/{type_name}", _answer(fn)

@@ -4,8 +4,10 @@ A client calls any service in the graph: the lab's own (``/rosapi/*``, ``/lab/st
 or one that another client provides. The answer is a ``service_response`` with
 ``result: true`` and the response ``values``, or ``result: false`` with a sentence in
 ``values`` saying why (no such service, invalid arguments, timed out, the provider
-failed or left). A call without a ``timeout`` gives up after the configured default
-(5 s); a timeout of zero or less waits for ever.
+failed or left). A client under a namespace asks rosapi in its own names and is
+answered from its own view of the graph (``labd.bridge.rosapi_view``). A call without
+a ``timeout`` gives up after the configured default (5 s); a timeout of zero or less
+waits for ever.
 
 A client that advertises a service receives each call as a ``call_service`` frame
 with a fresh ``id`` and answers it with a ``service_response`` carrying that id.
@@ -23,6 +25,7 @@ from labd.bridge.frames import (
     ServiceResponse,
     UnadvertiseService,
 )
+from labd.bridge.rosapi_view import Viewed, viewed
 from labd.bridge.session import Capability, Handler, Session
 from labd.clock import TimerHandle
 from labd.errors import GraphError, LimitError, MessageError
@@ -77,6 +80,7 @@ class Services(Capability):
             answer(False, str(LimitError("calls waiting for an answer", config.max_pending)))
             return
         call_id = next(self._ids)
+        view: Viewed | None = None  # a rosapi call under a namespace: its names mapped
 
         def on_result(result: ServiceResult) -> None:
             self.waiting -= 1
@@ -84,13 +88,17 @@ class Services(Capability):
             if timer is not None:
                 timer.cancel()
             if result.ok and result.response is not None:
-                answer(True, result.response.data)
+                data = result.response.data
+                answer(True, data if view is None else view.tell(data))
             else:
                 answer(False, result.error)
 
         self.waiting += 1
         try:
-            pending = session.node.call_service(session.resolve(op.service), op.args, on_result)
+            name = session.resolve(op.service)
+            view = viewed(session.graph, name, session.namespace)
+            args = op.args if view is None else view.ask(op.args)
+            pending = session.node.call_service(name, args, on_result)
         except MessageError as err:
             self.waiting -= 1
             answer(False, f"call_service: {err.prefixed('args')}")  # the answer says why
