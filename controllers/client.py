@@ -319,8 +319,10 @@ class Lab:
 
     # -- lockstep --------------------------------------------------------------------
 
-    def step(self, timeout: float = 30.0) -> Tick:
+    def step(self, timeout: float = 120.0) -> Tick:
         """Advance the robot one control tick (``/lab/step``) and return where it is.
+        (In a match the answer waits for the other side too, which the lab gives a
+        minute to take its first step: hence the long ``timeout``.)
 
         The lab applies every command published before this call, steps, publishes
         the tick's observations and then answers; when this returns, the

@@ -14,8 +14,6 @@ and the record holds their schemas. In lockstep the controller advances the task
 
 from __future__ import annotations
 
-import asyncio
-import contextlib
 import importlib.util
 import json
 import logging
@@ -30,13 +28,14 @@ from zstandard import ZstdError
 from labd import offload
 from labd.bridge.server import BridgeServer
 from labd.config import BridgeConfig
-from labd.errors import InterfaceError, LabError, RecordError
+from labd.errors import InterfaceError, LabError
 from labd.exports import write_dataset
 from labd.graph.definitions import trial_types
 from labd.graph.names import Namespace
 from labd.graph.types import TypeRegistry
+from labd.match import LabMatch
+from labd.recorded import StationLab
 from labd.recorder import (
-    Recorder,
     data_digest,
     digest_topics,
     first_difference,
@@ -46,16 +45,19 @@ from labd.recorder import (
 from labd.recorder.summary import summary_blob
 from labd.replay import replay_filed
 from labd.sim import registry
-from labd.sim.robot import LiveRunner
-from labd.station import Station
 from repository.blobs import digest_of
 from repository.errors import ExportError
 from repository.evaluation import Suite
-from repository.manifest import Manifest, TaskVersion, Versions
-from repository.trial import EpisodeStatus, PinnedRecord, Value
+from repository.manifest import Manifest, Versions
+from repository.trial import PinnedRecord, Value
 from repository.well_known import OUTCOME
 from scheduler.errors import InvalidRequest, TrialError
-from scheduler.host import Attachments, Episode, RecordFacts, Replayed, TrialSetup
+from scheduler.host import (
+    MatchSetup,
+    RecordFacts,
+    Replayed,
+    TrialSetup,
+)
 
 log = logging.getLogger("labd.trial")
 MAX_CLIENTS = 16  # bridge connections a trial's controller may open
@@ -95,6 +97,18 @@ class LabHost:
                 raise TrialError(f"the repository's interfaces: {err}") from None
         try:
             return LabTrial(self, setup, out=out, types=types)
+        except LabError as err:
+            raise TrialError(f"the task {setup.task} could not be built: {err}") from None
+
+    def sides(self, task: str) -> Sequence[str]:
+        try:
+            return registry.get(task).sides
+        except LabError as err:
+            raise InvalidRequest(str(err)) from None
+
+    def open_match(self, setup: MatchSetup, *, out: Path) -> LabMatch:
+        try:
+            return LabMatch(self, setup, out=out)
         except LabError as err:
             raise TrialError(f"the task {setup.task} could not be built: {err}") from None
 
@@ -191,34 +205,29 @@ class LabHost:
         return done.video
 
 
-class LabTrial:
+class LabTrial(StationLab):
     """One trial's robot, private bridge and recorder (``scheduler.host.TrialLab``)."""
 
     def __init__(
         self, host: LabHost, setup: TrialSetup, *, out: Path, types: TypeRegistry | None = None
     ) -> None:
-        values = setup.values
-        self.realtime = realtime = setup.controller.realtime
-        self.out = out
-        limit = float(values["time_limit"]) if realtime and "time_limit" in values else None
-        self.station = Station(
+        realtime = setup.controller.realtime
+        super().__init__(
             types or host.types,  # with the repository's own types, if it has any
-            "trial",
+            host.config,
             setup.task,
-            dict(values),
+            setup.values,
             setup.seed,
-            live=realtime,
-            protected_prefixes=host.config.protected_prefixes,
-            time_limit=limit,
+            out=out,
+            realtime=realtime,
             blind=setup.blind,
         )
-        self.robot = self.station.robot
         sim = self.robot.sim
         self.manifest = Manifest.trial(
             code=setup.code,
             controller=setup.controller,
-            task=TaskVersion(setup.task, sim.spec.version),
-            parameters=values,
+            task=self._task_version(),
+            parameters=setup.values,
             seed=setup.seed,
             runtime=setup.runtime,
             versions=Versions.here(),
@@ -226,7 +235,6 @@ class LabTrial:
             data=setup.data,
             blind=setup.blind,
         )
-        self.robot.on_tick = self._tick
         # a task teams play: the lone controller plays the first side, and names its
         # topics as a team does (/player_0/action), the record keeping the graph's
         sides = sim.spec.sides
@@ -234,94 +242,10 @@ class LabTrial:
         self.bridge = BridgeServer(
             {"trial": self.station.graph}, host.config, namespaces=namespaces
         )
-        self.recorder: Recorder | None = None
-        self.first_tick_at: float | None = None  # the loop's times of the first step,
-        self.last_tick_at: float | None = None  # and of the newest
-        self._ended: asyncio.Future[None] | None = None  # what ``ended`` waits for
-        self._live: asyncio.Task[None] | None = None
-        self._finished: str | None = None
-        task_obj = self.robot.sim.task
-        self._digest_topics = digest_topics(
-            [o.name for o in task_obj.observations], [c.name for c in task_obj.commands]
-        )
-
-    # -- what the runner reads ----------------------------------------------------------
-
-    @property
-    def digest_topics(self) -> Sequence[str]:
-        return self._digest_topics
-
-    def episode(self) -> Episode:
-        sim = self.robot.sim
-        return Episode(
-            tick=sim.tick,
-            running=sim.running,
-            status=sim.status,
-            reason=sim.reason,
-            achieved=sim.status is EpisodeStatus.SUCCEEDED,
-            diverged=sim.diverged,
-        )
-
-    def metrics(self) -> dict[str, Any]:
-        return dict(self.robot.sim.metrics())
-
-    def model_files(self) -> dict[str, tuple[str, bytes]]:
-        return self.robot.sim.model_files()
-
-    async def ended(self) -> None:
-        if not self.robot.sim.running:
-            return
-        if self._ended is None or self._ended.done():
-            self._ended = asyncio.get_running_loop().create_future()
-        await self._ended
-
-    def _tick(self) -> None:
-        """After every step: when, and whether the episode is over. (The runner wakes
-        at the end of the episode, or when no step came for a while, not every tick.)"""
-        now = asyncio.get_running_loop().time()
-        self.last_tick_at = now
-        if self.first_tick_at is None:
-            self.first_tick_at = now
-        ended = self._ended
-        if ended is not None and not ended.done() and not self.robot.sim.running:
-            ended.set_result(None)
-
-    # -- its life -----------------------------------------------------------------------
+        self.bridges = (self.bridge,)
 
     async def start(self, socket: Path) -> None:
-        try:
-            self.recorder = Recorder(
-                self.station.graph,
-                self.out,
-                digest_topics=self._digest_topics,
-                manifest=self.manifest.to_json(),
-                defer=True,  # written once a tick's answer has left
-            )
-        except RecordError as err:  # the disk is full
-            raise TrialError(str(err)) from None
-        await self.bridge.start(unix_path=socket)
-        self.robot.publish()  # tick 0, now that the recorder listens
-        if self.realtime:
-            self._live = asyncio.create_task(LiveRunner(self.robot).run(), name="trial live")
-
-    async def finish(self, attachments: Attachments) -> str:
-        if self._finished is not None:
-            return self._finished
-        if self._live is not None:
-            self._live.cancel()
-            with contextlib.suppress(asyncio.CancelledError):
-                await self._live
-        await self.bridge.close()
-        digest = ""
-        try:
-            if self.recorder is not None:
-                digest = self.recorder.finish(attachments=dict(attachments)).data_digest
-        except RecordError as err:  # the disk filled up: the record is gone
-            raise TrialError(str(err)) from None
-        finally:
-            self.station.close()
-            self._finished = digest
-        return digest
+        await self._start([socket])
 
 
 def client_library() -> Path:

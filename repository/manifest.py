@@ -149,6 +149,23 @@ class Code:
 
 
 @dataclass(frozen=True)
+class Team:
+    """One side of a match's leg: its code, and its controller as ``lab.toml`` declared it."""
+
+    code: Code
+    controller: Controller
+
+    def to_json(self) -> dict[str, Any]:
+        return {**self.code.to_json(), "controller": self.controller.to_json()}
+
+    @classmethod
+    def read(cls, team: _Reader) -> Team:
+        found = cls(Code.read(team), Controller.read(team.object("controller")))
+        team.done()
+        return found
+
+
+@dataclass(frozen=True)
 class TaskVersion:
     """The task, and the version of it that ran."""
 
@@ -347,16 +364,29 @@ class Manifest:
     # a drive's
     robot: str | None = None
     driver: Driver | None = field(default=None)
+    # a match leg's: each side's team, in the task's order of sides (and its runtime)
+    teams: Mapping[str, Team] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         trial = (self.code, self.controller, self.runtime)
         drive = (self.robot, self.driver)
-        if self.kind is Kind.TRIAL and (None in trial or drive != (None, None)):
+        if self.kind is Kind.TRIAL and (None in trial or drive != (None, None) or self.teams):
             raise ValueError("a trial's manifest has its code, controller and runtime only")
-        if self.kind is Kind.DEMONSTRATION and (None in drive or trial != (None, None, None)):
+        if self.kind is Kind.DEMONSTRATION and (
+            None in drive or trial != (None, None, None) or self.teams
+        ):
             raise ValueError("a drive's manifest has its robot and driver only")
         if self.kind is Kind.DEMONSTRATION and (self.data or self.blind):
             raise ValueError("a drive learns from no data and is never blind")
+        if self.kind is Kind.MATCH and (
+            len(self.teams) < 2
+            or self.runtime is None
+            or (self.code, self.controller) != (None, None)
+            or drive != (None, None)
+            or self.data
+            or self.blind
+        ):
+            raise ValueError("a match leg's manifest has two teams or more and a runtime only")
 
     # -- the two kinds --------------------------------------------------------------------
 
@@ -414,6 +444,31 @@ class Manifest:
             driver=driver,
         )
 
+    @classmethod
+    def match(
+        cls,
+        *,
+        teams: Mapping[str, Team],
+        task: TaskVersion,
+        parameters: Mapping[str, Value],
+        seed: int,
+        runtime: str,
+        versions: Versions,
+        model_sha256: str,
+    ) -> Manifest:
+        """A leg of a match: each side's code and controller (``teams``, side -> team,
+        in the task's order of sides), every one in ``runtime``, on one seed."""
+        return cls(
+            kind=Kind.MATCH,
+            task=task,
+            parameters=dict(sorted(parameters.items())),
+            seed=seed,
+            versions=versions,
+            model_sha256=model_sha256,
+            runtime=runtime,
+            teams=dict(teams),
+        )
+
     # -- what readers ask -----------------------------------------------------------------
 
     @property
@@ -428,7 +483,10 @@ class Manifest:
 
     @property
     def realtime(self) -> bool:
-        """Whether it ran on the wall clock rather than in lockstep (a drive always)."""
+        """Whether it ran on the wall clock rather than in lockstep (a drive always; a
+        match's leg never)."""
+        if self.kind is Kind.MATCH:
+            return False
         return True if self.controller is None else self.controller.realtime
 
     @property
@@ -461,6 +519,18 @@ class Manifest:
                 "versions": self.versions.to_json(),
                 "model_sha256": self.model_sha256,
             }
+        if self.kind is Kind.MATCH:
+            return {
+                "schema": SCHEMA,
+                "kind": self.kind.value,
+                "task": self.task.to_json(),
+                "parameters": dict(self.parameters),
+                "seed": self.seed,
+                "teams": {side: team.to_json() for side, team in self.teams.items()},
+                "runtime": self.runtime,
+                "versions": self.versions.to_json(),
+                "model_sha256": self.model_sha256,
+            }
         assert self.code is not None and self.controller is not None
         out: dict[str, Any] = {
             "schema": SCHEMA,
@@ -489,8 +559,12 @@ class Manifest:
             raise ManifestError("manifest.schema", f"is {schema!r}; this lab reads {SCHEMA!r}")
         if top.has("kind"):
             kind = top.text("kind")
+            if kind == Kind.MATCH.value:
+                return cls._read_match(top)
             if kind != Kind.DEMONSTRATION.value:
-                raise ManifestError("manifest.kind", f"is {kind!r}; only a drive's says its kind")
+                raise ManifestError(
+                    "manifest.kind", f"is {kind!r}; only a drive's and a match's say their kind"
+                )
             return cls._read_drive(top)
         return cls._read_trial(top)
 
@@ -539,6 +613,26 @@ class Manifest:
             model_sha256=top.text("model_sha256"),
             robot=top.text("robot"),
             driver=Driver.read(top.object("driver")),
+        )
+        top.done()
+        return found
+
+
+    @classmethod
+    def _read_match(cls, top: _Reader) -> Manifest:
+        sides = top.object("teams")
+        teams = {side: Team.read(sides.object(side)) for side in list(sides.value)}
+        if len(teams) < 2:
+            raise ManifestError("manifest.teams", "must name two sides or more")
+        found = cls(
+            kind=Kind.MATCH,
+            task=TaskVersion.read(top.object("task")),
+            parameters=_parameters(top.raw("parameters")),
+            seed=top.integer("seed"),
+            versions=Versions.read(top.object("versions")),
+            model_sha256=top.text("model_sha256"),
+            runtime=top.text("runtime"),
+            teams=teams,
         )
         top.done()
         return found

@@ -57,6 +57,7 @@ class Outcome(StrEnum):
 class Kind(StrEnum):
     TRIAL = "trial"  # a controller from a repository
     DEMONSTRATION = "demonstration"  # a person driving a live robot
+    MATCH = "match"  # a leg of a match: two controllers, one a side each
 
 
 class EpisodeStatus(StrEnum):

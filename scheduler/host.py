@@ -22,7 +22,7 @@ from pathlib import Path
 from typing import Any, Protocol
 
 from repository.evaluation import Suite
-from repository.manifest import Code, Controller, Manifest
+from repository.manifest import Code, Controller, Manifest, Team
 from repository.trial import EpisodeStatus, PinnedRecord, Value
 
 Attachments = Mapping[str, tuple[str, bytes]]  # name -> (media type, bytes)
@@ -82,6 +82,20 @@ class TrialSetup:
     interfaces: Mapping[str, str] = field(default_factory=dict)
 
 
+@dataclass(frozen=True)
+class MatchSetup:
+    """What the runner asks of the lab for one leg of a match: the task, its values
+    and seed, and each side's team (side -> code and controller, in the task's order of
+    sides), every one in the sandbox ``runtime``. Teams bring no interfaces of their
+    own and never run on the wall clock."""
+
+    task: str
+    values: Mapping[str, Value]
+    seed: int
+    runtime: str
+    teams: Mapping[str, Team]
+
+
 class TrialLab(Protocol):
     """The lab side of one trial, from ``TrialHost.open`` to ``finish``."""
 
@@ -131,6 +145,42 @@ class TrialLab(Protocol):
         ...
 
 
+class MatchLab(Protocol):
+    """The lab side of one leg of a match: a trial's, with a socket for each side and a
+    step barrier between them (both sides step before the task does)."""
+
+    @property
+    def manifest(self) -> Manifest: ...
+
+    @property
+    def digest_topics(self) -> Sequence[str]: ...
+
+    async def start(self, sockets: Mapping[str, Path]) -> None:
+        """Listen on each side's socket (side -> path), record, publish tick 0."""
+        ...
+
+    def episode(self) -> Episode: ...
+
+    @property
+    def first_tick_at(self) -> float | None: ...
+
+    @property
+    def last_tick_at(self) -> float | None: ...
+
+    def owing(self) -> list[str]:
+        """The sides the next tick waits for: those that have not called ``/lab/step``
+        since the last one."""
+        ...
+
+    async def ended(self) -> None: ...
+
+    def metrics(self) -> dict[str, Any]: ...
+
+    def model_files(self) -> dict[str, tuple[str, bytes]]: ...
+
+    async def finish(self, attachments: Attachments) -> str: ...
+
+
 class TrialHost(Protocol):
     """What the scheduler needs of the lab: tasks, trials, records."""
 
@@ -144,6 +194,15 @@ class TrialHost(Protocol):
         """Build the lab side of the trial ``setup`` says, recording into ``out``
         (``TrialError``; a malformed or conflicting interface file is one naming its
         file and line)."""
+        ...
+
+    def sides(self, task: str) -> Sequence[str]:
+        """The sides of a task teams play (soccer's home and away), in order; none for a
+        task one controller plays (``InvalidRequest`` for an unknown task)."""
+        ...
+
+    def open_match(self, setup: MatchSetup, *, out: Path) -> MatchLab:
+        """Build the lab side of one leg of a match, recording into ``out`` (``TrialError``)."""
         ...
 
     def first_difference(self, a: Path, b: Path, topics: Sequence[str]) -> str | None:

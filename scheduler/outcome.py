@@ -10,8 +10,9 @@ from __future__ import annotations
 import errno
 import re
 import signal
+from collections.abc import Mapping
 
-from repository.trial import Ending
+from repository.trial import Ending, Value
 from repository.units import MiB
 from sandbox.api import Exit, Limits
 from sandbox.runtime import CODE
@@ -145,3 +146,50 @@ def storage_failure(err: OSError, what: str) -> str:
         detail += f": {err.filename}"
     lead = "the lab's disk is full: " if err.errno in (errno.ENOSPC, errno.EDQUOT) else ""
     return f"{lead}{what} ({detail})"
+
+
+def judge_leg(
+    episode: Episode, goals: Mapping[str, int], forfeits: Mapping[str, str]
+) -> tuple[Ending, dict[str, Value]]:
+    """The ending of a leg of a match, and its result for the record's metrics.
+
+    ``goals`` are each side's (in the task's order of sides), ``forfeits`` the sides
+    that forfeited and why ("sent no /lab/step within 10 s of tick 40"). A leg with a
+    result is a ``success`` whoever won it: the leg was played. The result:
+    ``winner`` (a side, or ``draw``), ``ended_by`` (``goal``, ``time`` or
+    ``forfeit``) and ``forfeited`` (the sides that did, comma-separated; "" for none).
+    Every side forfeiting, or the physics breaking, leaves no result: an error.
+    """
+    sides = list(goals)
+    score = "-".join(str(goals[side]) for side in sides)
+    forfeited = ",".join(side for side in sides if side in forfeits)
+    if episode.diverged:
+        return Ending.error(
+            f"{episode.reason}; the lab's simulation broke (report it, with the trial)"
+        ), {}
+    if forfeits:
+        why = "; ".join(f"{side} {forfeits[side]}" for side in sides if side in forfeits)
+        result: dict[str, Value] = {"ended_by": "forfeit", "forfeited": forfeited}
+        standing = [side for side in sides if side not in forfeits]
+        if not standing:
+            return Ending.error(f"no result, every side forfeited: {why}"), {
+                **result,
+                "winner": "",
+            }
+        winner = standing[0] if len(standing) == 1 else "draw"
+        said = f"{winner} wins by forfeit" if winner != "draw" else "a draw by forfeit"
+        return Ending.success(f"{said} at tick {episode.tick}: {why}"), {
+            **result,
+            "winner": winner,
+        }
+    top = max(goals.values())
+    leaders = [side for side in sides if goals[side] == top]
+    winner = leaders[0] if len(leaders) == 1 else "draw"
+    ended_by = "goal" if sum(goals.values()) else "time"
+    said = f"{winner} won {score}" if winner != "draw" else f"a draw, {score},"
+    end = f" ({episode.reason})" if episode.reason else ""
+    return Ending.success(f"{said} at tick {episode.tick}{end}"), {
+        "winner": winner,
+        "ended_by": ended_by,
+        "forfeited": "",
+    }

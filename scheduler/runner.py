@@ -196,7 +196,7 @@ async def run_trial(
         progress.enter(Stage.PREPARING, options.prepare)
         try:
             prepared = await asyncio.wait_for(
-                _prepare(
+                prepare(
                     order,
                     blind=blind,
                     backend=backend,
@@ -235,7 +235,7 @@ async def run_trial(
 
 
 @dataclass
-class _Prepared:
+class Prepared:
     """A trial ready to start: its order resolved (the commit checked out, the task,
     the records it learns from pinned), its code and what was installed for it."""
 
@@ -257,7 +257,7 @@ class _Prepared:
         return self.order.task
 
 
-async def _prepare(
+async def prepare(
     order: Order,
     *,
     blind: bool,
@@ -268,7 +268,7 @@ async def _prepare(
     options: RunOptions,
     archive: Blobs | None,
     resolver: Archive | None = None,
-) -> _Prepared:
+) -> Prepared:
     ref = order.commit or order.ref  # a queued trial's pinned commit; labd run's ref
     checked_out = work / "code"
     code = await asyncio.to_thread(
@@ -307,7 +307,7 @@ async def _prepare(
             )
         data = await asyncio.to_thread(materialize, pinned, archive, host, cache)
     resolved = order.model_copy(update={"commit": code.commit or "", "task": task, "data": pinned})
-    return _Prepared(
+    return Prepared(
         resolved,
         blind,
         code,
@@ -389,7 +389,7 @@ class _Trial:
     """The parts of one running trial, and their orderly end."""
 
     def __init__(
-        self, prepared: _Prepared, *, backend: Backend, options: RunOptions, work: Path, out: Path
+        self, prepared: Prepared, *, backend: Backend, options: RunOptions, work: Path, out: Path
     ) -> None:
         self.prepared = prepared
         self.backend = backend
@@ -466,20 +466,7 @@ class _Trial:
         return result
 
     def _job(self, socket: Path) -> Job:
-        p = self.prepared
-        env = {"LAB_TASK": p.task, "LAB_PARAMS": json.dumps(p.values, sort_keys=True)}
-        if not p.blind:  # a held-out episode's seed never reaches its controller
-            env["LAB_SEED"] = str(p.order.seed)
-        return Job(
-            command=p.config.command,
-            code=self.work / "code",
-            bridge_socket=socket,
-            env=env,
-            python_paths=p.python_paths,
-            limits=self.options.limits,
-            data=p.data,
-            node_modules=p.node_modules,
-        )
+        return job_of(self.prepared, self.work / "code", socket, self.options.limits)
 
     async def _watch(self, running: Running) -> tuple[Exit, Ending]:
         """Wait for the first thing that ends the trial; stop the controller; judge."""
@@ -552,6 +539,24 @@ class _Trial:
             write_whole(self.out / LOGS["stdout"], exit_.stdout)
             write_whole(self.out / LOGS["stderr"], exit_.stderr)
         write_whole(self.out / MANIFEST, readable_json(manifest.to_json()))
+
+
+def job_of(p: Prepared, code: Path, socket: Path, limits: Limits) -> Job:
+    """The sandbox job of the prepared controller checked out at ``code``, reaching its
+    bridge through ``socket``."""
+    env = {"LAB_TASK": p.task, "LAB_PARAMS": json.dumps(p.values, sort_keys=True)}
+    if not p.blind:  # a held-out episode's seed never reaches its controller
+        env["LAB_SEED"] = str(p.order.seed)
+    return Job(
+        command=p.config.command,
+        code=code,
+        bridge_socket=socket,
+        env=env,
+        python_paths=p.python_paths,
+        limits=limits,
+        data=p.data,
+        node_modules=p.node_modules,
+    )
 
 
 def write_whole(path: Path, data: bytes) -> None:

@@ -31,8 +31,16 @@ LAYERS = [
     {"labd.errors", "labd.clock", "labd.config", "labd.offload", "labd"},
     {"labd.graph"},
     {"labd.sim", "labd.bridge", "labd.recorder"},
-    {"labd.station"},
-    {"labd.trial", "labd.replay", "labd.live", "labd.exports", "labd.scripted", "labd.gym"},
+    {"labd.station", "labd.recorded"},
+    {
+        "labd.trial",
+        "labd.match",
+        "labd.replay",
+        "labd.live",
+        "labd.exports",
+        "labd.scripted",
+        "labd.gym",
+    },
     {
         "labd.service",
         "labd.authorizer",

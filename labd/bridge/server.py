@@ -36,7 +36,7 @@ from labd.addresses import PerAddress, address_of
 from labd.bridge.auth import AuthError, Authorizer, AuthUnavailable, KeyPolicy
 from labd.bridge.ops import CAPABILITIES
 from labd.bridge.render import OutFrame
-from labd.bridge.session import Session
+from labd.bridge.session import Hold, Session
 from labd.config import BridgeConfig
 from labd.graph.graph import Graph
 from labd.graph.names import Namespace
@@ -70,10 +70,12 @@ class BridgeServer:
         *,
         policies: Mapping[str, KeyPolicy] | None = None,
         namespaces: Mapping[str, Namespace] | None = None,
+        hold: Hold | None = None,
     ) -> None:
         """``policies``: each graph's ``KeyPolicy`` (default: a key required on every
         graph when there is an authorizer, else none). ``namespaces``: a graph's view
-        for every client of this server (a match's side; default: the graph's names)."""
+        for every client of this server (a match's side; default: the graph's names).
+        ``hold``: what may keep every client's messages back (a match's step barrier)."""
         if not graphs:
             raise ValueError("a bridge needs at least one graph")
         self.graphs = dict(graphs)
@@ -82,6 +84,7 @@ class BridgeServer:
         default = KeyPolicy.REQUIRED if authorizer is not None else KeyPolicy.NONE
         self.policies = {name: (policies or {}).get(name, default) for name in self.graphs}
         self.namespaces = dict(namespaces or {})
+        self.hold = hold
         if authorizer is None and any(p is not KeyPolicy.NONE for p in self.policies.values()):
             raise ValueError("a graph that takes keys needs an authorizer")
         self.failures = _Failures(config.auth_failures, config.auth_failure_window)
@@ -222,6 +225,7 @@ class BridgeServer:
             auth_optional=policy is KeyPolicy.OPTIONAL,
             url_key=key if policy is not KeyPolicy.NONE else None,
             namespace=self.namespaces.get(name),
+            hold=self.hold,
         )
         conn.session = session
         session.node.address = address

@@ -32,7 +32,8 @@ from labd.clock import TimerHandle, Timers
 from labd.config import BridgeConfig
 from labd.errors import FrameError, LabError, NameError_
 from labd.graph.codec import dumps
-from labd.graph.graph import Graph, Side
+from labd.graph.graph import Graph, Publisher, Side
+from labd.graph.message import Message
 from labd.graph.names import Namespace, is_protected, resolve
 
 LEVELS = {"none": 0, "error": 1, "warning": 2, "info": 3}
@@ -51,6 +52,17 @@ class Transport(Protocol):
 
     def authorize(self, key: str) -> None:
         """Check ``key``; answer later with ``Session.grant`` or ``Session.refuse``."""
+
+
+class Hold(Protocol):
+    """Who may keep a client's message from the graph for a while: a match's step
+    barrier takes a team's commands when they arrive and delivers them when both teams
+    have stepped (``labd.match``). True: taken, delivered later (a refusal then is told
+    to the session); False: delivered now."""
+
+    def __call__(
+        self, session: Session, publisher: Publisher, message: Message, op_id: Id
+    ) -> bool: ...
 
 
 class AuthState(enum.Enum):
@@ -103,9 +115,11 @@ class Session:
         auth_optional: bool = False,
         url_key: str | None = None,
         namespace: Namespace | None = None,
+        hold: Hold | None = None,
     ) -> None:
         """``namespace``: the client's view of the graph (a match's side: its names are
-        mapped under it, ``names.Namespace``); None: the graph's own names."""
+        mapped under it, ``names.Namespace``); None: the graph's own names. ``hold``:
+        what may keep its messages back until later (a match's step barrier)."""
         self.graph = graph
         self.config = config
         self.timers = timers
@@ -116,6 +130,7 @@ class Session:
         )
         self.node = graph.create_node(f"/bridge/client_{client_id}", side=Side.CLIENT)
         self.namespace = namespace
+        self.hold = hold
         self.outbox = Outbox(config.max_queue_bytes, transport.wake)
         self.status_level: int | None = None  # None until the client sends set_level
         self.closed = False

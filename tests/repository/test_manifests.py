@@ -218,7 +218,10 @@ def test_a_missing_key_is_an_error_naming_it(name, dotted):
         ({"data": []}, r"manifest\.data: is written only as a list of records"),
         ({"note": "x"}, r"manifest: 'note' is not a key the lab writes here"),
         ({"schema": "labd.trial/2"}, r"manifest\.schema: is 'labd\.trial/2'; this lab reads"),
-        ({"kind": "trial"}, r"manifest\.kind: is 'trial'; only a drive's says its kind"),
+        (
+            {"kind": "trial"},
+            r"manifest\.kind: is 'trial'; only a drive's and a match's say their kind",
+        ),
         ({"parameters": {"x": [1]}}, r"manifest\.parameters\.x: must be a number"),
     ],
 )

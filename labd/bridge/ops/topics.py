@@ -206,7 +206,13 @@ class Topics(Capability):
                 )
             return
         try:
-            pub.publish(op.msg, latch=op.latch)
+            hold = self.session.hold
+            if hold is None:
+                pub.publish(op.msg, latch=op.latch)
+            else:  # checked now, delivered now or once the barrier lets it through
+                message = self.session.graph.message(pub.topic.type_name, op.msg)
+                if not hold(self.session, pub, message, op.id):
+                    pub.publish(message, latch=op.latch)
         except MessageError as err:
             raise err.prefixed("msg") from None
         except OwnedError:
