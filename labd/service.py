@@ -21,7 +21,7 @@ import os
 import shutil
 import socket
 import time
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
@@ -42,14 +42,17 @@ from repository.blobs import BlobStore
 from repository.errors import ArchiveError
 from repository.evaluation_index import Evaluations
 from repository.index import Derived, Index
+from repository.match_index import Matches
 from repository.reservations import Reservations, Rules, load_secret
 from repository.signing import Keyring
 from repository.trial import Ending, Filing
 from repository.well_known import RECORD_FILE, REPLAY
 from scheduler.data import DataPolicy, LocalArchive
+from scheduler.errors import InvalidRequest
 from scheduler.evaluate import Evaluator, HeldOutBudget
 from scheduler.fetch import FetchPolicy
 from scheduler.filing import FilingCheck
+from scheduler.matches import Matchmaker
 from scheduler.queue import Queue, QueueConfig
 from scheduler.runner import RunOptions
 from scheduler.submit import Submissions
@@ -199,6 +202,8 @@ class Service:
             self.keyring,
             config.held_out,
         )
+        self.matches = Matches(self.index, verdicts, self._sides)
+        self.matchmaker = Matchmaker(self.submissions, self.matches, self.keyring)
         self.videos = Videos(
             self.index,
             self.store,
@@ -242,6 +247,13 @@ class Service:
                 self.queue, ClusterConfig(config.ray_address), self._node_setup(), name=self.name
             )
             self.replays.elsewhere = self.cluster  # replayed on another of its nodes
+
+    def _sides(self, task: str) -> Sequence[str]:
+        """A task's sides, home first; none for a task this lab no longer has."""
+        try:
+            return self.host.sides(task)
+        except InvalidRequest:
+            return ()
 
     def _node_setup(self) -> NodeSetup:
         """What a cluster's node needs to run this lab's trials as its workers do."""

@@ -53,8 +53,9 @@ from repository.units import moment
 from repository.wal import IndexFiles
 from repository.well_known import REPLAY
 
-SCHEMA_VERSION = 3  # 1: labd 0.1 (status succeeded/failed); 2: status and outcome apart;
-# 3: trials say whether an error was the lab's fault (lab_fault)
+SCHEMA_VERSION = 4  # 1: labd 0.1 (status succeeded/failed); 2: status and outcome apart;
+# 3: trials say whether an error was the lab's fault (lab_fault); 4: matches, and a
+# match leg's away team on its trial
 # A user name: ASCII letters and digits, then also '.', '-' or '_' (so never ".", ".."
 # or a name that looks like another in other scripts); unique without case.
 NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]{0,63}", re.ASCII)
@@ -377,6 +378,9 @@ class Index:
             "public": order.public,
             "rerun_of": order.rerun_of,
             "data": [p.model_dump(mode="json") for p in order.data] if order.data else None,
+            "away_repository": order.away.repository if order.away else None,
+            "away_ref": order.away.ref if order.away else None,
+            "away_commit": order.away.commit if order.away else None,
             "status": Status.QUEUED.value,
             "reason": "waiting for a worker",
             "created": self.clock(),

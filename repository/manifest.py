@@ -617,7 +617,6 @@ class Manifest:
         top.done()
         return found
 
-
     @classmethod
     def _read_match(cls, top: _Reader) -> Manifest:
         sides = top.object("teams")

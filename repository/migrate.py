@@ -1,5 +1,9 @@
 """Upgrading an archive's index in place, from an older schema to this labd's.
 
+Schema 4 adds matches (the ``matches`` and ``match_legs`` tables) and, on each trial,
+the away team of a match's leg (``away_repository``, ``away_ref``, ``away_commit``;
+none for the trials filed before).
+
 Schema 3 says of each trial whether its error was the lab's fault (``lab_fault``: its
 worker lost, its storage failed), so that an evaluation with such an episode is partial
 rather than scored as the controller's error; trials filed before say it was not.
@@ -80,10 +84,23 @@ def upgrade(engine: Engine) -> Upgrade:
             _from_1(db, result)
         if found < 3:
             _from_2(db)
+        if found < 4:
+            _from_3(db)
         db.execute(sa.update(meta).where(meta.c.key == "schema").values(value=str(SCHEMA_VERSION)))
     metadata.create_all(engine)  # indexes added since
     log.info("%s", result)
     return result
+
+
+def _from_3(db: Connection) -> None:
+    """Schema 3 → 4: a match leg's away team on its trial (none before); the match
+    tables themselves are made with the indexes, below."""
+    for column, kind in (
+        ("away_repository", "VARCHAR(2048)"),
+        ("away_ref", "VARCHAR(256)"),
+        ("away_commit", "VARCHAR(40)"),
+    ):
+        db.execute(sa.text(f"ALTER TABLE trials ADD COLUMN {column} {kind}"))
 
 
 def _from_2(db: Connection) -> None:

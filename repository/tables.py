@@ -99,6 +99,10 @@ trials = sa.Table(
     sa.Column("public", sa.Boolean, nullable=False),
     sa.Column("rerun_of", sa.Integer, sa.ForeignKey("trials.id")),
     sa.Column("data", sa.JSON),  # the archived records it learns from, pinned (PinnedRecord)
+    # a match's leg: the team at away; the code above is home's (schema 4)
+    sa.Column("away_repository", sa.String(2048)),
+    sa.Column("away_ref", sa.String(256)),
+    sa.Column("away_commit", sa.String(40)),
     # the queue
     sa.Column("status", sa.String(16), nullable=False),
     sa.Column("outcome", sa.String(16)),  # finished trials only
@@ -157,6 +161,7 @@ sa.Index("ix_trials_reward", trials.c.reward, trials.c.id)
 sa.Index("ix_trials_submitter", trials.c.submitter, trials.c.id)
 sa.Index("ix_trials_created", trials.c.created)
 sa.Index("ix_trials_rerun_of", trials.c.rerun_of)
+sa.Index("ix_trials_away_commit", trials.c.away_commit, trials.c.id)
 # Claiming: the oldest queued trial of each submitter, public ones first.
 sa.Index("ix_trials_queue", trials.c.status, trials.c.public, trials.c.submitter, trials.c.id)
 # Serving a blob: the trials (and derived artifacts) that hold it, whose readers may read it.
@@ -216,3 +221,41 @@ sa.Index(
 sa.Index("ix_evaluations_commit", evaluations.c.commit, evaluations.c.id)
 sa.Index("ix_evaluations_repository", evaluations.c.repository, evaluations.c.id)
 sa.Index("ix_evaluations_submitter", evaluations.c.submitter, evaluations.c.id)
+
+# Matches (``repository.match``): two commits, A and B, play a task's seeds, each seed
+# twice with the sides swapped; each leg is a trial of ``trials`` (kind ``match``) whose
+# own code plays home and whose ``away_*`` team plays away. What a match adds up to is
+# read from its legs' trials whenever it is asked for; the lab signs it once the last
+# leg has ended (schema 4).
+matches = sa.Table(
+    "matches",
+    metadata,
+    sa.Column("id", sa.Integer, primary_key=True, autoincrement=True),
+    sa.Column("task", sa.String(64), nullable=False),
+    sa.Column("task_version", sa.String(32), nullable=False),
+    sa.Column("params", sa.JSON, nullable=False),
+    sa.Column("a_repository", sa.String(2048), nullable=False),
+    sa.Column("a_ref", sa.String(256)),
+    sa.Column("a_commit", sa.String(40), nullable=False),
+    sa.Column("b_repository", sa.String(2048), nullable=False),
+    sa.Column("b_ref", sa.String(256)),
+    sa.Column("b_commit", sa.String(40), nullable=False),
+    sa.Column("submitter", sa.String(64), nullable=False),
+    sa.Column("created", sa.Float, nullable=False),
+    sa.Column("cancel_requested", sa.Boolean, nullable=False),
+    sa.Column("finished", sa.Float),  # when its last leg ended
+    sa.Column("signature", sa.JSON),  # the lab's, over its legs
+)
+match_legs = sa.Table(
+    "match_legs",
+    metadata,
+    sa.Column("match_id", sa.Integer, sa.ForeignKey("matches.id"), primary_key=True),
+    sa.Column("leg", sa.Integer, primary_key=True),  # its place in the match, from 0
+    sa.Column("seed", sa.BigInteger, nullable=False),
+    sa.Column("home", sa.String(1), nullable=False),  # "a" or "b": who played home
+    sa.Column("trial_id", sa.Integer, sa.ForeignKey("trials.id"), nullable=False, unique=True),
+)
+sa.Index("ix_matches_task", matches.c.task, matches.c.id)
+sa.Index("ix_matches_a_commit", matches.c.a_commit, matches.c.id)
+sa.Index("ix_matches_b_commit", matches.c.b_commit, matches.c.id)
+sa.Index("ix_matches_submitter", matches.c.submitter, matches.c.id)

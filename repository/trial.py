@@ -125,6 +125,17 @@ class PinnedRecord(BaseModel):
         return {"trial": self.trial, "data_digest": self.data_digest, "mcap": self.mcap}
 
 
+class TeamRef(BaseModel):
+    """The away team of a match's leg, as its order names it: the code (a repository,
+    the ref asked for, the commit it resolved to). The order's own code plays home."""
+
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    repository: str = Field(description="a git URL or path")
+    ref: str | None = Field(default=None, description="the branch, tag or commit asked for")
+    commit: str = Field(default="", description="the commit the ref resolved to")
+
+
 class Order(BaseModel):
     """What was asked of the lab for one trial: one value from the request to the record.
 
@@ -159,6 +170,15 @@ class Order(BaseModel):
     data: tuple[PinnedRecord, ...] = Field(
         default=(), description="the archived records it learns from, pinned when it was submitted"
     )
+    away: TeamRef | None = Field(
+        default=None, description="a match's leg: the team at away (this order's code is home)"
+    )
+
+    @model_validator(mode="after")
+    def _teams(self) -> Self:
+        if (self.kind is Kind.MATCH) != (self.away is not None):
+            raise ValueError("a match's leg, and only a match's leg, names its away team")
+        return self
 
     def episode(self, seed: int) -> Order:
         """The same order with another seed (an evaluation's episode)."""
@@ -168,7 +188,8 @@ class Order(BaseModel):
         """The order of a rerun of trial ``of``, which this order queued: the same code,
         pinned at its commit, the same task, parameters, seed and records it learnt from
         (whatever was filed since), linked to it."""
-        return self.model_copy(update={"ref": self.commit, "rerun_of": of})
+        away = None if self.away is None else self.away.model_copy(update={"ref": self.away.commit})
+        return self.model_copy(update={"ref": self.commit, "rerun_of": of, "away": away})
 
 
 class Ending(BaseModel):
@@ -260,6 +281,10 @@ class Trial(BaseModel):
     public: bool
     rerun_of: int | None
     data: list[PinnedRecord] | None = None  # the archived records it learns from
+    # a match's leg: the team at away (the code above plays home)
+    away_repository: str | None = None
+    away_ref: str | None = None
+    away_commit: str | None = None
     # where it is
     status: Status
     outcome: Outcome | None
@@ -301,6 +326,16 @@ class Trial(BaseModel):
             kind=self.kind,
             rerun_of=self.rerun_of,
             data=tuple(self.data or ()),
+            away=self.away,
+        )
+
+    @property
+    def away(self) -> TeamRef | None:
+        """A match's leg: the team at away."""
+        if self.away_repository is None:
+            return None
+        return TeamRef(
+            repository=self.away_repository, ref=self.away_ref, commit=self.away_commit or ""
         )
 
     @property

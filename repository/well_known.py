@@ -27,6 +27,13 @@ MODEL = "model.xml"  # attachment: the task's compiled model (MJCF) ...
 MODEL_ASSETS = "model/"  # ... and the files it names (textures), under this prefix
 LOGS = {"stdout": "controller.stdout.log", "stderr": "controller.stderr.log"}  # attachments
 
+
+def side_logs(side: str) -> dict[str, str]:
+    """A match leg's logs of the team on ``side``, as its record's attachments and files
+    name them (its trial's ``stdout`` and ``stderr`` are home's)."""
+    return {"stdout": f"{side}.stdout.log", "stderr": f"{side}.stderr.log"}
+
+
 # -- derived artifacts, kept beside a record in the archive (repository.index.Derived) ---
 
 SUMMARY = "summary.json"  # the record's page summary ...

@@ -23,6 +23,7 @@ QueueError                      a queue operation was refused
 ├── Busy                        the lab has as many submissions in hand as it takes
 ├── NotYours                    a trial may be changed only by its submitter
 ├── EpisodeOfEvaluation         an evaluation's episode is cancelled with its evaluation only
+├── LegOfMatch                  a match's leg is cancelled with its match only
 ├── OverBudget                  a held-out suite takes only so many evaluations a commit, a day
 ├── FilingRefused               a worker's filing says what its record does not hold
 └── RemoteError                 talking to a lab's HTTP API went wrong
@@ -312,6 +313,19 @@ class EpisodeOfEvaluation(QueueError):
             f"trial {trial_id} is an episode of evaluation {evaluation_id}: an evaluation"
             f" counts every episode, so cancel the whole evaluation"
             f" (POST /api/evaluations/{evaluation_id}/cancel), which makes it partial"
+        )
+
+
+class LegOfMatch(QueueError):
+    """A match's leg is cancelled with its match, never alone: cancelling the legs it
+    would lose would buy a better score."""
+
+    def __init__(self, trial_id: int, match_id: int) -> None:
+        self.trial_id = trial_id
+        self.match_id = match_id
+        super().__init__(
+            f"trial {trial_id} is a leg of match {match_id}: cancel the whole match"
+            f" (POST /api/matches/{match_id}/cancel), which then counts for no one"
         )
 
 

@@ -182,7 +182,7 @@ class Evaluator:
             raise NotYours(evaluation_id, evaluation.submitter, "cancel", what="evaluation")
         self.evaluations.request_cancel(evaluation_id)
         for trial_id in self.evaluations.trials(evaluation_id):
-            self.queue.cancel(trial_id, user, with_evaluation=True)
+            self.queue.cancel(trial_id, user, whole=True)
         self.settle_evaluation(evaluation_id)  # if nothing was left to end
         return self.evaluations.get(evaluation_id)
 

@@ -40,8 +40,8 @@ from typing import Any, Protocol
 from repository.digests import canonical_json, manifest_digest
 from repository.errors import ManifestError
 from repository.manifest import Manifest
-from repository.trial import Filing, Outcome, Status, Trial, Value
-from repository.well_known import LOGS, RECORD_FILE
+from repository.trial import Filing, Kind, Outcome, Status, Trial, Value
+from repository.well_known import LOGS, RECORD_FILE, side_logs
 from scheduler.errors import FilingRefused, TrialError
 from scheduler.host import RecordFacts, TrialHost
 
@@ -60,6 +60,11 @@ class Expected:
     values: Mapping[str, Value]  # the task's full parameter values
     version: str  # the task's version here
     digest_topics: list[str]  # sorted
+    sides: tuple[str, ...] = ()  # a task teams play: its sides, home first
+
+    def logs(self, trial: Trial) -> dict[str, str]:
+        """The attachments a trial's ``stdout`` and ``stderr`` are (a leg's: home's)."""
+        return side_logs(self.sides[0]) if trial.kind is Kind.MATCH and self.sides else LOGS
 
 
 @dataclass(frozen=True)
@@ -118,9 +123,14 @@ def manifest_problems(held: Mapping[str, Any], trial: Trial, expected: Expected)
     except ManifestError as err:
         return [f"manifest: it is not one the lab writes ({err})"]
     pinned = [p.manifest_entry() for p in trial.data] if trial.data else None
-    pairs = {
+    code: dict[str, tuple[Any, Any]] = {
         "repository": (manifest.repository, trial.repository),
         "commit": (manifest.commit, trial.commit),
+    }
+    if trial.kind is Kind.MATCH or manifest.kind is Kind.MATCH:
+        code = _teams(manifest, trial, expected.sides)
+    pairs = {
+        **code,
         "task": (manifest.task.name, trial.task),
         "task version": (manifest.task.version, expected.version),
         "parameters": (dict(manifest.parameters), dict(expected.values)),
@@ -133,6 +143,21 @@ def manifest_problems(held: Mapping[str, Any], trial: Trial, expected: Expected)
         for name, (got, want) in pairs.items()
         if not _same(got, want)
     ]
+
+
+def _teams(manifest: Manifest, trial: Trial, sides: tuple[str, ...]) -> dict[str, tuple[Any, Any]]:
+    """A leg's teams as its manifest names them, and as its trial does: its own code at
+    home (the first side), its ``away_*`` team at the second."""
+    teams = manifest.teams
+    home, away = (teams.get(side) for side in (*sides, "", "")[:2])
+    return {
+        "kind": (manifest.kind.value, trial.kind.value),
+        "sides": (sorted(teams), sorted(sides)),
+        "repository": (home.code.repository if home else None, trial.repository),
+        "commit": (home.code.commit if home else None, trial.commit),
+        "away repository": (away.code.repository if away else None, trial.away_repository),
+        "away commit": (away.code.commit if away else None, trial.away_commit),
+    }
 
 
 def _same(a: Any, b: Any) -> bool:
@@ -190,7 +215,7 @@ def filing_problems(
         filing.metrics or {},
     )
     problems += record_differences(claims, record)
-    for stream, name in LOGS.items():
+    for stream, name in expected.logs(trial).items():
         claimed = getattr(filing, stream)
         if claimed is not None and record.attachments.get(name) != claimed:
             problems.append(f"{stream}: the record's {name} is not the blob {claimed}")
@@ -230,6 +255,7 @@ class FilingCheck:
             values=self.host.check(trial.task, trial.params),
             version=self.host.task_version(trial.task),
             digest_topics=sorted(self.host.digest_topics(trial.task)),
+            sides=tuple(self.host.sides(trial.task)),
         )
 
     def __call__(self, trial: Trial, filing: Filing, original: Trial | None) -> None:

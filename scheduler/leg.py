@@ -13,9 +13,10 @@ stops everything at the first of these:
   tick, ``first_step`` from the start before the first one): it forfeits.
 
 A side that forfeits loses the leg and the record ends at the last tick both sides
-stepped, so it replays like any other. A team that cannot be prepared (its checkout,
-``lab.toml``, its requirements) forfeits before anything runs: no record. Every side
-failing leaves no result (an error). The leg's result is in its metrics
+stepped, so it replays like any other. Every side failing leaves no result (an
+error). A team that cannot be prepared (its checkout, ``lab.toml``, its requirements:
+the same at its pinned commit in every leg it plays) leaves the leg unplayed, without a
+record and without a result: an error that names it. The leg's result is in its metrics
 (``scheduler.outcome.judge_leg``): ``winner``, ``ended_by``, ``forfeited``, beside the
 task's own (soccer's ``home_goals`` and ``away_goals``: a task teams play says each
 side's goals as ``SIDE_goals``).
@@ -35,11 +36,11 @@ from pathlib import Path
 
 from repository.digests import readable_json
 from repository.manifest import Manifest, Team
-from repository.trial import Ending, EpisodeStatus, Order, Outcome, Value
-from repository.well_known import MANIFEST, OUTCOME
+from repository.trial import Ending, Order, Outcome, Value
+from repository.well_known import MANIFEST, OUTCOME, side_logs
 from sandbox.api import Backend, Exit, Running, SandboxError
 from scheduler.errors import ControllerConfigError, TrialError
-from scheduler.host import Episode, MatchLab, MatchSetup, TrialHost
+from scheduler.host import MatchLab, MatchSetup, TrialHost
 from scheduler.outcome import judge, judge_leg, storage_failure
 from scheduler.runner import (
     Prepared,
@@ -62,11 +63,6 @@ class LegOptions:
 
     run: RunOptions = field(default_factory=RunOptions)
     step_deadline: float = STEP_DEADLINE
-
-
-def logs_of(side: str) -> dict[str, str]:
-    """The names of a side's logs among a leg's attachments and files."""
-    return {"stdout": f"{side}.stdout.log", "stderr": f"{side}.stderr.log"}
 
 
 async def run_leg(
@@ -158,10 +154,11 @@ async def _play(
             forfeits[side] = f"could not start: {outcome}"
         else:
             prepared[side] = outcome
-    if forfeits:  # nothing is played: no record
-        log.info("leg of %s, seed %d: %s", task, first.seed, forfeits)
-        ending, result = judge_leg(_UNPLAYED, dict.fromkeys(sides, 0), forfeits)
-        return TrialResult(ending, out, metrics=result, backend=backend.name)
+    if forfeits:  # nothing is played, no record: no result either
+        why = "; ".join(f"{side} {forfeits[side]}" for side in sides if side in forfeits)
+        return TrialResult(
+            Ending.error(f"the leg was not played: {why}"), out, backend=backend.name
+        )
     setup = MatchSetup(
         task=task,
         values=values,
@@ -227,9 +224,6 @@ async def _prepare_team(
         if said:
             return str(ControllerConfigError(f"lab.toml has {why}"))
     return p
-
-
-_UNPLAYED = Episode(0, False, EpisodeStatus.RUNNING, "", achieved=False, diverged=False)
 
 
 class _Leg:
@@ -355,12 +349,14 @@ class _Leg:
                         side: f"sent no /lab/step within {limit:g} s of {since}" for side in owing
                     }
                 waiter = asyncio.create_task(lab.ended())
-                done, _ = await asyncio.wait(
-                    {*exits, waiter}, timeout=limit - quiet, return_when=asyncio.FIRST_COMPLETED
-                )
-                waiter.cancel()
-                with contextlib.suppress(asyncio.CancelledError):
-                    await waiter
+                try:
+                    done, _ = await asyncio.wait(
+                        {*exits, waiter}, timeout=limit - quiet, return_when=asyncio.FIRST_COMPLETED
+                    )
+                finally:
+                    waiter.cancel()
+                    with contextlib.suppress(asyncio.CancelledError):
+                        await waiter
                 gone = [task for task in exits if task in done]
                 if gone and lab.episode().running:
                     forfeits = {}
@@ -410,14 +406,14 @@ class _Leg:
             files[f"{side}.lab.toml"] = ("application/toml", p.config.text.encode())
             exit_ = self.exits.get(side)
             if exit_ is not None:
-                names = logs_of(side)
+                names = side_logs(side)
                 files[names["stdout"]] = ("text/plain", exit_.stdout)
                 files[names["stderr"]] = ("text/plain", exit_.stderr)
         return files
 
     def _write_files(self, manifest: Manifest) -> None:
         for side, exit_ in self.exits.items():
-            names = logs_of(side)
+            names = side_logs(side)
             write_whole(self.out / names["stdout"], exit_.stdout)
             write_whole(self.out / names["stderr"], exit_.stderr)
         write_whole(self.out / MANIFEST, readable_json(manifest.to_json()))

@@ -32,11 +32,17 @@ from sqlalchemy.engine import Connection
 
 from repository.index import Derived, Index, User, blind, hidden, reward_of, to_trial
 from repository.signing import Keyring, record_statement
-from repository.tables import episodes
+from repository.tables import episodes, match_legs
 from repository.tables import trials as T
 from repository.trial import Claim, Filing, Order, Outcome, Status, Trial
 from scheduler.canary import Health
-from scheduler.errors import EpisodeOfEvaluation, FilingRefused, NotYours, QuotaExceeded
+from scheduler.errors import (
+    EpisodeOfEvaluation,
+    FilingRefused,
+    LegOfMatch,
+    NotYours,
+    QuotaExceeded,
+)
 from scheduler.states import Cancel
 
 log = logging.getLogger("scheduler.queue")
@@ -127,22 +133,28 @@ class Queue:
         for trial_id in trial_ids:
             _call(self.on_ended, trial_id)
 
-    def cancel(self, trial_id: int, user: User, *, with_evaluation: bool = False) -> Cancel:
+    def cancel(self, trial_id: int, user: User, *, whole: bool = False) -> Cancel:
         """Cancel a queued trial now, or ask the worker of a running one to stop.
 
         Says what it did: ``cancelled`` (it was queued), ``stopping`` (it runs, and stops
         at its worker's next heartbeat) or ``ended`` (it had ended: nothing to do). Only
-        the submitter may cancel (``NotYours``), and an evaluation's episode only with
-        its evaluation (``EpisodeOfEvaluation``, before anything about it is read);
-        ``RecordNotFound`` if there is no such trial.
+        the submitter may cancel (``NotYours``); an evaluation's episode only with its
+        evaluation (``EpisodeOfEvaluation``), a match's leg only with its match
+        (``LegOfMatch``; ``whole``: cancelled with it), before anything about it is
+        read; ``RecordNotFound`` if there is no such trial.
         """
-        if not with_evaluation:
+        if not whole:
             with self.index.engine.connect() as db:
                 evaluation = db.execute(
                     sa.select(episodes.c.evaluation_id).where(episodes.c.trial_id == trial_id)
                 ).scalar()
+                match = db.execute(
+                    sa.select(match_legs.c.match_id).where(match_legs.c.trial_id == trial_id)
+                ).scalar()
             if evaluation is not None:
                 raise EpisodeOfEvaluation(trial_id, evaluation)
+            if match is not None:
+                raise LegOfMatch(trial_id, match)
         trial = self.index.trial(trial_id)
         if trial.submitter != user.name:
             raise NotYours(trial_id, trial.submitter, "cancel")

@@ -36,12 +36,20 @@ from typing import Any, Protocol
 
 from repository.errors import ArchiveError
 from repository.index import Derived
-from repository.trial import Claim, Ending, Filing, Status, Trial
-from repository.well_known import LOGS, RECORD_FILE, REPLAY, SUMMARY, SUMMARY_MEDIA_TYPE
+from repository.trial import Claim, Ending, Filing, Kind, Status, Trial
+from repository.well_known import (
+    LOGS,
+    RECORD_FILE,
+    REPLAY,
+    SUMMARY,
+    SUMMARY_MEDIA_TYPE,
+    side_logs,
+)
 from sandbox.api import Backend
 from scheduler.canary import Canaries, Health
 from scheduler.errors import FilingRefused, QueueError
 from scheduler.host import TrialHost
+from scheduler.leg import LegOptions, run_leg
 from scheduler.outcome import storage_failure
 from scheduler.runner import Progress, RunOptions, TrialResult, run_trial
 from scheduler.states import Stage, State
@@ -185,19 +193,7 @@ class Worker:
         self.log.info("trial %d: %s@%s %s", claim.id, order.repository, order.commit[:12], order)
         progress = Progress()
         self._current = (claim, progress)
-        running = asyncio.create_task(
-            run_trial(
-                order,
-                blind=claim.blind,
-                backend=self.backend,
-                host=self.host,
-                out=out,
-                cache=self.config.cache,
-                options=self.config.options,
-                progress=progress,
-                archive=self.store,  # the records the trial learns from
-            )
-        )
+        running = asyncio.create_task(self._run(claim, out, progress))
         stuck: list[str] = []
         beat = asyncio.create_task(self._heartbeat(claim.id, running, progress, stuck))
         result: TrialResult | None = None
@@ -235,6 +231,38 @@ class Worker:
         finally:
             await _stopped(beat)
         await self._file(claim, filing, out)
+
+    async def _run(self, claim: Claim, out: Path, progress: Progress) -> TrialResult:
+        """Run the claimed trial, or play the claimed leg of a match."""
+        order = claim.order
+        if order.away is None:
+            return await run_trial(
+                order,
+                blind=claim.blind,
+                backend=self.backend,
+                host=self.host,
+                out=out,
+                cache=self.config.cache,
+                options=self.config.options,
+                progress=progress,
+                archive=self.store,  # the records the trial learns from
+            )
+        assert order.task is not None  # the queue holds its orders resolved
+        home, away = self.host.sides(order.task)[:2]
+        team = {"kind": Kind.TRIAL, "away": None}
+        orders = {
+            home: order.model_copy(update=team),
+            away: order.model_copy(update={**team, **order.away.model_dump(), "ref": None}),
+        }
+        return await run_leg(
+            orders,
+            backend=self.backend,
+            host=self.host,
+            out=out,
+            cache=self.config.cache,
+            options=LegOptions(run=self.config.options),
+            progress=progress,
+        )
 
     async def _file(self, claim: Claim, filing: Filing, out: Path) -> None:
         """File the trial; then what is made of its record is made beside the next trial."""
@@ -352,7 +380,10 @@ class Worker:
             else:  # no record to bear them out: the lab refuses digests and metrics alone
                 for name in ("data_digest", "digest_topics", "metrics"):
                     record.pop(name, None)
-            for stream, name in LOGS.items():
+            logs = LOGS
+            if claim.order.away is not None and claim.order.task is not None:
+                logs = side_logs(self.host.sides(claim.order.task)[0])  # home's
+            for stream, name in logs.items():
                 path = out / name
                 if result is not None and path.exists():
                     record[stream] = self.store.put_file(path)

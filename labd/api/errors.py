@@ -44,6 +44,7 @@ from scheduler.errors import (
     EpisodeOfEvaluation,
     FilingRefused,
     InvalidRequest,
+    LegOfMatch,
     NotYours,
     OverBudget,
     QuotaExceeded,
@@ -121,6 +122,7 @@ STATUS: dict[type[Exception], int] = {
     ArchiveError: 422,
     NotYours: 403,
     EpisodeOfEvaluation: 409,  # cancelled only with its evaluation
+    LegOfMatch: 409,  # cancelled only with its match
     OverBudget: 429,  # a held-out suite's budget of evaluations
     FilingRefused: 422,
     NotYourReservation: 403,

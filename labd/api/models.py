@@ -21,7 +21,7 @@ from pydantic import BaseModel, Field, StringConstraints
 from labd.sim import registry
 from repository.evaluation import Evaluation, SuiteInfo
 from repository.slots import State as SlotState
-from repository.trial import MAX_ID, Kind, Outcome, PinnedRecord, Status, Trial, Value
+from repository.trial import MAX_ID, Kind, Outcome, PinnedRecord, Status, TeamRef, Trial, Value
 from scheduler.states import Cancel, Stage, State
 
 if TYPE_CHECKING:
@@ -71,6 +71,9 @@ class TrialSummary(BaseModel):
     submitter: str
     public: bool
     rerun_of: int | None
+    away: TeamRef | None = Field(
+        None, description="a match's leg: the team that played away (the code above: home)"
+    )
     verdict: str | None = Field(description="a rerun's: reproduced, or where it diverged")
     reproduced: bool | None
     divergence: str | None
@@ -277,7 +280,18 @@ def summary(trial: Trial, base: str) -> dict[str, Any]:
     """The fields of ``TrialSummary`` for ``trial``, with links under ``base``."""
     link = f"{base}/api/trials/{trial.id}"
     return {
-        **trial.model_dump(exclude={"mcap", "mcap_size", "stdout", "stderr"}),
+        **trial.model_dump(
+            exclude={
+                "mcap",
+                "mcap_size",
+                "stdout",
+                "stderr",
+                "away_repository",
+                "away_ref",
+                "away_commit",
+            }
+        ),
+        "away": trial.away,
         "reward": trial.reward,
         "verdict": trial.verdict,
         "url": link,

@@ -7,12 +7,22 @@ import sqlalchemy as sa
 
 from repository import index as current
 from repository.errors import SchemaMismatch
-from repository.index import Index, connect
+from repository.index import SCHEMA_VERSION, Index, connect
 from repository.migrate import schema_of, upgrade
-from repository.trial import Kind, Order, Outcome, PinnedRecord, Status
+from repository.trial import Kind, Order, Outcome, PinnedRecord, Status, TeamRef
 
 NEW_COLUMNS = {"kind", "outcome", "reward", "signature", "data"}
 SCHEMA_3_COLUMNS = {"lab_fault"}
+SCHEMA_4_COLUMNS = {"away_repository", "away_ref", "away_commit"}
+
+
+def before_schema_4(db: sa.Connection) -> None:
+    """Take away what schema 4 added: matches, and a leg's away team on its trial."""
+    db.execute(sa.text("DROP INDEX ix_trials_away_commit"))
+    db.execute(sa.text("DROP TABLE match_legs"))
+    db.execute(sa.text("DROP TABLE matches"))
+    for column in sorted(SCHEMA_4_COLUMNS):
+        db.execute(sa.text(f"ALTER TABLE trials DROP COLUMN {column}"))
 
 
 def schema_1(url: str) -> None:
@@ -20,6 +30,7 @@ def schema_1(url: str) -> None:
     engine = connect(url)
     current.metadata.create_all(engine)
     with engine.begin() as db:  # take away what schema 2 added
+        before_schema_4(db)
         for index in (
             "ix_trials_outcome",
             "ix_trials_task_outcome",
@@ -63,7 +74,7 @@ def test_an_old_index_is_refused_with_the_command_that_upgrades_it(database_url)
     schema_1(database_url)
     with pytest.raises(SchemaMismatch, match="labd migrate") as caught:
         Index.open(database_url)
-    assert (caught.value.found, caught.value.expected) == (1, 3)
+    assert (caught.value.found, caught.value.expected) == (1, SCHEMA_VERSION)
     engine = connect(database_url)
     assert schema_of(engine) == 1
     columns = {c["name"] for c in sa.inspect(engine).get_columns("trials")}
@@ -76,13 +87,13 @@ def test_the_upgrade_keeps_every_row_and_reads_each_status_anew(database_url):
     schema_1(database_url)
     engine = connect(database_url)
     done = upgrade(engine)
-    assert (done.before, done.after) == (1, 3)
+    assert (done.before, done.after) == (1, SCHEMA_VERSION)
     assert done.changed == {
         "succeeded -> success": 1,
         "succeeded -> fail": 2,
         "failed -> error": 1,
     }
-    assert "upgraded the index from schema 1 to 3" in str(done)
+    assert f"upgraded the index from schema 1 to {SCHEMA_VERSION}" in str(done)
     assert upgrade(engine).changed == {}  # a second run does nothing
     engine.dispose()
     index = Index.open(database_url)
@@ -136,6 +147,7 @@ def test_a_schema_2_index_upgrades_to_say_whose_fault_an_error_was(database_url)
         "reason": "its worker was lost 3 times; the lab gave up",
     }
     with engine.begin() as db:
+        before_schema_4(db)
         db.execute(sa.text("ALTER TABLE trials DROP COLUMN lab_fault"))
         db.execute(sa.insert(current.meta).values(key="schema", value="2"))
     trials = sa.Table("trials", sa.MetaData(), autoload_with=engine)
@@ -144,7 +156,7 @@ def test_a_schema_2_index_upgrades_to_say_whose_fault_an_error_was(database_url)
     with pytest.raises(SchemaMismatch, match="labd migrate"):
         Index.open(database_url)
     done = upgrade(engine)
-    assert (done.before, done.after, done.changed) == (2, 3, {})
+    assert (done.before, done.after, done.changed) == (2, SCHEMA_VERSION, {})
     engine.dispose()
     index = Index.open(database_url)
     try:
@@ -183,5 +195,57 @@ def test_an_upgraded_index_keeps_the_data_a_trial_pins(database_url):
         )
         new = index.add_trial(order, submitter="alice")
         assert index.trial(new).data == [pinned]
+    finally:
+        index.close()
+
+
+def test_a_schema_3_index_upgrades_to_hold_matches(database_url):
+    """Schema 3 → 4 adds the matches and a leg's away team: the trials filed before have
+    none, and a leg queued after keeps its away team."""
+    engine = connect(database_url)
+    current.metadata.create_all(engine)
+    with engine.begin() as db:
+        before_schema_4(db)
+        db.execute(sa.insert(current.meta).values(key="schema", value="3"))
+    old = sa.Table("trials", sa.MetaData(), autoload_with=engine)
+    with engine.begin() as db:
+        db.execute(
+            sa.insert(old),
+            [
+                {
+                    "kind": "trial",
+                    "repository": "https://example.org/r.git",
+                    "commit": "a" * 40,
+                    "task": "icreate-maze",
+                    "params": {},
+                    "seed": 0,
+                    "submitter": "alice",
+                    "public": True,
+                    "status": "queued",
+                    "reason": "waiting for a worker",
+                    "created": 1.0,
+                    "attempts": 0,
+                    "cancel_requested": False,
+                }
+            ],
+        )
+    with pytest.raises(SchemaMismatch, match="labd migrate"):
+        Index.open(database_url)
+    done = upgrade(engine)
+    assert (done.before, done.after) == (3, SCHEMA_VERSION)
+    assert {"matches", "match_legs"} <= set(sa.inspect(engine).get_table_names())
+    engine.dispose()
+    index = Index.open(database_url)
+    try:
+        assert index.trial(1).away is None
+        away = TeamRef(repository="https://example.org/b.git", commit="b" * 40)
+        leg = Order(
+            repository="https://example.org/a.git",
+            commit="c" * 40,
+            task="soccer-1v1",
+            kind=Kind.MATCH,
+            away=away,
+        )
+        assert index.trial(index.add_trial(leg, submitter="alice")).order == leg
     finally:
         index.close()
