@@ -50,9 +50,10 @@ def keys(manifest: dict[str, Any], prefix: str = "") -> list[str]:
 def test_every_kind_is_in_the_set():
     """The set has each optional part of a manifest at least once, and both kinds."""
     manifests = [loaded(name) for name in NAMES]
-    trials = [m for m in manifests if "robot" not in m]
+    legs = [m for m in manifests if m.get("kind") == "match"]
+    trials = [m for m in manifests if "robot" not in m and m not in legs]
     drives = [m for m in manifests if "robot" in m]
-    assert len(trials) >= 10 and len(drives) >= 5
+    assert len(trials) >= 10 and len(drives) >= 5 and legs
     controller = [key for m in trials for key in m["controller"]]
     for key in ("interfaces", "interfaces_sha256", "node_packages_sha256"):
         assert key in controller
@@ -110,7 +111,7 @@ def _writers_order(manifest: dict[str, Any]) -> list[str]:
 
 @pytest.mark.parametrize("name", NAMES)
 def test_the_lab_s_constructors_write_each_stored_manifest(name):
-    """``Manifest.trial`` and ``Manifest.drive``, given the parts a stored manifest says
+    """``Manifest.trial``, ``Manifest.match`` and ``Manifest.drive``, given the parts a stored manifest says
     ran, write it again, byte for byte and key for key: what the runner and a live robot
     write is what records hold."""
     read = Manifest.from_json(loaded(name))
@@ -128,6 +129,17 @@ def test_the_lab_s_constructors_write_each_stored_manifest(name):
             model_sha256=read.model_sha256,
             data=[_pinned(p.trial, p.data_digest, p.mcap) for p in read.data],
             blind=read.blind,
+        )
+    elif read.kind is Kind.MATCH:
+        assert read.runtime is not None
+        made = Manifest.match(
+            teams=read.teams,
+            task=task,
+            parameters=dict(reversed(params.items())),
+            seed=read.seed,
+            runtime=read.runtime,
+            versions=versions,
+            model_sha256=read.model_sha256,
         )
     else:
         assert read.robot is not None and read.driver is not None
@@ -177,6 +189,26 @@ def test_what_readers_ask_is_an_attribute():
     )  # fmt: skip
     assert drive.driver == Driver("guest:page", "vidéo", "séance-1 ✓", claimed_user="Zoë")
     assert drive.robot == "pr2-1" and drive.task.name == "pr2-table"
+
+
+def test_a_leg_s_manifest_names_both_teams_and_no_code_of_its_own():
+    """A match leg's manifest has a team for each side and no code, controller or data
+    of its own; one that names a single team, or keys it does not write, is refused."""
+    leg = Manifest.from_json(loaded("match-leg-forfeit"))
+    assert (leg.kind, leg.repository, leg.commit, leg.realtime, leg.live) == (
+        Kind.MATCH, None, None, False, False
+    )  # fmt: skip
+    assert sorted(leg.teams) == ["away", "home"]
+    assert leg.teams["home"].code.repository.endswith("soccer-chaser")
+    assert leg.teams["away"].controller.command == ("python", "still.py")
+    lone = loaded("match-leg-forfeit")
+    del lone["teams"]["away"]
+    with pytest.raises(ManifestError, match="manifest.teams: must name two sides or more"):
+        Manifest.from_json(lone)
+    extra = loaded("match-leg-forfeit")
+    extra["teams"]["home"]["data"] = []
+    with pytest.raises(ManifestError, match="manifest.teams.home: 'data' is not a key"):
+        Manifest.from_json(extra)
 
 
 def _without(manifest: dict[str, Any], dotted: str) -> dict[str, Any]:

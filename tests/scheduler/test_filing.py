@@ -9,6 +9,7 @@ import pytest
 
 from repository.digests import manifest_digest
 from repository.index import Index
+from repository.manifest import Code, Controller, Manifest, TaskVersion, Team, Versions
 from repository.signing import Keyring
 from repository.trial import Filing, Order, Trial
 from scheduler.errors import FilingRefused
@@ -211,3 +212,53 @@ def test_a_worker_whose_filing_is_refused_files_an_error_saying_why(index, tmp_p
         " not 'success'"
     )
     assert row.signature is not None and row.signature["statement"]["mcap"] is None
+
+
+def test_a_leg_s_record_names_both_of_its_teams_and_home_s_logs():
+    """A match leg's manifest must name the trial's own code at home and its away team
+    at away, and its stdout is home's log: the record of another pairing, or with the
+    sides swapped, is refused."""
+    home = Code("/home-team", "a" * 40, "sha256:" + "0" * 64, None, "", dirty=False)
+    away = Code("/away-team", "b" * 40, "sha256:" + "0" * 64, None, "", dirty=False)
+    team = Controller(("python", "c.py"), False, None, None)
+
+    def leg_manifest(first: Code, second: Code) -> dict[str, object]:
+        return Manifest.match(
+            teams={"home": Team(first, team), "away": Team(second, team)},
+            task=TaskVersion("soccer-1v1", "1"),
+            parameters={"time_limit": 30.0},
+            seed=4,
+            runtime="in-process",
+            versions=Versions.here(),
+            model_sha256="0" * 64,
+        ).to_json()
+
+    leg = trial(
+        kind="match",
+        repository="/home-team",
+        commit="a" * 40,
+        task="soccer-1v1",
+        away_repository="/away-team",
+        away_commit="b" * 40,
+    )
+    expected = Expected(
+        values={"time_limit": 30.0}, version="1", digest_topics=TOPICS, sides=("home", "away")
+    )
+    logs = {"outcome.json": "sha256:" + "1" * 64, "home.stdout.log": "sha256:" + "2" * 64}
+    for manifest, wrong in (
+        (leg_manifest(home, away), []),
+        (leg_manifest(away, home), ["repository", "commit", "away repository", "away commit"]),
+    ):
+        filing = honest(manifest=manifest, manifest_digest=manifest_digest(manifest))
+        record = RecordFacts(manifest, "d" * 64, OUTCOME, logs)
+        found = filing_problems(leg, filing, record, expected=expected, size=1000)
+        named = {p.split(" is ")[0] for p in found}
+        assert named == {f"manifest: its {name}" for name in wrong}, found
+    plain = filing_problems(
+        leg,
+        honest(manifest=leg_manifest(home, away)),
+        RecordFacts(leg_manifest(home, away), "d" * 64, OUTCOME, RECORD.attachments),
+        expected=expected,
+        size=1000,
+    )
+    assert any(p.startswith("stdout: the record's home.stdout.log") for p in plain), plain

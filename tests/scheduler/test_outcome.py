@@ -5,10 +5,10 @@ from __future__ import annotations
 import pytest
 
 from repository.digests import manifest_digest as digest
-from repository.trial import Outcome, Status
+from repository.trial import EpisodeStatus, Outcome, Status
 from sandbox.api import Exit, Limits
 from scheduler.host import Episode
-from scheduler.outcome import crash_summary, judge
+from scheduler.outcome import crash_summary, judge, judge_leg
 
 MID = Episode(tick=3, running=True, status="running", reason="", achieved=False, diverged=False)
 TRACEBACK = b"""Traceback (most recent call last):
@@ -142,3 +142,35 @@ def test_manifest_digest_is_canonical():
     """Key order does not change the digest; any value does."""
     assert digest({"a": 1, "b": [1, 2]}) == digest({"b": [1, 2], "a": 1})
     assert digest({"a": 1}) != digest({"a": 2})
+
+
+EPISODE = Episode(40, False, EpisodeStatus.SUCCEEDED, "home scored", achieved=True, diverged=False)
+
+
+def test_a_leg_is_won_by_goals_or_drawn_at_the_time_limit():
+    ending, result = judge_leg(EPISODE, {"home": 1, "away": 0}, {})
+    assert (ending.outcome, result) == (
+        Outcome.SUCCESS, {"winner": "home", "ended_by": "goal", "forfeited": ""}
+    )  # fmt: skip
+    assert ending.reason == "home won 1-0 at tick 40 (home scored)"
+    timed = Episode(1800, False, EpisodeStatus.FAILED, "no goal in 45 s", False, False)
+    ending, result = judge_leg(timed, {"home": 0, "away": 0}, {})
+    assert result == {"winner": "draw", "ended_by": "time", "forfeited": ""}
+    assert ending.outcome is Outcome.SUCCESS and ending.reason.startswith("a draw, 0-0, at tick")
+
+
+def test_a_side_that_forfeits_loses_and_every_side_forfeiting_is_no_result():
+    running = Episode(12, True, EpisodeStatus.RUNNING, "", achieved=False, diverged=False)
+    late = {"away": "sent no /lab/step within 10 s of tick 12"}
+    ending, result = judge_leg(running, {"home": 0, "away": 0}, late)
+    assert result == {"winner": "home", "ended_by": "forfeit", "forfeited": "away"}
+    assert ending.reason == (
+        "home wins by forfeit at tick 12: away sent no /lab/step within 10 s of tick 12"
+    )
+    both = {"home": "its controller exited with 1", "away": "sent no /lab/step"}
+    ending, result = judge_leg(running, {"home": 0, "away": 0}, both)
+    assert ending.outcome is Outcome.ERROR and result["winner"] == ""
+    assert ending.reason.startswith("no result, every side forfeited: home its controller")
+    broke = Episode(3, False, EpisodeStatus.FAILED, "the physics diverged", False, diverged=True)
+    ending, result = judge_leg(broke, {"home": 0, "away": 0}, {})
+    assert ending.outcome is Outcome.ERROR and result == {}
