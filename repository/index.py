@@ -479,7 +479,7 @@ class Index:
         if f.repository is not None:
             conditions.append(c.repository.in_(spellings(f.repository)))
         if f.commit is not None:
-            conditions.append(commit_condition(f.commit))
+            conditions.append(played_by(f.commit))
         if f.task is not None:
             conditions.append(c.task == f.task)
         if f.status is not None:
@@ -506,14 +506,13 @@ class Index:
 
     def commits(self, prefix: str) -> list[str]:
         """The full commits that start with ``prefix`` (at most a few)."""
-        query = (
-            sa.select(trials.c.commit)
-            .where(commit_condition(prefix))
-            .group_by(trials.c.commit)
-            .limit(10)
+        own = sa.select(trials.c.commit.label("commit")).where(commit_condition(prefix))
+        away = sa.select(trials.c.away_commit.label("commit")).where(
+            commit_condition(prefix, trials.c.away_commit)
         )
+        query = sa.select(sa.union(own, away).subquery().c.commit).limit(10)
         with self.engine.connect() as db:
-            return [r[0] for r in db.execute(query)]
+            return sorted(r[0] for r in db.execute(query))
 
     def commit_page(self, commit: str, *, limit: int = 200) -> CommitPage:
         """A commit's trials, newest first, each original with its reruns.
@@ -531,7 +530,7 @@ class Index:
         full = found[0]
         query = (
             sa.select(trials)
-            .where(trials.c.commit == full, ~hidden(trials.c.id))
+            .where(played_by(full), ~hidden(trials.c.id))
             .order_by(trials.c.id.desc())
             .limit(limit + 1)
         )
@@ -555,7 +554,10 @@ class Index:
                 counts["pending"] += 1
         return CommitPage(
             commit=full,
-            repositories=sorted({r.repository for r in rows}),
+            repositories=sorted(
+                {r.repository for r in rows if r.commit == full}
+                | {r.away_repository for r in rows if r.away_commit == full and r.away_repository}
+            ),
             trials=originals,
             reruns=reruns,
             rerun_counts=counts,
@@ -661,14 +663,24 @@ def spellings(repository: str) -> list[str]:
     return sorted({repository, base, base + ".git"})
 
 
-def commit_condition(commit: str) -> sa.ColumnElement[bool]:
-    """Rows whose commit is ``commit`` or starts with it (an index range, on any database)."""
+def commit_condition(
+    commit: str, column: sa.ColumnElement[str] | None = None
+) -> sa.ColumnElement[bool]:
+    """Rows whose commit is ``commit`` or starts with it (an index range, on any database);
+    of ``column`` if given (a match leg's away team's)."""
     commit = commit.lower()
     if not 4 <= len(commit) <= 40 or not set(commit) <= HEX:
         raise ArchiveError(f"commit {commit!r}: give 4 to 40 hexadecimal digits")
+    of = trials.c.commit if column is None else column
     if len(commit) == 40:
-        return trials.c.commit == commit
-    return sa.and_(trials.c.commit >= commit, trials.c.commit < commit + "g")
+        return of == commit
+    return sa.and_(of >= commit, of < commit + "g")
+
+
+def played_by(commit: str) -> sa.ColumnElement[bool]:
+    """Trials of ``commit`` (or of the commits starting with it): its own, and the legs
+    of matches it played away."""
+    return sa.or_(commit_condition(commit), commit_condition(commit, trials.c.away_commit))
 
 
 def hidden(trial_id: sa.ColumnElement[int]) -> sa.Exists:

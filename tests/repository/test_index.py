@@ -8,7 +8,7 @@ import sqlalchemy as sa
 from repository.errors import ArchiveError, RecordNotFound, SchemaMismatch
 from repository.index import Filters, Sort
 from repository.tables import meta
-from repository.trial import Kind, Order, Outcome, Status
+from repository.trial import Kind, Order, Outcome, Status, TeamRef
 
 
 def trial(index, commit, *, rerun_of=None, seed=0):
@@ -127,3 +127,26 @@ def test_sorting_by_reward(index):
     assert [t.id for t in best.items] == [ids[a, 0], ids[b, 0], ids[a, 1]]
     rest = index.find(Filters(task="icreate-maze"), order=Sort.REWARD, limit=3, offset=3)
     assert [t.id for t in rest.items] == [rerun, ids[b, 1]]
+
+
+def test_a_commit_s_page_and_list_hold_the_legs_it_played_away(index):
+    """A match's leg is its home team's trial and its away team's too: the away commit's
+    page and its trials list it, and name both repositories' parts it played."""
+    home, away = "a" * 40, "b" * 40
+    leg = Order(
+        repository="https://example.org/home.git",
+        commit=home,
+        task="soccer-1v1",
+        kind=Kind.MATCH,
+        away=TeamRef(repository="https://example.org/away.git", commit=away),
+    )
+    leg_id = index.add_trial(leg, submitter="alice")
+    own = index.add_trial(
+        Order(repository="https://example.org/away.git", commit=away, task="soccer-1v1"),
+        submitter="alice",
+    )
+    page = index.commit_page(away[:8])
+    assert (page.commit, [t.id for t in page.trials]) == (away, [own, leg_id])
+    assert page.repositories == ["https://example.org/away.git"]
+    assert [t.id for t in index.find(Filters(commit=away[:6])).items] == [own, leg_id]
+    assert [t.id for t in index.commit_page(home).trials] == [leg_id]
