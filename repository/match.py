@@ -18,12 +18,13 @@ finished match of it whose every leg with a result was verified by its replay.
 from __future__ import annotations
 
 import datetime as dt
+import itertools
 from collections.abc import Mapping, Sequence
 from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
-from repository.ladder import Leg, Rating, ladder
+from repository.ladder import CENTRE, Leg, Rating, ladder
 from repository.trial import Outcome, Status, TeamRef
 
 Team = Literal["a", "b"]
@@ -211,6 +212,10 @@ def ladder_legs(matches: Sequence[Match]) -> list[Leg]:
     return legs
 
 
+PROVISIONAL = 3  # matches under which a rating is provisional: one lucky match says little
+OPPONENTS = 3  # matches a commit joining a ladder is given
+
+
 class LadderRow(BaseModel):
     """One commit on a task's ladder (``GET /api/ladders/{task}``)."""
 
@@ -224,6 +229,9 @@ class LadderRow(BaseModel):
     wins: int
     losses: int
     draws: int
+    provisional: bool = Field(
+        default=False, description=f"fewer than {PROVISIONAL} matches: a rating to take lightly"
+    )
 
     @classmethod
     def of(cls, rating: Rating) -> LadderRow:
@@ -237,6 +245,7 @@ class LadderRow(BaseModel):
             wins=rating.wins,
             losses=rating.losses,
             draws=rating.draws,
+            provisional=rating.matches < PROVISIONAL,
         )
 
 
@@ -244,6 +253,46 @@ def ladder_of(matches: Sequence[Match], *, seed: int = 0) -> list[LadderRow]:
     """A task's ladder from its matches: Bradley-Terry ratings with bootstrap intervals
     (``repository.ladder``), best first."""
     return [LadderRow.of(r) for r in ladder(ladder_legs(matches), seed=seed)]
+
+
+class LadderEntry(BaseModel):
+    """A commit entered on a task's ladder, and who entered it."""
+
+    model_config = ConfigDict(frozen=True)
+
+    id: int
+    task: str
+    team: TeamRef
+    public: bool
+    submitter: str
+    created: dt.datetime
+
+    @property
+    def name(self) -> str:
+        return entry(self.team)
+
+
+def opponents(
+    joining: str,
+    others: Sequence[str],
+    ratings: Mapping[str, float],
+    played: Mapping[str, int],
+    *,
+    count: int = OPPONENTS,
+) -> list[str]:
+    """Whom a commit joining a ladder plays: first those with the fewest matches (so no
+    entry starves), then those rated nearest to it (an unrated commit counts as the
+    prior's 1000), each once; ties go to the earlier entry in ``others``."""
+    pool = [o for o in dict.fromkeys(others) if o != joining]
+    order = {name: n for n, name in enumerate(pool)}
+    few = sorted(pool, key=lambda o: (played.get(o, 0), order[o]))
+    mine = ratings.get(joining, CENTRE)
+    near = sorted(pool, key=lambda o: (abs(ratings.get(o, CENTRE) - mine), order[o]))
+    chosen: list[str] = []
+    turns = itertools.cycle((few, near))  # one of the fewest matches, one of the nearest...
+    while len(chosen) < min(count, len(pool)):
+        chosen.append(next(o for o in next(turns) if o not in chosen))
+    return chosen
 
 
 def statement(match: Match, finished: float) -> dict[str, Any]:

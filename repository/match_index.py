@@ -22,6 +22,7 @@ from sqlalchemy.engine import Connection
 from repository.errors import ArchiveError, RecordNotFound
 from repository.index import Index, spellings
 from repository.match import (
+    LadderEntry,
     LadderRow,
     LegRow,
     Match,
@@ -31,7 +32,7 @@ from repository.match import (
     status_of,
     verified_of,
 )
-from repository.tables import derived, match_legs, matches, trials
+from repository.tables import derived, ladder_entries, match_legs, matches, trials
 from repository.trial import Kind, Order, Outcome, Status, TeamRef
 from repository.units import moment
 from repository.well_known import REPLAY
@@ -159,6 +160,62 @@ class Matches:
     def ladder(self, task: str) -> list[LadderRow]:
         """The task's ladder: every commit that played a finished, verified match of it."""
         return ladder_of(self.of_task(task))
+
+    def add_entry(
+        self, db: Connection, *, task: str, team: TeamRef, public: bool, submitter: str
+    ) -> int:
+        """Enter ``team`` (its commit pinned) on ``task``'s ladder in the transaction
+        ``db``; its entry's id (the one it has, if that commit was entered before)."""
+        e = ladder_entries.c
+        found = db.execute(
+            sa.select(e.id).where(
+                e.task == task, e.repository == team.repository, e.commit == team.commit
+            )
+        ).scalar()
+        if found is not None:
+            return int(found)
+        result = db.execute(
+            sa.insert(ladder_entries).values(
+                task=task,
+                repository=team.repository,
+                ref=team.ref,
+                commit=team.commit,
+                public=public,
+                submitter=submitter,
+                created=self.index.clock(),
+            )
+        )
+        key = result.inserted_primary_key
+        assert key is not None
+        return int(key[0])
+
+    def entries(self, task: str) -> list[LadderEntry]:
+        """The commits entered on ``task``'s ladder, first entered first."""
+        e = ladder_entries.c
+        with self.index.engine.connect() as db:
+            rows = db.execute(sa.select(ladder_entries).where(e.task == task).order_by(e.id)).all()
+        return [
+            LadderEntry(
+                id=r.id,
+                task=r.task,
+                team=TeamRef(repository=r.repository, ref=r.ref, commit=r.commit),
+                public=r.public,
+                submitter=r.submitter,
+                created=moment(r.created),
+            )
+            for r in rows
+        ]
+
+    def joined_since(self, db: Connection, submitter: str, since: float) -> int:
+        """How many commits ``submitter`` entered on ladders since ``since``."""
+        e = ladder_entries.c
+        return int(
+            db.execute(
+                sa.select(sa.func.count())
+                .select_from(ladder_entries)
+                .where(e.submitter == submitter, e.created >= since)
+            ).scalar_one()
+        )
 
     def of_trial(self, trial_id: int) -> int | None:
         """The match the trial is a leg of, if any."""

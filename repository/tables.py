@@ -259,3 +259,20 @@ sa.Index("ix_matches_task", matches.c.task, matches.c.id)
 sa.Index("ix_matches_a_commit", matches.c.a_commit, matches.c.id)
 sa.Index("ix_matches_b_commit", matches.c.b_commit, matches.c.id)
 sa.Index("ix_matches_submitter", matches.c.submitter, matches.c.id)
+
+# The commits entered on a task's ladder (``labd ladder join``): the lab schedules their
+# matches against opponents of near rating and those with few matches (schema 4).
+ladder_entries = sa.Table(
+    "ladder_entries",
+    metadata,
+    sa.Column("id", sa.Integer, primary_key=True, autoincrement=True),
+    sa.Column("task", sa.String(64), nullable=False),
+    sa.Column("repository", sa.String(2048), nullable=False),
+    sa.Column("ref", sa.String(256)),
+    sa.Column("commit", sa.String(40), nullable=False),
+    sa.Column("public", sa.Boolean, nullable=False),
+    sa.Column("submitter", sa.String(64), nullable=False),
+    sa.Column("created", sa.Float, nullable=False),
+)
+sa.Index("ix_ladder_entries_task", ladder_entries.c.task, ladder_entries.c.id)
+sa.Index("ix_ladder_entries_submitter", ladder_entries.c.submitter, ladder_entries.c.created)

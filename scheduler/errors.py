@@ -25,6 +25,7 @@ QueueError                      a queue operation was refused
 ├── EpisodeOfEvaluation         an evaluation's episode is cancelled with its evaluation only
 ├── LegOfMatch                  a match's leg is cancelled with its match only
 ├── OverBudget                  a held-out suite takes only so many evaluations a commit, a day
+│   └── OverLadderBudget        a user enters only so many commits on ladders a day
 ├── FilingRefused               a worker's filing says what its record does not hold
 └── RemoteError                 talking to a lab's HTTP API went wrong
     ├── LabUnreachable          no lab answered at that address
@@ -340,6 +341,19 @@ class OverBudget(QueueError):
             f"{what} has used {used} of its {limit} held-out evaluation"
             f"{'' if limit == 1 else 's'} {when} (the operator's budget: a held-out suite is"
             " scored, not probed); evaluate on the public dev suite instead"
+        )
+
+
+class OverLadderBudget(OverBudget):
+    """A user enters only so many commits on ladders a day: each entry queues matches."""
+
+    def __init__(self, who: str, used: int, limit: int) -> None:
+        self.used = used
+        self.limit = limit
+        QueueError.__init__(
+            self,
+            f"{who} has entered {used} commit{'' if used == 1 else 's'} on ladders in the last"
+            f" 24 hours, the operator's budget of {limit}; try again later",
         )
 
 

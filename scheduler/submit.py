@@ -34,7 +34,7 @@ from collections.abc import Callable, Mapping
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 from repository.index import Index, User
 from repository.trial import Kind, Order, PinnedRecord, TrialRequest
@@ -47,6 +47,7 @@ from scheduler.host import TrialHost
 from scheduler.queue import Queue
 from scheduler.source import checkout
 
+R = TypeVar("R")
 log = logging.getLogger("scheduler.submit")
 
 
@@ -93,7 +94,7 @@ class Submissions:
         """``submit`` in this lab's own pool of threads (``in_pool``)."""
         return await self.in_pool(self.submit, user, request)
 
-    async def in_pool(self, call: Callable[..., int], *args: Any) -> int:
+    async def in_pool(self, call: Callable[..., R], *args: Any) -> R:
         """``call(*args)`` (a submission: it resolves a ref, so it may wait on a git
         server) in this lab's own pool of threads; ``Busy`` at once when the pool has as
         many submissions in hand as it takes.
@@ -113,7 +114,7 @@ class Submissions:
         future.add_done_callback(self._release)
         return await asyncio.wrap_future(future)
 
-    def _release(self, _: Future[int] | None = None) -> None:
+    def _release(self, _: Future[Any] | None = None) -> None:
         with self._lock:
             self._in_hand -= 1
 

@@ -8,7 +8,7 @@ public; submitting and cancelling need a token or a signed-in session.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Annotated
+from typing import Annotated, Any
 
 from fastapi import APIRouter, Depends, Query, Request
 from fastapi.responses import JSONResponse
@@ -22,7 +22,7 @@ from labd.api.state import App
 from labd.sim import registry
 from repository.match import LadderRow, Match
 from repository.match_index import MatchFilters
-from scheduler.matches import MatchRequest
+from scheduler.matches import Joined, MatchRequest, TeamRequest
 
 router = APIRouter(tags=["matches"])
 
@@ -132,3 +132,36 @@ def ladder(task: str, service: Lab) -> Ladder:
     if len(spec.sides) != 2:
         raise ApiError(404, f"{spec.name} is not played by two teams: it has no ladder")
     return Ladder(task=spec.name, rows=service.matches.ladder(spec.name))
+
+
+class JoinRequest(TeamRequest):
+    """A commit to enter on the ladder: a repository at a ref."""
+
+
+class JoinedView(BaseModel):
+    """A commit entered on a ladder, and the matches the lab queued for it."""
+
+    entry: int
+    matches: list[MatchView]
+
+
+@router.post(
+    "/api/ladders/{task}/entries",
+    status_code=201,
+    responses=responses(400, 401, 403, 404, 413, 422, 429, 503),
+)
+async def join(
+    task: str, body: JoinRequest, *, request: Request, service: Lab, app: App, user: Writer
+) -> JoinedView:
+    """Enter a commit (the ref resolved now) on the task's ladder: the lab queues its
+    matches against commits entered before, in turn those with the fewest matches and
+    those rated nearest it (each leg counts towards the daily limit; a few entries a day)."""
+    joined = await service.submissions.in_pool(_join, service, user, task, body)
+    app.on_submit()
+    base = _base(request)
+    matches = [view(service.matches.get(m), base) for m in joined.matches]
+    return JoinedView(entry=joined.entry, matches=matches)
+
+
+def _join(service: Lab, user: Any, task: str, body: JoinRequest) -> Joined:
+    return service.matchmaker.join(user, registry.get(task).name, body)

@@ -6,7 +6,15 @@ from __future__ import annotations
 import datetime as dt
 from typing import Any
 
-from repository.match import LegRow, Match, ladder_legs, ladder_of, score_of, verified_of
+from repository.match import (
+    LegRow,
+    Match,
+    ladder_legs,
+    ladder_of,
+    opponents,
+    score_of,
+    verified_of,
+)
 from repository.trial import Outcome, Status, TeamRef
 
 SIDES = ("home", "away")
@@ -96,3 +104,18 @@ def test_the_ladder_counts_finished_verified_matches_only():
     assert (top.wins, top.losses, bottom.losses, top.matches) == (6, 0, 6, 1)
     assert top.interval[0] <= top.rating and bottom.rating <= bottom.interval[1]
     assert top.rating > bottom.rating
+
+
+def test_a_joining_commit_plays_the_least_played_and_the_nearest_in_turn():
+    others = ["old", "busy", "strong", "weak", "fresh"]
+    played = {"old": 9, "busy": 12, "strong": 6, "weak": 6, "fresh": 0}
+    ratings = {"old": 1000.0, "busy": 1040.0, "strong": 1400.0, "weak": 700.0}
+    chosen = opponents("me", others, ratings, played)
+    assert chosen == ["fresh", "old", "strong"]  # fewest; nearest 1000; then fewest again
+    rated = opponents("me", others, {**ratings, "me": 1390.0}, played)
+    assert rated == ["fresh", "strong", "weak"]
+    assert opponents("me", ["me", "old"], ratings, played) == ["old"]  # never itself
+    assert opponents("me", [], ratings, played) == []
+    assert opponents("me", others, ratings, played, count=5) == [
+        "fresh", "old", "strong", "busy", "weak"
+    ]  # fmt: skip

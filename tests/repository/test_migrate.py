@@ -21,6 +21,7 @@ def before_schema_4(db: sa.Connection) -> None:
     db.execute(sa.text("DROP INDEX ix_trials_away_commit"))
     db.execute(sa.text("DROP TABLE match_legs"))
     db.execute(sa.text("DROP TABLE matches"))
+    db.execute(sa.text("DROP TABLE ladder_entries"))
     for column in sorted(SCHEMA_4_COLUMNS):
         db.execute(sa.text(f"ALTER TABLE trials DROP COLUMN {column}"))
 
@@ -233,7 +234,7 @@ def test_a_schema_3_index_upgrades_to_hold_matches(database_url):
         Index.open(database_url)
     done = upgrade(engine)
     assert (done.before, done.after) == (3, SCHEMA_VERSION)
-    assert {"matches", "match_legs"} <= set(sa.inspect(engine).get_table_names())
+    assert {"matches", "match_legs", "ladder_entries"} <= set(sa.inspect(engine).get_table_names())
     engine.dispose()
     index = Index.open(database_url)
     try:
