@@ -91,3 +91,17 @@ def test_two_chasers_play_on_the_shared_tick_and_a_rerun_is_identical(cache, tmp
     assert again.data_digest == first.data_digest
     assert again.manifest_digest == first.manifest_digest
     assert again.metrics == first.metrics
+
+
+def test_the_house_still_team_steps_to_the_end_and_the_chaser_scores_as_alone(cache, tmp_path):
+    """The house's still team (controllers/examples/soccer-still) never forfeits: the
+    chaser scores against it on the very tick it scores alone (seed 2: tick 399), since
+    a still side is what a lone trial's away side is."""
+    still = ROOT / "controllers" / "examples" / "soccer-still"
+    leg = play(cache, tmp_path / "leg", CHASER, still, seed=2)
+    assert leg.outcome is Outcome.SUCCESS, leg.reason
+    assert (leg.metrics["winner"], leg.metrics["ended_by"]) == ("home", "goal")
+    assert (leg.metrics["home_goals"], leg.metrics["away_goals"], leg.metrics["ticks"]) == (
+        1, 0, 399
+    )  # fmt: skip
+    assert (tmp_path / "leg" / "away.stdout.log").read_text().startswith("episode over: tick 399")
