@@ -4,6 +4,7 @@
     labd run PATH|URL ...          one trial, locally, with no server (the pre-flight)
     labd submit | trials | show | logs | download | rerun | cancel | export | tasks | status
                                    a running lab, through its HTTP API
+    labd match | matches | ladder  two repositories play a task teams play; a task's ratings
     labd reserve book|list|extend|release|key
                                    book a live robot for a slot; its key
     labd users add|list|password|revoke|rotate
@@ -79,6 +80,9 @@ COMMANDS = {
         "evaluate", "score a commit on a task's suite of episodes, with its uncertainty"
     ),
     "evaluations": Command("evaluate", "list evaluations, newest first"),
+    "match": Command("match", "play two repositories against each other on a task teams play"),
+    "matches": Command("match", "list matches, newest first"),
+    "ladder": Command("match", "a task's ladder: commits rated from their matches"),
     "reserve": Command("reserve", "book a live robot for a slot; your bookings"),
     "users": Command("users", "the operator's: the lab's users, their passwords and tokens"),
     "suites": Command("suites", "the operator's: the tasks' episode suites"),
