@@ -1,11 +1,12 @@
 """The lab's web pages, served beside the HTTP API: the archive to browse (``pages``),
-evaluations followed, compared and ranked (``evaluations``), forms to sign in, submit
-and rerun (``forms``), accounts and tokens (``accounts``), reservations and the robots'
-calendars (``reservations``), the live robots' pages (``robots``), and the API's own
-documentation (``/docs``, ``/redoc``), every script and style served by the lab
-(``render``), every answer with the headers that keep other sites out (``headers``). A
-page answers an error as the API's table says, as a page (``problems``); who is
-looking is a dependency (``session``)."""
+evaluations followed, compared and ranked (``evaluations``), matches followed and
+their ladders (``matches``), forms to sign in, submit and rerun (``forms``), accounts
+and tokens (``accounts``), reservations and the robots' calendars (``reservations``),
+the live robots' pages (``robots``), and the API's own documentation (``/docs``,
+``/redoc``), every script and style served by the lab (``render``), every answer with
+the headers that keep other sites out (``headers``). A page answers an error as the
+API's table says, as a page (``problems``); who is looking is a dependency
+(``session``)."""
 
 from __future__ import annotations
 
@@ -20,7 +21,16 @@ from labd.api import errors
 from labd.api.app import create_app as create_api
 from labd.api.site import RobotLink, Site
 from labd.service import Service
-from labd.web import accounts, evaluations, forms, pages, playground, reservations, robots
+from labd.web import (
+    accounts,
+    evaluations,
+    forms,
+    matches,
+    pages,
+    playground,
+    reservations,
+    robots,
+)
 from labd.web.assets import Precompressed
 from labd.web.headers import SecurityHeaders
 from labd.web.problems import PageRoute, error_page
@@ -68,6 +78,7 @@ def install(app: FastAPI) -> None:
     app.mount("/static", Precompressed(directory=STATIC), name="static")
     app.include_router(pages.router)
     app.include_router(evaluations.router)
+    app.include_router(matches.router)
     app.include_router(forms.router)
     app.include_router(robots.router)
     app.include_router(robots.api)

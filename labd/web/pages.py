@@ -5,11 +5,13 @@
     GET /trials             filters (repository, commit, task, outcome, user, time),
                             sorted by time (pages by cursor) or reward (pages by number)
     GET /trials/{id}        outcome and reason, what ran, metrics, logs, downloads, the
-                            record's plots and camera, the rerun verdict, a rerun button
+                            record's plots and camera, the rerun verdict, a rerun button;
+                            a leg of a match links its match
     GET /commits/{sha}      every trial of a commit with its reruns and verdicts
     GET /tasks/{name}       the task's documentation, parameters, suites, the leaderboard
                             of a suite's evaluations (``?suite=``, by default ``dev``:
-                            ``labd.web.evaluations``) and its recent trials
+                            ``labd.web.evaluations``), a link to its ladder when
+                            teams play it (``labd.web.matches``), and its recent trials
 
 They read the same typed records as the API (``repository.trial.Trial``), server-side;
 an unknown id or sha is a page saying so, with the API's status and words, never JSON
@@ -220,6 +222,7 @@ def trial(request: Request, trial_id: Id, service: Lab, viewer: Viewer) -> HTMLR
             "renderable": bool(record.mcap) and bool(replayed and replayed.get("ticks")),
             "ended": record.status.ended,
             "evaluation": service.evaluations.of_trial(trial_id),
+            "match": service.matches.of_trial(trial_id),
             "playground": _playground(service, record),
             "driver": _driver(record),
         },
@@ -308,6 +311,7 @@ def task(
             "observations": observations,
             "commands": commands,
             **task_board(service, spec.name, suite),
+            "ladder": len(spec.sides) == 2,
             "recent": service.index.find(Filters(task=name), limit=10).items,
         },
         user=viewer,
