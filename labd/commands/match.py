@@ -5,6 +5,7 @@
     labd matches [--task T] [--repository R] [--commit SHA] [--user U] [--limit N]
                  [--before ID] [--json]
     labd ladder TASK [--json]
+    labd ladder join REPO --task TASK [--ref REF] [--json]
 
 ``match`` queues a match (``POST /api/matches``): each seed played twice, A at home then
 B at home. With ``--wait`` it prints a line on stderr whenever the match moves, until
@@ -123,9 +124,18 @@ def add_parser(commands: Any) -> None:
     p.add_argument("--before", type=int, help="the next page: the cursor a page printed")
     server_options(p)
 
-    p = commands.add_parser("ladder")
-    p.add_argument("task", metavar="TASK", help="a task teams play (soccer-1v1)")
-    server_options(p)
+    p = commands.add_parser(
+        "ladder",
+        usage="labd ladder TASK [--json]\n"
+        "       labd ladder join REPO --task TASK [--ref REF] [--json]",
+        description="A task's ladder; or, with join, enter a commit on it: the lab queues its"
+        " matches against commits entered before (those with the fewest matches and those"
+        " rated nearest it, in turn, three at most).",
+    )
+    p.add_argument("words", nargs="+", metavar="TASK | join REPO", help="what to do")
+    p.add_argument("--task", help="join: the ladder's task (soccer-1v1)")
+    p.add_argument("--ref", help="join: the branch, tag or commit (default: its repository's HEAD)")
+    server_options(p, write=True)
 
 
 def seeds(text: str) -> int:
@@ -309,9 +319,48 @@ def matches_table(page: MatchPage) -> Iterator[str]:
         yield f"more: --before {page.next}"
 
 
+class Joined(BaseModel):
+    """``POST /api/ladders/{task}/entries`` (``labd.api.matches.JoinedView``)."""
+
+    entry: int
+    matches: list[MatchView]
+
+
 def _ladder(client: ApiClient, args: argparse.Namespace) -> int:
-    ladder = client.get(f"/api/ladders/{args.task}", Ladder)
+    words = args.words
+    if words[0] == "join":
+        if len(words) != 2 or not args.task:
+            return fail(args, "labd ladder join REPO --task TASK: one repository, and the task")
+        return _join(client, args, repository_arg(words[1]))
+    if len(words) != 1 or args.task or args.ref:
+        return fail(
+            args, "labd ladder TASK shows a ladder; labd ladder join REPO --task TASK enters one"
+        )
+    ladder = client.get(f"/api/ladders/{words[0]}", Ladder)
     emit(args, ladder.model_dump(mode="json"), lambda: ladder_table(ladder))
+    return ExitCode.SUCCESS
+
+
+def _join(client: ApiClient, args: argparse.Namespace, repository: str) -> int:
+    body = {"repository": repository, "ref": args.ref}
+    joined = client.post(f"/api/ladders/{args.task}/entries", Joined, json=body)
+
+    def lines() -> Iterator[str]:
+        if not joined.matches:
+            yield (
+                f"entered on the {args.task} ladder (entry {joined.entry}): the first one;"
+                " its matches come as others join"
+            )
+            return
+        me = joined.matches[0].a
+        yield (
+            f"{_team(me)} entered on the {args.task} ladder (entry {joined.entry}):"
+            f" {len(joined.matches)} match{'' if len(joined.matches) == 1 else 'es'} queued"
+        )
+        for m in joined.matches:
+            yield f"  match {m.id} against {_team(m.b)}: {m.page}"
+
+    emit(args, joined.model_dump(mode="json"), lines)
     return ExitCode.SUCCESS
 
 

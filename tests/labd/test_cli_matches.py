@@ -369,12 +369,37 @@ def test_the_ladder_ranks_the_strongest_first(server, teams, capsys):
     assert [int(r[3]) for r in cells] == [round(x) for x in ratings]
 
 
+def test_joining_the_ladder_queues_the_matches_it_is_given(server, teams, capsys):
+    """``labd ladder join REPO --task TASK``: the first entry waits for others, the next
+    plays it; a join without a task, or a ladder asked with two words, is a usage error."""
+    a, b = teams["a"], teams["b"]
+    code, out, err = run(capsys, "ladder", "join", str(a.path), "--task", TASK)
+    assert code == 0, err
+    assert out.startswith(f"entered on the {TASK} ladder (entry 1): the first one;")
+    code, out, err = run(capsys, "ladder", "join", str(b.path), "--task", TASK)
+    assert code == 0, err
+    first, second = out.splitlines()
+    assert first == f"{short(b)} entered on the {TASK} ladder (entry 2): 1 match queued"
+    assert second.startswith(f"  match 1 against {short(a)}: http")
+    code, out, _ = run(capsys, "ladder", "join", str(a.path), "--task", TASK, "--json")
+    joined = json.loads(out)
+    assert (joined["entry"], [m["b"]["repository"] for m in joined["matches"]]) == (
+        1, [str(b.path.resolve())]
+    )  # fmt: skip
+    assert run(capsys, "ladder", "join", str(a.path))[0] == ExitCode.USAGE
+    code, _, err = run(capsys, "ladder", TASK, "extra")
+    assert code == ExitCode.USAGE and "labd ladder TASK shows a ladder" in err
+    code, _, err = run(capsys, "ladder", "join", str(a.path), "--task", "icreate-maze")
+    assert code == ExitCode.USAGE and "icreate-maze is not played by two teams" in err
+
+
 @pytest.mark.parametrize(
     ("ours", "theirs"),
     [
         (command.MatchView, api.MatchView),
         (command.MatchPage, api.MatchPage),
         (command.Ladder, api.Ladder),
+        (command.Joined, api.JoinedView),
     ],
 )
 def test_the_command_reads_the_bodies_the_api_writes(ours, theirs):
