@@ -90,6 +90,21 @@ def test_a_mover_beats_a_team_that_never_steps_and_tops_the_ladder(cache, tmp_pa
             assert all(leg["result"] is not None for leg in played["legs"]), played["legs"]
             assert all(leg["reason"] in ("goal", "time") for leg in played["legs"])
             assert played["verified"] is True
+            for leg in forfeit["legs"] + played["legs"]:  # every leg's record signed
+                signed = client.get(f"/api/trials/{leg['trial']}").json()["signature"]
+                assert signed["statement"]["data_digest"] == leg["data_digest"]
+
+            # a leg rerun by its two commits is the same leg, bit for bit
+            first = played["legs"][0]["trial"]
+            rerun = client.post(f"/api/trials/{first}/rerun")
+            assert rerun.status_code == 201, rerun.text
+            deadline = time.monotonic() + WAIT
+            while (again := client.get(rerun.headers["location"]).json())["status"] != "finished":
+                assert time.monotonic() < deadline, again
+                time.sleep(0.5)
+            assert again["reproduced"] is True, again
+            assert again["away"]["commit"] == played["b"]["commit"], again
+            assert again["data_digest"] == played["legs"][0]["data_digest"]
 
             ladder = client.get("/api/ladders/soccer-1v1").json()
             rows = {(r["repository"], r["matches"]): r for r in ladder["rows"]}
