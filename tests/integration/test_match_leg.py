@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import asyncio
 import json
+import shutil
 from pathlib import Path
 
 import pytest
@@ -105,3 +106,16 @@ def test_the_house_still_team_steps_to_the_end_and_the_chaser_scores_as_alone(ca
         1, 0, 399
     )  # fmt: skip
     assert (tmp_path / "leg" / "away.stdout.log").read_text().startswith("episode over: tick 399")
+
+
+@pytest.mark.skipif(shutil.which("node") is None, reason="Node.js is not installed")
+def test_a_javascript_team_plays_a_python_one(cache, tmp_path):
+    """The JavaScript ball chaser (controllers/examples/soccer-chaser-js, on roslibjs) at
+    home against the Python still team: it scores on seed 2 as it does alone (tick 399)."""
+    chaser_js = ROOT / "controllers" / "examples" / "soccer-chaser-js"
+    still = ROOT / "controllers" / "examples" / "soccer-still"
+    leg = play(cache, tmp_path / "leg", chaser_js, still, seed=2)
+    assert leg.outcome is Outcome.SUCCESS, leg.reason
+    assert (leg.metrics["winner"], leg.metrics["ended_by"], leg.metrics["ticks"]) == (
+        "home", "goal", 399
+    )  # fmt: skip

@@ -36,7 +36,7 @@ const DAMPING = 0.5; // steering: on the turn rate
 
 const DEFAULT_URL = "ws://127.0.0.1:9090";
 const CONNECT_TIMEOUT = 10; // s (wall clock): a guard, never a decision
-const STEP_TIMEOUT = 30; // s the lab may take to answer /lab/step
+const STEP_TIMEOUT = 120; // s the lab may take to answer /lab/step (in a match, the other team may take a minute to start)
 // The lab's /lab/step answers: "tick 399 at 9.975 s: succeeded: home scored at 9.975 s: 1-0".
 const STEP_ANSWER = /^tick (\d+) at ([0-9.]+) s: (\w+)(?:: ([\s\S]*))?$/;
 // Once it has ended: "the episode has ended (succeeded: home scored ...)".
