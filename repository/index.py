@@ -381,6 +381,7 @@ class Index:
             "away_repository": order.away.repository if order.away else None,
             "away_ref": order.away.ref if order.away else None,
             "away_commit": order.away.commit if order.away else None,
+            "step_deadline": order.step_deadline,
             "status": Status.QUEUED.value,
             "reason": "waiting for a worker",
             "created": self.clock(),

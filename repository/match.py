@@ -31,6 +31,8 @@ Team = Literal["a", "b"]
 Result = Literal["a", "b", "draw"]
 Reason = Literal["goal", "time", "forfeit"]
 MAX_SEEDS = 50  # seeds a match may play (two legs each)
+STEP_DEADLINE = 10.0  # seconds a team may take to step once the other has, by default
+MAX_STEP_DEADLINE = 60.0  # the longest a match may give (its legs hold a worker meanwhile)
 MATCH = "labd.match/1"  # the schema of a match's signed statement
 
 
@@ -148,6 +150,7 @@ class Match(BaseModel):
     params: dict[str, Any]
     a: TeamRef
     b: TeamRef
+    step_deadline: float = Field(description="seconds a team may keep the other waiting")
     submitter: str
     status: Status
     created: dt.datetime
@@ -309,6 +312,7 @@ def statement(match: Match, finished: float) -> dict[str, Any]:
         "params": match.params,
         "a": match.a.model_dump(),
         "b": match.b.model_dump(),
+        "step_deadline": match.step_deadline,
         "legs": [leg.stated() for leg in match.legs],
         "score": match.score.model_dump(),
     }

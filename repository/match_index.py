@@ -58,21 +58,18 @@ class MatchPage:
     next: int | None
 
 
-def leg_orders(a: Order, b: TeamRef, seeds: Sequence[int]) -> list[tuple[int, Team, Order]]:
+def leg_orders(
+    a: Order, b: TeamRef, seeds: Sequence[int], step_deadline: float
+) -> list[tuple[int, Team, Order]]:
     """The legs of a match of ``a`` (its code, task, parameters; resolved) against
     ``b``: each seed twice, A at home then B at home; (seed, home, order) each."""
     b_order = a.model_copy(update={"repository": b.repository, "ref": b.ref, "commit": b.commit})
     a_team = TeamRef(repository=a.repository, ref=a.ref, commit=a.commit)
+    leg = {"kind": Kind.MATCH, "step_deadline": step_deadline}
     legs: list[tuple[int, Team, Order]] = []
     for seed in seeds:
-        legs.append((seed, "a", a.model_copy(update={"seed": seed, "kind": Kind.MATCH, "away": b})))
-        legs.append(
-            (
-                seed,
-                "b",
-                b_order.model_copy(update={"seed": seed, "kind": Kind.MATCH, "away": a_team}),
-            )
-        )
+        legs.append((seed, "a", a.model_copy(update={**leg, "seed": seed, "away": b})))
+        legs.append((seed, "b", b_order.model_copy(update={**leg, "seed": seed, "away": a_team})))
     return legs
 
 
@@ -93,6 +90,7 @@ class Matches:
         params: Mapping[str, Any],
         a: TeamRef,
         b: TeamRef,
+        step_deadline: float,
         submitter: str,
         legs: Sequence[tuple[int, Team]],
         trial_ids: Sequence[int],
@@ -112,6 +110,7 @@ class Matches:
                 b_repository=b.repository,
                 b_ref=b.ref,
                 b_commit=b.commit,
+                step_deadline=step_deadline,
                 submitter=submitter,
                 created=self.index.clock(),
                 cancel_requested=False,
@@ -326,6 +325,7 @@ def _match(row: Any, found: list[tuple[LegRow, float | None]]) -> Match:
         params=dict(row.params),
         a=TeamRef(repository=row.a_repository, ref=row.a_ref, commit=row.a_commit),
         b=TeamRef(repository=row.b_repository, ref=row.b_ref, commit=row.b_commit),
+        step_deadline=row.step_deadline,
         submitter=row.submitter,
         status=status,
         created=moment(row.created),

@@ -1,8 +1,8 @@
 """Upgrading an archive's index in place, from an older schema to this labd's.
 
 Schema 4 adds matches (the ``matches`` and ``match_legs`` tables) and, on each trial,
-the away team of a match's leg (``away_repository``, ``away_ref``, ``away_commit``;
-none for the trials filed before).
+the away team of a match's leg and its step deadline (``away_repository``,
+``away_ref``, ``away_commit``, ``step_deadline``; none for the trials filed before).
 
 Schema 3 says of each trial whether its error was the lab's fault (``lab_fault``: its
 worker lost, its storage failed), so that an evaluation with such an episode is partial
@@ -99,6 +99,7 @@ def _from_3(db: Connection) -> None:
         ("away_repository", "VARCHAR(2048)"),
         ("away_ref", "VARCHAR(256)"),
         ("away_commit", "VARCHAR(40)"),
+        ("step_deadline", "FLOAT"),
     ):
         db.execute(sa.text(f"ALTER TABLE trials ADD COLUMN {column} {kind}"))
 

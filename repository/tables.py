@@ -103,6 +103,7 @@ trials = sa.Table(
     sa.Column("away_repository", sa.String(2048)),
     sa.Column("away_ref", sa.String(256)),
     sa.Column("away_commit", sa.String(40)),
+    sa.Column("step_deadline", sa.Float),  # seconds a team may take to step
     # the queue
     sa.Column("status", sa.String(16), nullable=False),
     sa.Column("outcome", sa.String(16)),  # finished trials only
@@ -240,6 +241,7 @@ matches = sa.Table(
     sa.Column("b_repository", sa.String(2048), nullable=False),
     sa.Column("b_ref", sa.String(256)),
     sa.Column("b_commit", sa.String(40), nullable=False),
+    sa.Column("step_deadline", sa.Float, nullable=False),  # seconds a team may take to step
     sa.Column("submitter", sa.String(64), nullable=False),
     sa.Column("created", sa.Float, nullable=False),
     sa.Column("cancel_requested", sa.Boolean, nullable=False),

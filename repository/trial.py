@@ -173,11 +173,18 @@ class Order(BaseModel):
     away: TeamRef | None = Field(
         default=None, description="a match's leg: the team at away (this order's code is home)"
     )
+    step_deadline: float | None = Field(
+        default=None,
+        gt=0,
+        description="a match's leg: seconds a team may keep the other waiting for its step",
+    )
 
     @model_validator(mode="after")
     def _teams(self) -> Self:
         if (self.kind is Kind.MATCH) != (self.away is not None):
             raise ValueError("a match's leg, and only a match's leg, names its away team")
+        if self.step_deadline is not None and self.kind is not Kind.MATCH:
+            raise ValueError("only a match's leg has a step deadline")
         return self
 
     def episode(self, seed: int) -> Order:
@@ -285,6 +292,7 @@ class Trial(BaseModel):
     away_repository: str | None = None
     away_ref: str | None = None
     away_commit: str | None = None
+    step_deadline: float | None = None
     # where it is
     status: Status
     outcome: Outcome | None
@@ -327,6 +335,7 @@ class Trial(BaseModel):
             rerun_of=self.rerun_of,
             data=tuple(self.data or ()),
             away=self.away,
+            step_deadline=self.step_deadline,
         )
 
     @property

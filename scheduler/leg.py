@@ -36,6 +36,7 @@ from pathlib import Path
 
 from repository.digests import readable_json
 from repository.manifest import Manifest, Team
+from repository.match import STEP_DEADLINE
 from repository.trial import Ending, Order, Outcome, Value
 from repository.well_known import MANIFEST, OUTCOME, side_logs
 from sandbox.api import Backend, Exit, Running, SandboxError
@@ -54,7 +55,6 @@ from scheduler.runner import (
 from scheduler.states import Stage
 
 log = logging.getLogger("scheduler.leg")
-STEP_DEADLINE = 10.0  # seconds a side may take to step once the other has
 
 
 @dataclass(frozen=True)

@@ -29,7 +29,17 @@ from pydantic import BaseModel, ConfigDict, Field
 from sqlalchemy.engine import Connection
 
 from repository.index import User
-from repository.match import MAX_SEEDS, Match, Team, entry, ladder_of, opponents, statement
+from repository.match import (
+    MAX_SEEDS,
+    MAX_STEP_DEADLINE,
+    STEP_DEADLINE,
+    Match,
+    Team,
+    entry,
+    ladder_of,
+    opponents,
+    statement,
+)
 from repository.match_index import Matches, leg_orders
 from repository.signing import Keyring
 from repository.trial import Order, Status, TeamRef, Value
@@ -59,6 +69,12 @@ class MatchRequest(BaseModel):
     a: TeamRequest
     b: TeamRequest
     seeds: int = Field(2, ge=1, le=MAX_SEEDS, description="seeds 0 to N-1, two legs each")
+    step_deadline: float = Field(
+        STEP_DEADLINE,
+        ge=1,
+        le=MAX_STEP_DEADLINE,
+        description="seconds a team may keep the other waiting for its step before it forfeits",
+    )
     params: dict[str, Value] = Field(default_factory=dict, description="task parameters")
 
 
@@ -84,6 +100,7 @@ class _Planned:
 
     a: Order
     b: TeamRef
+    step_deadline: float
     legs: list[tuple[int, Team, Order]]
 
 
@@ -123,10 +140,12 @@ class Matchmaker:
             )
         return order
 
-    def _plan(self, a: Order, b: Order, seeds: int) -> _Planned:
+    def _plan(self, a: Order, b: Order, seeds: int, step_deadline: float) -> _Planned:
         b_team = TeamRef(repository=b.repository, ref=b.ref, commit=b.commit)
         a = a.model_copy(update={"public": a.public and b.public})
-        return _Planned(a, b_team, leg_orders(a, b_team, range(seeds)))
+        return _Planned(
+            a, b_team, step_deadline, leg_orders(a, b_team, range(seeds), step_deadline)
+        )
 
     def _queue(
         self, user: User, task: str, planned: Sequence[_Planned], then: Callable[[Connection], None]
@@ -149,6 +168,7 @@ class Matchmaker:
                         params=a.params,
                         a=TeamRef(repository=a.repository, ref=a.ref, commit=a.commit),
                         b=plan.b,
+                        step_deadline=plan.step_deadline,
                         submitter=user.name,
                         legs=[(seed, home) for seed, home, _ in plan.legs],
                         trial_ids=legs,
@@ -168,7 +188,10 @@ class Matchmaker:
         a = self._team("A", request.a, request.task, request.params)
         b = self._team("B", request.b, request.task, request.params)
         [match_id] = self._queue(
-            user, request.task, [self._plan(a, b, request.seeds)], then=lambda _db: None
+            user,
+            request.task,
+            [self._plan(a, b, request.seeds, request.step_deadline)],
+            then=lambda _db: None,
         )
         log.info(
             "match %d queued for %s: %s@%s against %s@%s",
@@ -203,7 +226,7 @@ class Matchmaker:
             rival = self._team(
                 name, TeamRequest(repository=other.repository, ref=other.commit), task, {}
             )
-            planned.append(self._plan(order, rival, seeds))
+            planned.append(self._plan(order, rival, seeds, STEP_DEADLINE))
         entry_id: list[int] = []
 
         def enter(db: Connection) -> None:

@@ -36,6 +36,7 @@ from typing import Any, Protocol
 
 from repository.errors import ArchiveError
 from repository.index import Derived
+from repository.match import STEP_DEADLINE
 from repository.trial import Claim, Ending, Filing, Kind, Status, Trial
 from repository.well_known import (
     LOGS,
@@ -249,7 +250,7 @@ class Worker:
             )
         assert order.task is not None  # the queue holds its orders resolved
         home, away = self.host.sides(order.task)[:2]
-        team = {"kind": Kind.TRIAL, "away": None}
+        team = {"kind": Kind.TRIAL, "away": None, "step_deadline": None}
         orders = {
             home: order.model_copy(update=team),
             away: order.model_copy(update={**team, **order.away.model_dump(), "ref": None}),
@@ -260,7 +261,9 @@ class Worker:
             host=self.host,
             out=out,
             cache=self.config.cache,
-            options=LegOptions(run=self.config.options),
+            options=LegOptions(
+                run=self.config.options, step_deadline=order.step_deadline or STEP_DEADLINE
+            ),
             progress=progress,
         )
 

@@ -74,6 +74,9 @@ class TrialSummary(BaseModel):
     away: TeamRef | None = Field(
         None, description="a match's leg: the team that played away (the code above: home)"
     )
+    step_deadline: float | None = Field(
+        None, description="a match's leg: seconds a team may keep the other waiting for its step"
+    )
     verdict: str | None = Field(description="a rerun's: reproduced, or where it diverged")
     reproduced: bool | None
     divergence: str | None

@@ -42,7 +42,16 @@ from labd.commands.common import (
     server_options,
 )
 from repository.errors import ArchiveError
-from repository.match import MAX_SEEDS, LadderRow, LegRow, Match, Team, other
+from repository.match import (
+    MAX_SEEDS,
+    MAX_STEP_DEADLINE,
+    STEP_DEADLINE,
+    LadderRow,
+    LegRow,
+    Match,
+    Team,
+    other,
+)
 from repository.trial import Status, TeamRef
 from scheduler.client import ApiClient
 from scheduler.errors import RemoteError
@@ -104,6 +113,14 @@ def add_parser(commands: Any) -> None:
     )
     param_option(p)
     p.add_argument(
+        "--step-deadline",
+        type=float,
+        default=STEP_DEADLINE,
+        metavar="SECONDS",
+        help="a team that keeps the other waiting longer for its step forfeits the leg"
+        f" (1 to {MAX_STEP_DEADLINE:g}; default: %(default)g)",
+    )
+    p.add_argument(
         "--wait",
         action="store_true",
         help="wait for every leg and its replay's verdict, printing progress on stderr,"
@@ -163,6 +180,7 @@ def _match(client: ApiClient, args: argparse.Namespace) -> int:
         "a": {"repository": args.repository_a, "ref": args.ref_a},
         "b": {"repository": args.repository_b, "ref": args.ref_b},
         "seeds": args.seeds,
+        "step_deadline": args.step_deadline,
         "params": dict(args.param),
     }
     match = client.post("/api/matches", MatchView, json=body)

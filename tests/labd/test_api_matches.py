@@ -75,6 +75,7 @@ async def test_a_match_plays_each_seed_twice_and_is_scored_and_signed(
         (0, "a"), (0, "b"), (1, "a"), (1, "b")
     ]  # fmt: skip
     assert (match["status"], match["score"]) == ("queued", {"a": 0, "b": 0, "draws": 0})
+    assert match["step_deadline"] == 10.0  # the lab's default
     legs = [(await api.get(f"/api/trials/{leg['trial']}")).json() for leg in match["legs"]]
     assert [t["kind"] for t in legs] == ["match"] * 4
     assert [(t["repository"], t["away"]["repository"]) for t in legs] == [(a, b), (b, a)] * 2
@@ -118,6 +119,36 @@ async def test_a_leg_is_cancelled_only_with_its_match_which_then_counts_for_no_o
     assert cancelled.json()["status"] == "cancelled"
     assert {leg["status"] for leg in cancelled.json()["legs"]} == {"cancelled"}
     assert (await api.get("/api/ladders/soccer-1v1")).json()["rows"] == []
+
+
+async def test_a_match_s_step_deadline_reaches_its_legs(api, service, token, tmp_path):
+    a, b = team(tmp_path, "a"), team(tmp_path, "b")
+    reply = await api.post(
+        "/api/matches",
+        json={
+            "task": "soccer-1v1",
+            "a": {"repository": a},
+            "b": {"repository": b},
+            "seeds": 1,
+            "step_deadline": 4,
+        },
+        headers=auth(token),
+    )
+    assert reply.status_code == 201, reply.text
+    match = reply.json()
+    assert match["step_deadline"] == 4.0
+    for leg in match["legs"]:
+        assert (await api.get(f"/api/trials/{leg['trial']}")).json()["step_deadline"] == 4.0
+    claim = service.queue.claim("w")
+    assert claim is not None and claim.order.step_deadline == 4.0
+    assert claim.order.rerun(claim.id).step_deadline == 4.0  # a rerun keeps it
+    too_long = await api.post(
+        "/api/matches",
+        json={"task": "soccer-1v1", "a": {"repository": a}, "b": {"repository": b},
+              "step_deadline": 61},
+        headers=auth(token),
+    )  # fmt: skip
+    assert too_long.status_code == 422
 
 
 async def test_what_is_no_match_is_refused_in_words(api, token, tmp_path):

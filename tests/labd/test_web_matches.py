@@ -127,6 +127,7 @@ async def test_a_match_page_shows_the_teams_the_score_and_every_leg(web, service
     assert queued.by_id("status")["text"] == "queued"
     assert queued.by_id("score-said")["text"] == "0 of 4 legs ended so far"
     assert queued.by_id("signed")["text"] == "signed by the lab when every leg has ended"
+    assert queued.by_id("step-deadline")["text"].startswith("10 s (a team that keeps")
     assert not queued.by_id("following").get("hidden")
     assert [e["text"] for e in queued.found if e.get("data-part") == "state"] == ["queued"] * 4
 

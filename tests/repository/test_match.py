@@ -55,6 +55,7 @@ def match(legs: list[LegRow], *, status: Status = Status.FINISHED, b: TeamRef = 
         params={},
         a=A,
         b=b,
+        step_deadline=10.0,
         submitter="alice",
         status=status,
         created=dt.datetime.now(dt.UTC),

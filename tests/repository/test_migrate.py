@@ -13,7 +13,7 @@ from repository.trial import Kind, Order, Outcome, PinnedRecord, Status, TeamRef
 
 NEW_COLUMNS = {"kind", "outcome", "reward", "signature", "data"}
 SCHEMA_3_COLUMNS = {"lab_fault"}
-SCHEMA_4_COLUMNS = {"away_repository", "away_ref", "away_commit"}
+SCHEMA_4_COLUMNS = {"away_repository", "away_ref", "away_commit", "step_deadline"}
 
 
 def before_schema_4(db: sa.Connection) -> None:
@@ -246,6 +246,7 @@ def test_a_schema_3_index_upgrades_to_hold_matches(database_url):
             task="soccer-1v1",
             kind=Kind.MATCH,
             away=away,
+            step_deadline=4.0,
         )
         assert index.trial(index.add_trial(leg, submitter="alice")).order == leg
     finally:
