@@ -150,6 +150,18 @@ class Matches:
             items = self._build(db, rows[:limit])
         return MatchPage(items, items[-1].id if more and items else None)
 
+    def under_way(self, *, limit: int = 10) -> list[Match]:
+        """The matches queued or being played, newest first (at most ``limit``)."""
+        query = (
+            sa.select(matches)
+            .where(M.signature.is_(None), M.finished.is_(None))
+            .order_by(M.id.desc())
+            .limit(4 * limit)
+        )
+        with self.index.engine.connect() as db:
+            found = self._build(db, db.execute(query).all())
+        return [m for m in found if not m.status.ended][:limit]
+
     def of_task(self, task: str) -> list[Match]:
         """Every match of ``task``, oldest first."""
         with self.index.engine.connect() as db:

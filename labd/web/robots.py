@@ -25,11 +25,13 @@ from fastapi import APIRouter, Request
 from fastapi.responses import HTMLResponse, Response
 from pydantic import BaseModel
 
+from labd.api.common import Lab
 from labd.api.errors import ApiError, responses
 from labd.api.site import RobotLink, Site
 from labd.api.state import App
 from labd.sim import registry
 from labd.sim.registry import Console, TaskSpec
+from labd.web.matches import short
 from labd.web.problems import PageRoute
 from labd.web.render import page
 from labd.web.session import Viewer
@@ -122,10 +124,15 @@ def assign(lab: Site, console: Console, asked: str | None) -> tuple[str, str]:
 
 
 @router.get("/robots", response_class=HTMLResponse)
-def robots(request: Request, app: App, viewer: Viewer) -> HTMLResponse:
+def robots(request: Request, app: App, service: Lab, viewer: Viewer) -> HTMLResponse:
     lab = app.site
     states = [state(request, lab, r) for r in lab.robots]
-    context = {"robots": states, "reservations": lab.reservations}
+    context = {
+        "robots": states,
+        "reservations": lab.reservations,
+        "matches": service.matches.under_way(),  # teams playing each other, in sandboxes
+        "short": short,
+    }
     return page(request, "robots.html", context, user=viewer)
 
 

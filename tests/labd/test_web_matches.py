@@ -301,3 +301,24 @@ async def test_an_empty_ladder_says_how_to_play_and_a_task_without_sides_has_non
     maze = Elements((await web.get("/tasks/icreate-maze")).text)
     assert not [e for e in maze.found if e.get("id") == "ladder-link"]
     assert "No matches yet" in (await web.get("/matches")).text
+
+
+async def test_the_robots_page_lists_the_matches_under_way(web, service, writer, teams):
+    """A match queued or being played is on the robots page, with its legs played so far
+    and its score, linked to its page; once every leg has ended it leaves the list."""
+    a, b = teams
+    robots = Elements((await web.get("/robots")).text)
+    assert not robots.having("data-match")
+    m = await played(web, writer, a, b, seeds=1)
+    listed = Elements((await web.get("/robots")).text)
+    [row] = listed.having("data-match")
+    assert row["data-match"] == str(m["id"]) and row["text"].split()[:2] == ["match", str(m["id"])]
+    assert "0 of 2 played" in row["text"]
+    assert HTML_NAME in row["text"]  # B's folder, named with HTML, shown as text
+    legs = legs_of(m)
+    file_legs(service, {legs[0]: result("home", "goal", 1, 0)})
+    [row] = Elements((await web.get("/robots")).text).having("data-match")
+    assert "1 of 2 played · playing" in " ".join(row["text"].split())
+    assert "A 1, B 0, 0 drawn" in row["text"]
+    file_legs(service, {legs[1]: result("draw", "time", 0, 0)})
+    assert not Elements((await web.get("/robots")).text).having("data-match")
