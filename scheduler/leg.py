@@ -26,10 +26,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-import json
 import logging
-import shutil
-import tempfile
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -37,7 +34,7 @@ from pathlib import Path
 from repository.digests import readable_json
 from repository.manifest import Manifest, Team
 from repository.match import STEP_DEADLINE
-from repository.trial import Ending, Order, Outcome, Value
+from repository.trial import Ending, Order, Value
 from repository.well_known import MANIFEST, OUTCOME, side_logs
 from sandbox.api import Backend, Exit, Running, SandboxError
 from scheduler.errors import ControllerConfigError, TrialError
@@ -48,6 +45,7 @@ from scheduler.runner import (
     Progress,
     RunOptions,
     TrialResult,
+    in_work_folder,
     job_of,
     prepare,
     write_whole,
@@ -82,13 +80,9 @@ async def run_leg(
     options = options or LegOptions()
     progress = progress or Progress()
     out, cache = out.resolve(), cache.resolve()
-    loop = asyncio.get_running_loop()
-    started = loop.time()
-    work = Path(tempfile.mkdtemp(prefix="labd-leg-"))
-    work.chmod(0o755)
-    out.mkdir(parents=True, exist_ok=True)
-    try:
-        result = await _play(
+
+    async def attempt(work: Path) -> TrialResult:
+        return await _play(
             orders,
             backend=backend,
             host=host,
@@ -98,17 +92,8 @@ async def run_leg(
             options=options,
             progress=progress,
         )
-    finally:
-        shutil.rmtree(work, ignore_errors=True)
-    result.wall_seconds = loop.time() - started
-    try:
-        write_whole(out / "result.json", (json.dumps(result.to_json(), indent=2) + "\n").encode())
-    except OSError as err:
-        reason = storage_failure(err, "the leg's result could not be written")
-        log.error("leg in %s: %s", out, reason)
-        if result.outcome is not Outcome.ERROR:
-            result.ending = Ending.lab_error(reason)
-    return result
+
+    return await in_work_folder(out, "leg", attempt)
 
 
 async def _play(

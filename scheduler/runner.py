@@ -187,48 +187,61 @@ async def run_trial(
     options = options or RunOptions()
     progress = progress or Progress()
     out, cache = out.resolve(), cache.resolve()  # a sandbox engine mounts absolute paths
+
+    async def attempt(work: Path) -> TrialResult:
+        try:
+            progress.enter(Stage.PREPARING, options.prepare)
+            try:
+                prepared = await asyncio.wait_for(
+                    prepare(
+                        order,
+                        blind=blind,
+                        backend=backend,
+                        host=host,
+                        work=work,
+                        cache=cache,
+                        options=options,
+                        archive=resolver or archive,
+                        resolver=resolver,
+                    ),
+                    options.prepare,
+                )
+            except TimeoutError:
+                raise TrialError(
+                    f"preparing the trial (checking out, reading lab.toml, installing the"
+                    f" requirements, fetching its data) took longer than {options.prepare:g} s"
+                ) from None
+            trial = _Trial(prepared, backend=backend, options=options, work=work, out=out)
+            progress.enter(Stage.RUNNING, options.run_deadline)
+            return await trial.run()
+        except (TrialError, SandboxError) as err:
+            # The trial could not start: an error, with the reason, and no record.
+            log.info("trial of %s could not start: %s", order.repository, err)
+            return TrialResult(Ending.error(str(err)), out, backend=backend.name)
+
+    return await in_work_folder(out, "trial", attempt)
+
+
+async def in_work_folder(
+    out: Path, what: str, attempt: Callable[[Path], Awaitable[TrialResult]]
+) -> TrialResult:
+    """``attempt`` given a fresh work folder (removed after), timed, and its result also
+    written to ``out/result.json`` (a disk too full for that makes it the lab's error)."""
     loop = asyncio.get_running_loop()
     started = loop.time()
-    work = Path(tempfile.mkdtemp(prefix="labd-trial-"))
+    work = Path(tempfile.mkdtemp(prefix=f"labd-{what}-"))
     work.chmod(0o755)  # the sandbox's unprivileged user reads the code below it
     out.mkdir(parents=True, exist_ok=True)
     try:
-        progress.enter(Stage.PREPARING, options.prepare)
-        try:
-            prepared = await asyncio.wait_for(
-                prepare(
-                    order,
-                    blind=blind,
-                    backend=backend,
-                    host=host,
-                    work=work,
-                    cache=cache,
-                    options=options,
-                    archive=resolver or archive,
-                    resolver=resolver,
-                ),
-                options.prepare,
-            )
-        except TimeoutError:
-            raise TrialError(
-                f"preparing the trial (checking out, reading lab.toml, installing the"
-                f" requirements, fetching its data) took longer than {options.prepare:g} s"
-            ) from None
-        trial = _Trial(prepared, backend=backend, options=options, work=work, out=out)
-        progress.enter(Stage.RUNNING, options.run_deadline)
-        result = await trial.run()
-    except (TrialError, SandboxError) as err:
-        # The trial could not start: an error, with the reason, and no record.
-        log.info("trial of %s could not start: %s", order.repository, err)
-        result = TrialResult(Ending.error(str(err)), out, backend=backend.name)
+        result = await attempt(work)
     finally:
         shutil.rmtree(work, ignore_errors=True)
     result.wall_seconds = loop.time() - started
     try:
         write_whole(out / "result.json", (json.dumps(result.to_json(), indent=2) + "\n").encode())
     except OSError as err:
-        reason = storage_failure(err, "the trial's result could not be written")
-        log.error("trial of %s: %s", order.repository, reason)
+        reason = storage_failure(err, f"the {what}'s result could not be written")
+        log.error("%s in %s: %s", what, out, reason)
         if result.outcome is not Outcome.ERROR:
             result.ending = Ending.lab_error(reason)
     return result
