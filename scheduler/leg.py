@@ -37,7 +37,7 @@ from repository.match import STEP_DEADLINE
 from repository.trial import Ending, Order, Value
 from repository.well_known import MANIFEST, OUTCOME, side_logs
 from sandbox.api import Backend, Exit, Running, SandboxError
-from scheduler.errors import ControllerConfigError, TrialError
+from scheduler.errors import ControllerConfigError, InvalidRequest, TrialError
 from scheduler.host import MatchLab, MatchSetup, TrialHost
 from scheduler.outcome import judge, judge_leg, storage_failure
 from scheduler.runner import (
@@ -121,11 +121,11 @@ async def _play(
                 f" {', '.join(orders)}"
             )
         values = host.check(task, first.params)
-    except TrialError as err:
+    except (TrialError, InvalidRequest) as err:
         return TrialResult(Ending.error(str(err)), out, backend=backend.name)
     progress.enter(Stage.PREPARING, options.run.prepare)
     prepared: dict[str, Prepared] = {}
-    forfeits: dict[str, str] = {}
+    unready: dict[str, str] = {}
     outcomes = await asyncio.gather(
         *(
             _prepare_team(
@@ -136,11 +136,11 @@ async def _play(
     )
     for side, outcome in zip(sides, outcomes, strict=True):
         if isinstance(outcome, str):
-            forfeits[side] = f"could not start: {outcome}"
+            unready[side] = f"could not start: {outcome}"
         else:
             prepared[side] = outcome
-    if forfeits:  # nothing is played, no record: no result either
-        why = "; ".join(f"{side} {forfeits[side]}" for side in sides if side in forfeits)
+    if unready:  # nothing is played, no record: no result either
+        why = "; ".join(f"{side} {unready[side]}" for side in sides if side in unready)
         return TrialResult(
             Ending.error(f"the leg was not played: {why}"), out, backend=backend.name
         )

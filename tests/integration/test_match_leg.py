@@ -119,3 +119,24 @@ def test_a_javascript_team_plays_a_python_one(cache, tmp_path):
     assert (leg.metrics["winner"], leg.metrics["ended_by"], leg.metrics["ticks"]) == (
         "home", "goal", 399
     )  # fmt: skip
+
+
+def test_a_leg_that_cannot_be_played_is_an_error_naming_the_team(cache, tmp_path):
+    """A team without lab.toml leaves the leg unplayed (no record, no result); a task
+    nobody has is an error too, not an exception."""
+    broken = tmp_path / "broken"
+    broken.mkdir()
+    (broken / "c.py").write_text("pass\n")
+    leg = play(cache, tmp_path / "leg", CHASER, broken, seed=0)
+    assert leg.outcome is Outcome.ERROR and leg.mcap is None
+    assert leg.reason.startswith("the leg was not played: away could not start: "), leg.reason
+    assert "lab.toml" in leg.reason and leg.metrics == {}
+    backend = make_backend("bwrap", cache)
+    orders = {
+        side: Order(repository=str(CHASER), task="no-such-task", seed=0)
+        for side in ("home", "away")
+    }
+    unknown = asyncio.run(
+        run_leg(orders, backend=backend, host=LabHost(), out=tmp_path / "x", cache=cache)
+    )
+    assert unknown.outcome is Outcome.ERROR and "no-such-task" in unknown.reason
