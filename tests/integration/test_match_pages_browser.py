@@ -6,6 +6,7 @@ until it reads as the page reloaded; then the task's ladder ranks the teams of t
 matches, each rating's interval drawn as a bar.
 """
 
+# ruff: noqa: F811 (the fixture imported from the evaluation pages' test is the tests' argument)
 from __future__ import annotations
 
 from pathlib import Path
@@ -15,12 +16,12 @@ import pytest
 
 from labd.web.evaluations import DASH
 from repository.trial import Filing
-from scheduler.fetch import FetchPolicy
 from scheduler.matches import MatchRequest, TeamRequest
 from tests.fakes import verify_episodes
 from tests.helpers.githttp import GitRepo
-from tests.helpers.labs import ServerThread, lab_config, running
+from tests.helpers.labs import ServerThread
 from tests.integration.browser import Watched, browser, watched
+from tests.integration.test_evaluation_pages_browser import server  # noqa: F401 (a fixture)
 
 __all__ = ["browser", "watched"]
 pytestmark = [pytest.mark.integration, pytest.mark.timeout(180)]
@@ -28,14 +29,6 @@ SHOTS = Path(__file__).resolve().parents[2] / "build" / "screenshots"
 MS = 1000
 TOML = '[controller]\ncommand = ["python", "c.py"]\n'
 HTML_NAME = "<b>bold</b> & co"  # a team's directory: shown as text
-
-
-@pytest.fixture
-def server(tmp_path):
-    """A lab with no worker and no robot, taking local repositories."""
-    fetch = FetchPolicy(schemes=frozenset({"file"}))
-    with running(lab_config(tmp_path / "data", (), service={"fetch": fetch})) as server:
-        yield server
 
 
 def team(path: Path, says: str) -> str:

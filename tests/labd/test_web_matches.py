@@ -15,11 +15,9 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
-import httpx
 import pytest
 from markupsafe import escape
 
-from labd.web import Site, create_app
 from labd.web.evaluations import DASH
 from repository.index import Derived
 from repository.trial import Filing
@@ -27,24 +25,10 @@ from repository.well_known import REPLAY, VIDEO
 from tests.fakes import verify_episodes
 from tests.helpers.githttp import GitRepo
 from tests.labd.test_api import auth, service  # noqa: F401 (fixtures)
-from tests.labd.test_web_evaluations import Elements
+from tests.labd.test_web_evaluations import Elements, web, writer  # noqa: F401 (fixtures)
 
 HTML_NAME = "<b>bold</b> & co"  # a repository's directory: the pages show it, never parse it
 TOML = '[controller]\ncommand = ["python", "c.py"]\n'
-
-
-@pytest.fixture
-async def web(service):
-    """The API and the pages in process."""
-    app = create_app(service, Site(), on_submit=lambda: None)
-    transport = httpx.ASGITransport(app=app)
-    async with httpx.AsyncClient(transport=transport, base_url="http://lab.test") as client:
-        yield client
-
-
-@pytest.fixture
-def writer(service):
-    return service.index.add_user("erin", max_daily=500)
 
 
 @pytest.fixture

@@ -203,11 +203,11 @@ def test_a_leg_s_manifest_names_both_teams_and_no_code_of_its_own():
     assert leg.teams["away"].controller.command == ("python", "still.py")
     lone = loaded("match-leg-forfeit")
     del lone["teams"]["away"]
-    with pytest.raises(ManifestError, match="manifest.teams: must name two sides or more"):
+    with pytest.raises(ManifestError, match=r"manifest\.teams: must name two sides or more"):
         Manifest.from_json(lone)
     extra = loaded("match-leg-forfeit")
     extra["teams"]["home"]["data"] = []
-    with pytest.raises(ManifestError, match="manifest.teams.home: 'data' is not a key"):
+    with pytest.raises(ManifestError, match=r"manifest\.teams\.home: 'data' is not a key"):
         Manifest.from_json(extra)
 
 
