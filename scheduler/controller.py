@@ -3,6 +3,7 @@
 [controller]
 command = ["python", "controller.py"]   # run from the repository root
 task = "icreate-maze"                    # default task
+tasks = ["dmc-cartpole-balance"]         # optional: the tasks it supports (benchmarks)
 requirements = "requirements.txt"        # optional: installed in the build step
 realtime = false                         # optional: true = wall clock, no lockstep
 interfaces = "my_msgs"                   # optional: a ROS package's folder (or a list)
@@ -10,6 +11,10 @@ interfaces = "my_msgs"                   # optional: a ROS package's folder (or 
 [data]                                   # optional: archived trials to learn from
 trials = [12, 15]                        # by id, and/or a query:
 query = { task = "icreate-maze", kind = "demonstration", outcome = "success", limit = 50 }
+
+``tasks`` lists the tasks the controller supports (task names, each once), for benchmark
+runs (issue 37), which are to refuse a benchmark with a task outside the list and, without
+the list, to run every task. It is read and checked here; nothing uses it yet.
 
 ``interfaces`` names the folders of the repository's own interface packages, each laid
 out as a ROS 2 package's: ``msg/*.msg``, ``srv/*.srv``, ``action/*.action``, the
@@ -53,7 +58,7 @@ from scheduler.files import RepositoryFiles, parts_of
 FILE = "lab.toml"
 PACKAGE = "package.json"
 LOCK = "package-lock.json"
-KEYS = ("command", "task", "requirements", "realtime", "interfaces")
+KEYS = ("command", "task", "tasks", "requirements", "realtime", "interfaces")
 DATA_KEYS = ("trials", "query")
 QUERY_KEYS = ("task", "kind", "outcome", "user", "limit")
 INTERFACE_KINDS = ("msg", "srv", "action")
@@ -92,6 +97,7 @@ class ControllerConfig:
     interface_files: Mapping[str, str] = field(default_factory=dict)
     data: DataSpec | None = None  # [data], when lab.toml has it
     node_packages: bool = False  # package.json names dependencies: npm ci in the build step
+    tasks: tuple[str, ...] = ()  # the tasks it supports; empty: lab.toml lists none
 
     @property
     def interfaces_sha256(self) -> str | None:
@@ -149,6 +155,7 @@ def load(code: Path | RepositoryFiles) -> ControllerConfig:
         data=_data(data.get("data")),
         command=_command(table.get("command")),
         task=_optional_str(table, "task"),
+        tasks=_tasks(table.get("tasks")),
         requirements=_requirements(files, table),
         realtime=_bool(table, "realtime"),
         text=text,
@@ -247,6 +254,24 @@ def _command(value: Any) -> tuple[str, ...]:
         raise ControllerConfigError("command must be a non-empty list of strings")
     if not all(isinstance(part, str) and part for part in value):
         raise ControllerConfigError("every item of command must be a non-empty string")
+    return tuple(value)
+
+
+def _tasks(value: Any) -> tuple[str, ...]:
+    """``tasks``: the task names the controller supports, each once (none: any task)."""
+    if value is None:
+        return ()
+    if not isinstance(value, list) or not value:
+        raise ControllerConfigError(
+            f'tasks must be a non-empty list of task names, e.g. ["dmc-cartpole-balance"],'
+            f" not {value!r}"
+        )
+    for name in value:
+        if not isinstance(name, str) or not name:
+            raise ControllerConfigError(f"every item of tasks must be a task's name, not {name!r}")
+    again = sorted({name for name in value if value.count(name) > 1})
+    if again:
+        raise ControllerConfigError(f"tasks names {again[0]!r} more than once")
     return tuple(value)
 
 

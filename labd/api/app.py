@@ -9,6 +9,7 @@ its CSRF token (``labd.api.common``).
     GET  /metrics                          Prometheus' text format (``labd.metrics``)
     GET  /api/status                       the queue and what each busy worker runs
     GET  /api/tasks                        the tasks and their parameters
+    GET  /api/benchmarks[/{name}]          the task packs' benchmarks (``labd.api.benchmarks``)
     POST /api/trials                       submit: repository, ref, task, params, seed
     GET  /api/trials                       filters: repository commit task status outcome
                                            kind user since until; limit, before (cursor)
@@ -45,6 +46,7 @@ from starlette.concurrency import run_in_threadpool
 from labd import __version__, health
 from labd.api import (
     accounts,
+    benchmarks,
     errors,
     evaluations,
     matches,
@@ -121,6 +123,7 @@ def create_app(
         router,
         records.router,
         evaluations.router,
+        benchmarks.router,
         matches.router,
         summaries.router,
         workers.router,

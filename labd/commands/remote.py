@@ -10,7 +10,7 @@
     labd rerun COMMIT --evaluations [--all] [--wait]   (labd.commands.evaluate)
     labd cancel TRIAL | --evaluation ID                (an evaluation: labd.commands.evaluate)
     labd export TRIAL --format F | --task T ... --format F   (labd.commands.export)
-    labd tasks
+    labd tasks                  the tasks, then the benchmarks of the task packs
     labd status
 
 Each takes ``--server URL`` (default ``$LABD_SERVER`` or http://127.0.0.1:8080) and
@@ -52,6 +52,8 @@ from labd.commands.common import (
     server_options,
     worst,
 )
+from labd.sim import registry
+from repository.benchmark import BenchmarkList
 from repository.digests import readable_json
 from repository.errors import ArchiveError, ManifestError
 from repository.manifest import Manifest
@@ -138,12 +140,14 @@ def add_parser(commands: Any) -> None:
     )
     server_options(p, write=True)
 
-    p = commands.add_parser("tasks", help="the lab's tasks and their parameters")
+    p = commands.add_parser(
+        "tasks", help="the lab's tasks and their parameters, then its benchmarks"
+    )
     p.add_argument(
         "--local",
         action="store_true",
-        help="the tasks this machine's labd runs (its installed task plugins), without asking"
-        " a lab",
+        help="the tasks and benchmarks this machine's labd runs (its installed task plugins),"
+        " without asking a lab",
     )
     server_options(p)
 
@@ -154,7 +158,7 @@ def add_parser(commands: Any) -> None:
 def main(args: argparse.Namespace) -> int:
     handler = COMMANDS[args.command]
     if args.command == "tasks" and args.local:
-        return _show_tasks(task_list(), args)
+        return _show_tasks(task_list(), BenchmarkList(registry.benchmarks()), args)
     try:
         with ApiClient(args.server, getattr(args, "token", None)) as client:
             return int(handler(client, args))
@@ -296,10 +300,14 @@ def _cancel(client: ApiClient, args: argparse.Namespace) -> int:
 
 
 def _tasks(client: ApiClient, args: argparse.Namespace) -> int:
-    return _show_tasks(client.get("/api/tasks", TaskList), args)
+    listing = client.get("/api/tasks", TaskList)
+    return _show_tasks(listing, client.get("/api/benchmarks", BenchmarkList), args)
 
 
-def _show_tasks(listing: TaskList, args: argparse.Namespace) -> int:
+def _show_tasks(listing: TaskList, benchmarks: BenchmarkList, args: argparse.Namespace) -> int:
+    """The tasks, then the benchmarks (name, how many tasks, doc); under --json, the
+    task list's body with a ``benchmarks`` key (``GET /api/benchmarks``'s list)."""
+
     def lines() -> Iterator[str]:
         for task in listing.tasks:
             yield f"{task.name} (version {task.version})"
@@ -314,8 +322,19 @@ def _show_tasks(listing: TaskList, args: argparse.Namespace) -> int:
                 )
         for left in listing.problems:
             yield f"left out: the task plugin {left.plugin}: {left.problem}"
+        if benchmarks.root:
+            yield ""
+            yield "benchmarks (each task on one suite; GET /api/benchmarks/NAME says which):"
+        for benchmark in benchmarks.root:
+            count = f"{len(benchmark.tasks)} task{'s' if len(benchmark.tasks) != 1 else ''}"
+            yield f"{benchmark.name} ({count})"
+            yield f"  {benchmark.doc.strip().splitlines()[0]}"
 
-    emit(args, listing.model_dump(mode="json"), lines)
+    emit(
+        args,
+        {**listing.model_dump(mode="json"), "benchmarks": benchmarks.model_dump(mode="json")},
+        lines,
+    )
     return ExitCode.SUCCESS
 
 

@@ -19,12 +19,23 @@ The lab's own tasks are registered the same way by its own package. A plugin tha
 to import, names no TaskSpec, repeats a task's name or declares a topic the lab keeps
 for itself is a **problem**: it is left out with its reason (``problems()``: shown by
 ``labd tasks`` and at ``labd serve`` start), and every other task still works.
+
+Packs declare **benchmarks** the same way (``repository.benchmark``), through the group
+``labd.benchmarks``: each entry point names a ``Benchmark`` or a tuple (or list) of them::
+
+    [project.entry-points."labd.benchmarks"]
+    my-pack = "my_package.pack:BENCHMARKS"
+
+A benchmark plugin that fails to import or names no Benchmark, and a benchmark that
+repeats another's name or names a task (or a suite of it) the lab does not have, is left
+out with its reason (``benchmark_problems()``, logged as a warning).
 """
 
 from __future__ import annotations
 
 import copy
 import dataclasses
+import difflib
 import logging
 import re
 import threading
@@ -34,8 +45,9 @@ from importlib import metadata
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from labd.errors import UnknownTaskError
+from labd.errors import LabError, UnknownTaskError
 from labd.sim.params import Params, Value
+from repository.benchmark import Benchmark
 from repository.evaluation import Suite
 
 if TYPE_CHECKING:
@@ -44,6 +56,7 @@ if TYPE_CHECKING:
 
 log = logging.getLogger("labd.sim.registry")
 GROUP = "labd.tasks"
+BENCHMARK_GROUP = "labd.benchmarks"
 NAME = re.compile(r"[a-z0-9][a-z0-9_.-]{0,63}")
 # names the robot node and the lab's live robots keep for themselves
 LAB_TOPICS = frozenset(
@@ -191,13 +204,23 @@ class TaskSpec:
 
 
 class Registry:
-    """The tasks of the installed plugins, loaded once, on first use (thread-safe)."""
+    """The tasks and benchmarks of the installed plugins, loaded once, on first use
+    (thread-safe)."""
 
-    def __init__(self, entry_points: Callable[[], Iterable[Any]] | None = None) -> None:
+    def __init__(
+        self,
+        entry_points: Callable[[], Iterable[Any]] | None = None,
+        benchmark_points: Callable[[], Iterable[Any]] | None = None,
+    ) -> None:
         self._entry_points = entry_points or (lambda: metadata.entry_points(group=GROUP))
+        self._benchmark_points = benchmark_points or (
+            lambda: metadata.entry_points(group=BENCHMARK_GROUP)
+        )
         self._lock = threading.Lock()
         self._specs: dict[str, TaskSpec] | None = None
         self._problems: dict[str, str] = {}
+        self._benchmarks: dict[str, Benchmark] | None = None
+        self._benchmark_problems: dict[str, str] = {}
 
     def specs(self) -> Mapping[str, TaskSpec]:
         with self._lock:
@@ -234,6 +257,45 @@ class Registry:
             log.warning("task plugin %s left out: %s", where, why)
         return found
 
+    def benchmarks(self) -> Mapping[str, Benchmark]:
+        """The benchmarks whose every task (and suite of it) this lab has."""
+        specs = self.specs()  # first: it takes the lock itself
+        with self._lock:
+            if self._benchmarks is None:
+                self._benchmarks = self._load_benchmarks(specs)
+            return self._benchmarks
+
+    def benchmark_problems(self) -> dict[str, str]:
+        """Benchmark plugins, or benchmarks of them, left out (``NAME = module:attr``,
+        with the benchmark's name -> why)."""
+        self.benchmarks()
+        return dict(self._benchmark_problems)
+
+    def _load_benchmarks(self, specs: Mapping[str, TaskSpec]) -> dict[str, Benchmark]:
+        found: dict[str, Benchmark] = {}
+        problems = self._benchmark_problems
+        for point in sorted(self._benchmark_points(), key=_own_first):
+            where = f"{point.name} = {point.value}"
+            try:
+                loaded = point.load()
+            except Exception as err:  # a plugin's own bug: it is reported, the rest runs
+                log.warning("benchmark plugin %s failed to load", where, exc_info=True)
+                problems[where] = f"failed to import: {type(err).__name__}: {err}"
+                continue
+            declared = [loaded] if isinstance(loaded, Benchmark) else loaded
+            if not isinstance(declared, (list, tuple)) or not declared:
+                problems[where] = "names no Benchmark (nor a tuple or list of them)"
+                continue
+            for benchmark in declared:
+                why = _benchmark_refused(benchmark, found, specs)
+                if why:
+                    problems[f"{where} ({getattr(benchmark, 'name', benchmark)!r})"] = why
+                else:
+                    found[benchmark.name] = benchmark
+        for where, why in problems.items():
+            log.warning("benchmark plugin %s left out: %s", where, why)
+        return found
+
 
 def _own_first(point: Any) -> tuple[bool, str]:
     """The lab's own tasks first (a plugin repeating one of their names is the one left
@@ -259,6 +321,23 @@ def _refused(spec: Any, found: Mapping[str, TaskSpec]) -> str:
     return ""
 
 
+def _benchmark_refused(
+    benchmark: Any, found: Mapping[str, Benchmark], specs: Mapping[str, TaskSpec]
+) -> str:
+    """Why ``benchmark`` cannot be one of this lab's ("" if it can)."""
+    if not isinstance(benchmark, Benchmark):
+        return f"is a {type(benchmark).__name__}, not a Benchmark"
+    if benchmark.name in found:
+        return f"the benchmark {benchmark.name!r} is declared already; give it another name"
+    for each in benchmark.tasks:
+        spec = specs.get(each.task)
+        if spec is None:
+            return f"names the task {each.task!r}, which this lab does not have"
+        if spec.suite(each.suite) is None:
+            return f"names the suite {each.suite!r} of {each.task}, which has no such suite"
+    return ""
+
+
 REGISTRY = Registry()
 
 
@@ -276,6 +355,27 @@ def get(name: str) -> TaskSpec:
     if spec is None:
         raise UnknownTaskError(name, names())
     return spec
+
+
+def benchmarks() -> list[Benchmark]:
+    """The benchmarks of the installed plugins, the lab's own first."""
+    return list(REGISTRY.benchmarks().values())
+
+
+def benchmark_problems() -> dict[str, str]:
+    """The benchmark plugins (or benchmarks) that were left out, and why."""
+    return REGISTRY.benchmark_problems()
+
+
+def benchmark(name: str) -> Benchmark:
+    """The benchmark ``name`` (``LabError`` naming the known ones if there is none)."""
+    found = REGISTRY.benchmarks()
+    if name not in found:
+        close = difflib.get_close_matches(name, list(found), n=1)
+        hint = f" (did you mean {close[0]}?)" if close else ""
+        known = ", ".join(found) or "none"
+        raise LabError(f"no benchmark {name!r}{hint}; the benchmarks are {known}")
+    return found[name]
 
 
 def default_robots() -> list[tuple[str, str]]:

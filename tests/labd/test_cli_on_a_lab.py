@@ -281,3 +281,27 @@ def test_a_rerun_that_erred_says_its_outcome_and_reason(server, repo, capsys):
         f"trial {original.id + 1} (rerun of {original.id}): the rerun made no record; it"
         " ended ERROR: the controller exited with code 1 at tick 0: ZeroDivisionError"
     )
+
+
+def test_labd_tasks_lists_the_benchmarks_after_the_tasks(server, capsys):
+    """``labd tasks`` ends with the benchmarks (name, how many tasks, doc), asked of the
+    lab or (``--local``) of this machine's plugins; ``--json`` adds them as ``benchmarks``,
+    the list ``GET /api/benchmarks`` answers."""
+    code, out, _ = run(capsys, "tasks")
+    assert code == ExitCode.SUCCESS
+    tasks, _, benchmarks = out.partition("\nbenchmarks (")
+    assert "dmc-cartpole-balance (version" in tasks and "dmc-classic" not in tasks
+    assert "\ndmc-classic (6 tasks)\n  Six classic tasks of the DeepMind Control Suite" in (
+        benchmarks
+    )
+    assert "\ndmc (26 tasks)\n  All 26 tasks of the dm_control suite pack" in benchmarks
+    for argv in (("tasks", "--json"), ("tasks", "--local", "--json")):
+        code, out, _ = run(capsys, *argv)
+        listing = json.loads(out)
+        assert code == ExitCode.SUCCESS and set(listing) == {"tasks", "problems", "benchmarks"}
+        by_name = {b["name"]: b for b in listing["benchmarks"]}
+        assert [t["task"] for t in by_name["dmc-classic"]["tasks"]][:2] == [
+            "dmc-cartpole-balance",
+            "dmc-cartpole-swingup",
+        ]
+        assert len(by_name["dmc"]["tasks"]) == 26

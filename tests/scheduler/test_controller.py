@@ -177,3 +177,32 @@ def test_a_linked_lock_file_is_refused(tmp_path):
     (tmp_path / "package-lock.json").symlink_to("/etc/passwd")
     with pytest.raises(RepositoryFileError, match=r"package-lock\.json: it is a symbolic link"):
         load(tmp_path)
+
+
+def test_tasks_lists_the_tasks_a_controller_supports(tmp_path):
+    """``tasks`` is read as the tuple of names it lists, in its order; without it, empty."""
+    listed = load(
+        write(
+            tmp_path,
+            '[controller]\ncommand = ["x"]\ntasks = ["dmc-cartpole-balance", "dmc-reacher-easy"]\n',
+        )
+    )
+    assert listed.tasks == ("dmc-cartpole-balance", "dmc-reacher-easy")
+    assert load(write(tmp_path, '[controller]\ncommand = ["x"]\n')).tasks == ()
+
+
+@pytest.mark.parametrize(
+    ("value", "expected"),
+    [
+        ('"dmc-cartpole-balance"', "tasks must be a non-empty list of task names"),
+        ("[]", "tasks must be a non-empty list of task names"),
+        ('["dmc-cartpole-balance", 3]', "every item of tasks must be a task's name, not 3"),
+        ('["dmc-cartpole-balance", ""]', "every item of tasks must be a task's name, not ''"),
+        ('["a", "b", "a"]', "tasks names 'a' more than once"),
+    ],
+)
+def test_bad_tasks_say_what_is_wrong(tmp_path, value, expected):
+    """A ``tasks`` that is not a list of distinct task names is refused, saying why."""
+    write(tmp_path, f'[controller]\ncommand = ["x"]\ntasks = {value}\n')
+    with pytest.raises(ControllerConfigError, match=re.escape(expected)):
+        load(tmp_path)

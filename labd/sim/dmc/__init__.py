@@ -16,7 +16,8 @@ suite pack"):
 ``catalog`` lists the tasks as data (so importing the pack builds no environment),
 ``task`` is the ``LabTask`` around the suite's task, ``export`` the export layouts.
 ``TASKS`` are the pack's ``TaskSpec``s, registered through the entry point group
-``labd.tasks``.
+``labd.tasks``; ``benchmarks.BENCHMARKS`` its benchmarks (``dmc-classic``, ``dmc``),
+through ``labd.benchmarks``.
 """
 
 from __future__ import annotations
