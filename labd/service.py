@@ -38,6 +38,7 @@ from labd.trial import LabHost, client_library
 from labd.videos import Videos
 from labd.workers import LOCAL_WORKERS, WorkerProcesses
 from repository.accounts import Accounts
+from repository.benchmark_index import BenchmarkRuns
 from repository.blobs import BlobStore
 from repository.errors import ArchiveError
 from repository.evaluation_index import Evaluations
@@ -47,6 +48,7 @@ from repository.reservations import Reservations, Rules, load_secret
 from repository.signing import Keyring
 from repository.trial import Ending, Filing
 from repository.well_known import RECORD_FILE, REPLAY
+from scheduler.benchmarks import BenchmarkRunner
 from scheduler.data import DataPolicy, LocalArchive
 from scheduler.errors import InvalidRequest
 from scheduler.evaluate import Evaluator, HeldOutBudget
@@ -202,6 +204,8 @@ class Service:
             self.keyring,
             config.held_out,
         )
+        self.benchmark_runs = BenchmarkRuns(self.index, self.evaluations, self.host.benchmark)
+        self.benchmarker = BenchmarkRunner(self.evaluator, self.benchmark_runs, self.keyring)
         self.matches = Matches(self.index, verdicts, self._sides)
         self.matchmaker = Matchmaker(self.submissions, self.matches, self.keyring)
         self.videos = Videos(

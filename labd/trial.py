@@ -45,6 +45,7 @@ from labd.recorder import (
 from labd.recorder.summary import summary_blob
 from labd.replay import replay_filed
 from labd.sim import registry
+from repository.benchmark import Benchmark
 from repository.blobs import digest_of
 from repository.errors import ExportError
 from repository.evaluation import Suite
@@ -99,6 +100,12 @@ class LabHost:
             return LabTrial(self, setup, out=out, types=types)
         except LabError as err:
             raise TrialError(f"the task {setup.task} could not be built: {err}") from None
+
+    def benchmark(self, name: str) -> Benchmark:
+        try:
+            return registry.benchmark(name)
+        except LabError as err:
+            raise InvalidRequest(str(err)) from None
 
     def sides(self, task: str) -> Sequence[str]:
         try:

@@ -278,3 +278,32 @@ ladder_entries = sa.Table(
 )
 sa.Index("ix_ladder_entries_task", ladder_entries.c.task, ladder_entries.c.id)
 sa.Index("ix_ladder_entries_submitter", ladder_entries.c.submitter, ladder_entries.c.created)
+
+# Benchmark runs (``repository.benchmark_run``): one commit evaluated on every task of a
+# benchmark; each task's evaluation is a row of ``evaluations`` (schema 4).
+benchmark_runs = sa.Table(
+    "benchmark_runs",
+    metadata,
+    sa.Column("id", sa.Integer, primary_key=True, autoincrement=True),
+    sa.Column("benchmark", sa.String(64), nullable=False),
+    sa.Column("suite", sa.String(32), nullable=False),
+    sa.Column("repository", sa.String(2048), nullable=False),
+    sa.Column("ref", sa.String(256)),
+    sa.Column("commit", sa.String(40), nullable=False),
+    sa.Column("submitter", sa.String(64), nullable=False),
+    sa.Column("created", sa.Float, nullable=False),
+    sa.Column("finished", sa.Float),  # when its last evaluation ended
+    sa.Column("signature", sa.JSON),  # the lab's, over its evaluations' signatures
+)
+benchmark_run_evaluations = sa.Table(
+    "benchmark_run_evaluations",
+    metadata,
+    sa.Column("run_id", sa.Integer, sa.ForeignKey("benchmark_runs.id"), primary_key=True),
+    sa.Column("place", sa.Integer, primary_key=True),  # the task's place in the benchmark
+    sa.Column("task", sa.String(64), nullable=False),
+    sa.Column(
+        "evaluation_id", sa.Integer, sa.ForeignKey("evaluations.id"), nullable=False, unique=True
+    ),
+)
+sa.Index("ix_benchmark_runs_benchmark", benchmark_runs.c.benchmark, benchmark_runs.c.id)
+sa.Index("ix_benchmark_runs_commit", benchmark_runs.c.commit, benchmark_runs.c.id)

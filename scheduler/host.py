@@ -21,6 +21,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Protocol
 
+from repository.benchmark import Benchmark
 from repository.evaluation import Suite
 from repository.manifest import Code, Controller, Manifest, Team
 from repository.trial import EpisodeStatus, PinnedRecord, Value
@@ -194,6 +195,11 @@ class TrialHost(Protocol):
         """Build the lab side of the trial ``setup`` says, recording into ``out``
         (``TrialError``; a malformed or conflicting interface file is one naming its
         file and line)."""
+        ...
+
+    def benchmark(self, name: str) -> Benchmark:
+        """The benchmark ``name`` of the lab's task packs (``InvalidRequest`` naming the
+        known ones if there is none)."""
         ...
 
     def sides(self, task: str) -> Sequence[str]:

@@ -57,6 +57,7 @@ class Prepared:
     seed for an evaluation: ``Order.episode``)."""
 
     order: Order
+    tasks: tuple[str, ...] = ()  # the tasks lab.toml says the code supports (none: any)
 
     def __str__(self) -> str:
         order = self.order
@@ -174,7 +175,8 @@ class Submissions:
                 params={name: values[name] for name in sorted(params)},  # as normalized
                 public=resolved.public,
                 data=tuple(data),
-            )
+            ),
+            config.tasks,
         )
 
     def lab_toml(self, resolved: Resolved) -> controller.ControllerConfig:

@@ -22,6 +22,8 @@ def before_schema_4(db: sa.Connection) -> None:
     db.execute(sa.text("DROP TABLE match_legs"))
     db.execute(sa.text("DROP TABLE matches"))
     db.execute(sa.text("DROP TABLE ladder_entries"))
+    db.execute(sa.text("DROP TABLE benchmark_run_evaluations"))
+    db.execute(sa.text("DROP TABLE benchmark_runs"))
     for column in sorted(SCHEMA_4_COLUMNS):
         db.execute(sa.text(f"ALTER TABLE trials DROP COLUMN {column}"))
 
