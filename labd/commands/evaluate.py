@@ -2,6 +2,8 @@
 
     labd evaluate REPO_URL [--ref REF] [--task TASK] [--suite dev] [--wait]
                   [--min-success RATE] [--json]
+    labd evaluate REPO_URL --benchmark NAME [--suite SUITE] [--ref REF] [--wait]
+                  [--min-iqm X] [--json]
     labd cancel --evaluation ID
     labd evaluations [--task T] [--suite S] [--repo URL] [--commit SHA] [--user U]
                      [--limit N] [--json]
@@ -17,6 +19,12 @@ controller's), and the usual codes for errors (``labd.commands.common``). A held
 evaluation's score is shown only once it has ended: it is gated then, like any other.
 ``labd cancel --evaluation ID`` (``cancel``) and ``labd rerun COMMIT --evaluations``
 (``rerun``) are here too.
+
+``--benchmark NAME`` evaluates the commit on every task of a benchmark instead (a
+benchmark run, ``repository.benchmark_run``): one evaluation per task, followed as one,
+scored by the IQM of every episode's normalized score. ``--min-iqm X`` is its gate, as
+``--min-success`` is an evaluation's, with the same exit codes; a run one of whose
+evaluations was cancelled or is partial exits as that evaluation would.
 """
 
 from __future__ import annotations
@@ -35,7 +43,9 @@ from labd.commands.common import (
     fail,
     repository_arg,
     server_options,
+    worst,
 )
+from repository.benchmark_run import BenchmarkRun
 from repository.errors import ArchiveError
 from repository.stats import MIN_BOOTSTRAP
 from repository.trial import Status
@@ -46,6 +56,14 @@ POLL = 2.0  # seconds between looks at a running evaluation
 REPLAYS = 120.0  # seconds to wait, after the last episode, for the replays' verdicts
 VERIFYING = " to verify them"
 GATE_WAITS = "labd evaluate: --min-success waits for every episode, as --wait does"
+IQM_WAITS = "labd evaluate: --min-iqm waits for every episode, as --wait does"
+
+
+class RunView(BenchmarkRun):
+    """A benchmark run as ``GET /api/benchmark-runs/{id}`` serves it (the API's
+    ``BenchmarkRunView``, whose module loads the web server)."""
+
+    url: str
 
 
 def add_parser(commands: Any) -> None:
@@ -56,9 +74,15 @@ def add_parser(commands: Any) -> None:
     p.add_argument("--ref", help="branch, tag or commit (default: the repository's HEAD)")
     p.add_argument("--task", help="the task (default: the one the repository's lab.toml names)")
     p.add_argument(
+        "--benchmark",
+        metavar="NAME",
+        help="every task of this benchmark instead of one task (default: one task;"
+        " `labd tasks` lists the benchmarks)",
+    )
+    p.add_argument(
         "--suite",
-        default="dev",
-        help="the task's suite of episodes (default: %(default)s; `labd tasks` lists them)",
+        help="the task's suite of episodes (default: dev; with --benchmark, each task's own;"
+        " `labd tasks` lists them)",
     )
     p.add_argument(
         "--wait",
@@ -71,6 +95,13 @@ def add_parser(commands: Any) -> None:
         metavar="RATE",
         help="a gate: wait (as --wait does), then exit 1 when the success rate is below RATE,"
         " a fraction (0.8) or a percentage (80%%) (default: no gate)",
+    )
+    p.add_argument(
+        "--min-iqm",
+        type=fraction,
+        metavar="X",
+        help="a benchmark run's gate: wait (as --wait does), then exit 1 when the IQM of its"
+        " normalized scores is below X, from 0 to 1 (default: no gate)",
     )
     server_options(p, write=True)
 
@@ -97,11 +128,39 @@ def rate(text: str) -> float:
     return value
 
 
+def fraction(text: str) -> float:
+    """A normalized score from the command line: a number from 0 to 1."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number (0.5)") from None
+    if not 0.0 <= value <= 1.0:
+        raise argparse.ArgumentTypeError(f"{text!r}: a normalized score is from 0 to 1")
+    return value
+
+
+def _misused(args: argparse.Namespace) -> str | None:
+    """What is wrong with ``labd evaluate``'s options together, if anything."""
+    if args.command != "evaluate":
+        return None
+    if args.benchmark is not None and args.task is not None:
+        return "--benchmark and --task are exclusive: a benchmark names its own tasks"
+    if args.benchmark is not None and args.min_success is not None:
+        return "--min-success gates one evaluation; a benchmark run's gate is --min-iqm"
+    if args.benchmark is None and args.min_iqm is not None:
+        return "--min-iqm gates a benchmark run: it needs --benchmark (one task's is --min-success)"
+    return None
+
+
 def main(args: argparse.Namespace) -> int:
+    if (wrong := _misused(args)) is not None:
+        return fail(args, wrong)
     try:
         with ApiClient(args.server, getattr(args, "token", None)) as client:
             if args.command == "evaluations":
                 return _list(client, args)
+            if args.benchmark is not None:
+                return _benchmark(client, args)
             return _evaluate(client, args)
     except (RemoteError, ArchiveError) as err:
         return fail(args, str(err))
@@ -115,7 +174,12 @@ def _evaluate(client: ApiClient, args: argparse.Namespace) -> int:
     waits = args.wait or args.min_success is not None
     if waits and not args.wait:
         print(GATE_WAITS, file=sys.stderr, flush=True)
-    body = {"repository": args.repository, "ref": args.ref, "task": args.task, "suite": args.suite}
+    body = {
+        "repository": args.repository,
+        "ref": args.ref,
+        "task": args.task,
+        "suite": args.suite or "dev",
+    }
     evaluation = client.post("/api/evaluations", EvaluationView, json=body)
     print(_queued(evaluation), file=sys.stderr, flush=True)
     if not waits:
@@ -272,6 +336,146 @@ def _lines(e: EvaluationView) -> Iterator[str]:
     if e.signature:
         yield f"  signed by the lab ({e.signature.get('key')})"
     yield f"  {e.page}"
+
+
+def _benchmark(client: ApiClient, args: argparse.Namespace) -> int:
+    """Queue a benchmark run; with ``--wait`` or ``--min-iqm``, follow it to its end as
+    ``_evaluate`` follows an evaluation, then say how the gate went."""
+    waits = args.wait or args.min_iqm is not None
+    if waits and not args.wait:
+        print(IQM_WAITS, file=sys.stderr, flush=True)
+    body = {
+        "repository": args.repository,
+        "ref": args.ref,
+        "benchmark": args.benchmark,
+        "suite": args.suite,  # None: each task's own
+    }
+    run = client.post("/api/benchmark-runs", RunView, json=body)
+    print(_run_queued(run), file=sys.stderr, flush=True)
+    if not waits:
+        emit(args, run.model_dump(mode="json"), lambda: _run_lines(run))
+        return ExitCode.SUCCESS
+    run, evaluations = _follow_run(client, run)
+    emit(args, run.model_dump(mode="json"), lambda: _run_lines(run))
+    code, said = run_gate(run, evaluations, args.min_iqm)
+    if said is not None:
+        print(said, file=sys.stderr, flush=True)
+    return code
+
+
+def _follow_run(client: ApiClient, run: RunView) -> tuple[RunView, list[EvaluationView]]:
+    """Poll until the run has ended and every record's replay has its verdict (at most
+    ``REPLAYS`` seconds more), printing a line on stderr when it moves; the run, and its
+    evaluations as they ended."""
+    said = ""
+    ended: float | None = None
+    evaluations: list[EvaluationView] = []
+    while True:
+        if run.status.ended:
+            ended = ended or time.monotonic()
+            evaluations = [
+                client.get(f"/api/evaluations/{t.evaluation}", EvaluationView)
+                for t in run.evaluations
+            ]
+            run = client.get(f"/api/benchmark-runs/{run.id}", RunView)  # no older than they
+        left = sum(_replaying(e) for e in evaluations)
+        last = ended is not None and (not left or time.monotonic() - ended > REPLAYS)
+        line = _run_progress(run, left)
+        if line != said and not (last and said.endswith(VERIFYING)):
+            print(line, file=sys.stderr, flush=True)
+            said = line
+        if last:
+            return run, evaluations
+        time.sleep(POLL)
+        run = client.get(f"/api/benchmark-runs/{run.id}", RunView)
+
+
+def run_gate(
+    run: BenchmarkRun, evaluations: list[EvaluationView], min_iqm: float | None
+) -> tuple[ExitCode, str | None]:
+    """The exit code of a benchmark run followed to its end, and the line that says why
+    (None for a whole run when no gate was asked). An evaluation of the run that was
+    cancelled or is partial leaves the run with no score to gate on: the run exits as
+    that evaluation would (the most serious of them, ``worst``)."""
+    unchecked = "" if min_iqm is None else "gate not checked: "
+    verdicts = [gate(e, None) for e in evaluations]
+    code = worst(c for c, _ in verdicts)
+    if code is not ExitCode.SUCCESS:
+        said = next(line for c, line in verdicts if c is code)
+        return code, f"{unchecked}benchmark run {run.id}: {said}"
+    if run.status is Status.CANCELLED:  # no evaluation says so: said here
+        return ExitCode.CANCELLED, f"{unchecked}benchmark run {run.id} was cancelled"
+    if run.iqm is None:
+        return ExitCode.FAIL, f"{unchecked}benchmark run {run.id} shows no IQM"
+    if min_iqm is None:
+        return ExitCode.SUCCESS, None
+    iqm, bound = _apart(run.iqm, min_iqm)
+    over = f"(benchmark run {run.id} on {run.benchmark}: {run.done} episodes)"
+    if run.iqm >= min_iqm:
+        return ExitCode.SUCCESS, f"gate passed: IQM {iqm} ≥ {bound} {over}"
+    return ExitCode.FAIL, f"gate failed: IQM {iqm} is below --min-iqm {bound} {over}"
+
+
+def _apart(value: float, bound: float) -> tuple[str, str]:
+    """Two normalized scores with three decimals, or more where three print them alike."""
+    for digits in range(3, 7):
+        a, b = f"{value:.{digits}f}", f"{bound:.{digits}f}"
+        if (a == b) == (value == bound):
+            break
+    return a, b
+
+
+def _run_queued(run: RunView) -> str:
+    return (
+        f"benchmark run {run.id}: {run.repository}@{run.commit[:12]} on {run.benchmark},"
+        f" {len(run.evaluations)} tasks, {run.episodes} episodes queued; {run.url}"
+    )
+
+
+def _run_progress(run: BenchmarkRun, replaying: int) -> str:
+    if run.status.ended and replaying:
+        return f"benchmark run {run.id}: {run.status}; replaying {_episodes(replaying)}{VERIFYING}"
+    so_far = "" if run.status.ended else " so far"
+    iqm = f"; IQM {run.iqm:.3f}{so_far}" if run.iqm is not None else ""
+    return f"benchmark run {run.id}: {run.done}/{run.episodes} episodes done{iqm}"
+
+
+def _scored(value: float | None, interval: tuple[float, float] | None) -> str:
+    if value is None:
+        return "none yet"
+    if interval is None:
+        return f"{value:.3f} (no 95 % interval: too few episodes, or all alike)"
+    return f"{value:.3f} (95 % interval {interval[0]:.3f} to {interval[1]:.3f})"
+
+
+def _run_lines(run: RunView) -> Iterator[str]:
+    suite = f" suite {run.suite}" if run.suite else ""  # "": each task's own
+    yield (
+        f"benchmark run {run.id}: {run.repository}@{run.commit[:12]} on {run.benchmark}"
+        f"{suite}: {run.status}"
+    )
+    width = max((len(t.task) for t in run.evaluations), default=0)
+    for t in run.evaluations:
+        yield (
+            f"  {t.task:<{width}}  {_scored(t.normalized_mean, t.normalized_interval)}"
+            f" over {t.done} of {t.episodes} episodes (evaluation {t.evaluation}, {t.status})"
+        )
+    if run.iqm is not None:
+        mean, median = (
+            _scored(run.mean, run.mean_interval),
+            _scored(run.median, run.median_interval),
+        )
+        yield f"  IQM {_scored(run.iqm, run.iqm_interval)}, mean {mean}, median {median}"
+    else:
+        yield f"  no IQM yet ({run.done} of {run.episodes} episodes ended; one of each task needed)"
+    unverified = [t.task for t in run.evaluations if not t.verified]
+    if run.verified:
+        yield "  verified: the lab's replay of every episode of every task reproduced its record"
+    elif run.status.ended:
+        yield f"  not verified: not every episode's replay verified ({', '.join(unverified)})"
+    if run.signature:
+        yield f"  signed by the lab ({run.signature.get('key')})"
+    yield f"  {run.url}"
 
 
 def rerun(client: ApiClient, args: argparse.Namespace) -> int:
