@@ -12,6 +12,10 @@ from those evaluations whenever it is asked for, so it is never out of step with
   profile (the fraction of episodes scoring above each threshold);
 - ``verified`` once every evaluation is verified (every episode replayed identically).
 
+The leaderboard (``leaderboard``) ranks each commit by its first run of a benchmark and
+suite, never by its best: rerunning until lucky buys nothing, and a run its submitter
+cancelled stands as the commit's row, unranked.
+
 The statistics are computed over the episodes that have ended, so a run's numbers move
 while it runs and settle when its last episode ends; its ``status`` says which. Its
 bootstrap is seeded by the run's id: the same run always shows the same intervals.
@@ -33,6 +37,7 @@ from repository.benchmark_stats import (
     profile,
 )
 from repository.evaluation import Evaluation
+from repository.stats import Interval
 from repository.trial import Status
 
 BENCHMARK_RUN = "labd.benchmark-run/1"  # the schema of a run's signed statement
@@ -239,3 +244,82 @@ def statement(run: BenchmarkRun, signatures: Sequence[str], finished: float) -> 
         "median": run.median,
         "finished": dt.datetime.fromtimestamp(finished, dt.UTC).isoformat(),
     }
+
+
+class BenchmarkLeaderRow(BaseModel):
+    """A commit's row on a benchmark's leaderboard: its first run (``leaderboard``)."""
+
+    model_config = ConfigDict(frozen=True)
+
+    rank: int | None = Field(description="None: listed, not ranked (see note)")
+    run: int
+    repository: str
+    commit: str
+    iqm: float | None
+    iqm_interval: tuple[float, float] | None
+    mean: float | None
+    episodes: int = Field(description="the run's episodes, every task's")
+    status: Status
+    verified: bool = Field(description="the lab's own replay verified every episode")
+    tie: bool = Field(default=False, description="its IQM interval overlaps the ranked row above's")
+    note: str | None = Field(default=None, description="why it is unranked")
+
+
+def leaderboard(runs: Sequence[BenchmarkRun]) -> list[BenchmarkLeaderRow]:
+    """Each commit's row: its first run (by submission) of ``runs`` (of one benchmark
+    and suite), never its best. Runs that finished and verified are ranked by IQM,
+    highest first; the rest follow, unranked, with why: still running, cancelled (a
+    commit whose first run its submitter cancelled keeps that run as its row, so
+    cancelling and resubmitting buys nothing), or not verified yet."""
+    first: dict[str, BenchmarkRun] = {}
+    for run in sorted(runs, key=lambda r: r.id):
+        first.setdefault(run.commit, run)
+    chosen = list(first.values())
+    ranked = sorted((r for r in chosen if _unranked(r) is None), key=_rank_key)
+    apart = sorted((r for r in chosen if _unranked(r) is not None), key=_rank_key)
+    rows: list[BenchmarkLeaderRow] = []
+    for run in ranked:
+        above = rows[-1] if rows else None
+        tie = (
+            above is not None
+            and above.iqm_interval is not None
+            and run.iqm_interval is not None
+            and Interval(*above.iqm_interval).overlaps(Interval(*run.iqm_interval))
+        )
+        rows.append(_leader_row(run, len(rows) + 1, tie, None))
+    rows.extend(_leader_row(r, None, False, "not ranked: " + str(_unranked(r))) for r in apart)
+    return rows
+
+
+def _unranked(run: BenchmarkRun) -> str | None:
+    """Why a commit's first run is not ranked (None: it is)."""
+    if run.status is Status.CANCELLED:
+        return "cancelled; it stays the commit's row (a later run does not replace it)"
+    if not run.status.ended:
+        return f"still {run.status.value}; ranked once every episode has ended and verified"
+    if not run.verified or run.iqm is None:
+        return "its episodes' replays are not all verified yet (the lab replays every record)"
+    return None
+
+
+def _rank_key(run: BenchmarkRun) -> tuple[float, int]:
+    return (-(run.iqm if run.iqm is not None else float("-inf")), run.id)
+
+
+def _leader_row(
+    run: BenchmarkRun, rank: int | None, tie: bool, note: str | None
+) -> BenchmarkLeaderRow:
+    return BenchmarkLeaderRow(
+        rank=rank,
+        run=run.id,
+        repository=run.repository,
+        commit=run.commit,
+        iqm=run.iqm,
+        iqm_interval=run.iqm_interval,
+        mean=run.mean,
+        episodes=run.episodes,
+        status=run.status,
+        verified=run.verified,
+        tie=tie,
+        note=note,
+    )

@@ -5,13 +5,15 @@ are normalized to [0, 1] (``repository.benchmark``); task packs declare them
 (``labd.sim.registry``). Reading is public.
 
     GET /api/benchmarks                      every benchmark: name, doc, tasks
-    GET /api/benchmarks/{name}               one (404 naming the known ones)
+    GET /api/benchmarks/{name}               one, with its leaderboard (404 naming
+                                             the known ones)
     POST /api/benchmark-runs                 a commit on every task of one (201)
     GET /api/benchmark-runs[/{id}]           runs, with rliable's statistics
     GET /api/benchmark-runs/compare?a=&b=    the probability of improvement
 
-The bodies are the declarations themselves (``Benchmark``, ``BenchmarkList``), as they
-round-trip: ``labd tasks`` reads them back without loading this module's web server.
+The list's body is the declarations themselves (``BenchmarkList``), as they round-trip:
+``labd tasks`` reads them back without loading this module's web server. One benchmark
+is its declaration with its leaderboard (``repository.benchmark_run.leaderboard``).
 """
 
 from __future__ import annotations
@@ -30,7 +32,13 @@ from labd.api.state import App
 from labd.errors import LabError
 from labd.sim import registry
 from repository.benchmark import Benchmark, BenchmarkList
-from repository.benchmark_run import BenchmarkRun, Compared, compare
+from repository.benchmark_run import (
+    BenchmarkLeaderRow,
+    BenchmarkRun,
+    Compared,
+    compare,
+    leaderboard,
+)
 from scheduler.benchmarks import BenchmarkRunRequest
 
 router = APIRouter(tags=["benchmarks"])
@@ -43,13 +51,43 @@ def list_benchmarks() -> BenchmarkList:
     return BenchmarkList(registry.benchmarks())
 
 
-@router.get("/api/benchmarks/{name}", responses=responses(404))
-def one_benchmark(name: str) -> Benchmark:
-    """One benchmark: its tasks, the suite of each, and how an episode is scored."""
+class BenchmarkView(Benchmark):
+    """A benchmark with its leaderboard."""
+
+    leaderboard: list[BenchmarkLeaderRow] = Field(
+        description="each commit's first run on the benchmark's own suites, ranked by IQM"
+        " once finished and verified; the rest unranked after"
+    )
+
+
+PAGE = 100  # runs read at a time to make a leaderboard
+
+
+def known(name: str) -> Benchmark:
+    """The benchmark ``name``, or the API's 404 naming the known ones."""
     try:
         return registry.benchmark(name)
-    except LabError as err:  # no benchmark of that name: the message names the known ones
-        raise ApiError(404, str(err)) from None
+    except LabError as err:
+        raise ApiError(404, str(err), title="No such benchmark") from None
+
+
+def board(service: Lab, name: str) -> list[BenchmarkLeaderRow]:
+    """The leaderboard of ``name``'s runs on its own suites (a run asked with no suite)."""
+    runs: list[BenchmarkRun] = []
+    before: int | None = None
+    while True:
+        found, before = service.benchmark_runs.find(benchmark=name, limit=PAGE, before=before)
+        runs.extend(r for r in found if r.suite == "")
+        if before is None:
+            return leaderboard(runs)
+
+
+@router.get("/api/benchmarks/{name}", responses=responses(404))
+def one_benchmark(name: str, service: Lab) -> BenchmarkView:
+    """One benchmark: its tasks, the suite of each, how an episode is scored, and its
+    leaderboard (each commit's first run, never its best)."""
+    found = known(name)
+    return BenchmarkView(**dict(found), leaderboard=board(service, name))
 
 
 class BenchmarkRunView(BenchmarkRun):

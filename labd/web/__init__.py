@@ -1,5 +1,6 @@
 """The lab's web pages, served beside the HTTP API: the archive to browse (``pages``),
-evaluations followed, compared and ranked (``evaluations``), matches followed and
+evaluations followed, compared and ranked (``evaluations``), benchmarks and their
+runs ranked (``benchmarks``), matches followed and
 their ladders (``matches``), forms to sign in, submit and rerun (``forms``), accounts
 and tokens (``accounts``), reservations and the robots' calendars (``reservations``),
 the live robots' pages (``robots``), and the API's own documentation (``/docs``,
@@ -23,6 +24,7 @@ from labd.api.site import RobotLink, Site
 from labd.service import Service
 from labd.web import (
     accounts,
+    benchmarks,
     evaluations,
     forms,
     matches,
@@ -78,6 +80,7 @@ def install(app: FastAPI) -> None:
     app.mount("/static", Precompressed(directory=STATIC), name="static")
     app.include_router(pages.router)
     app.include_router(evaluations.router)
+    app.include_router(benchmarks.router)
     app.include_router(matches.router)
     app.include_router(forms.router)
     app.include_router(robots.router)

@@ -29,11 +29,11 @@ async def test_the_benchmarks_are_listed_with_their_tasks_suites_and_normalizati
 
 
 async def test_one_benchmark_by_name_and_an_unknown_one_is_404(api):
-    """GET /api/benchmarks/{name} is that benchmark; an unknown name is a 404 whose words
-    name the benchmarks the lab has."""
+    """GET /api/benchmarks/{name} is that benchmark with its leaderboard (none run yet:
+    empty); an unknown name is a 404 whose words name the benchmarks the lab has."""
     answer = await api.get("/api/benchmarks/dmc")
     assert answer.status_code == 200
-    assert answer.json() == registry.benchmark("dmc").model_dump(mode="json")
+    assert answer.json() == {**registry.benchmark("dmc").model_dump(mode="json"), "leaderboard": []}
     missing = await api.get("/api/benchmarks/dmc-clasic")
     assert missing.status_code == 404
     said = missing.json()["error"]
