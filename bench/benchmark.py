@@ -95,6 +95,7 @@ def run(served: Served, repo: Path, benchmark: str) -> tuple[dict[str, Any], flo
                 raise RuntimeError("the run did not end:\n" + "".join(served.output[-40:]))
             time.sleep(1.0)
         seconds = time.monotonic() - started
+        made = client.get(f"/api/benchmark-runs/{made['id']}").json()  # with the last verdicts
         episodes = [
             (task["task"], r["seed"], client.get(f"/api/trials/{r['trial']}").json())
             for task in made["evaluations"]
