@@ -49,7 +49,7 @@ def test_a_mover_beats_a_team_that_never_steps_and_tops_the_ladder(cache, tmp_pa
         tmp_path / "still",
         {"lab.toml": '[controller]\ncommand = ["python", "still.py"]\n', "still.py": STILL},
     )
-    run = RunOptions(first_step=8.0)
+    run = RunOptions(first_step=15.0)  # the chaser's margin beside a busy lab
     config = lab_config(tmp_path / "data", (), workers=1, cache=cache, service={"run": run})
     with running(config) as server:
         service = server.lab.service
