@@ -35,7 +35,7 @@ from repository.digests import readable_json
 from repository.manifest import Manifest, Team
 from repository.match import STEP_DEADLINE
 from repository.trial import Ending, Order, Value
-from repository.well_known import MANIFEST, OUTCOME, side_logs
+from repository.well_known import MANIFEST, side_logs
 from sandbox.api import Backend, Exit, Running, SandboxError
 from scheduler.errors import ControllerConfigError, InvalidRequest, TrialError
 from scheduler.host import MatchLab, MatchSetup, TrialHost
@@ -48,6 +48,7 @@ from scheduler.runner import (
     in_work_folder,
     job_of,
     prepare,
+    said_files,
     write_whole,
 )
 from scheduler.states import Stage
@@ -372,19 +373,7 @@ class _Leg:
 
     def _attachments(self, manifest: Manifest, leg: TrialResult) -> dict[str, tuple[str, bytes]]:
         files: dict[str, tuple[str, bytes]] = {
-            MANIFEST: ("application/json", readable_json(manifest.to_json())),
-            OUTCOME: (
-                "application/json",
-                readable_json(
-                    {
-                        "status": leg.status.value,
-                        "outcome": leg.outcome.value if leg.outcome else None,
-                        "reason": leg.reason,
-                        "metrics": leg.metrics,
-                        "exit_code": None,
-                    }
-                ),
-            ),
+            **said_files(manifest, leg),
             **self.lab.model_files(),
         }
         for side, p in self.prepared.items():

@@ -525,19 +525,7 @@ class _Trial:
         self, manifest: Manifest, exit_: Exit | None, result: TrialResult
     ) -> dict[str, tuple[str, bytes]]:
         files: dict[str, tuple[str, bytes]] = {
-            MANIFEST: ("application/json", readable_json(manifest.to_json())),
-            OUTCOME: (
-                "application/json",
-                readable_json(
-                    {
-                        "status": result.status.value,
-                        "outcome": result.outcome.value if result.outcome else None,
-                        "reason": result.reason,
-                        "metrics": result.metrics,
-                        "exit_code": result.exit_code,
-                    }
-                ),
-            ),
+            **said_files(manifest, result),
             "lab.toml": ("application/toml", self.prepared.config.text.encode()),
             **self.lab.model_files(),
         }
@@ -552,6 +540,21 @@ class _Trial:
             write_whole(self.out / LOGS["stdout"], exit_.stdout)
             write_whole(self.out / LOGS["stderr"], exit_.stderr)
         write_whole(self.out / MANIFEST, readable_json(manifest.to_json()))
+
+
+def said_files(manifest: Manifest, result: TrialResult) -> dict[str, tuple[str, bytes]]:
+    """A record's manifest and outcome attachments, as people and the filing check read them."""
+    outcome = {
+        "status": result.status.value,
+        "outcome": result.outcome.value if result.outcome else None,
+        "reason": result.reason,
+        "metrics": result.metrics,
+        "exit_code": result.exit_code,
+    }
+    return {
+        MANIFEST: ("application/json", readable_json(manifest.to_json())),
+        OUTCOME: ("application/json", readable_json(outcome)),
+    }
 
 
 def job_of(p: Prepared, code: Path, socket: Path, limits: Limits) -> Job:
