@@ -69,7 +69,7 @@ def test_a_team_that_never_steps_forfeits_at_the_deadline(cache, tmp_path):
     assert leg.metrics["winner"] == "home" and leg.metrics["ended_by"] == "forfeit"
     assert leg.metrics["forfeited"] == "away"
     assert "away sent no /lab/step within 15 s of its start" in leg.reason, leg.reason
-    assert leg.wall_seconds < 60, leg.wall_seconds  # the deadline ended it, not a limit
+    assert leg.metrics["ticks"] == 0  # the deadline ended it at tick 0, not a sandbox limit
     assert leg.mcap is not None
     manifest = json.loads((tmp_path / "leg" / "manifest.json").read_text())
     assert manifest["kind"] == "match" and sorted(manifest["teams"]) == ["away", "home"]
