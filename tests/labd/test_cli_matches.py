@@ -13,6 +13,7 @@ import queue
 import sys
 from collections.abc import Iterator
 from concurrent.futures import Future, ThreadPoolExecutor
+from contextlib import contextmanager
 from typing import Any
 
 import pytest
@@ -133,9 +134,15 @@ def play(service: Any, *results: tuple[Any, ...]) -> None:
         file_leg(service, claim(service), *result)
 
 
-def in_background(*argv: str) -> tuple[ThreadPoolExecutor, Future[int]]:
+@contextmanager
+def in_background(*argv: str) -> Iterator[Future[int]]:
+    """Run a command on a thread. A test that fails while the command still follows
+    its match does not wait for it: the thread ends when the lab under it stops."""
     pool = ThreadPoolExecutor(1)
-    return pool, pool.submit(main, list(argv))
+    try:
+        yield pool.submit(main, list(argv))
+    finally:
+        pool.shutdown(wait=False)
 
 
 def short(repo: GitRepo) -> str:
@@ -152,8 +159,7 @@ def test_a_match_waited_for_says_each_step_then_each_leg_and_exits_0(
     service = server.lab.service
     monkeypatch.chdir(tmp_path)
     a, b = teams["a"], teams["b"]
-    pool, done = in_background("match", "team-a", "team-b", "--task", TASK, "--wait")
-    with pool:
+    with in_background("match", "team-a", "team-b", "--task", TASK, "--wait") as done:
         queued = f"match 1 queued: {short(a)} against {short(b)}, 4 legs"
         assert next_line(said) == queued
         steps = [next_line(said)]
@@ -227,11 +233,12 @@ def test_a_cancelled_match_exits_4_with_its_json(server, teams, said, capsys):
     prints the cancelled match as JSON, says why on stderr, and exits 4 (cancelled)."""
     service = server.lab.service
     a, b = (str(teams[n].path) for n in "ab")
-    pool, done = in_background("match", a, b, "--task", TASK, "--seeds", "1", "--wait", "--json")
-    with pool:
+    with in_background("match", a, b, "--task", TASK, "--seeds", "1", "--wait", "--json") as done:
         assert next_line(said).startswith("match 1 queued: ")
         next_line(said)
-        play(service, ("home", "goal", (1, 0)))
+        leg = claim(service)  # the command may see the leg running before it is filed
+        assert next_line(said) == "match 1: 0/2 legs done, 1 running, 1 queued; A 0, B 0, 0 drawn"
+        file_leg(service, leg, "home", "goal", (1, 0))
         assert next_line(said) == "match 1: 1/2 legs done, 0 running, 1 queued; A 1, B 0, 0 drawn"
         with ApiClient(server.http_url(), os.environ["LABD_TOKEN"]) as alice:
             alice.post("/api/matches/1/cancel", command.MatchView)
@@ -250,8 +257,7 @@ def test_a_leg_without_a_result_exits_3(server, teams, said, capsys):
     --wait`` exit 3 (error), naming the leg; the score counts the other legs."""
     service = server.lab.service
     a, b = (str(teams[n].path) for n in "ab")
-    pool, done = in_background("match", a, b, "--task", TASK, "--seeds", "1", "--wait")
-    with pool:
+    with in_background("match", a, b, "--task", TASK, "--seeds", "1", "--wait") as done:
         assert next_line(said).startswith("match 1 queued: ")
         next_line(said)
         play(service, ("", "forfeit", (0, 0), "home,away"), ("home", "goal", (1, 0)))
