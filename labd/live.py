@@ -252,7 +252,13 @@ class Driving:
         """Make a bridge client the driver, under the name the lab knows it by."""
         user = node.user or "guest:" + node.name.rsplit("/", 1)[-1]
         self._begin(
-            _Session(node, user, interface, session or secrets.token_hex(6), claimed_user=claimed)
+            _Session(
+                node,
+                user,
+                interface or node.interface,
+                session or secrets.token_hex(6),
+                claimed_user=claimed,
+            )
         )
 
     def _begin(self, session: _Session) -> None:

@@ -76,8 +76,13 @@ class Outbox:
         if self.control_bytes > self.max_bytes:
             self.overflowed = True
 
-    def push_message(self, stream: Renders, message: Message, limit: int) -> None:
-        size = message.size_hint()
+    def push_message(
+        self, stream: Renders, message: Message, limit: int, size: int | None = None
+    ) -> None:
+        """Queue ``message`` for ``stream``, which holds at most ``limit``; ``size``:
+        the bytes it will go out as, when its stream knows (else its JSON's)."""
+        if size is None:
+            size = message.size_hint()
         entry = _Entry(None, message, stream, size)
         stream.pending.append(entry)
         self.topic_bytes += size

@@ -19,9 +19,10 @@ import contextlib
 import http
 import itertools
 import logging
+import secrets
 import ssl
 from collections import deque
-from collections.abc import Coroutine, Mapping
+from collections.abc import Coroutine, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -31,8 +32,10 @@ from websockets.asyncio.server import Server, ServerConnection, serve, unix_serv
 from websockets.exceptions import ConnectionClosed
 from websockets.http11 import Request, Response
 from websockets.protocol import Event, Protocol, State
+from websockets.typing import Subprotocol
 
 from labd.addresses import PerAddress, address_of
+from labd.bridge import foxglove
 from labd.bridge.auth import AuthError, Authorizer, AuthUnavailable, KeyPolicy
 from labd.bridge.ops import CAPABILITIES
 from labd.bridge.render import OutFrame
@@ -94,6 +97,7 @@ class BridgeServer:
         self.admitted = PerAddress(config.max_connections_per_address)
         self.opening = PerAddress(config.max_connections_per_address)
         self._ids = itertools.count(1)
+        self._boot = secrets.token_hex(6)  # tells a Foxglove client the bridge restarted
         self._server: Server | None = None
         self._recheck: asyncio.Task[None] | None = None
         self.unix_path: Path | None = None
@@ -116,6 +120,7 @@ class BridgeServer:
             context.load_cert_chain(self.config.tls_cert, self.config.tls_key)
         options: dict[str, Any] = {
             "process_request": self._admit,
+            "select_subprotocol": self._select_subprotocol,
             "max_size": self.config.max_frame_size,
             "ping_interval": self.config.ping_interval,
             "ping_timeout": self.config.ping_timeout,
@@ -180,6 +185,19 @@ class BridgeServer:
             return route[len(prefix) :]
         return None
 
+    def _select_subprotocol(
+        self, connection: ServerConnection, offered: Sequence[Subprotocol]
+    ) -> Subprotocol | None:
+        """Foxglove's protocol for a client that offers it, on a graph seen whole (a
+        match's side is served rosbridge only); rosbridge, with no subprotocol named,
+        for every other client (roslibjs offers none)."""
+        path = connection.request.path if connection.request else "/"
+        name = self._name_for(path)
+        if name is None or name in self.namespaces:
+            return None
+        chosen = foxglove.select(tuple(offered))
+        return None if chosen is None else Subprotocol(chosen)
+
     def _admit(self, connection: ServerConnection, request: Request) -> Response | None:
         if self._graph_for(request.path) is None:
             names = ", ".join(f"/robots/{n}" for n in self.graphs)
@@ -214,25 +232,47 @@ class BridgeServer:
         address = ws.remote_address[0] if ws.remote_address else "unix"
         traffic = self.traffic[name]
         conn = _Connection(ws, self.authorizer, name, address, self.failures, traffic=traffic)
-        session = Session(
-            graph,
-            self.config,
-            asyncio.get_running_loop(),
-            conn,
-            client_id=next(self._ids),
-            capabilities=CAPABILITIES,
-            auth_required=policy is KeyPolicy.REQUIRED,
-            auth_optional=policy is KeyPolicy.OPTIONAL,
-            url_key=key if policy is not KeyPolicy.NONE else None,
-            namespace=self.namespaces.get(name),
-            hold=self.hold,
-        )
+        required, optional = policy is KeyPolicy.REQUIRED, policy is KeyPolicy.OPTIONAL
+        url_key = key if policy is not KeyPolicy.NONE else None
+        session: Session
+        if ws.subprotocol in foxglove.SUBPROTOCOLS:
+            session = foxglove.FoxgloveSession(
+                graph,
+                self.config,
+                asyncio.get_running_loop(),
+                conn,
+                client_id=next(self._ids),
+                subprotocol=ws.subprotocol,
+                info=foxglove.ServerInfo(f"labd {name}", f"{self._boot}-{name}"),
+                auth_required=required,
+                auth_optional=optional,
+                url_key=url_key,
+                hold=self.hold,
+            )
+        else:
+            session = Session(
+                graph,
+                self.config,
+                asyncio.get_running_loop(),
+                conn,
+                client_id=next(self._ids),
+                capabilities=CAPABILITIES,
+                namespace=self.namespaces.get(name),
+                auth_required=required,
+                auth_optional=optional,
+                url_key=url_key,
+                hold=self.hold,
+            )
         conn.session = session
         session.node.address = address
         self.connections.add(conn)
         traffic.clients += 1
         log.info(
-            "client %d connected from %s to %s", session.client_id, ws.remote_address, graph.name
+            "client %d connected from %s to %s%s",
+            session.client_id,
+            ws.remote_address,
+            graph.name,
+            f" ({ws.subprotocol})" if ws.subprotocol else "",
         )
         writer = asyncio.create_task(conn.write_loop())
         try:
@@ -449,11 +489,12 @@ class _Connection:
         session = self.session
         assert session is not None
         recv = self.ws.recv
+        decode = None if session.text_as_str else False  # None: text as str, binary as bytes
         traffic = self.traffic
         count = 0
         with contextlib.suppress(ConnectionClosed):
             while True:
-                session.receive(await recv(decode=False))
+                session.receive(await recv(decode=decode))
                 traffic.received += 1
                 if self._writer_idle and self._ready.is_set():
                     self._write_now(session)

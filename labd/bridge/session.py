@@ -102,6 +102,8 @@ class Capability:
 class Session:
     """The protocol state of one connected client."""
 
+    text_as_str = False  # rosbridge takes text and binary frames alike, as bytes
+
     def __init__(
         self,
         graph: Graph,

@@ -96,6 +96,12 @@ class Graph:
         self.taps: list[Tap] = []
         # Called with each node destroyed (a client that left): a live robot's driver.
         self.node_gone: list[Callable[[Node], None]] = []
+        # Called when the graph's shape changes (a publisher, subscription or service
+        # comes or goes), many times in one turn of the loop if many do: a Foxglove
+        # client's channels follow it.
+        self.on_change: list[Callable[[], None]] = []
+        # The values the graph's robot runs with (its task's parameters), to read.
+        self.parameters: Callable[[], Mapping[str, Any]] = dict
         self.log = logging.getLogger(f"labd.graph.{name}")
         self._node_ids = itertools.count(1)
         # /rosout exists from the start, as on any ROS 2 system (clients check for it).
@@ -163,6 +169,11 @@ class Graph:
     def _forget_topic_if_unused(self, topic: Topic) -> None:
         if not topic.publishers and not topic.subscriptions:
             self.topics.pop(topic.name, None)
+
+    def changed(self) -> None:
+        """The graph's shape changed: tell who follows it."""
+        for listener in tuple(self.on_change):
+            listener()
 
     # -- introspection (rosapi) -----------------------------------------------------------
 
@@ -280,6 +291,7 @@ class Publisher:
         if topic.owner is self.node and all(p.node is not self.node for p in topic.publishers):
             topic.owner = None  # the lab no longer publishes it
         self.node.graph._forget_topic_if_unused(topic)
+        self.node.graph.changed()
 
 
 class Subscription:
@@ -313,6 +325,7 @@ class Subscription:
         self.topic.subscriptions.remove(self)
         self.node.subscriptions.remove(self)
         self.node.graph._forget_topic_if_unused(self.topic)
+        self.node.graph.changed()
 
 
 class Node:
@@ -332,6 +345,9 @@ class Node:
         self.user: str | None = None
         # Where a bridge client connects from (limits per address); None: in the lab.
         self.address: str | None = None
+        # Which of the bridge's protocols a client speaks, when not rosbridge ("foxglove"):
+        # a drive made by commanding is filed under it.
+        self.interface = ""
         self.destroyed = False
 
     def advertise(
@@ -359,6 +375,7 @@ class Node:
         self.publishers.append(pub)
         if own:  # after joining, so the topic outlives the publishers it revokes
             self._own(t)
+        self.graph.changed()
         return pub
 
     def _own(self, topic: Topic) -> None:
@@ -390,6 +407,7 @@ class Node:
         sub = Subscription(self, t, callback, hidden, gatekeeper, gate=gate)
         t.subscriptions.append(sub)
         self.subscriptions.append(sub)
+        self.graph.changed()
         if latched and t.latched is not None:
             callback(t.latched)
         return sub
@@ -417,6 +435,7 @@ class Node:
         service = Service(self, absolute, stype, handler)
         self.graph.services[absolute] = service
         self.services.append(service)
+        self.graph.changed()
         return service
 
     def call_service(

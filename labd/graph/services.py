@@ -91,6 +91,7 @@ class Service:
         if graph.services.get(self.name) is self:
             del graph.services[self.name]
         self.node.services.remove(self)
+        graph.changed()
 
 
 class ServiceCall:

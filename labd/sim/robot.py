@@ -97,6 +97,7 @@ class Robot:
         self.params = {**(spec.live_params if live else {}), **(params or {})}
         self.sim = self._simulation(seed)
         graph.clock = lambda: self.sim.time_ns
+        graph.parameters = lambda: self.sim.values
         self.node = graph.create_node(node_name)
         self.publishers: dict[str, Publisher] = {}
         self.command_times: dict[str, float] = {}  # wall time of each live Twist command
