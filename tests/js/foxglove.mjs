@@ -188,6 +188,10 @@ const scenarios = {
       await sleep(100);
     }
     const moved = moving();
+    for (let i = 0; i < 20; i += 1) { // long enough to be filed (the lab's least is 20 ticks)
+      driver.sendMessage(json, new TextEncoder().encode(JSON.stringify(forward)));
+      await sleep(100);
+    }
     // Someone else tries to drive: refused, told why in a status; the robot is not theirs.
     const other = await connect(url, "other");
     await channels(other, ["/cmd_vel"]);
@@ -275,6 +279,24 @@ const scenarios = {
       (items) => items.slice(1).some((u) => u.subscribedTopics.some((t) => t.name === "/odom")),
     );
     const observed = { first, later: updates.slice(1) };
+    closeAll();
+    return observed;
+  },
+
+  /** A robot that needs a key, given in the URL (FOXGLOVE_KEY): what comes, and the close. */
+  async keyed(url) {
+    const client = await connect(url, "keyed", { key: process.env.FOXGLOVE_KEY });
+    await Promise.race([
+      client.inbox.advertise.count(1).catch(() => {}),
+      client.inbox.close.count(1).catch(() => {}),
+    ]);
+    await sleep(300); // anything that follows the first channels, or the close
+    const [closed] = client.inbox.close.items;
+    const observed = {
+      channels: client.inbox.advertise.items.flat().length,
+      statuses: client.inbox.status.items,
+      closed: closed ? closed.code : null,
+    };
     closeAll();
     return observed;
   },

@@ -1,0 +1,255 @@
+"""Foxglove's own client (npm ``@foxglove/ws-protocol`` 0.8, unmodified, run by Node.js)
+at a live robot's URL, beside roslibjs on the same port.
+
+Each test runs scenarios of ``tests/js/foxglove.mjs`` against a real lab with the live
+maze robot: the script drives FoxgloveClients, decodes what they receive with
+Foxglove's ROS 2 reader (``@foxglove/rosmsg2-serialization``) and prints what it
+observed as JSON; the assertions are here (``harness.mjs`` describes the contract).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import subprocess
+import time
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from labd.bridge.auth import AuthError, Grant
+from labd.config import BridgeConfig
+from repository.index import Filters
+from repository.trial import Kind
+from tests.helpers.labs import MAZE, ServerThread, lab_config, running
+
+JS = Path(__file__).resolve().parents[1] / "js"
+NODE = shutil.which("node")
+TIMEOUT = 60  # seconds for one script; its own waits are bounded far below this
+ROBOT = MAZE.name
+
+pytestmark = [
+    pytest.mark.integration,
+    pytest.mark.timeout(180),
+    pytest.mark.skipif(NODE is None, reason="Node.js (node, version 20 or later) is not installed"),
+]
+
+
+def foxglove(
+    url: str, *scenarios: str, offered: str = "foxglove.sdk.v1", key: str = ""
+) -> dict[str, Any]:
+    """Run ``scenarios`` of ``tests/js/foxglove.mjs`` at ``url``, offering the
+    subprotocols ``offered``; their observations by name."""
+    if not (JS / "node_modules" / "@foxglove" / "ws-protocol").is_dir():
+        pytest.fail(f"{JS / 'node_modules'} has no @foxglove/ws-protocol: run `make setup`")
+    assert NODE is not None
+    env = {**os.environ, "FOXGLOVE_SUBPROTOCOLS": offered, "FOXGLOVE_KEY": key}
+    proc = subprocess.run(
+        [NODE, str(JS / "foxglove.mjs"), url, *scenarios],
+        cwd=JS,
+        capture_output=True,
+        text=True,
+        timeout=TIMEOUT,
+        check=False,
+        env=env,
+    )
+    assert proc.returncode == 0, (
+        f"foxglove.mjs {scenarios} exited {proc.returncode}:\n{proc.stderr}"
+    )
+    observed: dict[str, Any] = json.loads(proc.stdout)["scenarios"]
+    return observed
+
+
+@pytest.fixture(scope="module")
+def lab(tmp_path_factory: pytest.TempPathFactory) -> Any:
+    """A lab with the live maze robot and the archive, no worker."""
+    with running(lab_config(tmp_path_factory.mktemp("foxglove") / "data")) as server:
+        yield server
+
+
+def robot_url(server: ServerThread) -> str:
+    return f"{server.url}/robots/{ROBOT}"
+
+
+@pytest.mark.parametrize(
+    "offered",
+    ["foxglove.sdk.v1", "foxglove.websocket.v1", "foxglove.websocket.v1,foxglove.sdk.v1"],
+    ids=["sdk", "websocket", "both-as-lichtblick-offers"],
+)
+def test_a_foxglove_client_gets_server_info_and_every_topic_as_a_ros2_channel(lab, offered):
+    """Whichever of Foxglove's names the client offers, it is answered in that protocol
+    (the SDK's name when it offers both); ``serverInfo`` lists the capabilities the lab
+    has, and every topic of the robot is a channel in CDR with its ROS 2 definition,
+    which Foxglove's own parser reads."""
+    seen = foxglove(robot_url(lab), "connect", offered=offered)["connect"]
+    expected = "foxglove.sdk.v1" if "foxglove.sdk.v1" in offered else "foxglove.websocket.v1"
+    assert seen["protocol"] == expected
+    info = seen["info"]
+    assert sorted(info["capabilities"]) == sorted(
+        ["clientPublish", "services", "parameters", "time", "connectionGraph"]
+    )
+    assert info["supportedEncodings"] == ["cdr", "json"]
+    assert info["metadata"] == {"ROS_DISTRO": "jazzy", "robot": ROBOT}
+    channels = {c["topic"]: c for c in seen["channels"]}
+    for topic in ("/odom", "/tf", "/camera/image/compressed", "/cmd_vel", "/lab/episode"):
+        assert topic in channels, sorted(channels)
+    assert channels["/camera/image/compressed"]["schemaName"] == "sensor_msgs/msg/CompressedImage"
+    assert {(c["encoding"], c["schemaEncoding"]) for c in seen["channels"]} == {("cdr", "ros2msg")}
+    assert all(ok is True for ok in seen["parsed"]), seen["parsed"]
+    services = {s["name"]: s for s in seen["services"]}
+    assert {"/lab/reset", "/lab/drive", "/lab/release", "/rosapi/topics"} <= services.keys()
+    assert services["/lab/reset"]["request"] == {
+        "encoding": "cdr",
+        "schemaName": "std_srvs/srv/Trigger_Request",
+        "schemaEncoding": "ros2msg",
+    }
+
+
+def test_odometry_decodes_with_foxglove_s_ros2_reader_in_simulation_time(lab):
+    """/odom arrives as CDR that Foxglove's reader decodes whole (no trailing bytes),
+    each message stamped with the simulation time of its tick, which a Time frame
+    announced before it."""
+    seen = foxglove(robot_url(lab), "odom")["odom"]
+    assert seen["channel"]["schemaName"] == "nav_msgs/msg/Odometry"
+    messages = seen["messages"]
+    assert len(messages) == 5
+    for item in messages:
+        odom = item["message"]
+        assert item["trailing"] is False
+        assert odom["header"]["frame_id"] == "odom"
+        assert odom["child_frame_id"] == "base_link"
+        assert odom["pose"]["pose"]["orientation"]["w"] == pytest.approx(1.0, abs=0.1)
+        stamp = odom["header"]["stamp"]
+        assert int(item["timestamp"]) == stamp["sec"] * 10**9 + stamp["nanosec"]
+        assert item["timestamp"] in seen["times"]  # announced by a Time frame
+    stamps = [int(item["timestamp"]) for item in messages]
+    assert stamps == sorted(stamps) and len(set(stamps)) == 5  # one a tick, in order
+
+
+def test_teleop_drives_with_cdr_and_json_and_the_drive_is_a_demonstration(lab):
+    """A client publishing /cmd_vel (CDR, then JSON) drives the robot: it turns, then
+    moves; /lab/driver names it, with the interface "foxglove"; a second client that
+    publishes is refused in a status and does not drive. When the driver leaves, its
+    drive is filed as a demonstration under the foxglove interface."""
+    service = lab.lab.service
+    before = len(service.index.find(Filters(kind=Kind.DEMONSTRATION)).items)
+    seen = foxglove(robot_url(lab), "drive")["drive"]
+    assert seen["turned"] and seen["moved"]
+    assert seen["refused"]["level"] == 1
+    assert f"{ROBOT} is driven by guest:client_" in seen["refused"]["message"]
+    assert "you are watching" in seen["refused"]["message"]
+    assert seen["refused"]["id"] == "/cmd_vel"  # one status, replaced at each refusal
+    assert seen["driverStatuses"] == []
+    driving = [d for d in seen["drivers"] if d["driver"]]
+    assert driving and driving[-1]["interface"] == "foxglove"
+    deadline = time.monotonic() + 30
+    while len(found := service.index.find(Filters(kind=Kind.DEMONSTRATION)).items) == before:
+        assert time.monotonic() < deadline, "no demonstration filed"
+        time.sleep(0.1)
+    demo = found[0]
+    assert demo.manifest["driver"]["interface"] == "foxglove"
+    assert demo.submitter == driving[-1]["driver"]
+
+
+def test_services_answer_in_the_encoding_they_were_called_in(lab):
+    """/lab/reset called in CDR is answered in CDR (Foxglove's reader decodes it), in
+    JSON in JSON; rosapi answers too; a call of no service, or with bytes that are no
+    request, fails saying why."""
+    seen = foxglove(robot_url(lab), "services")["services"]
+    assert seen["requestHex"] == "0001000000"  # an empty request, as ROS 2 writes it
+    assert seen["cdr"]["encoding"] == "cdr"
+    assert seen["cdr"]["value"]["success"] is True
+    assert seen["cdr"]["value"]["message"].startswith("new episode, seed ")
+    assert seen["json"]["encoding"] == "json"
+    assert seen["json"]["value"]["success"] is True
+    assert "/odom" in seen["topics"]["topics"]
+    failures = {f["callId"]: f["message"] for f in seen["failures"]}
+    assert failures[4] == "no service with id 9999"
+    assert failures[5].startswith(
+        "/lab/reset: the bytes are not a CDR std_srvs/srv/Trigger_Request"
+    )
+
+
+def test_parameters_are_the_robot_s_and_read_only(lab):
+    """getParameters gives the task's parameters, all or those named; setParameters is
+    refused in an error status and answered with the values unchanged."""
+    seen = foxglove(robot_url(lab), "params")["params"]
+    everything, some, after_set = seen["values"]
+    values = {p["name"]: p["value"] for p in everything["parameters"]}
+    assert values["camera_width"] == 320 and values["maze_size"] == 9
+    assert everything["id"] == "all"
+    assert some == {
+        "op": "parameterValues",
+        "parameters": [{"name": "camera_width", "value": 320}],
+        "id": "some",
+    }
+    assert after_set["parameters"] == [{"name": "camera_width", "value": 320}]
+    assert seen["status"]["level"] == 2 and "read-only" in seen["status"]["message"]
+
+
+def test_the_connection_graph_and_its_changes(lab):
+    """The first update holds who publishes and provides what; the client's own
+    subscription to /odom comes in a later one."""
+    seen = foxglove(robot_url(lab), "graph")["graph"]
+    published = {t["name"]: t["publisherIds"] for t in seen["first"]["publishedTopics"]}
+    assert published["/odom"] == [f"/{ROBOT.replace('-', '_')}"]
+    services = {s["name"] for s in seen["first"]["advertisedServices"]}
+    assert "/lab/reset" in services
+    later = [t for u in seen["later"] for t in u["subscribedTopics"] if t["name"] == "/odom"]
+    assert any(any(n.startswith("/bridge/client_") for n in t["subscriberIds"]) for t in later)
+
+
+def test_the_camera_streams_jpeg_while_subscribed_beside_roslibjs(lab):
+    """A Foxglove client and a roslibjs client watch the camera at the same time on the
+    same port; Foxglove's frames are JPEGs in sensor_msgs/msg/CompressedImage, and none
+    come once it unsubscribes."""
+    assert NODE is not None
+    roslibjs = subprocess.Popen(
+        [NODE, str(JS / "camera.mjs"), robot_url(lab), "3"],
+        cwd=JS,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        seen = foxglove(robot_url(lab), "camera")["camera"]
+        out, err = roslibjs.communicate(timeout=TIMEOUT)
+    finally:
+        roslibjs.kill()
+    assert roslibjs.returncode == 0, err
+    assert len(json.loads(out)["frames"]) == 3
+    assert [f["format"] for f in seen["frames"]] == ["jpeg"] * 3
+    assert all(f["head"] == "ffd8ff" and not f["trailing"] for f in seen["frames"])
+    assert seen["afterUnsubscribe"] == 0
+
+
+class Keys:
+    """An authorizer that knows one key, alice's."""
+
+    async def authorize(self, key: str, graph: str) -> Grant:
+        if key != "alice-key":
+            raise AuthError("the key is not known")
+        return Grant(60.0, user="alice")
+
+
+def test_a_key_in_the_url_opens_the_robot_and_a_wrong_one_is_refused(tmp_path):
+    """On a robot that needs a key, the key goes in the URL (the protocol has no place
+    for one): the right one opens it to Foxglove's client; a wrong one is refused in an
+    error status, and the connection closes."""
+    config = lab_config(tmp_path / "data", bridge=BridgeConfig(port=0, auth_timeout=5))
+    server = ServerThread(config, authorizer=Keys()).start()
+    try:
+        url = robot_url(server)
+        opened = foxglove(url, "keyed", key="alice-key")["keyed"]
+        refused = foxglove(url, "keyed", key="mallory-key")["keyed"]
+    finally:
+        server.stop()
+    assert opened["channels"] > 5 and opened["statuses"] == []
+    assert opened["closed"] is None
+    assert refused["channels"] == 0
+    assert refused["statuses"] == [
+        {"op": "status", "level": 2, "message": "authorization refused: the key is not known"}
+    ]
+    assert refused["closed"] == 1008
