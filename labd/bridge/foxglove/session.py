@@ -247,7 +247,7 @@ class FoxgloveSession(Session):
     # -- lifecycle ---------------------------------------------------------------------
 
     def close_connection(self, code: int, reason: str) -> None:
-        if not self.closed:  # the app shows statuses, not close reasons
+        if not self.closed and not self.outbox.overflowed:  # the app shows statuses
             self.send({"op": "status", "level": STATUS_LEVELS["error"], "message": reason})
         super().close_connection(code, reason)
 
@@ -477,7 +477,10 @@ class ClientPublish(Capability):
                     " client; the rest are dropped",
                 )
             return
-        value = decode(publisher.topic.codec, channel.encoding, data.payload)
+        try:
+            value = decode(publisher.topic.codec, channel.encoding, data.payload)
+        except MessageError as err:
+            raise MessageError(f"{channel.topic}: {err}") from None
         try:
             hold = session.hold
             if hold is None:
