@@ -253,3 +253,33 @@ def test_a_key_in_the_url_opens_the_robot_and_a_wrong_one_is_refused(tmp_path):
         {"op": "status", "level": 2, "message": "authorization refused: the key is not known"}
     ]
     assert refused["closed"] == 1008
+
+
+LAYOUT = (
+    Path(__file__).resolve().parents[2] / "docs" / "examples" / "foxglove" / "icreate-maze.json"
+)
+
+
+def test_the_maze_layout_names_only_what_the_robot_has(lab):
+    """docs/examples/foxglove/icreate-maze.json (docs/live.md) shows topics the maze
+    robot publishes and drives the one it obeys, often enough to outrun the watchdog."""
+    layout = json.loads(LAYOUT.read_text())
+    panels = layout["configById"]
+    named: set[str] = set()
+
+    def leaves(node: Any) -> set[str]:
+        if isinstance(node, str):
+            return {node}
+        return leaves(node["first"]) | leaves(node["second"])
+
+    assert leaves(layout["layout"]) == set(panels)
+    for config in panels.values():
+        named |= {config.get("topic"), config.get("topicPath")} - {None}
+        named |= set(config.get("topics", {}))
+        named |= {config.get("imageMode", {}).get("imageTopic")} - {None}
+        named |= {path["value"].split(".")[0] for path in config.get("paths", [])}
+    graph = lab.lab.graphs[ROBOT]
+    published = {name for name, topic in graph.topics.items() if topic.publishers}
+    assert named <= published, named - published
+    teleop = panels["Teleop!drive"]
+    assert teleop["topic"] == "/cmd_vel" and teleop["publishRate"] >= 4  # a Twist lapses in 0.5 s
