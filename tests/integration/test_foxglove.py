@@ -9,17 +9,25 @@ observed as JSON; the assertions are here (``harness.mjs`` describes the contrac
 
 from __future__ import annotations
 
+import asyncio
+import itertools
 import json
 import os
 import shutil
+import socket
+import struct
 import subprocess
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 import pytest
+from websockets.asyncio.client import connect as ws_connect
+from websockets.typing import Subprotocol
 
 from labd.bridge.auth import AuthError, Grant
+from labd.bridge.foxglove.session import Channels, FoxgloveSession
 from labd.config import BridgeConfig
 from repository.index import Filters
 from repository.trial import Kind
@@ -283,3 +291,95 @@ def test_the_maze_layout_names_only_what_the_robot_has(lab):
     assert named <= published, named - published
     teleop = panels["Teleop!drive"]
     assert teleop["topic"] == "/cmd_vel" and teleop["publishRate"] >= 4  # a Twist lapses in 0.5 s
+
+
+def stalled_foxglove_client(port: int, path: str, channel: int) -> socket.socket:
+    """A Foxglove client that subscribes to ``channel`` and then never reads (a tiny
+    receive buffer, and nothing read past the handshake)."""
+    sock = socket.socket()
+    sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
+    sock.connect(("127.0.0.1", port))
+    sock.sendall(
+        f"GET {path} HTTP/1.1\r\nHost: x\r\nUpgrade: websocket\r\nConnection: Upgrade\r\n"
+        "Sec-WebSocket-Key: dGhlIHNhbXBsZSBub25jZQ==\r\nSec-WebSocket-Version: 13\r\n"
+        "Sec-WebSocket-Protocol: foxglove.sdk.v1\r\n\r\n".encode()
+    )
+    answer = b""
+    while b"\r\n\r\n" not in answer:
+        answer += sock.recv(1)
+    assert b" 101 " in answer and b"foxglove.sdk.v1" in answer, answer
+    frame = json.dumps({"op": "subscribe", "subscriptions": [{"id": 1, "channelId": channel}]})
+    data = frame.encode()
+    sock.sendall(bytes([0x81, 0x80 | 126]) + len(data).to_bytes(2, "big") + b"\0\0\0\0" + data)
+    return sock
+
+
+async def watch_odometry(url: str, count: int, stalled: Callable[[int], Any]) -> list[int]:
+    """Subscribe to /odom as a Foxglove client, start the stalled clients once the
+    camera's channel id is known, and return the stamps of the next ``count`` messages."""
+    async with ws_connect(url, subprotocols=[Subprotocol("foxglove.sdk.v1")]) as ws:
+        channels: dict[str, int] = {}
+        while "/odom" not in channels:
+            frame = await asyncio.wait_for(ws.recv(), 10)
+            if isinstance(frame, str) and json.loads(frame)["op"] == "advertise":
+                channels |= {c["topic"]: c["id"] for c in json.loads(frame)["channels"]}
+        subscriptions = [{"id": 5, "channelId": channels["/odom"]}]
+        await ws.send(json.dumps({"op": "subscribe", "subscriptions": subscriptions}))
+        await asyncio.to_thread(stalled, channels["/camera/image/compressed"])
+        stamps: list[int] = []
+        while len(stamps) < count:
+            frame = await asyncio.wait_for(ws.recv(), 10)
+            if isinstance(frame, bytes) and frame[0] == 1:
+                stamps.append(struct.unpack_from("<Q", frame, 5)[0])
+        return stamps
+
+
+def camera_watchers(server: ServerThread) -> list[Any]:
+    """The connections of the Foxglove clients subscribed to the camera (on the lab's loop)."""
+    return [
+        conn
+        for conn in server.lab.bridge.connections
+        if isinstance(conn.session, FoxgloveSession)
+        and any(
+            feed.channel.topic == "/camera/image/compressed"
+            for feed in conn.session.capability(Channels).feeds.values()
+        )
+    ]
+
+
+def test_clients_that_never_read_the_camera_do_not_starve_one_that_reads(lab):
+    """Five Foxglove clients subscribe to the camera and never read: each holds at most
+    the two newest frames in the bridge, and a client that reads gets every tick's
+    odometry beside them, in order, none missing."""
+    url = robot_url(lab)
+    port = int(lab.url.rsplit(":", 1)[1])
+    sockets: list[socket.socket] = []
+
+    def shrink() -> int:
+        """The kernel would first take 4 MB for each stalled client (a minute of this
+        camera); a small send buffer on the lab's side of their sockets is a slow link,
+        and the bridge's own queue is reached in a second."""
+        watchers = camera_watchers(lab)
+        for conn in watchers:
+            conn.ws.transport.get_extra_info("socket").setsockopt(
+                socket.SOL_SOCKET, socket.SO_SNDBUF, 4096
+            )
+        return len(watchers)
+
+    def stall(camera: int) -> None:
+        sockets.extend(stalled_foxglove_client(port, f"/robots/{ROBOT}", camera) for _ in range(5))
+        deadline = time.monotonic() + 10
+        while lab.call(shrink) < 5:
+            assert time.monotonic() < deadline, "the stalled clients did not subscribe"
+            time.sleep(0.05)
+
+    try:
+        stamps = asyncio.run(watch_odometry(url, 60, stall))
+        held = lab.call(lambda: [c.session.outbox.topic_bytes for c in camera_watchers(lab)])
+    finally:
+        for sock in sockets:
+            sock.close()
+    steps = {b - a for a, b in itertools.pairwise(stamps)}
+    assert len(steps) == 1 and min(steps) > 0, sorted(steps)  # every tick, in order
+    frame = 320 * 240  # far more than a JPEG of the camera (about 5 kB)
+    assert len(held) == 5 and all(0 < size <= 2 * frame for size in held), held
