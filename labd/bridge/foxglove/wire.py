@@ -162,6 +162,8 @@ def _explain(text: str | bytes, message: str) -> FrameError:
     op = value.get("op")
     if op is None:
         return FrameError("the frame has no 'op' field")
+    if not isinstance(op, str):
+        return FrameError(f"'op' must be a string, got {describe(op)}")
     if op not in OPS:
         return FrameError(f"{op!r} is not an op of Foxglove's protocol that the lab takes")
     # msgspec: "Expected `int`, got `str` - at `$.subscriptions[0].id`"

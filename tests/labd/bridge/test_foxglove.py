@@ -491,6 +491,7 @@ def test_the_subprotocol_chosen(offered, chosen):
         ("nope", "the frame is not JSON"),
         ("[1]", "a frame must be a JSON object, got an array"),
         ('{"x": 1}', "the frame has no 'op' field"),
+        ('{"op": []}', "'op' must be a string, got an array"),
         ('{"op": "publish"}', "'publish' is not an op of Foxglove's protocol that the lab takes"),
         ('{"op": "subscribe"}', "subscribe: object missing required field subscriptions"),
         (
