@@ -24,6 +24,7 @@ from typing import Any
 
 import pytest
 from websockets.asyncio.client import connect as ws_connect
+from websockets.exceptions import InvalidStatus
 from websockets.typing import Subprotocol
 
 from labd.bridge.auth import AuthError, Grant
@@ -383,3 +384,26 @@ def test_clients_that_never_read_the_camera_do_not_starve_one_that_reads(lab):
     assert len(steps) == 1 and min(steps) > 0, sorted(steps)  # every tick, in order
     frame = 320 * 240  # far more than a JPEG of the camera (about 5 kB)
     assert len(held) == 5 and all(0 < size <= 2 * frame for size in held), held
+
+
+def test_the_share_of_an_address_counts_both_protocols(tmp_path):
+    """One address's share of the bridge (here 2 connections) is one share: a rosbridge
+    client and a Foxglove client fill it, and a third of either kind is refused."""
+    bridge = BridgeConfig(port=0, max_connections_per_address=2)
+    with running(lab_config(tmp_path / "data", bridge=bridge)) as server:
+        url = robot_url(server)
+        foxglove_offer = [Subprotocol("foxglove.sdk.v1")]
+
+        async def crowd() -> list[int]:
+            async with ws_connect(url), ws_connect(url, subprotocols=foxglove_offer) as fox:
+                assert fox.subprotocol == "foxglove.sdk.v1"
+                refused = []
+                for offer in (None, foxglove_offer):
+                    try:
+                        async with ws_connect(url, subprotocols=offer, open_timeout=10):
+                            refused.append(101)
+                    except InvalidStatus as err:
+                        refused.append(err.response.status_code)
+                return refused
+
+        assert asyncio.run(crowd()) == [503, 503]

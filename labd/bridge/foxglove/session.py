@@ -57,6 +57,7 @@ from labd.bridge.frames import Auth, Id
 from labd.bridge.ops.topics import Bucket
 from labd.bridge.outbox import _Entry
 from labd.bridge.render import OutFrame
+from labd.bridge.rosapi import DISTRO
 from labd.bridge.session import (
     POLICY_VIOLATION,
     AuthState,
@@ -78,7 +79,6 @@ from labd.graph.types import full_name
 
 ENCODINGS = ("cdr", "json")  # what the lab takes from a client, CDR first (as ROS bridges)
 CAPABILITIES = ("clientPublish", "services", "parameters", "time", "connectionGraph")
-DISTRO = "jazzy"  # the ROS 2 distribution the lab's message definitions are (rosapi's)
 BYTES_KEPT = 2  # messages a channel with bytes in it (a camera) keeps for a slow client
 STATUS_LEVELS = {"info": 0, "warning": 1, "error": 2}
 MESSAGE_HEAD = 13  # opcode, subscription id, time: what a message adds to its CDR
