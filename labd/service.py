@@ -33,6 +33,7 @@ from labd.graph.types import TypeRegistry
 from labd.hosted import HostedRepos
 from labd.live import Demonstration
 from labd.metrics import LabMetrics
+from labd.oidc import OidcConfig
 from labd.replays import LabReplays
 from labd.trial import LabHost, client_library
 from labd.videos import Videos
@@ -82,6 +83,7 @@ class ServiceConfig:
     canary_every: float = 3600.0  # seconds between a worker's canary reruns
     rules: Rules = field(default_factory=Rules)  # booking live robots
     signup: bool = False  # people may make their own accounts on the sign-in page
+    oidc: OidcConfig = field(default_factory=OidcConfig)  # signing in through OpenID providers
     submit_threads: int = 8  # submissions resolved at once (each may wait on a git server)
     submit_waiting: int = 64  # more that wait for a thread; past these, 503
     videos: str = "background"  # or "asked": render a record's video only when asked for
@@ -162,6 +164,7 @@ class Service:
         self.store = BlobStore(config.blobs_url, dict(config.blob_options) or None)
         keys = (config.keys or config.data / "keys").resolve()
         self.keyring = Keyring(keys)
+        self.keys = keys  # the folder of the lab's signing keys and secrets
         self.accounts = Accounts(self.index)
         self.reservations = Reservations(
             self.index, config.rules, load_secret(keys / "reservations.secret")

@@ -13,6 +13,12 @@ the operator's reset) ends every other browser session of theirs: whoever signed
 with the old one is signed out. API tokens survive a new password: they are revoked on
 their own (the tokens page, ``labd users revoke``).
 
+A person may also sign in through an OpenID provider (``labd.web.oidc``): the provider
+vouches for them by its issuer and a subject of its own, and that pair (an *identity*)
+names their account, never the e-mail (an address may be given to someone else). The
+first sign-in makes the account, named after what the provider calls them, made unique;
+a person signed in with a password may link an identity to their account.
+
 Nothing here can tell a token or a session id back: only hashes are stored.
 """
 
@@ -20,6 +26,7 @@ from __future__ import annotations
 
 import hmac
 import logging
+import re
 import secrets
 from dataclasses import dataclass
 
@@ -29,9 +36,9 @@ from argon2.exceptions import InvalidHashError, VerificationError
 from sqlalchemy.engine import Connection
 
 from repository.errors import AccountError, BadCredentials, RecordNotFound
-from repository.index import Index, User, token_hash
+from repository.index import USER_LIMITS, Index, User, check_name, token_hash
 from repository.reservations import rekey
-from repository.tables import passwords, tokens, users, web_sessions
+from repository.tables import identities, passwords, tokens, users, web_sessions
 
 log = logging.getLogger("repository.accounts")
 MIN_PASSWORD = 10
@@ -48,6 +55,18 @@ class Token:
     label: str
     created: float
     revoked: float | None
+
+
+@dataclass(frozen=True)
+class Identity:
+    """An OpenID provider's person, and the account they sign in to."""
+
+    issuer: str
+    subject: str
+    user: str
+    email: str
+    created: float
+    last: float
 
 
 @dataclass(frozen=True)
@@ -243,6 +262,121 @@ class Accounts:
     def end_session(self, cookie: str) -> None:
         with self.index.begin() as db:
             db.execute(sa.delete(web_sessions).where(web_sessions.c.sha256 == token_hash(cookie)))
+
+    # -- identities from OpenID providers ------------------------------------------------
+
+    def identity(self, issuer: str, subject: str) -> User | None:
+        """The account ``subject`` of ``issuer`` signs in to, noting the sign-in; None
+        if it has none yet."""
+        with self.index.begin() as db:
+            row = db.execute(
+                sa.select(identities.c.user).where(
+                    identities.c.issuer == issuer, identities.c.subject == subject
+                )
+            ).first()
+            if row is None:
+                return None
+            db.execute(
+                sa.update(identities)
+                .where(identities.c.issuer == issuer, identities.c.subject == subject)
+                .values(last=self.index.clock())
+            )
+        return self.index.user(row.user)
+
+    def sign_up_identity(self, issuer: str, subject: str, wanted: str, email: str) -> User:
+        """A new account for a person ``issuer`` vouches for as ``subject``: named
+        ``wanted`` made a valid name and unique (``ann``, else ``ann-2``...), with no
+        password and no token yet. If a sign-in at the same moment made it first, that
+        account."""
+        now = self.index.clock()
+        base = usable_name(wanted)
+        with self.index.begin() as db:
+            if db.dialect.name == "postgresql":  # the same lock as every new user's
+                db.execute(sa.text("SELECT pg_advisory_xact_lock(hashtext('labd:users'))"))
+            found = db.execute(
+                sa.select(identities.c.user).where(
+                    identities.c.issuer == issuer, identities.c.subject == subject
+                )
+            ).scalar()
+            if found is not None:
+                return self.index.user(found)
+            taken = {
+                n.lower()
+                for n in db.execute(
+                    sa.select(users.c.name).where(
+                        sa.func.lower(users.c.name).like(base.lower()[:60] + "%")
+                    )
+                ).scalars()
+            }
+            name = next(
+                candidate
+                for n in range(1, len(taken) + 2)
+                if (candidate := base if n == 1 else f"{base[:60]}-{n}").lower() not in taken
+            )
+            check_name(name)
+            db.execute(
+                sa.insert(users).values(
+                    name=name,
+                    token_sha256=token_hash(secrets.token_urlsafe(24)),  # nobody holds it
+                    created=now,
+                    max_running=USER_LIMITS.max_running,
+                    max_daily=USER_LIMITS.max_daily,
+                    worker=False,
+                )
+            )
+            self._add_identity(db, issuer, subject, name=name, email=email, now=now)
+        log.info("user %s signed up through %s (subject %s)", name, issuer, subject)
+        return self.index.user(name)
+
+    def link_identity(self, name: str, issuer: str, subject: str, email: str) -> None:
+        """Let ``subject`` of ``issuer`` sign in to ``name``'s account (AccountError if
+        it signs in to another one already)."""
+        self.index.user(name)
+        with self.index.begin() as db:
+            owner = db.execute(
+                sa.select(identities.c.user).where(
+                    identities.c.issuer == issuer, identities.c.subject == subject
+                )
+            ).scalar()
+            if owner == name:
+                return
+            if owner is not None:
+                raise AccountError(
+                    f"that {issuer} account signs in to another account of this lab already"
+                )
+            self._add_identity(db, issuer, subject, name=name, email=email, now=self.index.clock())
+        log.info("user %s linked their account to %s (subject %s)", name, issuer, subject)
+
+    def identities(self, name: str) -> list[Identity]:
+        """The providers' people who sign in to ``name``'s account, oldest first."""
+        with self.index.engine.connect() as db:
+            rows = db.execute(
+                sa.select(identities)
+                .where(identities.c.user == name)
+                .order_by(identities.c.created)
+            ).all()
+        return [Identity(r.issuer, r.subject, r.user, r.email, r.created, r.last) for r in rows]
+
+    @staticmethod
+    def _add_identity(
+        db: Connection, issuer: str, subject: str, *, name: str, email: str, now: float
+    ) -> None:
+        db.execute(
+            sa.insert(identities).values(
+                issuer=issuer, subject=subject, user=name, email=email, created=now, last=now
+            )
+        )
+
+
+_UNUSABLE = re.compile(r"[^A-Za-z0-9._-]+")
+
+
+def usable_name(wanted: str) -> str:
+    """``wanted`` (a provider's ``preferred_username``, or an e-mail's local part) as a
+    user name the lab accepts: ASCII letters, digits, '.', '-' and '_', starting with a
+    letter or digit, at most 64; ``user`` when nothing is left."""
+    name = _UNUSABLE.sub("", wanted).lstrip("._-")[:64].rstrip("._-")
+    return name or "user"
 
 
 def check_password(password: str) -> None:

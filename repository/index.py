@@ -53,9 +53,9 @@ from repository.units import moment
 from repository.wal import IndexFiles
 from repository.well_known import REPLAY
 
-SCHEMA_VERSION = 4  # 1: labd 0.1 (status succeeded/failed); 2: status and outcome apart;
+SCHEMA_VERSION = 5  # 1: labd 0.1 (status succeeded/failed); 2: status and outcome apart;
 # 3: trials say whether an error was the lab's fault (lab_fault); 4: matches, and a
-# match leg's away team on its trial
+# match leg's away team on its trial; 5: identities (people an OpenID provider vouches for)
 # A user name: ASCII letters and digits, then also '.', '-' or '_' (so never ".", ".."
 # or a name that looks like another in other scripts); unique without case.
 NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]{0,63}", re.ASCII)

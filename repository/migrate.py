@@ -86,6 +86,7 @@ def upgrade(engine: Engine) -> Upgrade:
             _from_2(db)
         if found < 4:
             _from_3(db)
+        # 4 → 5: the identities table, made with the indexes below
         db.execute(sa.update(meta).where(meta.c.key == "schema").values(value=str(SCHEMA_VERSION)))
     metadata.create_all(engine)  # indexes added since
     log.info("%s", result)

@@ -62,6 +62,20 @@ web_sessions = sa.Table(
     sa.Column("expires", sa.Float, nullable=False),
 )
 
+# People an OpenID provider vouches for (``repository.accounts``): an account is found by
+# the provider's issuer and its subject, never by e-mail (an address may change hands);
+# the e-mail is what the provider said at the last sign-in, for the operator to read.
+identities = sa.Table(
+    "identities",
+    metadata,
+    sa.Column("issuer", sa.String(1024), primary_key=True),
+    sa.Column("subject", sa.String(255), primary_key=True),
+    sa.Column("user", sa.String(64), sa.ForeignKey("users.name"), nullable=False, index=True),
+    sa.Column("email", sa.String(320), nullable=False),
+    sa.Column("created", sa.Float, nullable=False),
+    sa.Column("last", sa.Float, nullable=False),  # the last sign-in through it
+)
+
 # Live robots booked for a slot (``repository.reservations``). ``end`` is when the slot
 # ends now: an early release moves it to the release (to ``start`` before it began).
 # The slot's key is derived from the lab's secret and ``nonce``; nothing here reveals it.

@@ -23,13 +23,15 @@ import sys
 from typing import Any
 from urllib.parse import urlsplit
 
-from labd import __version__, privacy
+from labd import __version__, oidc, privacy
+from labd.commands import config as config_file
 from labd.commands import fetching, settings
 from labd.commands.common import fail
 from labd.config import BridgeConfig, DriveLimits, HttpConfig, RobotConfig
 from labd.datalock import DataLock
 from labd.errors import LabError
 from labd.lab import Lab, LabConfig
+from labd.oidc import OidcConfig
 from labd.service import ServiceConfig
 from labd.sim import registry
 from repository.errors import ArchiveError, SchemaMismatch
@@ -171,7 +173,17 @@ def service_config(args: argparse.Namespace) -> ServiceConfig | None:
         worker_options=tuple(fetching.argv(args)),
         public_url=public_url(args.public_url),
         held_out=settings.build(HeldOutBudget, args),
+        oidc=oidc_config(args),
     )
+
+
+def oidc_config(args: argparse.Namespace) -> OidcConfig:
+    """The OpenID providers of the flags and of the configuration file's [oidc.NAME]."""
+    document = config_file.read(args.config) if getattr(args, "config", None) else {}
+    try:
+        return oidc.configured(args, document)
+    except oidc.OidcConfigError as err:
+        raise Refused(str(err)) from None
 
 
 def public_url(given: str | None) -> str | None:

@@ -333,6 +333,24 @@ SETTINGS: tuple[Setting, ...] = (
     Setting("signup", "people may make their own accounts on the sign-in page (default: only"
             " the operator, with labd users add)", ACCOUNTS, switch=True,
             into=(at("ServiceConfig.signup"),)),
+    Setting("oidc_issuer", "people sign in through this OpenID Connect provider (its"
+            " https:// issuer; several: [oidc.NAME] tables in the configuration file; default:"
+            " none)", ACCOUNTS, metavar="URL", default=None, worked_out="`OidcConfig.providers`"),
+    Setting("oidc_client_id", "the lab's client id at --oidc-issuer", ACCOUNTS, metavar="ID",
+            default=None, worked_out="`OidcConfig.providers`"),
+    Setting("oidc_client_secret", "the lab's client secret at --oidc-issuer (default: none, a"
+            " public client)", ACCOUNTS, metavar="SECRET", default=None,
+            worked_out="`OidcConfig.providers`"),
+    Setting("oidc_name", "what the sign-in page calls --oidc-issuer: Sign in with NAME"
+            " (default: its host)", ACCOUNTS, metavar="NAME", default=None,
+            worked_out="`OidcConfig.providers`"),
+    Setting("oidc_allow_domain", "only people whose provider vouches for an e-mail address in"
+            " this domain make an account by signing in (repeatable; default: anyone)",
+            ACCOUNTS, repeat=True, metavar="DOMAIN", default=(),
+            worked_out="`OidcConfig.domains`"),
+    Setting("oidc_invite", "and this e-mail address, whatever its domain (repeatable;"
+            " default: none)", ACCOUNTS, repeat=True, metavar="EMAIL", default=(),
+            worked_out="`OidcConfig.invited`"),
     Setting("max_slot", "minutes a slot may last (default: {default})", ACCOUNTS, float,
             MINUTES, into=(at("Rules.max_slot", SECONDS),)),
     Setting("max_slots_per_day", "slots a person may have a day (default: {default})",

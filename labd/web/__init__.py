@@ -28,6 +28,7 @@ from labd.web import (
     evaluations,
     forms,
     matches,
+    oidc,
     pages,
     playground,
     reservations,
@@ -37,7 +38,7 @@ from labd.web.assets import Precompressed
 from labd.web.headers import SecurityHeaders
 from labd.web.problems import PageRoute, error_page
 from labd.web.render import STATIC, page
-from repository.reservations import Reservation
+from repository.reservations import Reservation, load_secret
 
 __all__ = ["RobotLink", "Site", "create_app", "install"]
 
@@ -71,6 +72,13 @@ def create_app(
         robots=[r.name for r in site.robots if r.live],
     )
     install(app)
+    public = service.config.public_url or ""
+    oidc.install(
+        app,
+        service.config.oidc,
+        load_secret(service.keys / "oidc.secret"),
+        https=public.startswith("https://"),
+    )
     return app
 
 

@@ -167,7 +167,13 @@ def _tokens(
     problem: str | None = None,
     status: int = 200,
 ) -> HTMLResponse:
-    context = {"tokens": service.accounts.tokens(person.name), "new": new, "problem": problem}
+    context = {
+        "tokens": service.accounts.tokens(person.name),
+        "new": new,
+        "problem": problem,
+        "providers": service.config.oidc.providers,  # linking one (labd.web.oidc)
+        "identities": service.accounts.identities(person.name),
+    }
     return page(request, "tokens.html", context, user=person, status_code=status)
 
 

@@ -67,6 +67,8 @@ def _signin(
             "problem": problem,
             "name": name,
             "signup": service.config.signup,
+            "providers": service.config.oidc.providers,  # OpenID Connect (labd.web.oidc)
+            "signup_oidc": not service.config.oidc.domains and not service.config.oidc.invited,
         },
         user=viewer,
         status_code=status,

@@ -7,7 +7,7 @@ import pytest
 import sqlalchemy as sa
 from argon2 import PasswordHasher
 
-from repository.accounts import Accounts
+from repository.accounts import Accounts, usable_name
 from repository.errors import (
     AccountError,
     ArchiveError,
@@ -199,3 +199,54 @@ def test_names_are_unique_without_case_and_old_collisions_are_found(clocked_inde
     with pytest.raises(ArchiveError, match="is taken"):
         clocked_index.add_user("BOB")
     assert clocked_index.user("Bob").name == "Bob" and clocked_index.user("bob").name == "bob"
+
+
+# -- identities from OpenID providers ------------------------------------------------------------
+
+ISSUER = "https://login.example.edu"
+
+
+@pytest.mark.parametrize(
+    ("wanted", "name"),
+    [
+        ("ann", "ann"),
+        ("Ann Smith", "AnnSmith"),
+        ("_ann.", "ann"),
+        ("jérôme", "jrme"),
+        ("名前", "user"),
+        ("a" * 80, "a" * 64),
+    ],
+)
+def test_a_provider_s_name_made_a_user_name(wanted, name):
+    assert usable_name(wanted) == name
+
+
+def test_the_first_sign_in_makes_the_account_and_later_ones_find_it(accounts, clocked_index, clock):
+    """An identity's account is made once, named after what the provider calls the
+    person (unique without case); later sign-ins find it by (issuer, subject) and note
+    when; the same subject of another issuer is someone else."""
+    assert accounts.identity(ISSUER, "s1") is None
+    clocked_index.add_user("Ann")
+    ann = accounts.sign_up_identity(ISSUER, "s1", "ann", "ann@example.edu")
+    assert ann.name == "ann-2"
+    assert accounts.sign_up_identity(ISSUER, "s1", "whoever", "x@y.z").name == "ann-2"
+    clock.now += 60
+    assert accounts.identity(ISSUER, "s1") == ann
+    [identity] = accounts.identities("ann-2")
+    assert (identity.email, identity.last - identity.created) == ("ann@example.edu", 60)
+    other = accounts.sign_up_identity("https://accounts.other.test", "s1", "ann", "")
+    assert other.name == "ann-3"
+    assert not accounts.has_password("ann-2")
+    assert accounts.tokens("ann-2") == []
+
+
+def test_an_identity_links_to_one_account_only(accounts, clocked_index):
+    clocked_index.add_user("carol", token=False)
+    clocked_index.add_user("dave", token=False)
+    accounts.link_identity("carol", ISSUER, "s-carol", "carol@example.edu")
+    accounts.link_identity("carol", ISSUER, "s-carol", "carol@example.edu")  # again: nothing
+    assert accounts.identity(ISSUER, "s-carol").name == "carol"
+    with pytest.raises(AccountError, match="signs in to another account"):
+        accounts.link_identity("dave", ISSUER, "s-carol", "")
+    with pytest.raises(RecordNotFound):
+        accounts.link_identity("nobody", ISSUER, "s-x", "")

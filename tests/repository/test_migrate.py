@@ -16,8 +16,14 @@ SCHEMA_3_COLUMNS = {"lab_fault"}
 SCHEMA_4_COLUMNS = {"away_repository", "away_ref", "away_commit", "step_deadline"}
 
 
+def before_schema_5(db: sa.Connection) -> None:
+    """Take away what schema 5 added: the identities of OpenID providers' people."""
+    db.execute(sa.text("DROP TABLE identities"))
+
+
 def before_schema_4(db: sa.Connection) -> None:
     """Take away what schema 4 added: matches, and a leg's away team on its trial."""
+    before_schema_5(db)
     db.execute(sa.text("DROP INDEX ix_trials_away_commit"))
     db.execute(sa.text("DROP TABLE match_legs"))
     db.execute(sa.text("DROP TABLE matches"))
@@ -253,3 +259,18 @@ def test_a_schema_3_index_upgrades_to_hold_matches(database_url):
         assert index.trial(index.add_trial(leg, submitter="alice")).order == leg
     finally:
         index.close()
+
+
+def test_a_schema_4_index_upgrades_to_hold_identities(database_url):
+    """Schema 4 → 5 adds the identities table; the users and their sessions stay."""
+    engine = connect(database_url)
+    current.metadata.create_all(engine)
+    with engine.begin() as db:
+        before_schema_5(db)
+        db.execute(sa.insert(current.meta).values(key="schema", value="4"))
+    with pytest.raises(SchemaMismatch, match="labd migrate"):
+        Index.open(database_url)
+    done = upgrade(engine)
+    assert (done.before, done.after) == (4, SCHEMA_VERSION)
+    assert "identities" in sa.inspect(engine).get_table_names()
+    engine.dispose()
