@@ -270,6 +270,12 @@ async def _serve(config: LabConfig, lock: DataLock | None) -> None:
         archive = mask_url(lab.service.config.database_url)
         print(f"  archive: {archive}, blobs {mask_url(lab.service.store.url)}", flush=True)
         print(f"  workers: {len(lab.service.workers)}", flush=True)
+        for provider in lab.service.config.oidc.providers:
+            print(
+                f"  sign-in with {provider.shown}: {lab.http.url()}/session/oidc/{provider.name}"
+                f" (issuer {provider.issuer})",
+                flush=True,
+            )
         print(
             f"  records are signed with {lab.service.keyring.current}"
             f" (public keys: {lab.http.url()}/api/keys)",
