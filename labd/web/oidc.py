@@ -105,11 +105,11 @@ def _provider(request: Request, name: str) -> Provider:
 
 
 @router.get("/session/oidc")
-async def start_default(request: Request, then: str = "/") -> Any:
+async def start_default(request: Request, service: Lab, then: str = "/") -> Any:
     config, _ = _configured(request)
     if len(config.providers) > 1:  # the person chooses on the sign-in page
         return RedirectResponse(f"/session?then={local(then)}", status_code=303)
-    return await _start(request, config.providers[0], then, link="")
+    return await _start(request, service, config.providers[0], then, link="")
 
 
 @router.get("/session/oidc/callback", name="oidc_callback")
@@ -157,24 +157,34 @@ async def callback(request: Request, service: Lab, viewer: Viewer) -> Any:
 
 
 @router.get("/session/oidc/{name}")
-async def start(request: Request, name: str, then: str = "/") -> Any:
-    return await _start(request, _provider(request, name), then, link="")
+async def start(request: Request, service: Lab, name: str, then: str = "/") -> Any:
+    return await _start(request, service, _provider(request, name), then, link="")
 
 
 @router.post("/session/oidc/{name}/link", dependencies=[CsrfChecked])
 async def start_link(
-    request: Request, name: str, person: Person, then: Annotated[str, Form()] = "/tokens"
+    request: Request,
+    service: Lab,
+    name: str,
+    person: Person,
+    then: Annotated[str, Form()] = "/tokens",
 ) -> Any:
     """A signed-in person asks to sign in through ``name`` too: once the provider
     vouches for them, that account of theirs signs in to this one."""
-    return await _start(request, _provider(request, name), then, link=person.name)
+    return await _start(request, service, _provider(request, name), then, link=person.name)
 
 
-async def _start(request: Request, provider: Provider, then: str, *, link: str) -> Any:
+async def _start(
+    request: Request, service: Lab, provider: Provider, then: str, *, link: str
+) -> Any:
     _, oauth = _configured(request)
     client = oauth.create_client(provider.name)
     request.session[STARTED] = {"provider": provider.name, "then": local(then), "link": link}
-    callback = str(request.url_for("oidc_callback"))
+    # where people reach the lab (behind a proxy, --public-url), else where this came to
+    public = service.config.public_url
+    callback = (
+        f"{public}/session/oidc/callback" if public else str(request.url_for("oidc_callback"))
+    )
     try:
         return await client.authorize_redirect(request, callback)
     except (HTTPError, OAuthError, ValueError) as err:
