@@ -108,6 +108,17 @@ def add_parser(commands: Any) -> None:
     rotate.add_argument("name", help="the user")
     _where(rotate)
 
+    link = actions.add_parser(
+        "link", help="let a person an OpenID provider vouches for sign in to a user's account"
+    )
+    link.add_argument("name", help="the user")
+    link.add_argument("--issuer", required=True, metavar="URL", help="the provider's issuer")
+    link.add_argument(
+        "--subject", required=True, metavar="SUB", help="the person's subject there (its sub)"
+    )
+    link.add_argument("--email", default="", help="their e-mail, for the list (default: none)")
+    _where(link)
+
 
 def main(args: argparse.Namespace) -> int:
     if args.database is None and not (args.data / "index.sqlite").exists():
@@ -152,6 +163,10 @@ def _list(args: argparse.Namespace, index: Index, accounts: Accounts) -> int:
                 "created": _when(user.created),
                 "worker": user.worker,
                 "password": accounts.has_password(user.name),
+                "identities": [
+                    {"issuer": i.issuer, "subject": i.subject, "email": i.email}
+                    for i in accounts.identities(user.name)
+                ],
                 "max_running": user.max_running,
                 "max_daily": user.max_daily,
                 "tokens": [
@@ -172,6 +187,7 @@ def _list(args: argparse.Namespace, index: Index, accounts: Accounts) -> int:
             working = [t for t in row["tokens"] if t["revoked"] is None]
             what = ["worker"] if row["worker"] else []
             what.append("password" if row["password"] else "no password")
+            what += [f"signs in through {i['issuer']}" for i in row["identities"]]
             what.append(f"{len(working)} of {len(row['tokens'])} tokens working")
             out.append(f"{row['name']:<20} {', '.join(what)}; since {row['created']}")
             for t in row["tokens"]:
@@ -221,12 +237,23 @@ def _rotate(args: argparse.Namespace, index: Index, accounts: Accounts) -> int:
     return 0
 
 
+def _link(args: argparse.Namespace, index: Index, accounts: Accounts) -> int:
+    accounts.link_identity(args.name, args.issuer, args.subject, args.email)
+    emit(
+        args,
+        {"name": args.name, "issuer": args.issuer, "subject": args.subject},
+        lambda: [f"{args.name}: {args.subject} of {args.issuer} signs in to this account"],
+    )
+    return 0
+
+
 ACTIONS = {
     "add": _add,
     "list": _list,
     "password": _password,
     "revoke": _revoke,
     "rotate": _rotate,
+    "link": _link,
 }
 
 

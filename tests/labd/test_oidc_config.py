@@ -4,10 +4,12 @@ sign-up rule; a wrong one is refused in a sentence that says where."""
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import pytest
 
+from labd.cli import main
 from labd.commands import serve
 from labd.commands.serve import Refused
 from labd.oidc import OidcConfig, Provider
@@ -98,3 +100,26 @@ def test_who_may_sign_up(claims, refused):
     config = OidcConfig((), ("example.edu",), ("bob@gmail.test",))
     assert bool(config.refusal(claims)) is refused
     assert OidcConfig().refusal(claims) == ""  # by default anyone may
+
+
+def test_the_operator_links_a_provider_s_person_to_an_account(tmp_path, capsys):
+    """``labd users link`` lets a person an OpenID provider vouches for sign in to an
+    account the operator made; ``labd users list`` says so; one provider account signs
+    in to one lab account only."""
+    data = ["--data", str(tmp_path / "lab")]
+    assert main(["users", "add", "carol", *data]) == 0
+    assert main(["users", "add", "dave", *data]) == 0
+    capsys.readouterr()
+    link = ["--issuer", "https://sso.example.edu", "--subject", "s-9", "--email", "c@x.edu"]
+    assert main(["users", "link", "carol", *link, *data]) == 0
+    assert (
+        capsys.readouterr().out
+        == "carol: s-9 of https://sso.example.edu signs in to this account\n"
+    )
+    assert main(["users", "list", "--json", *data]) == 0
+    carol = next(u for u in json.loads(capsys.readouterr().out) if u["name"] == "carol")
+    assert carol["identities"] == [
+        {"issuer": "https://sso.example.edu", "subject": "s-9", "email": "c@x.edu"}
+    ]
+    assert main(["users", "link", "dave", *link, *data]) == 2  # refused, as any bad input
+    assert "signs in to another account of this lab already" in capsys.readouterr().err
