@@ -334,3 +334,25 @@ def test_a_provider_that_is_away_is_a_page_saying_so(tmp_path):
         reply = httpx.get(lab.http_url("/session/oidc"), timeout=30)
         assert reply.status_code == 503
         assert "cannot be reached now" in reply.text
+
+
+def test_with_several_providers_each_has_its_address(tmp_path, issuer):
+    """With two providers the sign-in page offers both, /session/oidc sends the person
+    there to choose, /session/oidc/NAME goes to that one, and an unknown name is a page
+    naming those there are."""
+    config = OidcConfig(
+        (
+            Provider("uni", issuer, CLIENT, "shh", "Test University"),
+            Provider("lab", issuer, "another-client", "", "The Lab's Own"),
+        )
+    )
+    with running(lab_config(tmp_path / "data", robots=(), service={"oidc": config})) as lab:
+        page = httpx.get(lab.http_url("/session"), timeout=30).text
+        assert "Sign in with Test University" in page and "Sign in with The Lab&#39;s Own" in page
+        choose = httpx.get(lab.http_url("/session/oidc?then=/robots"), timeout=30)
+        assert (choose.status_code, choose.headers["location"]) == (303, "/session?then=/robots")
+        to_lab = httpx.get(lab.http_url("/session/oidc/lab"), timeout=30)
+        assert to_lab.status_code == 302
+        assert "client_id=another-client" in to_lab.headers["location"]
+        unknown = httpx.get(lab.http_url("/session/oidc/nope"), timeout=30)
+        assert unknown.status_code == 404 and "through uni, lab, not" in unknown.text
