@@ -40,8 +40,9 @@ from fastapi.responses import HTMLResponse, RedirectResponse
 from httpx import HTTPError
 from starlette.middleware.sessions import SessionMiddleware
 
-from labd.api.common import Lab
-from labd.api.errors import ApiError
+from labd.api.common import Caller, Lab
+from labd.api.errors import ApiError, TooMany
+from labd.api.throttle import Attempts
 from labd.oidc import SCOPES, OidcConfig, Provider, wanted_name
 from labd.web.forms import local
 from labd.web.problems import PageRoute
@@ -113,7 +114,7 @@ async def start_default(request: Request, service: Lab, then: str = "/") -> Any:
 
 
 @router.get("/session/oidc/callback", name="oidc_callback")
-async def callback(request: Request, service: Lab, viewer: Viewer) -> Any:
+async def callback(request: Request, service: Lab, caller: Caller, viewer: Viewer) -> Any:
     started = request.session.pop(STARTED, None)
     if not isinstance(started, dict):
         return _refused(
@@ -148,8 +149,17 @@ async def callback(request: Request, service: Lab, viewer: Viewer) -> Any:
     email = str(claims.get("email") or "")
     try:
         user = _account(
-            service, config, started, issuer=issuer, subject=subject, claims=claims, email=email
+            service,
+            config,
+            started,
+            caller,
+            issuer=issuer,
+            subject=subject,
+            claims=claims,
+            email=email,
         )
+    except TooMany as err:
+        return _refused(request, viewer, str(err), f"{provider.name} subject {subject}: {err}")
     except (AccountError, ArchiveError) as err:
         return _refused(request, viewer, str(err), f"{provider.name} subject {subject}: {err}")
     log.info("%s signed in through %s (subject %s)", user.name, provider.name, subject)
@@ -201,6 +211,7 @@ def _account(
     service: Lab,
     config: OidcConfig,
     started: dict[str, Any],
+    caller: Attempts,
     *,
     issuer: str,
     subject: str,
@@ -218,7 +229,10 @@ def _account(
     refused = config.refusal(claims)
     if refused:
         raise AccountError(refused)
-    return service.accounts.sign_up_identity(issuer, subject, wanted_name(claims), email)
+    caller.check("signup", "sign-ups from your address")  # as many as with passwords
+    user = service.accounts.sign_up_identity(issuer, subject, wanted_name(claims), email)
+    caller.fail("signup")  # every account made counts
+    return user
 
 
 def _signed_in(request: Request, service: Lab, user: User, then: str) -> HTMLResponse:

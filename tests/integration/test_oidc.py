@@ -356,3 +356,19 @@ def test_with_several_providers_each_has_its_address(tmp_path, issuer):
         assert "client_id=another-client" in to_lab.headers["location"]
         unknown = httpx.get(lab.http_url("/session/oidc/nope"), timeout=30)
         assert unknown.status_code == 404 and "through uni, lab, not" in unknown.text
+
+
+def test_accounts_made_by_signing_in_count_with_the_address_s_sign_ups(tmp_path, issuer):
+    """Five accounts an hour from one address, as with passwords: a sixth new person is
+    refused, while a person who has an account still signs in."""
+    with lab_with(tmp_path, issuer) as lab:
+        for n in range(5):
+            person = Person(lab, issuer)
+            person.set_claims(f"s-{n}", email=f"p{n}@example.edu", email_verified=True)
+            assert person.sign_in(f"s-{n}").status_code == 200
+        sixth = Person(lab, issuer)
+        sixth.set_claims("s-5", email="p5@example.edu", email_verified=True)
+        refused = sixth.sign_in("s-5")
+        assert refused.status_code == 403 and "too many sign-ups from your address" in refused.text
+        again = Person(lab, issuer)
+        assert again.sign_in("s-0").status_code == 200
