@@ -72,7 +72,7 @@ def foxglove(
 
 
 @pytest.fixture(scope="module")
-def lab(tmp_path_factory: pytest.TempPathFactory) -> Any:
+def maze_server(tmp_path_factory: pytest.TempPathFactory) -> Any:
     """A lab with the live maze robot and the archive, no worker."""
     with running(lab_config(tmp_path_factory.mktemp("foxglove") / "data")) as server:
         yield server
@@ -87,12 +87,12 @@ def robot_url(server: ServerThread) -> str:
     ["foxglove.sdk.v1", "foxglove.websocket.v1", "foxglove.websocket.v1,foxglove.sdk.v1"],
     ids=["sdk", "websocket", "both-as-lichtblick-offers"],
 )
-def test_a_foxglove_client_gets_server_info_and_every_topic_as_a_ros2_channel(lab, offered):
+def test_a_foxglove_client_gets_server_info_and_every_topic_as_a_ros2_channel(maze_server, offered):
     """Whichever of Foxglove's names the client offers, it is answered in that protocol
     (the SDK's name when it offers both); ``serverInfo`` lists the capabilities the lab
     has, and every topic of the robot is a channel in CDR with its ROS 2 definition,
     which Foxglove's own parser reads."""
-    seen = foxglove(robot_url(lab), "connect", offered=offered)["connect"]
+    seen = foxglove(robot_url(maze_server), "connect", offered=offered)["connect"]
     expected = "foxglove.sdk.v1" if "foxglove.sdk.v1" in offered else "foxglove.websocket.v1"
     assert seen["protocol"] == expected
     info = seen["info"]
@@ -116,11 +116,11 @@ def test_a_foxglove_client_gets_server_info_and_every_topic_as_a_ros2_channel(la
     }
 
 
-def test_odometry_decodes_with_foxglove_s_ros2_reader_in_simulation_time(lab):
+def test_odometry_decodes_with_foxglove_s_ros2_reader_in_simulation_time(maze_server):
     """/odom arrives as CDR that Foxglove's reader decodes whole (no trailing bytes),
     each message stamped with the simulation time of its tick, which a Time frame
     announced before it."""
-    seen = foxglove(robot_url(lab), "odom")["odom"]
+    seen = foxglove(robot_url(maze_server), "odom")["odom"]
     assert seen["channel"]["schemaName"] == "nav_msgs/msg/Odometry"
     messages = seen["messages"]
     assert len(messages) == 5
@@ -137,14 +137,14 @@ def test_odometry_decodes_with_foxglove_s_ros2_reader_in_simulation_time(lab):
     assert stamps == sorted(stamps) and len(set(stamps)) == 5  # one a tick, in order
 
 
-def test_teleop_drives_with_cdr_and_json_and_the_drive_is_a_demonstration(lab):
+def test_teleop_drives_with_cdr_and_json_and_the_drive_is_a_demonstration(maze_server):
     """A client publishing /cmd_vel (CDR, then JSON) drives the robot: it turns, then
     moves; /lab/driver names it, with the interface "foxglove"; a second client that
     publishes is refused in a status and does not drive. When the driver leaves, its
     drive is filed as a demonstration under the foxglove interface."""
-    service = lab.lab.service
+    service = maze_server.lab.service
     before = len(service.index.find(Filters(kind=Kind.DEMONSTRATION)).items)
-    seen = foxglove(robot_url(lab), "drive")["drive"]
+    seen = foxglove(robot_url(maze_server), "drive")["drive"]
     assert seen["turned"] and seen["moved"]
     assert seen["refused"]["level"] == 1
     assert f"{ROBOT} is driven by guest:client_" in seen["refused"]["message"]
@@ -162,11 +162,11 @@ def test_teleop_drives_with_cdr_and_json_and_the_drive_is_a_demonstration(lab):
     assert demo.submitter == driving[-1]["driver"]
 
 
-def test_services_answer_in_the_encoding_they_were_called_in(lab):
+def test_services_answer_in_the_encoding_they_were_called_in(maze_server):
     """/lab/reset called in CDR is answered in CDR (Foxglove's reader decodes it), in
     JSON in JSON; rosapi answers too; a call of no service, or with bytes that are no
     request, fails saying why."""
-    seen = foxglove(robot_url(lab), "services")["services"]
+    seen = foxglove(robot_url(maze_server), "services")["services"]
     assert seen["requestHex"] == "0001000000"  # an empty request, as ROS 2 writes it
     assert seen["cdr"]["encoding"] == "cdr"
     assert seen["cdr"]["value"]["success"] is True
@@ -181,10 +181,10 @@ def test_services_answer_in_the_encoding_they_were_called_in(lab):
     )
 
 
-def test_parameters_are_the_robot_s_and_read_only(lab):
+def test_parameters_are_the_robot_s_and_read_only(maze_server):
     """getParameters gives the task's parameters, all or those named; setParameters is
     refused in an error status and answered with the values unchanged."""
-    seen = foxglove(robot_url(lab), "params")["params"]
+    seen = foxglove(robot_url(maze_server), "params")["params"]
     everything, some, after_set = seen["values"]
     values = {p["name"]: p["value"] for p in everything["parameters"]}
     assert values["camera_width"] == 320 and values["maze_size"] == 9
@@ -198,10 +198,10 @@ def test_parameters_are_the_robot_s_and_read_only(lab):
     assert seen["status"]["level"] == 2 and "read-only" in seen["status"]["message"]
 
 
-def test_the_connection_graph_and_its_changes(lab):
+def test_the_connection_graph_and_its_changes(maze_server):
     """The first update holds who publishes and provides what; the client's own
     subscription to /odom comes in a later one."""
-    seen = foxglove(robot_url(lab), "graph")["graph"]
+    seen = foxglove(robot_url(maze_server), "graph")["graph"]
     published = {t["name"]: t["publisherIds"] for t in seen["first"]["publishedTopics"]}
     assert published["/odom"] == [f"/{ROBOT.replace('-', '_')}"]
     services = {s["name"] for s in seen["first"]["advertisedServices"]}
@@ -210,20 +210,20 @@ def test_the_connection_graph_and_its_changes(lab):
     assert any(any(n.startswith("/bridge/client_") for n in t["subscriberIds"]) for t in later)
 
 
-def test_the_camera_streams_jpeg_while_subscribed_beside_roslibjs(lab):
+def test_the_camera_streams_jpeg_while_subscribed_beside_roslibjs(maze_server):
     """A Foxglove client and a roslibjs client watch the camera at the same time on the
     same port; Foxglove's frames are JPEGs in sensor_msgs/msg/CompressedImage, and none
     come once it unsubscribes."""
     assert NODE is not None
     roslibjs = subprocess.Popen(
-        [NODE, str(JS / "camera.mjs"), robot_url(lab), "3"],
+        [NODE, str(JS / "camera.mjs"), robot_url(maze_server), "3"],
         cwd=JS,
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
         text=True,
     )
     try:
-        seen = foxglove(robot_url(lab), "camera")["camera"]
+        seen = foxglove(robot_url(maze_server), "camera")["camera"]
         out, err = roslibjs.communicate(timeout=TIMEOUT)
     finally:
         roslibjs.kill()
@@ -269,7 +269,7 @@ LAYOUT = (
 )
 
 
-def test_the_maze_layout_names_only_what_the_robot_has(lab):
+def test_the_maze_layout_names_only_what_the_robot_has(maze_server):
     """docs/examples/foxglove/icreate-maze.json (docs/live.md) shows topics the maze
     robot publishes and drives the one it obeys, often enough to outrun the watchdog."""
     layout = json.loads(LAYOUT.read_text())
@@ -287,7 +287,7 @@ def test_the_maze_layout_names_only_what_the_robot_has(lab):
         named |= set(config.get("topics", {}))
         named |= {config.get("imageMode", {}).get("imageTopic")} - {None}
         named |= {path["value"].split(".")[0] for path in config.get("paths", [])}
-    graph = lab.lab.graphs[ROBOT]
+    graph = maze_server.lab.graphs[ROBOT]
     published = {name for name, topic in graph.topics.items() if topic.publishers}
     assert named <= published, named - published
     teleop = panels["Teleop!drive"]
@@ -348,19 +348,19 @@ def camera_watchers(server: ServerThread) -> list[Any]:
     ]
 
 
-def test_clients_that_never_read_the_camera_do_not_starve_one_that_reads(lab):
+def test_clients_that_never_read_the_camera_do_not_starve_one_that_reads(maze_server):
     """Five Foxglove clients subscribe to the camera and never read: each holds at most
     the two newest frames in the bridge, and a client that reads gets every tick's
     odometry beside them, in order, none missing."""
-    url = robot_url(lab)
-    port = int(lab.url.rsplit(":", 1)[1])
+    url = robot_url(maze_server)
+    port = int(maze_server.url.rsplit(":", 1)[1])
     sockets: list[socket.socket] = []
 
     def shrink() -> int:
         """The kernel would first take 4 MB for each stalled client (a minute of this
         camera); a small send buffer on the lab's side of their sockets is a slow link,
         and the bridge's own queue is reached in a second."""
-        watchers = camera_watchers(lab)
+        watchers = camera_watchers(maze_server)
         for conn in watchers:
             conn.ws.transport.get_extra_info("socket").setsockopt(
                 socket.SOL_SOCKET, socket.SO_SNDBUF, 4096
@@ -370,13 +370,15 @@ def test_clients_that_never_read_the_camera_do_not_starve_one_that_reads(lab):
     def stall(camera: int) -> None:
         sockets.extend(stalled_foxglove_client(port, f"/robots/{ROBOT}", camera) for _ in range(5))
         deadline = time.monotonic() + 10
-        while lab.call(shrink) < 5:
+        while maze_server.call(shrink) < 5:
             assert time.monotonic() < deadline, "the stalled clients did not subscribe"
             time.sleep(0.05)
 
     try:
         stamps = asyncio.run(watch_odometry(url, 60, stall))
-        held = lab.call(lambda: [c.session.outbox.topic_bytes for c in camera_watchers(lab)])
+        held = maze_server.call(
+            lambda: [c.session.outbox.topic_bytes for c in camera_watchers(maze_server)]
+        )
     finally:
         for sock in sockets:
             sock.close()

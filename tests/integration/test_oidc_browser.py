@@ -44,7 +44,7 @@ def provider_on_localhost() -> Iterator[str]:
 
 
 @pytest.fixture
-def lab(tmp_path: Path) -> Iterator[tuple[Any, str]]:
+def signin_server(tmp_path: Path) -> Iterator[tuple[Any, str]]:
     with provider_on_localhost() as issuer:
         config = OidcConfig((Provider("uni", issuer, "labd", "shh", "Test University"),))
         with running(lab_config(tmp_path / "data", robots=(), service={"oidc": config})) as server:
@@ -78,12 +78,12 @@ def sign_in(page: Any, server: Any, subject: str) -> None:
 
 
 def test_a_person_signs_in_in_a_browser_and_again_to_the_same_account(
-    lab: tuple[Any, str], watched: Watched, browser: Any
+    signin_server: tuple[Any, str], watched: Watched, browser: Any
 ) -> None:
     """Through the whole redirect flow in Chromium: the lab's session works at once on
     the page they land on (its name in the header, /api/me answering), and a second
     sign-in, in a fresh browser, reaches the same account."""
-    server, issuer = lab
+    server, issuer = signin_server
     httpx.put(
         f"{issuer}/users/s-ann",
         json={"email": "ann@example.edu", "email_verified": True, "preferred_username": "ann"},
@@ -109,9 +109,9 @@ def test_a_person_signs_in_in_a_browser_and_again_to_the_same_account(
 
 
 def test_a_forged_state_in_a_browser_signs_nobody_in(
-    lab: tuple[Any, str], watched: Watched
+    signin_server: tuple[Any, str], watched: Watched
 ) -> None:
-    server, _ = lab
+    server, _ = signin_server
     page = watched.page
     page.goto(server.http_url("/session/oidc?then=/tokens"))  # a flow of this browser's
     page.wait_for_url("**/oauth2/authorize**")
