@@ -312,7 +312,12 @@ const scenarios = {
       items.filter((m) => m.subscriptionId === sub).length >= 3, 3 * WAIT_MS,
     );
     client.unsubscribe(sub);
-    await sleep(300);
+    // A round trip: the lab handles a client's frames in order and sends in order, so once
+    // this answer is here, any frame of the subscription still coming was sent before it.
+    client.getParameters([], "after-unsubscribe");
+    await client.inbox.parameterValues.until("the answer after unsubscribing", (items) =>
+      items.some((v) => v.id === "after-unsubscribe"),
+    );
     const before = client.inbox.message.items.length;
     await sleep(700);
     const frames = decoded(client, sub, channel).slice(0, 3);
