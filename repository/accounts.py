@@ -36,7 +36,7 @@ from argon2.exceptions import InvalidHashError, VerificationError
 from sqlalchemy.engine import Connection
 
 from repository.errors import AccountError, BadCredentials, RecordNotFound
-from repository.index import USER_LIMITS, Index, User, check_name, token_hash
+from repository.index import USER_LIMITS, Index, User, check_name, lock_users, token_hash
 from repository.reservations import rekey
 from repository.tables import identities, passwords, tokens, users, web_sessions
 
@@ -291,8 +291,7 @@ class Accounts:
         now = self.index.clock()
         base = usable_name(wanted)
         with self.index.begin() as db:
-            if db.dialect.name == "postgresql":  # the same lock as every new user's
-                db.execute(sa.text("SELECT pg_advisory_xact_lock(hashtext('labd:users'))"))
+            lock_users(db)
             found = db.execute(
                 sa.select(identities.c.user).where(
                     identities.c.issuer == issuer, identities.c.subject == subject

@@ -278,8 +278,7 @@ class Index:
         secret = "labd_" + secrets.token_urlsafe(24)
         now = self.clock()
         with self.begin() as db:
-            if db.dialect.name == "postgresql":  # SQLite's writers already take turns
-                db.execute(sa.text("SELECT pg_advisory_xact_lock(hashtext('labd:users'))"))
+            lock_users(db)
             if db.execute(sa.select(users.c.name).where(users.c.name == name)).first():
                 raise ArchiveError(f"user {name!r} exists already; choose another name")
             same = db.execute(
@@ -707,6 +706,13 @@ def to_trial(row: Any) -> Trial:
     values.pop("lease_until", None)
     values.pop("reward", None)  # the record's reward is its metrics'
     return Trial.model_validate(values)
+
+
+def lock_users(db: sa.Connection) -> None:
+    """Take the turn to add a user in this transaction: no two new names are checked
+    against the taken ones at once (SQLite's writers already take turns)."""
+    if db.dialect.name == "postgresql":
+        db.execute(sa.text("SELECT pg_advisory_xact_lock(hashtext('labd:users'))"))
 
 
 def check_name(name: str) -> None:

@@ -222,7 +222,9 @@ def peek_id(text: str | bytes) -> Id:
     return None
 
 
-def _explain(text: str | bytes, message: str) -> FrameError:
+def op_named(text: str | bytes) -> str | FrameError:
+    """The ``op`` of a frame that did not parse, or why it has none: not JSON, not an
+    object, no ``op``, or not a string (Foxglove's frames are JSON objects too)."""
     try:
         value = orjson.loads(text)
     except orjson.JSONDecodeError as err:
@@ -234,6 +236,13 @@ def _explain(text: str | bytes, message: str) -> FrameError:
         return FrameError("the frame has no 'op' field")
     if not isinstance(op, str):
         return FrameError(f"'op' must be a string, got {describe(op)}")
+    return op
+
+
+def _explain(text: str | bytes, message: str) -> FrameError:
+    op = op_named(text)
+    if isinstance(op, FrameError):
+        return op
     if op not in OP_NAMES:
         return FrameError(f"unknown op {op!r}; the ops are {', '.join(OP_NAMES)}", op)
     if m := _EXPECTED.match(message):

@@ -242,7 +242,6 @@ class BridgeServer:
                 asyncio.get_running_loop(),
                 conn,
                 client_id=next(self._ids),
-                subprotocol=ws.subprotocol,
                 info=foxglove.ServerInfo(f"labd {name}", f"{self._boot}-{name}"),
                 auth_required=required,
                 auth_optional=optional,

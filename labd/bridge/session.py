@@ -180,15 +180,22 @@ class Session:
                 f"{self.config.max_message_size}; it was dropped",
             )
             return
-        try:
-            op = frames.parse(data)
-        except FrameError as err:
-            self.report("error", str(err), frames.peek_id(data))
+        op = self.op_of(data)
+        if op is None:
             return
         if isinstance(op, Auth):
             self._late_auth(op)
             return
         self.dispatch(op)
+
+    def op_of(self, data: str | bytes) -> Op | None:
+        """The op a frame holds; None when there is none to dispatch (the frame was
+        refused, and the client told why)."""
+        try:
+            return frames.parse(data)
+        except FrameError as err:
+            self.report("error", str(err), frames.peek_id(data))
+            return None
 
     def capability(self, kind: type[CapT]) -> CapT:
         """This session's capability of the class ``kind``."""

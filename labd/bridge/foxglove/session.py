@@ -53,7 +53,7 @@ from labd.bridge.foxglove.wire import (
     UnsubscribeConnectionGraph,
     UnsubscribeParameterUpdates,
 )
-from labd.bridge.frames import Auth, Id
+from labd.bridge.frames import Id, Op
 from labd.bridge.ops.topics import Bucket
 from labd.bridge.outbox import _Entry
 from labd.bridge.render import OutFrame
@@ -105,14 +105,12 @@ class FoxgloveSession(Session):
         transport: Transport,
         *,
         client_id: int,
-        subprotocol: str,
         info: ServerInfo,
         auth_required: bool = False,
         auth_optional: bool = False,
         url_key: str | None = None,
         hold: Hold | None = None,
     ) -> None:
-        self.subprotocol = subprotocol
         self.time_sent = -1  # the graph time last sent (a Time frame), ns
         self._opened = False
         self._follow: TimerHandle | None = None
@@ -171,31 +169,17 @@ class FoxgloveSession(Session):
 
     # -- input --------------------------------------------------------------------------
 
-    def receive(self, data: str | bytes) -> None:
-        if self.closed:
-            return
-        if self.auth is not AuthState.OPEN:
-            self._receive_unauthorized(data)
-            return
-        if len(data) > self.config.max_message_size:
-            self.report(
-                "error",
-                f"a frame of {len(data)} bytes is over the limit of "
-                f"{self.config.max_message_size}; it was dropped",
-            )
-            return
+    def op_of(self, data: str | bytes) -> Op | None:
+        """A text frame's op; a binary frame (a message, a service call) is handled
+        here whole, and has none to dispatch."""
         try:
             if isinstance(data, bytes):
                 self._receive_binary(wire.parse_binary(data))
-                return
-            op = wire.parse_text(data)
+                return None
+            return wire.parse_text(data)
         except FrameError as err:
             self.report("error", str(err))
-            return
-        if isinstance(op, Auth):
-            self._late_auth(op)
-            return
-        self.dispatch(op)
+            return None
 
     def _receive_binary(self, frame: ClientData | ServiceRequest) -> None:
         try:

@@ -21,12 +21,10 @@ from dataclasses import dataclass
 from typing import Any
 
 import msgspec
-import orjson
 
-from labd.bridge.frames import Auth, Op
+from labd.bridge.frames import Auth, Op, op_named
 from labd.bridge.render import OutFrame
 from labd.errors import FrameError
-from labd.graph.codec import describe
 
 SDK = "foxglove.sdk.v1"  # the Foxglove SDK's servers, and so today's app
 WEBSOCKET = "foxglove.websocket.v1"  # the spec's name; @foxglove/ws-protocol's client
@@ -153,17 +151,9 @@ def parse_text(text: str | bytes) -> Op:
 
 
 def _explain(text: str | bytes, message: str) -> FrameError:
-    try:
-        value = orjson.loads(text)
-    except orjson.JSONDecodeError as err:
-        return FrameError(f"the frame is not JSON ({err.msg} at character {err.pos})")
-    if not isinstance(value, dict):
-        return FrameError(f"a frame must be a JSON object, got {describe(value)}")
-    op = value.get("op")
-    if op is None:
-        return FrameError("the frame has no 'op' field")
-    if not isinstance(op, str):
-        return FrameError(f"'op' must be a string, got {describe(op)}")
+    op = op_named(text)
+    if isinstance(op, FrameError):
+        return op
     if op not in OPS:
         return FrameError(f"{op!r} is not an op of Foxglove's protocol that the lab takes")
     # msgspec: "Expected `int`, got `str` - at `$.subscriptions[0].id`"

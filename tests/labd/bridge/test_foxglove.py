@@ -77,7 +77,6 @@ def fox(graph: Graph, timers: ManualTimers) -> Iterator[Callable[..., Fox]]:
             timers,
             transport,
             client_id=next(ids),
-            subprotocol=wire.SDK,
             info=ServerInfo("labd test", "boot-test"),
             **kwargs,
         )

@@ -126,7 +126,6 @@ def _run(registry, frames: list[str | bytes]) -> None:
                 timers,
                 RecordingTransport(),
                 client_id=i,
-                subprotocol=wire.SDK,
                 info=ServerInfo("fuzz", "fuzz"),
             )
             for i in (1, 2)
