@@ -11,6 +11,7 @@ from typing import Any
 import orjson
 import pytest
 from websockets.asyncio.client import ClientConnection, connect
+from websockets.typing import Subprotocol
 
 from labd.bridge.rosapi_view import VIEWS, Kind, View
 from labd.bridge.server import BridgeServer
@@ -294,3 +295,24 @@ async def test_a_client_without_a_namespace_sees_the_whole_graph(clients):
     assert await plain.call("/rosapi/action_servers") == {
         "action_servers": ["/away/kick", "/home/kick"]
     }
+
+
+async def test_a_side_asking_for_foxglove_is_served_rosbridge_only(match_graph):
+    """Foxglove's channels would list every topic of the graph, both sides' included: a
+    client of a side that offers Foxglove's protocol is answered without it (rosbridge,
+    whose rosapi keeps to its view); a client of the whole graph gets Foxglove's."""
+    bridge = BridgeServer(
+        {"home": match_graph, "plain": match_graph},
+        BridgeConfig(port=0),
+        namespaces={"home": Namespace("/home")},
+    )
+    await bridge.start()
+    try:
+        offer = [Subprotocol("foxglove.sdk.v1")]
+        async with connect(bridge.url("home"), subprotocols=offer) as side:
+            assert side.subprotocol is None
+        async with connect(bridge.url("plain"), subprotocols=offer) as whole:
+            assert whole.subprotocol == "foxglove.sdk.v1"
+            assert orjson.loads(await whole.recv())["op"] == "serverInfo"
+    finally:
+        await bridge.close()
